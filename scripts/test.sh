@@ -1,0 +1,34 @@
+#!/usr/bin/env bash
+# The project's test command (README "Tests", and .ci/run): installs what it needs on a fresh
+# machine, then runs every test.
+#   1. host tests (unit, parity with the PyTorch twin's golden files, fixed vs float on real pairs,
+#      streaming vs plain fixed-point engine, model files, CLI), optimised ([profile.test]);
+#   2. the library without std for thumbv7em-none-eabihf (Cortex-M4F/M7);
+#   3. the QEMU firmware in boards/ (bit-exact with the host), when the board crate exists.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+need_root() { if [ "$(id -u)" -eq 0 ]; then "$@"; else sudo "$@"; fi; }
+
+if ! rustup target list --installed | grep -q '^thumbv7em-none-eabihf$'; then
+    echo "== installing rust target thumbv7em-none-eabihf"
+    rustup target add thumbv7em-none-eabihf
+fi
+if [ -d boards/qemu-mps2 ] && ! command -v qemu-system-arm >/dev/null 2>&1; then
+    echo "== installing qemu-system-arm"
+    need_root apt-get update -qq
+    need_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq qemu-system-arm >/dev/null
+fi
+
+echo "== host tests"
+cargo test --all-targets --no-fail-fast 2>&1 | tee /tmp/muir-test.log
+cargo test --doc
+
+echo "== no_std build for thumbv7em-none-eabihf"
+cargo build --lib --target thumbv7em-none-eabihf --no-default-features
+
+if [ -x boards/qemu-mps2/run-tests.sh ]; then
+    echo "== Cortex-M firmware under QEMU"
+    boards/qemu-mps2/run-tests.sh
+fi
+echo "== all tests passed"

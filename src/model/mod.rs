@@ -1,0 +1,9 @@
+//! Model description: configuration presets and the table of layers.
+
+pub mod config;
+pub mod graph;
+pub mod layers;
+pub mod macs;
+
+pub use config::{Config, ConfigError};
+pub use layers::{ConvId, ConvShape, Norm};
