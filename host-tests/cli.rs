@@ -1,0 +1,344 @@
+//! The `muir` binary, run as a user would: outputs on a real pair, exit codes and messages on
+//! wrong input.
+//!
+//! Models are seeded (`float::seeded`), written to a scratch folder. The run on real data uses a
+//! 128x96 crop of Middlebury 2001 tsukuba from `../shared/data` and is skipped, with a note, when
+//! that folder is absent; the error cases use synthetic images.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use muir::float::seeded;
+use muir::float::weights::to_safetensors;
+use muir::input::PixelFormat;
+use muir::io::{OwnedImage, read_ground_truth, read_pfm, read_png, write_pfm, write_png};
+use muir::model::config::Config;
+
+const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data");
+
+/// A scratch folder, removed when dropped.
+struct Scratch(PathBuf);
+
+impl Scratch {
+    fn new(name: &str) -> Self {
+        let dir = std::env::temp_dir().join(format!("muir-cli-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        Self(dir)
+    }
+
+    fn path(&self, name: &str) -> PathBuf {
+        self.0.join(name)
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+fn muir(args: &[&dyn AsRef<std::ffi::OsStr>]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_muir")).args(args.iter().map(|a| a.as_ref())).output().unwrap()
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// Asserts a runtime failure: status 1 and an `error:` line holding every one of `needles`.
+fn assert_fails(o: &Output, needles: &[&str]) {
+    let err = stderr(o);
+    assert_eq!(o.status.code(), Some(1), "expected exit status 1, stderr:\n{err}");
+    assert!(err.starts_with("error: "), "stderr:\n{err}");
+    for n in needles {
+        assert!(err.contains(n), "stderr lacks '{n}':\n{err}");
+    }
+}
+
+/// Writes a seeded model of `config`; without `metadata` the file carries no config at all.
+fn write_model(dir: &Scratch, name: &str, config: &Config, metadata: bool) -> PathBuf {
+    let mut bytes = to_safetensors(&seeded::state_dict(config, 1), config, &[]).unwrap();
+    if !metadata {
+        bytes = strip_metadata(&bytes);
+    }
+    let path = dir.path(name);
+    std::fs::write(&path, bytes).unwrap();
+    path
+}
+
+/// Removes `__metadata__` from a safetensors header (data offsets are relative to the data block,
+/// so the data is kept as is).
+fn strip_metadata(bytes: &[u8]) -> Vec<u8> {
+    let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+    let mut header: serde_json::Value = serde_json::from_slice(&bytes[8..8 + n]).unwrap();
+    header.as_object_mut().unwrap().remove("__metadata__");
+    let mut h = serde_json::to_vec(&header).unwrap();
+    while h.len() % 8 != 0 {
+        h.push(b' ');
+    }
+    let mut out = (h.len() as u64).to_le_bytes().to_vec();
+    out.extend_from_slice(&h);
+    out.extend_from_slice(&bytes[8 + n..]);
+    out
+}
+
+/// A textured synthetic gray image.
+fn synthetic(width: usize, height: usize) -> OwnedImage {
+    let data = (0..width * height).map(|i| ((i % width) * 37 + (i / width) * 11) as u8).collect();
+    OwnedImage { width, height, format: PixelFormat::Gray8, data }
+}
+
+fn tsukuba() -> Option<(PathBuf, PathBuf)> {
+    let dir = Path::new(DATA).join("middlebury2001/tsukuba");
+    let (l, r) = (dir.join("left.png"), dir.join("right.png"));
+    if l.exists() && r.exists() {
+        Some((l, r))
+    } else {
+        println!("skipped: {} is absent (../shared not checked out)", dir.display());
+        None
+    }
+}
+
+#[test]
+fn run_on_a_real_pair() {
+    let Some((l, r)) = tsukuba() else { return };
+    let s = Scratch::new("run");
+    let (w, h) = (128, 96);
+    let crop = |p: &Path, name: &str| {
+        let im = read_png(p).unwrap();
+        assert_eq!((im.width, im.height), (384, 288));
+        let c = im.crop(128, 96, w, h).unwrap();
+        let out = s.path(name);
+        write_png(&out, &c).unwrap();
+        out
+    };
+    let (left, right) = (crop(&l, "left.png"), crop(&r, "right.png"));
+    // Ground truth of the crop as PFM (unknown = +inf).
+    let g = read_ground_truth(l.parent().unwrap()).unwrap();
+    let gt: Vec<f32> = (96..96 + h)
+        .flat_map(|y| g.data[y * g.width + 128..y * g.width + 128 + w].to_vec())
+        .map(|v| if v.is_finite() { v } else { f32::INFINITY })
+        .collect();
+    let gt_path = s.path("gt.pfm");
+    write_pfm(&gt_path, w, h, &gt).unwrap();
+    let model = write_model(&s, "slim.safetensors", &Config::MUIR_SLIM, true);
+    let (disp, unc, png, unc_png) = (s.path("d.pfm"), s.path("u.pfm"), s.path("d.png"), s.path("u.png"));
+    let o = muir(&[
+        &"run",
+        &"--model",
+        &model,
+        &"--left",
+        &left,
+        &"--right",
+        &right,
+        &"--iters",
+        &"3",
+        &"--engine",
+        &"float",
+        &"--disparity",
+        &disp,
+        &"--uncertainty",
+        &unc,
+        &"--png",
+        &png,
+        &"--uncertainty-png",
+        &unc_png,
+        &"--gt",
+        &gt_path,
+    ]);
+    let err = stderr(&o);
+    assert!(o.status.success(), "stderr:\n{err}");
+    println!("{err}");
+    assert!(err.contains("128x96") && err.contains("disparity min/median/max"), "{err}");
+
+    let d = read_pfm(&disp).unwrap();
+    assert_eq!((d.width, d.height, d.data.len()), (w, h, w * h));
+    assert!(d.data.iter().all(|v| v.is_finite()), "non-finite disparity");
+    // The reported EPE is the one of the written disparity against the ground truth.
+    let known: Vec<(f32, f32)> = d.data.iter().zip(&gt).filter(|(_, g)| g.is_finite()).map(|(a, b)| (*a, *b)).collect();
+    let epe = known.iter().map(|(a, b)| (a - b).abs() as f64).sum::<f64>() / known.len() as f64;
+    let want = format!("vs ground truth ({} known pixels): EPE {epe:.3} px", known.len());
+    assert!(err.contains(&want), "expected '{want}' in:\n{err}");
+    let u = read_pfm(&unc).unwrap();
+    assert_eq!((u.width, u.height), (w, h));
+    assert!(u.data.iter().all(|v| v.is_finite() && *v > 0.0), "predicted error must be finite and positive");
+    for p in [&png, &unc_png] {
+        let im = read_png(p).unwrap();
+        assert_eq!((im.width, im.height, im.format), (w, h, PixelFormat::Rgb8));
+    }
+}
+
+#[test]
+fn info_prints_config_and_counts() {
+    let s = Scratch::new("info");
+    let model = write_model(&s, "slim.safetensors", &Config::MUIR_SLIM, true);
+    let o = muir(&[&"info", &"--model", &model]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8_lossy(&o.stdout);
+    let n = seeded::state_dict(&Config::MUIR_SLIM, 1).len();
+    assert!(out.contains("\"name\":\"muir-slim\"") && out.contains(&format!("tensors: {n} (")), "{out}");
+
+    // A file without config metadata loads with --config and fails without it.
+    let bare = write_model(&s, "bare.safetensors", &Config::MUIR_SLIM, false);
+    let o = muir(&[&"info", &"--model", &bare, &"--config", &"muir-slim"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_fails(&muir(&[&"info", &"--model", &bare]), &["bare.safetensors", "no config metadata", "--config"]);
+    // ... and with the wrong preset, the tensors do not match.
+    assert_fails(&muir(&[&"info", &"--model", &bare, &"--config", &"muir-fast"]), &["bare.safetensors", "shape"]);
+}
+
+#[test]
+fn help_for_every_subcommand() {
+    for (args, needle) in
+        [(&["--help"][..], "run"), (&["run", "--help"], "--disparity"), (&["info", "--help"], "--model")]
+    {
+        let o = Command::new(env!("CARGO_BIN_EXE_muir")).args(args).output().unwrap();
+        assert!(o.status.success());
+        assert!(String::from_utf8_lossy(&o.stdout).contains(needle));
+    }
+}
+
+#[test]
+fn wrong_input_fails_with_a_message() {
+    let s = Scratch::new("errors");
+    let model = write_model(&s, "slim.safetensors", &Config::MUIR_SLIM, true);
+    let (left, right, small) = (s.path("l.png"), s.path("r.png"), s.path("small.png"));
+    write_png(&left, &synthetic(64, 48)).unwrap();
+    write_png(&right, &synthetic(64, 48)).unwrap();
+    write_png(&small, &synthetic(48, 48)).unwrap();
+    let disp = s.path("d.pfm");
+    let run = |model: &Path, left: &Path, right: &Path, extra: &[&str]| {
+        let mut args: Vec<&dyn AsRef<std::ffi::OsStr>> =
+            vec![&"run", &"--model", &model, &"--left", &left, &"--right", &right, &"--disparity", &disp];
+        args.extend(extra.iter().map(|a| a as &dyn AsRef<std::ffi::OsStr>));
+        muir(&args)
+    };
+
+    // Missing input file.
+    assert_fails(&run(&model, &s.path("nope.png"), &right, &[]), &["nope.png"]);
+    // Not a PNG.
+    let junk = s.path("junk.png");
+    std::fs::write(&junk, b"not a png at all").unwrap();
+    assert_fails(&run(&model, &left, &junk, &[]), &["junk.png", "PNG"]);
+    // Left and right sizes differ.
+    assert_fails(&run(&model, &left, &small, &[]), &["64x48", "48x48", "l.png"]);
+    // Output folder missing (caught before the network runs).
+    let o = run(&model, &left, &right, &["--png", s.path("no/such/dir/d.png").to_str().unwrap()]);
+    assert_fails(&o, &["d.png", "does not exist"]);
+    // Missing and truncated model files.
+    assert_fails(&run(&s.path("none.safetensors"), &left, &right, &[]), &["none.safetensors"]);
+    let bytes = std::fs::read(&model).unwrap();
+    let truncated = s.path("truncated.safetensors");
+    std::fs::write(&truncated, &bytes[..bytes.len() / 2]).unwrap();
+    assert_fails(&run(&truncated, &left, &right, &[]), &["truncated.safetensors", "not a valid safetensors"]);
+    // No config metadata and no --config.
+    let bare = write_model(&s, "bare.safetensors", &Config::MUIR_SLIM, false);
+    assert_fails(&run(&bare, &left, &right, &[]), &["bare.safetensors", "--config"]);
+    // --config disagrees with the file.
+    assert_fails(&run(&model, &left, &right, &["--config", "muir-fast"]), &["muir-slim", "muir-fast", "differs"]);
+    // --uncertainty from a model without MUD.
+    let rt = write_model(&s, "realtime.safetensors", &Config::RAFT_STEREO_REALTIME, true);
+    let unc = s.path("u.pfm");
+    let o = run(&rt, &left, &right, &["--uncertainty", unc.to_str().unwrap()]);
+    assert_fails(&o, &["raft-stereo-realtime", "uncertainty"]);
+    assert!(!disp.exists() && !unc.exists(), "no output may be written on failure");
+
+    // Ground truth of another size.
+    let gt = s.path("gt.pfm");
+    write_pfm(&gt, 48, 48, &[1.0; 48 * 48]).unwrap();
+    assert_fails(&run(&model, &left, &right, &["--gt", gt.to_str().unwrap()]), &["gt.pfm", "48x48", "64x48"]);
+
+    // The fixed engine needs a quantised model.
+    let o = run(&model, &left, &right, &["--engine", "fixed"]);
+    assert_fails(&o, &["slim.safetensors", "not a quantised muir model"]);
+
+    // Usage errors are clap's: status 2.
+    for extra in [&["--engine", "gpu"][..], &["--config", "no-such-preset"], &["--iters", "0"], &["--reject-above", "-1"]] {
+        let o = run(&model, &left, &right, extra);
+        assert_eq!(o.status.code(), Some(2), "{extra:?}: {}", stderr(&o));
+    }
+    let o = muir(&[&"run", &"--model", &model]);
+    assert_eq!(o.status.code(), Some(2));
+}
+
+#[test]
+fn quantize_then_run_fixed_with_rejection() {
+    let Some((l, r)) = tsukuba() else { return };
+    let s = Scratch::new("fixed");
+    let (w, h) = (96, 64);
+    let calib = s.path("calib");
+    std::fs::create_dir_all(&calib).unwrap();
+    let crop = |p: &Path, x: usize, out: PathBuf| {
+        write_png(&out, &read_png(p).unwrap().crop(x, 100, w, h).unwrap()).unwrap();
+        out
+    };
+    crop(&l, 20, calib.join("left.png"));
+    crop(&r, 20, calib.join("right.png"));
+    let left = crop(&l, 200, s.path("left.png"));
+    let right = crop(&r, 200, s.path("right.png"));
+    let model = write_model(&s, "slim.safetensors", &Config::MUIR_SLIM, true);
+    let (q, report) = (s.path("slim.muirq"), s.path("report.md"));
+    let o = muir(&[&"quantize", &"--model", &model, &"--calib", &calib, &"--out", &q, &"--report", &report]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(std::fs::read_to_string(&report).unwrap().contains("| corr |"));
+    let (disp, unc, png) = (s.path("d.pfm"), s.path("u.pfm"), s.path("d.png"));
+    let o = muir(&[
+        &"run", &"--engine", &"fixed", &"--model", &q, &"--left", &left, &"--right", &right, &"--disparity", &disp,
+        &"--uncertainty", &unc, &"--png", &png, &"--reject-above", &"1.0",
+    ]);
+    let err = stderr(&o);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("fixed engine") && err.contains("rejected"), "{err}");
+    let d = read_pfm(&disp).unwrap();
+    let u = read_pfm(&unc).unwrap();
+    assert_eq!((d.width, d.height), (w, h));
+    // rejected pixels are +inf exactly where the predicted error exceeds 1 px (the engine
+    // compares u in Q4.11, so allow the threshold's rounding)
+    for (dv, uv) in d.data.iter().zip(&u.data) {
+        if *uv > 1.001 {
+            assert!(dv.is_infinite(), "error {uv} px kept");
+        } else if *uv < 0.999 {
+            assert!(dv.is_finite(), "error {uv} px rejected");
+        }
+    }
+    assert!(read_png(&png).is_ok());
+    // quantised model + --config of another preset is refused
+    let o = muir(&[&"run", &"--engine", &"fixed", &"--model", &q, &"--config", &"muir-fast", &"--left", &left, &"--right", &right, &"--disparity", &disp]);
+    assert_fails(&o, &["muir-fast"]);
+}
+
+#[test]
+fn plan_prints_ram_per_preset() {
+    let o = muir(&[&"plan"]);
+    assert!(o.status.success());
+    let out = String::from_utf8_lossy(&o.stdout);
+    for c in ["muir-slim", "muir-fast", "raft-stereo-realtime"] {
+        for size in ["160x120", "320x240", "640x480"] {
+            assert!(out.lines().any(|l| l.contains(c) && l.contains(size)), "{c} {size}:\n{out}");
+        }
+    }
+    let o = muir(&[&"plan", &"--config", &"muir-slim", &"--size", &"64x48"]);
+    assert!(String::from_utf8_lossy(&o.stdout).contains("| muir-slim | 64x48 |"));
+    let o = muir(&[&"plan", &"--size", &"10x10"]);
+    assert_eq!(o.status.code(), Some(2));
+}
+
+#[test]
+fn macs_prints_a_table_per_preset() {
+    let o = muir(&[&"macs"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8_lossy(&o.stdout);
+    let header = out.lines().find(|l| l.starts_with("| stage |")).unwrap_or_else(|| panic!("no table:\n{out}"));
+    for c in ["muir-slim 320x240, 7 it", "muir-fast 320x240, 7 it", "raft-stereo-realtime 320x240, 7 it"] {
+        assert!(header.contains(c), "{c}:\n{out}");
+    }
+    // The totals are the library's, in G with three decimals.
+    let m = muir::model::macs::Macs::new(&Config::MUIR_SLIM, 160, 120, 2);
+    let o = muir(&[&"macs", &"--config", &"muir-slim", &"--size", &"160x120", &"--iters", &"2"]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    let want = format!("| **engine total** |  | {:.3} |", m.engine_total() as f64 / 1e9);
+    assert!(out.lines().any(|l| l == want), "{want}:\n{out}");
+    assert!(out.lines().any(|l| l.starts_with("| gru08 | ")), "{out}");
+    assert_eq!(muir(&[&"macs", &"--size", &"10x10"]).status.code(), Some(2));
+}

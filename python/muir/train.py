@@ -1,0 +1,529 @@
+"""Train the MUIR twin on synthetic stereo (muir.synth), on CPU or CUDA.
+
+    PYTHONPATH=python python -m muir.train --config muir-slim --out runs/slim --steps 10000 \\
+        --batch 4 --crop 160x384 --lr 2e-4
+    PYTHONPATH=python python -m muir.train --out runs/slim --resume      # continue after a stop
+
+Loss (paper Eq. 7, gamma = 0.9) over the N full-resolution predictions of forward(train_out=True)
+(index 0 = UFI initial disparity), prediction i weighted gamma^(N-1-i):
+    |d - gt| + u/2 + exp(-u/2) * clamp(|d.detach() - gt|, eps_min, eps_max)
+plus the mean of the same per-pixel loss over the 3 UFI candidates, weighted like prediction 0.
+Everything is averaged over valid GT pixels (finite, 0 <= gt < 512). The mask is binarised at random
+(Eq. 3, binarize_p = 0.5). AdamW + one-cycle (linear anneal), grad-norm clip 1.0.
+
+Run dir: ckpt_last.pt (model + optimizer + scheduler + step + RNG, for --resume), snapshot_XXXXXX.safetensors
+every --ckpt-every steps, log.csv, loss.png and, at the end, model.safetensors (with training info in the
+metadata). Progress goes to stderr. SIGINT/SIGTERM save a checkpoint before exiting.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime
+import json
+import math
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import torch
+import torch.nn as nn
+
+from .checkpoint import save_model
+from .config import PRESETS, Config, preset
+from .model import MUIR, MultiBasicEncoder
+from . import synth
+
+MAX_GT = 512.0
+
+
+# ------------------------------------------------------------------------------------------------
+# Data
+# ------------------------------------------------------------------------------------------------
+class SynthDataset(torch.utils.data.Dataset):
+    """Item i is synthetic sample i of stream `seed` (deterministic), as float tensors."""
+
+    def __init__(self, seed: int, h: int, w: int, length: int):
+        self.seed, self.h, self.w, self.length = seed, h, w, length
+
+    def __len__(self):
+        return self.length
+
+    def __getitem__(self, i):
+        s = synth.sample(self.seed, int(i), self.h, self.w)
+        left = torch.from_numpy(s["left"]).permute(2, 0, 1).float()
+        right = torch.from_numpy(s["right"]).permute(2, 0, 1).float()
+        disp = torch.from_numpy(s["disp"])[None]
+        return left, right, disp
+
+
+class RangeSampler(torch.utils.data.Sampler):
+    """Indices start, start+1, ..., end-1: step k always sees samples k*B .. k*B+B-1, so a resumed run
+    sees the same data as an uninterrupted one."""
+
+    def __init__(self, start: int, end: int):
+        self.start, self.end = start, end
+
+    def __iter__(self):
+        return iter(range(self.start, self.end))
+
+    def __len__(self):
+        return self.end - self.start
+
+
+def _worker_init(_):
+    torch.set_num_threads(1)
+    import cv2
+
+    cv2.setNumThreads(1)
+    synth.photo_pool()  # load the texture photographs once per worker
+
+
+# ------------------------------------------------------------------------------------------------
+# Loss
+# ------------------------------------------------------------------------------------------------
+def pixel_loss(d, u, gt, cfg: Config):
+    """Per-pixel Eq. 7 term: L1 + constrained Laplacian NLL (d detached inside L^u)."""
+    err = (d - gt).abs()
+    if u is None:
+        return err
+    e = (d.detach() - gt).abs().clamp(cfg.eps_min, cfg.eps_max)
+    return err + u / 2 + torch.exp(-u / 2) * e
+
+
+def sequence_loss(out, gt, valid, cfg: Config, gamma: float = 0.9):
+    """Returns (loss, metrics dict). out: forward(train_out=True); gt, valid: (B,1,H,W)."""
+    preds, us = out["disp"], out["u"]
+    n = len(preds)
+    vf = valid.float()
+    denom = vf.sum().clamp(min=1.0)
+    gt0 = torch.where(valid, gt, torch.zeros_like(gt))  # keep inf/nan out of the graph
+
+    def masked_mean(x):
+        return (x * vf).sum() / denom
+
+    total = 0.0
+    for i, d in enumerate(preds):
+        u = us[i] if us is not None else None
+        total = total + gamma ** (n - 1 - i) * masked_mean(pixel_loss(d, u, gt0, cfg))
+    cand = 0.0
+    if out.get("cand_disp") is not None:
+        cd, cu = out["cand_disp"], out["cand_u"]
+        k = cd.shape[1]
+        cand = sum(masked_mean(pixel_loss(cd[:, j : j + 1], cu[:, j : j + 1], gt0, cfg)) for j in range(k)) / k
+        total = total + gamma ** (n - 1) * cand
+    with torch.no_grad():
+        err = (preds[-1] - gt0).abs()
+        m = {
+            "epe": masked_mean(err).item(),
+            "epe0": masked_mean((preds[0] - gt0).abs()).item(),
+            "bad1": masked_mean((err > 1).float()).item(),
+            "bad3": masked_mean((err > 3).float()).item(),
+        }
+        if us is not None:
+            m["pred_err"] = masked_mean(torch.exp(us[-1] / 2)).item()  # mean predicted error (px)
+        if out.get("cand_disp") is not None:
+            m["cand"] = float(cand)
+    return total, m
+
+
+# ------------------------------------------------------------------------------------------------
+# Model set-up
+# ------------------------------------------------------------------------------------------------
+def init_weights(model: MUIR):
+    """RAFT-Stereo's initialisation of the context/feature encoder (MultiBasicEncoder): Kaiming-normal
+    (fan_out, relu) convolutions, unit/zero norm affine. Other modules keep PyTorch defaults (as in
+    RAFT-Stereo). BatchNorm stays frozen at its initial statistics (the twin's train() freezes it)."""
+    for mod in model.modules():
+        if isinstance(mod, MultiBasicEncoder):
+            for m in mod.modules():
+                if isinstance(m, nn.Conv2d):
+                    nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+                    if m.bias is not None:
+                        nn.init.zeros_(m.bias)
+                elif isinstance(m, (nn.BatchNorm2d, nn.InstanceNorm2d)):
+                    if m.weight is not None:
+                        nn.init.ones_(m.weight)
+                    if m.bias is not None:
+                        nn.init.zeros_(m.bias)
+
+
+class ThreadTuner:
+    """Picks the torch thread count at run time (--threads auto). On a shared machine a nice'd run with
+    2 OpenMP threads stalls when one core is taken by another job: the team waits at every barrier for
+    the starved thread (measured 10.7 s/step vs 1.8 s idle). Now and then it runs `probe` steps with the
+    other candidate count and keeps whichever had the lower median step time; the interval between
+    probes starts at `period` steps and doubles (up to 8x) while probes lose."""
+
+    def __init__(self, max_threads: int, period: int = 60, probe: int = 6):
+        self.cands = sorted({1, max(1, max_threads)}, reverse=True)
+        self.main = self.cands[0]
+        self.period, self.probe = period, probe
+        self.times = {c: [] for c in self.cands}
+        self.probe_times = []
+        self.n = 0
+        self.probing = None
+        self.interval = period
+        self.next_probe = period
+        torch.set_num_threads(self.main)
+
+    @property
+    def current(self) -> int:
+        return self.probing if self.probing is not None else self.main
+
+    def record(self, dt: float):
+        if len(self.cands) < 2:
+            return
+        self.n += 1
+        if self.probing is not None:
+            self.probe_times.append(dt)
+            if len(self.probe_times) >= self.probe:
+                alt = float(np.median(self.probe_times[1:]))  # first probe step: warm-up
+                cur = float(np.median(self.times[self.main][-20:])) if self.times[self.main] else float("inf")
+                if alt < cur:
+                    self.times[self.probing] = list(self.probe_times[1:])
+                    self.main = self.probing
+                    self.interval = self.period
+                else:  # a losing probe costs time: probe less often while the choice holds
+                    self.interval = min(8 * self.period, 2 * self.interval)
+                self.next_probe = self.n + self.interval
+                self.probing = None
+                self.probe_times = []
+                torch.set_num_threads(self.main)
+            return
+        self.times[self.main].append(dt)
+        if self.n >= self.next_probe:
+            self.probing = next(c for c in self.cands if c != self.main)
+            torch.set_num_threads(self.probing)
+
+
+def git_commit() -> str:
+    try:
+        here = os.path.dirname(os.path.abspath(__file__))
+        r = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10)
+        c = r.stdout.strip()
+        d = subprocess.run(["git", "status", "--porcelain"], cwd=here, capture_output=True, text=True, timeout=10)
+        return c + ("-dirty" if d.stdout.strip() else "") if c else "unknown"
+    except Exception:
+        return "unknown"
+
+
+def parse_hw(s: str):
+    try:
+        h, w = (int(v) for v in s.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected HxW, got {s!r}")
+    if h % 16 or w % 16 or h <= 0 or w <= 0:
+        raise argparse.ArgumentTypeError(f"crop sides must be positive multiples of 16, got {s}")
+    return h, w
+
+
+# ------------------------------------------------------------------------------------------------
+# Logging helpers
+# ------------------------------------------------------------------------------------------------
+CSV_FIELDS = ["step", "lr", "loss", "epe", "epe0", "bad1", "bad3", "pred_err", "cand", "step_s", "data_s", "time"]
+
+
+def plot_curves(csv_path: str, png_path: str):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = list(csv.DictReader(open(csv_path)))
+    if not rows:
+        return
+    step = np.array([float(r["step"]) for r in rows])
+
+    def col(k):
+        return np.array([float(r[k]) if r.get(k) not in (None, "") else np.nan for r in rows])
+
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4))
+    for k in ("loss",):
+        ax[0].plot(step, col(k), label=k)
+    ax[0].set_yscale("log")
+    ax[0].set_title("training loss (Eq. 7 + candidates)")
+    for k in ("epe", "epe0", "pred_err"):
+        ax[1].plot(step, col(k), label=k)
+    ax[1].set_yscale("log")
+    ax[1].set_title("EPE (final, initial) and mean predicted error exp(u/2), px")
+    ax[1].legend()
+    for k in ("bad1", "bad3"):
+        ax[2].plot(step, 100 * col(k), label=k)
+    ax[2].set_title("bad pixels, % (final prediction)")
+    ax[2].legend()
+    for a in ax:
+        a.set_xlabel("step")
+        a.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(png_path, dpi=90)
+    plt.close(fig)
+
+
+def fmt_time(s: float) -> str:
+    s = int(max(s, 0))
+    return f"{s // 3600}h{(s % 3600) // 60:02d}m" if s >= 3600 else f"{s // 60}m{s % 60:02d}s"
+
+
+# ------------------------------------------------------------------------------------------------
+# Main
+# ------------------------------------------------------------------------------------------------
+SCHEDULE_KEYS = ("config", "steps", "batch", "crop", "lr", "wd", "pct_start", "seed", "gamma", "binarize_p", "iters")
+
+
+def build_parser():
+    p = argparse.ArgumentParser(prog="python -m muir.train", description="Train the MUIR twin on synthetic stereo.")
+    p.add_argument("--config", default="muir-slim", choices=sorted(PRESETS))
+    p.add_argument("--out", required=True, help="run directory (checkpoints, logs, final model)")
+    p.add_argument("--steps", type=int, default=10000)
+    p.add_argument("--batch", type=int, default=4)
+    p.add_argument("--crop", type=parse_hw, default=(160, 384), help="HxW, multiples of 16")
+    p.add_argument("--lr", type=float, default=2e-4, help="one-cycle maximum")
+    p.add_argument("--wd", type=float, default=1e-5)
+    p.add_argument("--pct-start", type=float, default=0.03, help="warm-up fraction of the one-cycle schedule")
+    p.add_argument("--gamma", type=float, default=0.9, help="sequence loss decay")
+    p.add_argument("--binarize-p", type=float, default=0.5, help="mask binarisation probability (Eq. 3)")
+    p.add_argument("--iters", type=int, default=None, help="refinement iterations (default: the config's)")
+    p.add_argument("--clip", type=float, default=1.0, help="gradient-norm clip")
+    p.add_argument("--seed", type=int, default=1234, help="seed of the synthetic stream and of torch")
+    p.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto")
+    p.add_argument("--workers", type=int, default=1, help="data-loader processes (0: in the main process)")
+    p.add_argument("--threads", default="0",
+                   help="torch intra-op threads: N, 0 (torch default) or auto (switch between the default "
+                        "and 1 by measured step time; for machines shared with other jobs)")
+    p.add_argument("--ckpt-every", type=int, default=500, help="steps between checkpoints/snapshots")
+    p.add_argument("--log-every", type=int, default=10, help="steps between progress lines / CSV rows")
+    p.add_argument("--resume", nargs="?", const="auto", default=None,
+                   help="continue from OUT/ckpt_last.pt (or the given checkpoint)")
+    p.add_argument("--init", default=None, help="start from these weights (.safetensors or ckpt .pt)")
+    return p
+
+
+def main(argv=None):
+    args = build_parser().parse_args(argv)
+    cmdline = "python -m muir.train " + " ".join(sys.argv[1:] if argv is None else argv)
+    os.makedirs(args.out, exist_ok=True)
+    ckpt_path = os.path.join(args.out, "ckpt_last.pt")
+
+    state = None
+    if args.resume:
+        path = ckpt_path if args.resume == "auto" else args.resume
+        if not os.path.exists(path):
+            print(f"error: --resume: no checkpoint at {path}", file=sys.stderr)
+            return 2
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        # The schedule is part of the run: keep the stored values, say so if the command differs.
+        stored = state["args"]
+        for k in SCHEDULE_KEYS:
+            if k not in stored:
+                continue
+            v = tuple(stored[k]) if k == "crop" else stored[k]
+            if getattr(args, k) != v:
+                print(f"note: --resume keeps {k}={v} (command said {getattr(args, k)})", file=sys.stderr)
+            setattr(args, k, v)
+
+    tuner = None
+    if args.threads == "auto":
+        tuner = ThreadTuner(torch.get_num_threads())
+    elif args.threads.isdigit():
+        if int(args.threads) > 0:
+            torch.set_num_threads(int(args.threads))
+    else:
+        print(f"error: --threads must be a number or auto, got {args.threads}", file=sys.stderr)
+        return 2
+    if args.device == "auto":
+        args.device = "cuda" if torch.cuda.is_available() else "cpu"
+    dev = torch.device(args.device)
+
+    cfg = preset(args.config)
+    if state is not None and state.get("config_json"):
+        cfg = Config.from_json(state["config_json"])
+    iters = args.iters or cfg.iters
+    torch.manual_seed(args.seed)
+    model = MUIR(cfg)
+    init_weights(model)
+    if args.init and state is None:
+        if args.init.endswith(".safetensors"):
+            from safetensors.torch import load_file
+
+            model.load_state_dict(load_file(args.init), strict=True)
+        else:
+            model.load_state_dict(torch.load(args.init, map_location="cpu", weights_only=False)["model"], strict=True)
+    model.to(dev).train()
+    opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.wd, betas=(0.9, 0.999), eps=1e-8)
+    sched = torch.optim.lr_scheduler.OneCycleLR(
+        opt, max_lr=args.lr, total_steps=args.steps, pct_start=args.pct_start,
+        cycle_momentum=False, anneal_strategy="linear",
+    )
+    step = 0
+    if state is not None:
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        sched.load_state_dict(state["scheduler"])
+        step = int(state["step"])
+        torch.set_rng_state(state["rng"]["torch"])
+        np.random.set_state(state["rng"]["numpy"])
+        random.setstate(state["rng"]["python"])
+        if dev.type == "cuda" and state["rng"].get("cuda") is not None:
+            torch.cuda.set_rng_state(state["rng"]["cuda"])
+        print(f"resumed from step {step}", file=sys.stderr)
+    if step >= args.steps:
+        print(f"nothing to do: step {step} >= --steps {args.steps}", file=sys.stderr)
+
+    h, w = args.crop
+    n_params = sum(p.numel() for p in model.parameters())
+    print(f"{cfg.name}: {n_params / 1e6:.2f} M parameters, {iters} iterations, device {dev}, "
+          f"{torch.get_num_threads()} threads; {args.steps} steps of {args.batch}x{h}x{w}, lr {args.lr}",
+          file=sys.stderr)
+    with open(os.path.join(args.out, "args.json"), "w") as f:
+        json.dump({**vars(args), "command": cmdline, "config_json": cfg.to_json()}, f, indent=1)
+
+    def save_ckpt(step_now):
+        st = {
+            "model": model.state_dict(),
+            "optimizer": opt.state_dict(),
+            "scheduler": sched.state_dict(),
+            "step": step_now,
+            "args": {k: getattr(args, k) for k in SCHEDULE_KEYS},
+            "config_json": cfg.to_json(),
+            "rng": {
+                "torch": torch.get_rng_state(),
+                "numpy": np.random.get_state(),
+                "python": random.getstate(),
+                "cuda": torch.cuda.get_rng_state() if dev.type == "cuda" else None,
+            },
+        }
+        tmp = ckpt_path + ".tmp"
+        torch.save(st, tmp)
+        os.replace(tmp, ckpt_path)  # atomic: a kill during the save leaves the previous checkpoint
+
+    meta_base = {
+        "command": cmdline,
+        "git_commit": git_commit(),
+        "train_data": "muir.synth (synthetic layered scenes), seed %d" % args.seed,
+        "crop": f"{h}x{w}",
+        "batch": str(args.batch),
+        "lr": str(args.lr),
+        "total_steps": str(args.steps),
+    }
+
+    def export(path, step_now, last=None):
+        meta = dict(meta_base, steps=str(step_now), date=datetime.datetime.now().astimezone().isoformat(timespec="seconds"))
+        if last:
+            meta["train_metrics"] = json.dumps(last)
+        model_cpu_state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+        m2 = MUIR(cfg)
+        m2.load_state_dict(model_cpu_state)
+        save_model(m2, path, extra_meta=meta)
+
+    stop = {"flag": False}
+
+    def on_signal(signum, _frame):
+        stop["flag"] = True
+        print(f"signal {signum}: stopping after this step", file=sys.stderr)
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+
+    ds = SynthDataset(args.seed, h, w, length=args.steps * args.batch)
+    loader = torch.utils.data.DataLoader(
+        ds, batch_size=args.batch, sampler=RangeSampler(step * args.batch, args.steps * args.batch),
+        num_workers=args.workers, worker_init_fn=_worker_init if args.workers > 0 else None,
+        pin_memory=dev.type == "cuda", drop_last=True, persistent_workers=False,
+        prefetch_factor=4 if args.workers > 0 else None,
+    )
+    if args.workers == 0:
+        synth.photo_pool()
+
+    csv_path = os.path.join(args.out, "log.csv")
+    kept_rows = []
+    if state is not None and os.path.exists(csv_path):
+        # Rows logged after the checkpoint we resume from will be logged again: drop them.
+        kept_rows = [r for r in csv.DictReader(open(csv_path)) if int(r["step"]) <= step]
+    csv_f = open(csv_path, "w", newline="")
+    writer = csv.DictWriter(csv_f, fieldnames=CSV_FIELDS, extrasaction="ignore")
+    writer.writeheader()
+    writer.writerows(kept_rows)
+
+    acc, n_acc, t_acc, d_acc = {}, 0, 0.0, 0.0
+    bad_steps = 0
+    last = {}
+    t_start = time.time()
+    steps_at_start = step
+    t_data0 = time.time()
+    for left, right, gt in loader:
+        t_data = time.time() - t_data0
+        t0 = time.time()
+        left, right, gt = (x.to(dev, non_blocking=True) for x in (left, right, gt))
+        valid = torch.isfinite(gt) & (gt >= 0) & (gt < MAX_GT)
+        out = model(left, right, iters=iters, train_out=True, binarize_p=args.binarize_p)
+        loss, m = sequence_loss(out, gt, valid, cfg, args.gamma)
+        opt.zero_grad(set_to_none=True)
+        if not torch.isfinite(loss):
+            bad_steps += 1
+            print(f"step {step}: non-finite loss, skipped ({bad_steps} so far)", file=sys.stderr)
+            if bad_steps > 20:
+                print("error: too many non-finite losses", file=sys.stderr)
+                save_ckpt(step)
+                return 3
+        else:
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), args.clip)
+            opt.step()
+        lr_used = opt.param_groups[0]["lr"]
+        sched.step()  # one schedule step per data step, skipped or not, to stay aligned with the data
+        step += 1
+        t_step = time.time() - t0
+        if tuner is not None:
+            tuner.record(t_step)
+        m["loss"] = loss.item()
+        for k, v in m.items():
+            acc[k] = acc.get(k, 0.0) + v
+        n_acc += 1
+        t_acc += t_step
+        d_acc += t_data
+
+        if step % args.log_every == 0 or step == args.steps:
+            avg = {k: v / n_acc for k, v in acc.items()}
+            sps = (step - steps_at_start) / (time.time() - t_start)
+            eta = (args.steps - step) / max(sps, 1e-9)
+            row = {"step": step, "lr": f"{lr_used:.3e}", "step_s": f"{t_acc / n_acc:.3f}",
+                   "data_s": f"{d_acc / n_acc:.3f}", "time": f"{time.time():.0f}"}
+            row.update({k: f"{v:.5g}" for k, v in avg.items()})
+            writer.writerow(row)
+            csv_f.flush()
+            print(f"step {step}/{args.steps} loss {avg['loss']:.3f} epe {avg['epe']:.3f} (init {avg['epe0']:.3f}) "
+                  f"bad1 {100 * avg['bad1']:.1f}% pred_err {avg.get('pred_err', float('nan')):.2f} "
+                  f"lr {lr_used:.2e} | {t_acc / n_acc:.2f}s/step data {d_acc / n_acc:.3f}s "
+                  f"{sps:.3f} steps/s ETA {fmt_time(eta)} [{torch.get_num_threads()} thr]", file=sys.stderr, flush=True)
+            last = {k: round(v, 5) for k, v in avg.items()}
+            acc, n_acc, t_acc, d_acc = {}, 0, 0.0, 0.0
+
+        if step % args.ckpt_every == 0 or step == args.steps or stop["flag"]:
+            save_ckpt(step)
+            if step % args.ckpt_every == 0:
+                export(os.path.join(args.out, f"snapshot_{step:06d}.safetensors"), step, last)
+            try:
+                plot_curves(csv_path, os.path.join(args.out, "loss.png"))
+            except Exception as e:  # plotting must never kill a run
+                print(f"warning: loss plot failed: {e}", file=sys.stderr)
+        if stop["flag"]:
+            print(f"stopped at step {step}; continue with --resume", file=sys.stderr)
+            csv_f.close()
+            return 130
+        t_data0 = time.time()
+
+    csv_f.close()
+    if step >= args.steps:
+        final = os.path.join(args.out, "model.safetensors")
+        export(final, step, last)
+        print(f"done: {step} steps in {fmt_time(time.time() - t_start)}; wrote {final}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,631 @@
+//! `muir`: run the MUIR stereo network on image pairs and inspect model files.
+//!
+//! Runtime failures (unreadable files, bad model files, mismatched images) print
+//! `error: <message>` to stderr and exit with status 1; usage errors are clap's (status 2).
+
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use muir::calib::{CalibOptions, RangeMethod, calibrate};
+use muir::engine::{Output, REJECTED, reject, u_threshold};
+use muir::float::weights::{ParamData, config_to_json, parse_safetensors};
+use muir::float::{FloatModel, FloatWeights};
+use muir::format::QuantModel;
+use muir::input::{ImageView, check_pair};
+use muir::io::{colourise_disparity, colourise_uncertainty, read_disparity_file, read_png, write_pfm, write_png};
+use muir::model::config::Config;
+
+/// MUIR stereo matching: disparity and predicted error from a rectified image pair.
+#[derive(Parser, Debug)]
+#[command(name = "muir", version, propagate_version = true)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Computes the left-view disparity (and predicted error) of a rectified stereo pair.
+    Run(RunArgs),
+    /// Prints a model file's config and tensor counts, and checks its tensors against the config.
+    Info(InfoArgs),
+    /// Quantises a float model with calibration pairs into a fixed-point model (.muirq).
+    Quantize(QuantizeArgs),
+    /// Prints the static working memory (RAM) of the fixed-point engine per config and size.
+    Plan(PlanArgs),
+    /// Prints multiply-accumulates per frame by stage (Markdown table), per config and size.
+    Macs(MacsArgs),
+}
+
+/// The model file and its config.
+#[derive(Args, Debug)]
+struct ModelArgs {
+    /// Model file: safetensors (float engine, as written by the PyTorch twin) or .muirq (fixed
+    /// engine). Default: the shipped models/muir-slim.safetensors or models/muir-slim.muirq.
+    #[arg(long, value_name = "M.safetensors")]
+    model: Option<PathBuf>,
+    /// Config preset (raft-stereo-realtime, muir-fast, muir-slim) for files without config
+    /// metadata; if the file has one, the two must agree.
+    #[arg(long, value_name = "NAME", value_parser = parse_preset)]
+    config: Option<Config>,
+}
+
+impl ModelArgs {
+    /// The model file named on the command line, else the shipped muir-slim model for `engine`.
+    fn path(&self, engine: Engine) -> PathBuf {
+        self.model.clone().unwrap_or_else(|| {
+            PathBuf::from(match engine {
+                Engine::Float => "models/muir-slim.safetensors",
+                Engine::Fixed => "models/muir-slim.muirq",
+            })
+        })
+    }
+}
+
+/// Which implementation computes the network.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum Engine {
+    /// The f32 host reference (model: .safetensors).
+    Float,
+    /// The fixed-point engine, as on the device (model: .muirq).
+    Fixed,
+}
+
+#[derive(Args, Debug)]
+struct RunArgs {
+    #[command(flatten)]
+    model: ModelArgs,
+    /// Left (reference) image, PNG (8/16-bit gray, RGB, RGBA or palette).
+    #[arg(long, value_name = "L.png")]
+    left: PathBuf,
+    /// Right image, PNG, same size as the left one.
+    #[arg(long, value_name = "R.png")]
+    right: PathBuf,
+    /// Update iterations (default: the config's).
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1000))]
+    iters: Option<u32>,
+    /// Engine computing the network.
+    #[arg(long, value_enum, default_value_t = Engine::Float)]
+    engine: Engine,
+    /// Output: left-view disparity in pixels, full resolution, PFM.
+    #[arg(long, value_name = "OUT.pfm")]
+    disparity: PathBuf,
+    /// Output: predicted error exp(u/2) in pixels, PFM (models with MUD only).
+    #[arg(long, value_name = "OUT.pfm")]
+    uncertainty: Option<PathBuf>,
+    /// Output: colourised disparity preview (turbo, far blue to near red), PNG.
+    #[arg(long, value_name = "OUT.png")]
+    png: Option<PathBuf>,
+    /// Output: colourised predicted-error preview (log scale), PNG (models with MUD only).
+    #[arg(long, value_name = "OUT.png")]
+    uncertainty_png: Option<PathBuf>,
+    /// Rejects pixels whose predicted error exp(u/2) exceeds TAU pixels: +inf in the disparity
+    /// PFM, black in the PNG (models with MUD only). Without it nothing is rejected.
+    #[arg(long, value_name = "TAU", value_parser = parse_tau)]
+    reject_above: Option<f32>,
+    /// Ground-truth left-view disparity (PFM, or 8/16-bit PNG / PGM with 0 = unknown) to score the
+    /// result against: EPE and bad-2.0 over known pixels (and over kept pixels with --reject-above).
+    #[arg(long, value_name = "GT.png")]
+    gt: Option<PathBuf>,
+    /// Divisor of integer ground-truth values (4 for Middlebury 2003 quarter size, 256 for KITTI).
+    #[arg(long, value_name = "S", default_value_t = 1.0, requires = "gt", value_parser = parse_tau)]
+    gt_scale: f32,
+}
+
+#[derive(Args, Debug)]
+struct QuantizeArgs {
+    /// Float model (safetensors).
+    #[arg(long, value_name = "M.safetensors")]
+    model: PathBuf,
+    /// Config preset for files without config metadata.
+    #[arg(long, value_name = "NAME", value_parser = parse_preset)]
+    config: Option<Config>,
+    /// Calibration pair folders, each holding left.png and right.png (repeatable).
+    #[arg(long = "calib", value_name = "DIR", required = true)]
+    calib: Vec<PathBuf>,
+    /// Crop each calibration pair to at most W x H (top-left corner), e.g. 320x240.
+    #[arg(long, value_name = "WxH", value_parser = parse_size)]
+    max_size: Option<(usize, usize)>,
+    /// Range rule: percentile (of the magnitudes) or minmax.
+    #[arg(long, value_enum, default_value_t = Method::Percentile)]
+    method: Method,
+    /// Percentile for --method percentile.
+    #[arg(long, default_value_t = 99.99)]
+    percentile: f64,
+    /// Output: quantised model.
+    #[arg(long, value_name = "OUT.muirq")]
+    out: PathBuf,
+    /// Output: per-slot and per-layer calibration report (Markdown).
+    #[arg(long, value_name = "REPORT.md")]
+    report: Option<PathBuf>,
+}
+
+/// Range rule of calibration.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum Method {
+    /// A percentile of the observed magnitudes.
+    Percentile,
+    /// The largest observed magnitude.
+    Minmax,
+}
+
+#[derive(Args, Debug)]
+struct PlanArgs {
+    /// Configs (default: all presets).
+    #[arg(long = "config", value_name = "NAME", value_parser = parse_preset)]
+    configs: Vec<Config>,
+    /// Input sizes (default: 160x120 320x240 640x480).
+    #[arg(long = "size", value_name = "WxH", value_parser = parse_size)]
+    sizes: Vec<(usize, usize)>,
+}
+
+#[derive(Args, Debug)]
+struct MacsArgs {
+    /// Configs (default: all presets).
+    #[arg(long = "config", value_name = "NAME", value_parser = parse_preset)]
+    configs: Vec<Config>,
+    /// Input sizes (default: 320x240).
+    #[arg(long = "size", value_name = "WxH", value_parser = parse_size)]
+    sizes: Vec<(usize, usize)>,
+    /// Update iterations (default: the config's).
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(0..=1000))]
+    iters: Option<u32>,
+}
+
+#[derive(Args, Debug)]
+struct InfoArgs {
+    #[command(flatten)]
+    model: ModelArgs,
+}
+
+fn parse_preset(name: &str) -> Result<Config, String> {
+    Config::preset(name).map_err(|e| e.to_string())
+}
+
+fn parse_tau(s: &str) -> Result<f32, String> {
+    match s.parse::<f32>() {
+        Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+        _ => Err(format!("'{s}' is not a positive number of pixels")),
+    }
+}
+
+fn parse_size(s: &str) -> Result<(usize, usize), String> {
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("'{s}' is not WxH"))?;
+    match (w.parse::<usize>(), h.parse::<usize>()) {
+        (Ok(w), Ok(h)) if w >= Config::MIN_SIDE && h >= Config::MIN_SIDE => Ok((w, h)),
+        _ => Err(format!("'{s}' is not WxH with both sides >= {}", Config::MIN_SIDE)),
+    }
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Run(args) => run(&args),
+        Command::Info(args) => info(&args),
+        Command::Quantize(args) => quantize(&args),
+        Command::Plan(args) => plan(&args),
+        Command::Macs(args) => macs(&args),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(message) => {
+            eprintln!("error: {message}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// A model file's tensors and the config they are checked against.
+struct LoadedModel {
+    weights: FloatWeights,
+    tensors: usize,
+    values: usize,
+    bytes: usize,
+}
+
+fn load_model(args: &ModelArgs) -> Result<LoadedModel, String> {
+    let path = &args.path(Engine::Float);
+    let at = |e: &dyn std::fmt::Display| format!("{}: {e}", path.display());
+    let bytes = std::fs::read(path).map_err(|e| at(&e))?;
+    let file = parse_safetensors(&bytes).map_err(|e| at(&e))?;
+    let config = match (file.config, args.config) {
+        (Some(found), Some(named)) if found != named => {
+            let how = if found.name == named.name { " (same name, different fields)" } else { "" };
+            return Err(format!(
+                "{}: the file's config '{}' differs from --config {}{how}",
+                path.display(),
+                found.name,
+                named.name
+            ));
+        }
+        (Some(c), _) | (None, Some(c)) => c,
+        (None, None) => return Err(at(&muir::float::WeightError::NoConfig)),
+    };
+    let tensors = file.tensors.len();
+    let values = file
+        .tensors
+        .values()
+        .map(|p| match &p.data {
+            ParamData::F32(v) => v.len(),
+            ParamData::I64(v) => v.len(),
+        })
+        .sum();
+    let weights = FloatWeights::from_state_dict(file.tensors, &config).map_err(|e| at(&e))?;
+    Ok(LoadedModel { weights, tensors, values, bytes: bytes.len() })
+}
+
+/// A prediction in real units, whichever engine made it.
+struct Prediction {
+    width: usize,
+    height: usize,
+    /// Disparity in pixels.
+    disparity: Vec<f32>,
+    /// Predicted error exp(u/2) in pixels, if the model has MUD.
+    error_px: Option<Vec<f32>>,
+    /// Disparity in pixels before rejection.
+    raw_disparity: Vec<f32>,
+    /// Pixels rejected by --reject-above.
+    rejected: Option<usize>,
+}
+
+fn run(args: &RunArgs) -> Result<(), String> {
+    let outputs = [Some(&args.disparity), args.uncertainty.as_ref(), args.png.as_ref(), args.uncertainty_png.as_ref()];
+    for path in outputs.into_iter().flatten() {
+        check_output(path)?;
+    }
+    let path = &args.model.path(args.engine);
+    let (config, engine) = match args.engine {
+        Engine::Float => {
+            let loaded = load_model(&args.model)?;
+            (loaded.weights.config, Loaded::Float(Box::new(FloatModel::new(loaded.weights))))
+        }
+        Engine::Fixed => {
+            let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
+            let config = *QuantModel::parse(&bytes).map_err(|e| format!("{}: {e}", path.display()))?.config();
+            if let Some(named) = args.model.config {
+                if named != config {
+                    return Err(format!("{}: the model's config '{}' differs from --config {}", path.display(), config.name, named.name));
+                }
+            }
+            (config, Loaded::Fixed(bytes))
+        }
+    };
+    let wants_uncertainty = args.uncertainty.is_some() || args.uncertainty_png.is_some() || args.reject_above.is_some();
+    if wants_uncertainty && !config.mud {
+        return Err(format!(
+            "{}: model '{}' has no MUD head, so it predicts no uncertainty (drop --uncertainty/--uncertainty-png/--reject-above)",
+            path.display(),
+            config.name
+        ));
+    }
+    let left = read_png(&args.left).map_err(|e| e.to_string())?;
+    let right = read_png(&args.right).map_err(|e| e.to_string())?;
+    let gt = match &args.gt {
+        Some(path) => {
+            let gt = read_disparity_file(path, args.gt_scale).map_err(|e| e.to_string())?;
+            if (gt.width, gt.height) != (left.width, left.height) {
+                return Err(format!(
+                    "{}: ground truth is {}x{}, the images {}x{}",
+                    path.display(),
+                    gt.width,
+                    gt.height,
+                    left.width,
+                    left.height
+                ));
+            }
+            Some(gt.data)
+        }
+        None => None,
+    };
+    let pair_err = |e: &dyn std::fmt::Display| format!("{} / {}: {e}", args.left.display(), args.right.display());
+    check_pair(&left.view(), &right.view()).map_err(|e| pair_err(&e))?;
+
+    let iters = args.iters.map_or(config.iters, |n| n as usize);
+    let label = match args.engine {
+        Engine::Float => "float",
+        Engine::Fixed => "fixed",
+    };
+    let spinner = spinner(&format!("{} {}x{}, {iters} iterations, {label} engine", config.name, left.width, left.height));
+    let start = Instant::now();
+    let pred = engine.predict(&left.view(), &right.view(), iters, args.reject_above);
+    let network = start.elapsed();
+    spinner.finish_and_clear();
+    let pred = pred.map_err(|e| pair_err(&e))?;
+    let (w, h) = (pred.width, pred.height);
+
+    write_pfm(&args.disparity, w, h, &pred.disparity).map_err(|e| e.to_string())?;
+    if let Some(path) = &args.png {
+        write_png(path, &colourise_disparity(&pred.disparity, w, h, None)).map_err(|e| e.to_string())?;
+    }
+    if let Some(err_px) = &pred.error_px {
+        if let Some(path) = &args.uncertainty {
+            write_pfm(path, w, h, err_px).map_err(|e| e.to_string())?;
+        }
+        if let Some(path) = &args.uncertainty_png {
+            write_png(path, &colourise_uncertainty(err_px, w, h, None)).map_err(|e| e.to_string())?;
+        }
+    }
+    eprintln!("{}", summary(&config, label, w, h, iters, network, &pred));
+    if let Some(gt) = &gt {
+        eprintln!("{}", score(gt, &pred));
+    }
+    Ok(())
+}
+
+/// EPE and bad-2.0 against ground truth, over all known pixels and (with rejection) the kept ones.
+fn score(gt: &[f32], pred: &Prediction) -> String {
+    let (mut n, mut sum, mut bad) = (0usize, 0f64, 0usize);
+    let (mut nk, mut sumk, mut badk) = (0usize, 0f64, 0usize);
+    // Rejected pixels are +inf in `disparity`; all pixels are scored on `raw_disparity`.
+    for (i, g) in gt.iter().enumerate() {
+        if !g.is_finite() {
+            continue;
+        }
+        let d = pred.raw_disparity[i];
+        let err = (d - g).abs() as f64;
+        n += 1;
+        sum += err;
+        bad += (err > 2.0) as usize;
+        if pred.disparity[i].is_finite() {
+            nk += 1;
+            sumk += err;
+            badk += (err > 2.0) as usize;
+        }
+    }
+    if n == 0 {
+        return "muir: the ground truth has no known pixel".to_string();
+    }
+    let mut line = format!("muir: vs ground truth ({n} known pixels): EPE {:.3} px, bad 2.0 {:.2}%", sum / n as f64, 100.0 * bad as f64 / n as f64);
+    if pred.rejected.is_some() {
+        line += &match nk {
+            0 => "; every known pixel rejected".to_string(),
+            _ => format!(
+                "; kept {:.1}% of them: EPE {:.3} px, bad 2.0 {:.2}%",
+                100.0 * nk as f64 / n as f64,
+                sumk / nk as f64,
+                100.0 * badk as f64 / nk as f64
+            ),
+        };
+    }
+    line
+}
+
+/// A loaded model of either engine.
+enum Loaded {
+    Float(Box<FloatModel>),
+    Fixed(Vec<u8>),
+}
+
+impl Loaded {
+    fn predict(&self, left: &ImageView<'_>, right: &ImageView<'_>, iters: usize, tau: Option<f32>) -> Result<Prediction, String> {
+        match self {
+            Loaded::Float(model) => {
+                let p = model.predict(left, right, Some(iters)).map_err(|e| e.to_string())?;
+                let error_px: Option<Vec<f32>> = p.uncertainty.as_ref().map(|u| u.iter().map(|u| (0.5 * u).exp()).collect());
+                let raw_disparity = p.disparity.clone();
+                let mut disparity = p.disparity;
+                let rejected = match (tau, &error_px) {
+                    (Some(t), Some(e)) => Some(reject_float(&mut disparity, e, t)),
+                    _ => None,
+                };
+                Ok(Prediction { width: p.width, height: p.height, disparity, error_px, raw_disparity, rejected })
+            }
+            Loaded::Fixed(bytes) => {
+                let model = QuantModel::parse(bytes).map_err(|e| e.to_string())?;
+                let (w, h) = (left.width, left.height);
+                let plan = muir::engine::Plan::new(model.config(), w, h);
+                let mut arena = vec![0u64; plan.ram_bytes.div_ceil(8)];
+                let mut engine = muir::engine::Engine::new(&model, bytemuck::cast_slice_mut(&mut arena)).map_err(|e| e.to_string())?;
+                let mut d = vec![0i16; w * h];
+                let mut u = vec![0i16; w * h];
+                let unc = if model.config().mud { Some(&mut u[..]) } else { None };
+                engine.run_iters(left, right, iters, &mut Output { disparity: &mut d, uncertainty: unc }).map_err(|e| e.to_string())?;
+                let scale = 1.0 / (1u32 << muir::arith::DISP_FRAC) as f32;
+                let raw_disparity = d.iter().map(|v| *v as f32 * scale).collect();
+                let rejected = match tau {
+                    Some(t) if model.config().mud => Some(d.len() - reject(&mut d, &u, u_threshold(t))),
+                    _ => None,
+                };
+                let disparity = d.iter().map(|v| if *v == REJECTED { f32::INFINITY } else { *v as f32 * scale }).collect();
+                let error_px = model.config().mud.then(|| {
+                    let us = 1.0 / (1u32 << muir::arith::LOG_FRAC) as f32;
+                    u.iter().map(|v| (0.5 * *v as f32 * us).exp()).collect()
+                });
+                Ok(Prediction { width: w, height: h, disparity, error_px, raw_disparity, rejected })
+            }
+        }
+    }
+}
+
+/// Sets rejected pixels (predicted error above `tau`) to +inf; returns how many.
+fn reject_float(disparity: &mut [f32], error_px: &[f32], tau: f32) -> usize {
+    let mut n = 0;
+    for (d, e) in disparity.iter_mut().zip(error_px) {
+        if *e > tau {
+            *d = f32::INFINITY;
+            n += 1;
+        }
+    }
+    n
+}
+
+
+/// One line: model, size, network time, disparity statistics.
+fn summary(config: &Config, engine: &str, w: usize, h: usize, iters: usize, network: Duration, pred: &Prediction) -> String {
+    let disparity = &pred.disparity;
+    let mut finite: Vec<f32> = disparity.iter().copied().filter(|v| v.is_finite()).collect();
+    finite.sort_unstable_by(f32::total_cmp);
+    let stats = match (finite.first(), finite.get(finite.len() / 2), finite.last()) {
+        (Some(lo), Some(med), Some(hi)) => format!("{lo:.2}/{med:.2}/{hi:.2} px"),
+        _ => "n/a".to_string(),
+    };
+    let bad = match pred.rejected {
+        Some(r) => format!("; rejected {r} of {} pixels ({:.1}% kept)", disparity.len(), 100.0 * (1.0 - r as f64 / disparity.len() as f64)),
+        None if disparity.len() > finite.len() => format!(" ({} non-finite)", disparity.len() - finite.len()),
+        None => String::new(),
+    };
+    format!(
+        "muir: {} {w}x{h}, {iters} iters, {engine} engine: network {:.3} s; disparity min/median/max {stats}{bad}",
+        config.name,
+        network.as_secs_f64()
+    )
+}
+
+fn spinner(message: &str) -> ProgressBar {
+    if !std::io::stderr().is_terminal() {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::new_spinner();
+    if let Ok(style) = ProgressStyle::with_template("{spinner} {msg} {elapsed}") {
+        bar.set_style(style);
+    }
+    bar.set_message(message.to_string());
+    bar.enable_steady_tick(Duration::from_millis(100));
+    bar
+}
+
+fn info(args: &InfoArgs) -> Result<(), String> {
+    let loaded = load_model(&args.model)?;
+    let c = &loaded.weights.config;
+    println!("model: {} ({} bytes)", args.model.path(Engine::Float).display(), loaded.bytes);
+    println!("config: {}", config_to_json(c));
+    println!("tensors: {} ({} values)", loaded.tensors, loaded.values);
+    println!(
+        "features: mud {}, ufi {}, mga {}, post-pool lookup {}, {} iterations",
+        c.mud, c.ufi, c.mga, c.post_pool, c.iters
+    );
+    Ok(())
+}
+
+fn quantize(args: &QuantizeArgs) -> Result<(), String> {
+    check_output(&args.out)?;
+    if let Some(r) = &args.report {
+        check_output(r)?;
+    }
+    let loaded = load_model(&ModelArgs { model: Some(args.model.clone()), config: args.config })?;
+    let model = FloatModel::new(loaded.weights);
+    let mut images = Vec::new();
+    for dir in &args.calib {
+        let l = read_png(dir.join("left.png")).map_err(|e| e.to_string())?;
+        let r = read_png(dir.join("right.png")).map_err(|e| e.to_string())?;
+        let (l, r) = match args.max_size {
+            Some((mw, mh)) => {
+                let (w, h) = (l.width.min(mw), l.height.min(mh));
+                let crop = |im: &muir::io::OwnedImage| im.crop(0, 0, w, h);
+                (crop(&l).unwrap_or(l.clone()), crop(&r).unwrap_or(r.clone()))
+            }
+            None => (l, r),
+        };
+        check_pair(&l.view(), &r.view()).map_err(|e| format!("{}: {e}", dir.display()))?;
+        images.push((l, r));
+    }
+    let pairs: Vec<_> = images.iter().map(|(l, r)| (l.view(), r.view())).collect();
+    let method = match args.method {
+        Method::Minmax => RangeMethod::MinMax,
+        Method::Percentile if (50.0..=100.0).contains(&args.percentile) => RangeMethod::Percentile(args.percentile / 100.0),
+        Method::Percentile => return Err(format!("--percentile {} is not in [50, 100]", args.percentile)),
+    };
+    let bar = if std::io::stderr().is_terminal() { ProgressBar::new(pairs.len() as u64) } else { ProgressBar::hidden() };
+    if let Ok(style) = ProgressStyle::with_template("calibrating {bar:30} {pos}/{len} pairs {elapsed}") {
+        bar.set_style(style);
+    }
+    let start = Instant::now();
+    let iters = model.config().iters;
+    let cal = calibrate(&model, &pairs, CalibOptions { method, iters }, &mut |done, total| {
+        bar.set_position(done as u64);
+        if !std::io::stderr().is_terminal() {
+            eprintln!("calibration pair {done}/{total}");
+        }
+    })
+    .map_err(|e| e.to_string())?;
+    bar.finish_and_clear();
+    let blob = muir::format::writer::write(&cal.data);
+    QuantModel::parse(&blob).map_err(|e| format!("internal error: written model does not parse: {e}"))?;
+    std::fs::write(&args.out, &blob).map_err(|e| format!("{}: {e}", args.out.display()))?;
+    if let Some(r) = &args.report {
+        std::fs::write(r, cal.report()).map_err(|e| format!("{}: {e}", r.display()))?;
+    }
+    eprintln!(
+        "muir: quantised {} ({method}) on {} pairs in {:.1} s: {} ({} bytes)",
+        model.config().name,
+        pairs.len(),
+        start.elapsed().as_secs_f64(),
+        args.out.display(),
+        blob.len()
+    );
+    Ok(())
+}
+
+fn plan(args: &PlanArgs) -> Result<(), String> {
+    let configs = if args.configs.is_empty() { Config::PRESETS.to_vec() } else { args.configs.clone() };
+    let sizes = if args.sizes.is_empty() { vec![(160, 120), (320, 240), (640, 480)] } else { args.sizes.clone() };
+    println!("| config | input | working RAM (bytes) | KiB | frame zone | encoder rings | refinement rings | outputs (d + u) |");
+    println!("|---|---|---|---|---|---|---|---|");
+    for c in &configs {
+        for &(w, h) in &sizes {
+            let p = muir::engine::Plan::new(c, w, h);
+            println!(
+                "| {} | {w}x{h} | {} | {:.1} | {} | {} | {} | {} |",
+                c.name,
+                p.ram_bytes,
+                p.ram_bytes as f64 / 1024.0,
+                p.frame_bytes(),
+                p.encoder_rings,
+                p.refine_rings,
+                p.output_bytes()
+            );
+        }
+    }
+    Ok(())
+}
+
+fn macs(args: &MacsArgs) -> Result<(), String> {
+    use muir::model::macs::Macs;
+    let configs = if args.configs.is_empty() { Config::PRESETS.to_vec() } else { args.configs.clone() };
+    let sizes = if args.sizes.is_empty() { vec![(320, 240)] } else { args.sizes.clone() };
+    let mut cols = Vec::new();
+    for c in &configs {
+        for &(w, h) in &sizes {
+            let iters = args.iters.map_or(c.iters, |n| n as usize);
+            cols.push((format!("{} {w}x{h}, {iters} it", c.name), Macs::new(c, w, h, iters)));
+        }
+    }
+    let g = |v: u64| format!("{:.3}", v as f64 / 1e9);
+    let row = |name: &str, what: &str, f: &dyn Fn(&Macs) -> u64| {
+        let vals: Vec<String> = cols.iter().map(|(_, m)| g(f(m))).collect();
+        println!("| {name} | {what} | {} |", vals.join(" | "));
+    };
+    println!("Multiply-accumulates per frame (G). Network: every tensor computed once, context convs merged into");
+    println!("the GRU gates; engine: what the streaming fixed-point engine computes (network + recompute).");
+    println!();
+    let heads: Vec<&str> = cols.iter().map(|(h, _)| h.as_str()).collect();
+    println!("| stage | covers | {} |", heads.join(" | "));
+    println!("|---|---|{}", "---:|".repeat(cols.len()));
+    let first = cols[0].1;
+    for (i, s) in first.network().iter().enumerate() {
+        row(s.name, s.what, &|m: &Macs| m.network()[i].macs);
+    }
+    row("**network total**", "", &|m: &Macs| m.total());
+    for (i, s) in first.recompute().iter().enumerate() {
+        row(s.name, s.what, &|m: &Macs| m.recompute()[i].macs);
+    }
+    row("**engine total**", "", &|m: &Macs| m.engine_total());
+    row("gru16 context", "share of gru16 spent on the merged context conv", &|m: &Macs| m.gru16_context);
+    row("gru08 context", "share of gru08 spent on the merged context conv", &|m: &Macs| m.gru08_context);
+    Ok(())
+}
+
+/// Fails early (before the network runs) when an output's folder does not exist.
+fn check_output(path: &Path) -> Result<(), String> {
+    match path.parent() {
+        Some(dir) if !dir.as_os_str().is_empty() && !dir.is_dir() => {
+            Err(format!("{}: the folder {} does not exist", path.display(), dir.display()))
+        }
+        _ => Ok(()),
+    }
+}

@@ -1,0 +1,109 @@
+//! Correlation lookup and UFI correlation peaks, computed per pixel from the feature rows.
+//!
+//! No correlation volume is built: for a left pixel the correlation with the right row is a dot
+//! product per right column, `C(x1, x2) = <f1(x1), f2(x2)> / sqrt(c)`, and a lookup needs only the
+//! columns its samples touch. (The twin builds the full volume; the two are compared in the parity
+//! tests.)
+
+use super::tensor::Tensor;
+use crate::model::config::Config;
+
+/// Correlation of left pixel `(y, x1)` with every right column of row `y`, into `row` (len w).
+pub fn corr_row(f1: &Tensor, f2: &Tensor, y: usize, x1: usize, row: &mut [f32]) {
+    let c = f1.c;
+    let scale = 1.0 / (c as f32).sqrt();
+    row.fill(0.0);
+    for ch in 0..c {
+        let a = f1[(ch, y, x1)];
+        let r2 = &f2.channel(ch)[y * f2.w..(y + 1) * f2.w];
+        row.iter_mut().zip(r2).for_each(|(o, b)| *o += a * b);
+    }
+    row.iter_mut().for_each(|v| *v *= scale);
+}
+
+/// Linear interpolation of `row` at `pos`, zero outside `[0, len-1]`.
+fn sample(row: &[f32], pos: f32) -> f32 {
+    let i0 = pos.floor();
+    let a = pos - i0;
+    let at = |i: f32| if i >= 0.0 && (i as usize) < row.len() { row[i as usize] } else { 0.0 };
+    (1.0 - a) * at(i0) + a * at(i0 + 1.0)
+}
+
+/// Correlation features at disparity `-flow` (flow: 1/8-grid x "flow", channel 0 used), `L*(2r+1)`
+/// channels level-major, as the twin's `lookup`.
+///
+/// * RAFT pyramid: level l averages the row in blocks of `2^l` (floor), samples at
+///   `(x + flow) / 2^l + j`.
+/// * post-pooling: level l samples at `x + flow + j 2^l`, each sample the mean of the linearly
+///   interpolated correlation at the `2^l` positions centred there.
+pub fn lookup(f1: &Tensor, f2: &Tensor, flow: &Tensor, cfg: &Config) -> Tensor {
+    let (h, w) = (f1.h, f1.w);
+    let r = cfg.corr_radius as isize;
+    let k = 2 * cfg.corr_radius + 1;
+    let mut out = Tensor::zeros(cfg.corr_channels(), h, w);
+    let mut row = vec![0.0f32; w];
+    let mut pooled = vec![0.0f32; w];
+    for y in 0..h {
+        for x in 0..w {
+            corr_row(f1, f2, y, x, &mut row);
+            let centre = x as f32 + flow[(0, y, x)];
+            for lvl in 0..cfg.corr_levels {
+                let s = 1usize << lvl;
+                for (jj, j) in (-r..=r).enumerate() {
+                    let v = if cfg.post_pool {
+                        let base = centre + (j * s as isize) as f32;
+                        let mut acc = 0.0;
+                        for i in 0..s {
+                            acc += sample(&row, base + (i as f32 - (s as f32 - 1.0) / 2.0));
+                        }
+                        acc / s as f32
+                    } else {
+                        // Iterated 2-wide average pooling, floor at each level (avg_pool1d).
+                        let mut wl = w;
+                        pooled[..w].copy_from_slice(&row);
+                        for _ in 0..lvl {
+                            wl /= 2;
+                            for q in 0..wl {
+                                pooled[q] = (pooled[2 * q] + pooled[2 * q + 1]) / 2.0;
+                            }
+                        }
+                        sample(&pooled[..wl], centre / s as f32 + j as f32)
+                    };
+                    out[(lvl * k + jj, y, x)] = v;
+                }
+            }
+        }
+    }
+    out
+}
+
+/// UFI proposals: per left pixel the integer disparities (1/8 grid) of the two highest
+/// correlations over `d in [0, x]`, the second at least `separation` from the first (the first
+/// again if no such d exists); ties go to the smaller d. Returns a 2-channel tensor.
+pub fn peaks(f1: &Tensor, f2: &Tensor, separation: usize) -> Tensor {
+    let (h, w) = (f1.h, f1.w);
+    let mut out = Tensor::zeros(2, h, w);
+    let mut row = vec![0.0f32; w];
+    for y in 0..h {
+        for x in 0..w {
+            corr_row(f1, f2, y, x, &mut row);
+            let best = |skip: Option<usize>| {
+                let mut arg: Option<usize> = None;
+                for d in 0..=x {
+                    if skip.is_some_and(|d1| d.abs_diff(d1) < separation) {
+                        continue;
+                    }
+                    if arg.is_none_or(|a| row[x - d] > row[x - a]) {
+                        arg = Some(d);
+                    }
+                }
+                arg
+            };
+            let d1 = best(None).unwrap_or(0);
+            let d2 = best(Some(d1)).unwrap_or(d1);
+            out[(0, y, x)] = d1 as f32;
+            out[(1, y, x)] = d2 as f32;
+        }
+    }
+    out
+}

@@ -1,0 +1,465 @@
+//! The float reference network: MUIR (MUD, UFI, MGA, post-pooling lookup) and the RAFT-Stereo
+//! realtime baseline, step for step as the PyTorch twin (`python/muir/model.py`).
+//!
+//! Every intermediate tensor can be observed through a [`Trace`] under the twin's trace names; the
+//! golden parity tests compare them all.
+
+use std::collections::BTreeMap;
+
+use super::corr::{lookup, peaks};
+use super::ops::{
+    aggregate, attention_matrix, conv2d, convex_upsample, instance_norm, interp, pool2x, relu, rope_2d, sigmoid,
+};
+use super::tensor::Tensor;
+use super::weights::{FloatConv, FloatWeights};
+use crate::input::{ImageView, InputError, check_pair};
+use crate::model::config::Config;
+use crate::model::layers::ConvId::{self, *};
+
+/// Receives intermediate tensors by name.
+pub trait Trace {
+    /// Called with each intermediate tensor.
+    fn record(&mut self, name: &str, t: &Tensor);
+    /// False when records are discarded (lets the caller skip building them).
+    fn active(&self) -> bool {
+        true
+    }
+}
+
+/// Discards everything.
+pub struct NoTrace;
+
+impl Trace for NoTrace {
+    fn record(&mut self, _: &str, _: &Tensor) {}
+    fn active(&self) -> bool {
+        false
+    }
+}
+
+impl Trace for BTreeMap<String, Tensor> {
+    fn record(&mut self, name: &str, t: &Tensor) {
+        self.insert(name.to_string(), t.clone());
+    }
+}
+
+/// Network output at the padded input resolution.
+#[derive(Clone, Debug)]
+pub struct FloatOutput {
+    /// Left-view disparity in pixels (1 x H x W).
+    pub disparity: Tensor,
+    /// Uncertainty `u = log(beta^2)` (predicted error `exp(u/2)` px), 1 x H x W; `None` without MUD.
+    pub uncertainty: Option<Tensor>,
+    /// Matchability mask of the final state at 1/8 resolution; `None` without MUD.
+    pub matchability: Option<Tensor>,
+}
+
+/// Prediction for an image pair, cropped to the input size.
+#[derive(Clone, Debug)]
+pub struct Prediction {
+    /// Columns.
+    pub width: usize,
+    /// Rows.
+    pub height: usize,
+    /// Disparity in pixels, row-major.
+    pub disparity: Vec<f32>,
+    /// Uncertainty `u` per pixel (predicted error `exp(u/2)`); `None` without MUD.
+    pub uncertainty: Option<Vec<f32>>,
+    /// Matchability at 1/8 resolution (`(w8, h8, values)`); `None` without MUD.
+    pub matchability: Option<(usize, usize, Vec<f32>)>,
+}
+
+/// Float reference model: validated weights plus the forward pass.
+#[derive(Clone, Debug)]
+pub struct FloatModel {
+    weights: FloatWeights,
+}
+
+struct Context {
+    f1: Tensor,
+    f2: Tensor,
+    net08: Tensor,
+    net16: Tensor,
+    inp08: Tensor,
+    ctx08: [Tensor; 3],
+    ctx16: [Tensor; 3],
+}
+
+impl FloatModel {
+    /// Wraps validated weights.
+    pub fn new(weights: FloatWeights) -> Self {
+        Self { weights }
+    }
+
+    /// The model config.
+    pub fn config(&self) -> &Config {
+        &self.weights.config
+    }
+
+    /// The weights.
+    pub fn weights(&self) -> &FloatWeights {
+        &self.weights
+    }
+
+    fn layer(&self, id: ConvId) -> &FloatConv {
+        // FloatWeights::from_state_dict fills every layer the config computes, and the forward pass
+        // only asks for those: a miss is a bug in this file, not bad data.
+        self.weights.get(id).unwrap_or_else(|| panic!("layer {} not loaded", id.name()))
+    }
+
+    fn conv(&self, id: ConvId, x: &Tensor) -> Tensor {
+        conv2d(x, self.layer(id))
+    }
+
+    /// Residual block; records its mid and output activations as `q.<names[0]>`, `q.<names[1]>`
+    /// (calibration statistics of the quantised engine's slots).
+    fn res_block(&self, x: &Tensor, ids: [ConvId; 2], ds: Option<ConvId>, names: [&str; 2], tr: &mut dyn Trace) -> Tensor {
+        let y = relu(self.conv(ids[0], x));
+        tr.record(names[0], &y);
+        let y = relu(self.conv(ids[1], &y));
+        let skip = match ds {
+            Some(d) => self.conv(d, x),
+            None => x.clone(),
+        };
+        let out = relu(skip.zip(&y, |a, b| a + b));
+        tr.record(names[1], &out);
+        out
+    }
+
+    /// The matching-feature block (InstanceNorm residual block + conv).
+    fn fmap_branch(&self, x: &Tensor, tr: &mut dyn Trace) -> Tensor {
+        let raw1 = self.conv(FmapC1, x);
+        tr.record("q.fmap_raw1", &raw1);
+        let mid = relu(instance_norm(raw1));
+        tr.record("q.fmap_mid", &mid);
+        let raw2 = self.conv(FmapC2, &mid);
+        tr.record("q.fmap_raw2", &raw2);
+        let y = relu(instance_norm(raw2));
+        let blk = relu(x.clone().zip(&y, |a, b| a + b));
+        tr.record("q.fmap_blk", &blk);
+        let f = self.conv(FmapOut, &blk);
+        tr.record("q.fmap", &f);
+        f
+    }
+
+    fn trunk(&self, img: &Tensor, tr: &mut dyn Trace) -> [Tensor; 4] {
+        let c1 = relu(self.conv(Conv1, img));
+        tr.record("q.c1", &c1);
+        let x = self.res_block(&c1, [L1b0c1, L1b0c2], None, ["q.l1b0m", "q.l1b0o"], tr);
+        let l1 = self.res_block(&x, [L1b1c1, L1b1c2], None, ["q.l1b1m", "q.l1b1o"], tr);
+        let x = self.res_block(&l1, [L2b0c1, L2b0c2], Some(L2b0ds), ["q.l2b0m", "q.l2b0o"], tr);
+        let l2 = self.res_block(&x, [L2b1c1, L2b1c2], None, ["q.l2b1m", "q.l2b1o"], tr);
+        let x = self.res_block(&l2, [L3b0c1, L3b0c2], Some(L3b0ds), ["q.l3b0m", "q.l3b0o"], tr);
+        let l3 = self.res_block(&x, [L3b1c1, L3b1c2], None, ["q.l3b1m", "q.l3b1o"], tr);
+        [c1, l1, l2, l3]
+    }
+
+    fn head(&self, x: &Tensor, ids: [ConvId; 3], names: [&str; 2], tr: &mut dyn Trace) -> Tensor {
+        let y = self.res_block(x, [ids[0], ids[1]], None, names, tr);
+        self.conv(ids[2], &y)
+    }
+
+    fn split3(t: Tensor, h: usize) -> [Tensor; 3] {
+        [t.channels(0, h), t.channels(h, h), t.channels(2 * h, h)]
+    }
+
+    fn encode(&self, left: &Tensor, right: &Tensor, tr: &mut dyn Trace) -> Context {
+        let cfg = self.config();
+        let [lc1, ll1, ll2, xl] = self.trunk(left, tr);
+        let [rc1, rl1, rl2, xr] = self.trunk(right, tr);
+        if tr.active() {
+            tr.record("backbone.conv1", &Tensor::cat(&[&lc1, &rc1]));
+            tr.record("backbone.layer1", &Tensor::cat(&[&ll1, &rl1]));
+            tr.record("backbone.layer2", &Tensor::cat(&[&ll2, &rl2]));
+            tr.record("backbone.layer3", &Tensor::cat(&[&xl, &xr]));
+        }
+        let (f1, f2) = (self.fmap_branch(&xl, tr), self.fmap_branch(&xr, tr));
+        tr.record("fmap1", &f1);
+        tr.record("fmap2", &f2);
+        let n08 = self.head(&xl, [H08nC1, H08nC2, H08nOut], ["q.h08nm", "q.h08no"], tr);
+        let c08 = self.head(&xl, [H08cC1, H08cC2, H08cOut], ["q.h08cm", "q.h08co"], tr);
+        let x = self.res_block(&xl, [L4b0c1, L4b0c2], Some(L4b0ds), ["q.l4b0m", "q.l4b0o"], tr);
+        let y = self.res_block(&x, [L4b1c1, L4b1c2], None, ["q.l4b1m", "q.l4b1o"], tr);
+        let n16 = self.head(&y, [H16nC1, H16nC2, H16nOut], ["q.h16nm", "q.h16no"], tr);
+        let c16 = self.head(&y, [H16cC1, H16cC2, H16cOut], ["q.h16cm", "q.h16co"], tr);
+        let (net08, net16) = (n08.map(f32::tanh), n16.map(f32::tanh));
+        let (inp08, inp16) = (relu(c08), relu(c16));
+        tr.record("net08.init", &net08);
+        tr.record("net16.init", &net16);
+        tr.record("inp08", &inp08);
+        tr.record("inp16", &inp16);
+        tr.record("q.inp08", &inp08);
+        tr.record("q.inp16", &inp16);
+        let z08 = self.conv(Czqr08, &inp08);
+        let z16 = self.conv(Czqr16, &inp16);
+        tr.record("czqr08", &z08);
+        tr.record("czqr16", &z16);
+        let h = cfg.hidden_dim;
+        Context { f1, f2, net08, net16, inp08, ctx08: Self::split3(z08, h), ctx16: Self::split3(z16, h) }
+    }
+
+    fn gru(&self, ids: [ConvId; 3], h: &Tensor, ctx: &[Tensor; 3], xs: &[&Tensor]) -> Tensor {
+        let mut parts = vec![h];
+        parts.extend_from_slice(xs);
+        let hx = Tensor::cat(&parts);
+        let z = self.conv(ids[0], &hx).zip(&ctx[0], |a, b| sigmoid(a + b));
+        let r = self.conv(ids[1], &hx).zip(&ctx[1], |a, b| sigmoid(a + b));
+        let rh = r.zip(h, |a, b| a * b);
+        parts[0] = &rh;
+        let q = self.conv(ids[2], &Tensor::cat(&parts)).zip(&ctx[2], |a, b| (a + b).tanh());
+        // (1 - z) * h + z * q
+        let one_minus_z = z.clone().map(|v| 1.0 - v);
+        one_minus_z.zip(h, |a, b| a * b).zip(&z.zip(&q, |a, b| a * b), |a, b| a + b)
+    }
+
+    /// `u = log(eps_min^2 + (eps_max^2 - eps_min^2) * sigmoid(v))`.
+    fn uncertainty(&self, v: Tensor) -> Tensor {
+        let cfg = self.config();
+        let (lo, hi) = (cfg.eps_min * cfg.eps_min, cfg.eps_max * cfg.eps_max);
+        v.map(|x| (lo + (hi - lo) * sigmoid(x)).ln())
+    }
+
+    fn mud(&self, net08: &Tensor, corr: &Tensor, flow: &Tensor, tr: &mut dyn Trace) -> (Tensor, Tensor) {
+        let x = relu(self.conv(Mud1, &Tensor::cat(&[net08, corr, &flow.channels(0, 1)])));
+        tr.record("q.mud1", &x);
+        let x = relu(self.conv(Mud2, &x));
+        tr.record("q.mud2", &x);
+        let ab = self.conv(Mud3, &x);
+        (ab.channels(0, 1).map(sigmoid), self.uncertainty(ab.channels(1, 1)))
+    }
+
+    fn flow_tensor(&self, x: Tensor) -> Tensor {
+        if self.config().flow_channels == 2 { Tensor::cat(&[&x, &Tensor::zeros(1, x.h, x.w)]) } else { x }
+    }
+
+    fn ufi(&self, c: &Context, tr: &mut dyn Trace) -> (Tensor, Tensor) {
+        let cfg = self.config();
+        let pk = peaks(&c.f1, &c.f2, cfg.ufi_peak_separation);
+        tr.record("ufi.peaks", &pk);
+        let (h8, w8) = (c.net08.h, c.net08.w);
+        let props = [Tensor::zeros(1, h8, w8), pk.channels(0, 1), pk.channels(1, 1)];
+        let mut hid = c.net08.clone();
+        let mut feats = Vec::with_capacity(3);
+        for (k, prop) in props.iter().enumerate() {
+            let flow_k = self.flow_tensor(prop.clone().map(|v| -v));
+            let corr_k = lookup(&c.f1, &c.f2, &flow_k, cfg);
+            tr.record(&format!("ufi.corr{k}"), &corr_k);
+            tr.record("q.corr", &corr_k);
+            let cc = relu(self.conv(UfiC, &corr_k));
+            let ff = relu(self.conv(UfiF, &flow_k));
+            tr.record("q.ufi_c", &cc);
+            tr.record("q.ufi_f", &ff);
+            let feat = relu(self.conv(UfiConv, &Tensor::cat(&[&cc, &ff])));
+            tr.record("q.ufi_feat", &feat);
+            let fk = Tensor::cat(&[&feat, &flow_k]);
+            let q = self.conv(UfiQ, &Tensor::cat(&[&fk, &c.inp08])).map(f32::tanh);
+            let z = self.conv(UfiZ, &Tensor::cat(&[&hid, &q])).map(sigmoid);
+            // hid + (q - hid) * z
+            let step = q.zip(&hid, |a, b| a - b).zip(&z, |a, b| a * b);
+            hid = hid.zip(&step, |a, b| a + b);
+            tr.record(&format!("ufi.hidden{k}"), &hid);
+            feats.push(fk);
+        }
+        let mut cand_flow = Vec::with_capacity(3);
+        let mut cand_u = Vec::with_capacity(3);
+        for (k, fk) in feats.iter().enumerate() {
+            let mid = relu(self.conv(UfiHead1, &Tensor::cat(&[&hid, fk])));
+            tr.record("q.ufi_head", &mid);
+            let out = self.conv(UfiHead2, &mid);
+            cand_flow.push(props[k].clone().map(|v| -v).zip(&out.channels(0, 1), |a, b| a + b));
+            cand_u.push(self.uncertainty(out.channels(1, 1)));
+        }
+        let cf = Tensor::cat(&[&cand_flow[0], &cand_flow[1], &cand_flow[2]]);
+        let cu = Tensor::cat(&[&cand_u[0], &cand_u[1], &cand_u[2]]);
+        tr.record("ufi.cand_flow", &cf);
+        tr.record("ufi.cand_u", &cu);
+        let mut flow0 = Tensor::zeros(1, h8, w8);
+        let mut u0 = Tensor::zeros(1, h8, w8);
+        let mut choice = Tensor::zeros(1, h8, w8);
+        for i in 0..h8 * w8 {
+            // argmin over the three candidates, first on ties (torch.argmin)
+            let mut best = 0;
+            for k in 1..3 {
+                if cand_u[k].data[i] < cand_u[best].data[i] {
+                    best = k;
+                }
+            }
+            flow0.data[i] = cand_flow[best].data[i];
+            u0.data[i] = cand_u[best].data[i];
+            choice.data[i] = best as f32;
+        }
+        tr.record("ufi.choice", &choice);
+        (flow0, hid)
+    }
+
+    /// Runs the network on padded input tensors (3 x H x W, values 0..255, sides multiples of 16).
+    pub fn forward(&self, left: &Tensor, right: &Tensor, tr: &mut dyn Trace) -> FloatOutput {
+        self.forward_iters(left, right, self.config().iters, tr)
+    }
+
+    /// [`FloatModel::forward`] with `iters` refinement iterations instead of the config's.
+    pub fn forward_iters(&self, left: &Tensor, right: &Tensor, iters: usize, tr: &mut dyn Trace) -> FloatOutput {
+        let cfg = *self.config();
+        let norm = |t: &Tensor| t.clone().map(|v| 2.0 * (v / 255.0) - 1.0);
+        let mut c = self.encode(&norm(left), &norm(right), tr);
+        let (h8, w8) = (c.net08.h, c.net08.w);
+        let mut flow = if cfg.ufi {
+            let (flow0, hid) = self.ufi(&c, tr);
+            c.net08 = hid;
+            self.flow_tensor(flow0)
+        } else {
+            Tensor::zeros(cfg.flow_channels, h8, w8)
+        };
+        tr.record("init.flow", &flow.channels(0, 1));
+        tr.record("init.net08", &c.net08);
+        let attn = if cfg.mga {
+            let (q0, k0) = (self.conv(MgaQuery, &c.inp08), self.conv(MgaKey, &c.inp08));
+            tr.record("q.mga_q", &q0);
+            tr.record("q.mga_k", &k0);
+            let q = rope_2d(q0, cfg.mga_rope_base);
+            let k = rope_2d(k0, cfg.mga_rope_base);
+            tr.record("q.mga_q", &q);
+            tr.record("q.mga_k", &k);
+            tr.record("mga.query", &q);
+            tr.record("mga.key", &k);
+            Some(attention_matrix(&q, &k))
+        } else {
+            None
+        };
+        let (mut net08, mut net16) = (c.net08.clone(), c.net16.clone());
+        for itr in 0..iters {
+            let corr = lookup(&c.f1, &c.f2, &flow, &cfg);
+            tr.record(&format!("iter{itr}.corr"), &corr);
+            tr.record("q.corr", &corr);
+            let mut m = None;
+            let corr_in = if cfg.mud {
+                let (mm, u) = self.mud(&net08, &corr, &flow, tr);
+                tr.record(&format!("iter{itr}.mud_m"), &mm);
+                tr.record(&format!("iter{itr}.mud_u"), &u);
+                let masked = corr.clone().mul_plane(&mm);
+                let ci = Tensor::cat(&[&corr, &masked, &mm]);
+                m = Some(mm);
+                ci
+            } else {
+                corr.clone()
+            };
+            let glb = match (&attn, &m) {
+                (Some(a), Some(m)) => {
+                    let hm = self.conv(MgaMask, &Tensor::cat(&[&net08, &corr, &flow.channels(0, 1), m])).map(sigmoid);
+                    let v0 = self.conv(MgaValue, &net08);
+                    tr.record("q.mga_v", &v0);
+                    let v = v0.mul_plane(&hm);
+                    let g = aggregate(a, &v);
+                    tr.record("q.glb", &g);
+                    tr.record(&format!("iter{itr}.mga_mask"), &hm);
+                    tr.record(&format!("iter{itr}.mga"), &g);
+                    Some(g)
+                }
+                _ => None,
+            };
+            let g16 = [Gru16Z, Gru16R, Gru16Q];
+            net16 = self.gru(g16, &net16, &c.ctx16, &[&pool2x(&net08)]);
+            net16 = self.gru(g16, &net16, &c.ctx16, &[&pool2x(&net08)]);
+            let c1 = relu(self.conv(MotC1, &corr_in));
+            let cor = relu(self.conv(MotC2, &c1));
+            let f1 = relu(self.conv(MotF1, &flow));
+            let flo = relu(self.conv(MotF2, &f1));
+            let out = relu(self.conv(MotOut, &Tensor::cat(&[&cor, &flo])));
+            tr.record("q.mot_c1", &c1);
+            tr.record("q.mot_c2", &cor);
+            tr.record("q.mot_f1", &f1);
+            tr.record("q.mot_f2", &flo);
+            tr.record("q.mot_out", &out);
+            let motion = Tensor::cat(&[&out, &flow]);
+            tr.record(&format!("iter{itr}.motion"), &motion);
+            let up16 = interp(&net16, h8, w8);
+            let mut xs = vec![&motion, &up16];
+            if let Some(g) = &glb {
+                xs.push(g);
+            }
+            net08 = self.gru([Gru08Z, Gru08R, Gru08Q], &net08, &c.ctx08, &xs);
+            let fmid = relu(self.conv(Flow1, &net08));
+            tr.record("q.flow_mid", &fmid);
+            let delta = self.conv(Flow2, &fmid);
+            let mut new_flow = flow.clone();
+            for (o, d) in new_flow.channel_mut(0).iter_mut().zip(delta.channel(0)) {
+                *o += d;
+            }
+            flow = new_flow; // channel 1 (RAFT's y) stays zero
+            tr.record(&format!("iter{itr}.net16"), &net16);
+            tr.record(&format!("iter{itr}.net08"), &net08);
+            tr.record(&format!("iter{itr}.flow"), &flow.channels(0, 1));
+        }
+        let (mut u_final, mut m_final) = (None, None);
+        if cfg.mud {
+            let corr = lookup(&c.f1, &c.f2, &flow, &cfg);
+            tr.record("q.corr", &corr);
+            let (m, u) = self.mud(&net08, &corr, &flow, tr);
+            tr.record("final.corr", &corr);
+            tr.record("final.mud_m", &m);
+            tr.record("final.mud_u", &u);
+            u_final = Some(u);
+            m_final = Some(m);
+        }
+        let mmid = relu(self.conv(Mask1, &net08));
+        tr.record("q.mask_mid", &mmid);
+        let mask = self.conv(Mask2, &mmid).map(|v| 0.25 * v);
+        tr.record("q.mask_logit", &mask);
+        tr.record("up_mask", &mask);
+        let disparity = convex_upsample(&flow.channels(0, 1).map(|v| 8.0 * v), &mask).map(|v| -v);
+        tr.record("up.disp", &disparity);
+        let uncertainty = u_final.map(|u| convex_upsample(&u, &mask));
+        if let Some(u) = &uncertainty {
+            tr.record("up.u", u);
+        }
+        FloatOutput { disparity, uncertainty, matchability: m_final }
+    }
+
+    /// Pads a pair to the network size and runs it with `iters` iterations, recording into `tr`.
+    pub fn trace_pair(
+        &self,
+        left: &ImageView<'_>,
+        right: &ImageView<'_>,
+        iters: usize,
+        tr: &mut dyn Trace,
+    ) -> Result<FloatOutput, InputError> {
+        let (pw, ph) = check_pair(left, right)?;
+        let to_tensor = |im: &ImageView<'_>| {
+            let mut t = Tensor::zeros(3, ph, pw);
+            for c in 0..3 {
+                for y in 0..ph {
+                    for x in 0..pw {
+                        t[(c, y, x)] = im.at_clamped(c, x, y) as f32;
+                    }
+                }
+            }
+            t
+        };
+        Ok(self.forward_iters(&to_tensor(left), &to_tensor(right), iters, tr))
+    }
+
+    /// Runs the network on an image pair of any size (padded internally, output cropped back);
+    /// `iters` overrides the config's iteration count.
+    pub fn predict(
+        &self,
+        left: &ImageView<'_>,
+        right: &ImageView<'_>,
+        iters: Option<usize>,
+    ) -> Result<Prediction, InputError> {
+        let iters = iters.unwrap_or(self.config().iters);
+        let out = self.trace_pair(left, right, iters, &mut NoTrace)?;
+        let crop = |t: &Tensor| {
+            let mut v = Vec::with_capacity(left.width * left.height);
+            for y in 0..left.height {
+                v.extend_from_slice(&t.data[y * t.w..y * t.w + left.width]);
+            }
+            v
+        };
+        Ok(Prediction {
+            width: left.width,
+            height: left.height,
+            disparity: crop(&out.disparity),
+            uncertainty: out.uncertainty.as_ref().map(crop),
+            matchability: out.matchability.map(|m| (m.w, m.h, m.data)),
+        })
+    }
+}
