@@ -1,0 +1,268 @@
+//! Fixed-point engine tests: the streaming engine equals the plain fixed-point engine bit for bit,
+//! runs without a single heap allocation, and refuses bad blobs, arenas and outputs with typed
+//! errors.
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use muir::Config;
+use muir::calib::{CalibOptions, RangeMethod, calibrate};
+use muir::engine::{Engine, EngineError, Output, Plan, REJECTED, reject, u_threshold};
+use muir::float::{FloatModel, FloatWeights, NoTrace, seeded};
+use muir::format::{BlobError, QuantModel, writer};
+use muir::input::{ImageView, PixelFormat};
+use muir::reference::Reference;
+
+/// Counts the allocations of the thread that set `COUNTING` (tests run in parallel threads).
+struct Counting;
+static ALLOCS: AtomicUsize = AtomicUsize::new(0);
+thread_local! {
+    static COUNTING: Cell<bool> = const { Cell::new(false) };
+}
+
+fn counting() -> bool {
+    COUNTING.try_with(|c| c.get()).unwrap_or(false)
+}
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, l: Layout) -> *mut u8 {
+        if counting() {
+            ALLOCS.fetch_add(1, Ordering::SeqCst);
+        }
+        unsafe { System.alloc(l) }
+    }
+    unsafe fn dealloc(&self, p: *mut u8, l: Layout) {
+        unsafe { System.dealloc(p, l) }
+    }
+    unsafe fn realloc(&self, p: *mut u8, l: Layout, n: usize) -> *mut u8 {
+        if counting() {
+            ALLOCS.fetch_add(1, Ordering::SeqCst);
+        }
+        unsafe { System.realloc(p, l, n) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+/// A deterministic textured pair: a random-dot image and its copy shifted by a smooth disparity
+/// field (so correlation peaks, UFI proposals and the iterations all see structure).
+fn pair(w: usize, h: usize, seed: u64, gray: bool) -> (Vec<u8>, Vec<u8>) {
+    let mut s = seed;
+    let mut next = || {
+        s ^= s << 13;
+        s ^= s >> 7;
+        s ^= s << 17;
+        s
+    };
+    let c = if gray { 1 } else { 3 };
+    let tex: Vec<u8> = (0..(w + 64) * h * c).map(|_| (next() % 256) as u8).collect();
+    let mut l = vec![0u8; w * h * c];
+    let mut r = vec![0u8; w * h * c];
+    for y in 0..h {
+        for x in 0..w {
+            let d = 4 + (x * 12 / w) + (y % 7);
+            for ch in 0..c {
+                l[(y * w + x) * c + ch] = tex[(y * (w + 64) + x + 32) * c + ch];
+                r[(y * w + x) * c + ch] = tex[(y * (w + 64) + x + 32 + d) * c + ch];
+            }
+        }
+    }
+    (l, r)
+}
+
+fn view(d: &[u8], w: usize, h: usize, gray: bool) -> ImageView<'_> {
+    ImageView::new(w, h, if gray { PixelFormat::Gray8 } else { PixelFormat::Rgb8 }, d).unwrap()
+}
+
+/// Seeded float weights quantised with formats calibrated on one textured pair.
+fn blob(cfg: &Config) -> Vec<u8> {
+    let model = FloatModel::new(FloatWeights::from_state_dict(seeded::state_dict(cfg, 11), cfg).unwrap());
+    let (l, r) = pair(96, 64, 3, false);
+    let pairs = [(view(&l, 96, 64, false), view(&r, 96, 64, false))];
+    let cal = calibrate(&model, &pairs, CalibOptions { method: RangeMethod::Percentile(0.9999), iters: 3 }, &mut |_, _| {}).unwrap();
+    writer::write(&cal.data)
+}
+
+fn arena(plan: &Plan) -> Vec<u64> {
+    vec![0u64; plan.ram_bytes.div_ceil(8)]
+}
+
+fn check_bit_exact(cfg: &Config, w: usize, h: usize, iters: usize, gray: bool) {
+    let blob = blob(cfg);
+    let qm = QuantModel::parse(&blob).unwrap();
+    let (l, r) = pair(w, h, 99 + w as u64, gray);
+    let (lv, rv) = (view(&l, w, h, gray), view(&r, w, h, gray));
+    let want = Reference::new(&qm).predict(&lv, &rv, Some(iters), &mut NoTrace).unwrap();
+    let plan = Plan::new(cfg, w, h);
+    let mut mem = arena(&plan);
+    let mut engine = Engine::new(&qm, bytemuck::cast_slice_mut(&mut mem)).unwrap();
+    let mut d = vec![0i16; w * h];
+    let mut u = vec![0i16; w * h];
+    let unc = if cfg.mud { Some(&mut u[..]) } else { None };
+    engine.run_iters(&lv, &rv, iters, &mut Output { disparity: &mut d, uncertainty: unc }).unwrap();
+    let bad = d.iter().zip(&want.disparity).filter(|(a, b)| a != b).count();
+    assert_eq!(bad, 0, "{} {w}x{h}: {bad} disparities differ", cfg.name);
+    if let Some(wu) = &want.uncertainty {
+        assert_eq!(&u, wu, "{} {w}x{h}: uncertainty differs", cfg.name);
+    }
+    // The outputs carry signal (not a constant map).
+    let (lo, hi) = (d.iter().min().unwrap(), d.iter().max().unwrap());
+    assert!(hi > lo, "{}: constant disparity", cfg.name);
+}
+
+#[test]
+fn streaming_equals_plain_muir_slim() {
+    check_bit_exact(&Config::MUIR_SLIM, 100, 70, 7, false);
+    check_bit_exact(&Config::MUIR_SLIM, 64, 48, 2, true);
+}
+
+#[test]
+fn streaming_equals_plain_muir_fast() {
+    check_bit_exact(&Config::MUIR_FAST, 90, 66, 4, false);
+}
+
+#[test]
+fn streaming_equals_plain_raft_stereo_realtime() {
+    check_bit_exact(&Config::RAFT_STEREO_REALTIME, 80, 48, 4, false);
+}
+
+#[test]
+fn inference_allocates_nothing() {
+    let cfg = Config::MUIR_SLIM;
+    let blob = blob(&cfg);
+    let (w, h) = (96, 64);
+    let (l, r) = pair(w, h, 5, false);
+    let plan = Plan::new(&cfg, w, h);
+    let mut mem = arena(&plan);
+    let mut d = vec![0i16; w * h];
+    let mut u = vec![0i16; w * h];
+    let (lv, rv) = (view(&l, w, h, false), view(&r, w, h, false));
+    ALLOCS.store(0, Ordering::SeqCst);
+    COUNTING.with(|c| c.set(true));
+    let res = (|| {
+        let qm = QuantModel::parse(&blob)?;
+        let mut engine = Engine::new(&qm, bytemuck::cast_slice_mut(&mut mem)).map_err(|_| BlobError::BadMagic)?;
+        engine.run(&lv, &rv, &mut Output { disparity: &mut d, uncertainty: Some(&mut u) }).map_err(|_| BlobError::BadMagic)?;
+        Ok::<(), BlobError>(())
+    })();
+    COUNTING.with(|c| c.set(false));
+    res.unwrap();
+    assert_eq!(ALLOCS.load(Ordering::SeqCst), 0, "heap allocations during parse + inference");
+    assert!(d.iter().any(|v| *v != d[0]));
+}
+
+#[test]
+fn malformed_blobs_are_typed_errors() {
+    let cfg = Config::MUIR_SLIM;
+    let good = blob(&cfg);
+    QuantModel::parse(&good).unwrap();
+    // truncated anywhere
+    for cut in [0, 3, 15, 100, good.len() / 3, good.len() - 1] {
+        let e = QuantModel::parse(&good[..cut]).unwrap_err();
+        assert!(matches!(e, BlobError::Truncated { .. } | BlobError::BadMagic), "cut {cut}: {e:?}");
+    }
+    let mut long = good.clone();
+    long.push(0);
+    assert!(matches!(QuantModel::parse(&long), Err(BlobError::TrailingBytes { .. })));
+    let mut bad = good.clone();
+    bad[0] = b'X';
+    assert_eq!(QuantModel::parse(&bad).unwrap_err(), BlobError::BadMagic);
+    let mut bad = good.clone();
+    bad[4] = 9;
+    assert_eq!(QuantModel::parse(&bad).unwrap_err(), BlobError::UnsupportedVersion { found: 9 });
+    // any flipped content byte breaks the checksum
+    for at in [20, 500, good.len() / 2, good.len() - 3] {
+        let mut bad = good.clone();
+        bad[at] ^= 0x40;
+        assert!(matches!(QuantModel::parse(&bad), Err(BlobError::Checksum { .. })), "byte {at}");
+    }
+    // consistent checksum but content inconsistent with the config
+    let cal = {
+        let model = FloatModel::new(FloatWeights::from_state_dict(seeded::state_dict(&cfg, 11), &cfg).unwrap());
+        let (l, r) = pair(64, 48, 3, false);
+        calibrate(&model, &[(view(&l, 64, 48, false), view(&r, 64, 48, false))], CalibOptions { method: RangeMethod::MinMax, iters: 1 }, &mut |_, _| {})
+            .unwrap()
+            .data
+    };
+    let mut d = cal.clone();
+    d.layers.retain(|l| l.id != muir::ConvId::Gru08Q);
+    assert_eq!(QuantModel::parse(&writer::write(&d)).unwrap_err(), BlobError::MissingLayer { layer: muir::ConvId::Gru08Q });
+    let mut d = cal.clone();
+    let l = d.layers.iter_mut().find(|l| l.id == muir::ConvId::Flow1).unwrap();
+    l.cout -= 1;
+    let k = l.patch_len();
+    l.weights.truncate(l.cout * k);
+    l.bias.pop();
+    l.mult.pop();
+    assert!(matches!(QuantModel::parse(&writer::write(&d)), Err(BlobError::LayerShape { layer: muir::ConvId::Flow1, .. })));
+    let mut d = cal.clone();
+    d.config.hidden_dim = 0;
+    assert!(matches!(QuantModel::parse(&writer::write(&d)), Err(BlobError::Config(_))));
+    let mut d = cal.clone();
+    d.formats[muir::model::graph::Act::Unit.index()].frac = 3;
+    assert!(matches!(QuantModel::parse(&writer::write(&d)), Err(BlobError::Format { .. })));
+    // a layer of another config
+    let mut d = cal.clone();
+    let mut extra = d.layers[0].clone();
+    extra.id = muir::ConvId::X32n;
+    d.layers.push(extra);
+    assert!(matches!(QuantModel::parse(&writer::write(&d)), Err(BlobError::UnexpectedLayer { .. })));
+}
+
+#[test]
+fn engine_argument_errors() {
+    let cfg = Config::MUIR_SLIM;
+    let blob = blob(&cfg);
+    let qm = QuantModel::parse(&blob).unwrap();
+    let (w, h) = (64, 48);
+    let (l, r) = pair(w, h, 1, true);
+    let (lv, rv) = (view(&l, w, h, true), view(&r, w, h, true));
+    let plan = Plan::new(&cfg, w, h);
+    let mut small = vec![0u64; plan.ram_bytes / 16];
+    let mut d = vec![0i16; w * h];
+    let mut e = Engine::new(&qm, bytemuck::cast_slice_mut(&mut small)).unwrap();
+    assert!(matches!(e.run(&lv, &rv, &mut Output { disparity: &mut d, uncertainty: None }), Err(EngineError::ArenaTooSmall { .. })));
+    let mut mem = arena(&plan);
+    let bytes: &mut [u8] = bytemuck::cast_slice_mut(&mut mem);
+    assert!(matches!(Engine::new(&qm, &mut bytes[1..]), Err(EngineError::ArenaAlignment)));
+    let mut e = Engine::new(&qm, bytes).unwrap();
+    let mut short = vec![0i16; w * h - 1];
+    assert!(matches!(e.run(&lv, &rv, &mut Output { disparity: &mut short, uncertainty: None }), Err(EngineError::OutputSize { .. })));
+    let tiny = vec![0u8; 20 * 20];
+    let tv = view(&tiny, 20, 20, true);
+    assert!(matches!(e.run(&tv, &tv, &mut Output { disparity: &mut d, uncertainty: None }), Err(EngineError::Input(_))));
+    // uncertainty needs MUD
+    let rt = blob_realtime_small();
+    let qrt = QuantModel::parse(&rt).unwrap();
+    let plan = Plan::new(&Config::RAFT_STEREO_REALTIME, w, h);
+    let mut mem = arena(&plan);
+    let mut e = Engine::new(&qrt, bytemuck::cast_slice_mut(&mut mem)).unwrap();
+    let mut u = vec![0i16; w * h];
+    assert_eq!(e.run(&lv, &rv, &mut Output { disparity: &mut d, uncertainty: Some(&mut u) }), Err(EngineError::NoUncertainty));
+}
+
+fn blob_realtime_small() -> Vec<u8> {
+    blob(&Config::RAFT_STEREO_REALTIME)
+}
+
+#[test]
+fn rejection_threshold() {
+    // exp(u/2) > tau  <=>  u > 2 ln tau;  tau = 1 px -> u > 0
+    assert_eq!(u_threshold(1.0), 0);
+    assert_eq!(u_threshold(3.0), (2.0f64 * 3f64.ln() * 2048.0).round() as i16);
+    let mut d = vec![10i16, 20, 30];
+    let kept = reject(&mut d, &[-5, 0, 7], 0);
+    assert_eq!(kept, 2);
+    assert_eq!(d, [10, 20, REJECTED]);
+}
+
+#[test]
+fn plan_ram_is_reported_per_preset() {
+    for cfg in Config::PRESETS {
+        let a = Plan::new(&cfg, 160, 120).ram_bytes;
+        let b = Plan::new(&cfg, 320, 240).ram_bytes;
+        assert!(b > 3 * a, "{}: {a} -> {b}", cfg.name);
+    }
+}

@@ -1,0 +1,352 @@
+//! Integer arithmetic specification, shared by every kernel, the host and the target.
+//!
+//! Everything the fixed-point engine computes reduces to the functions of this module; none uses
+//! floating point, and all are total (no panics, saturation instead of overflow). Host and
+//! Cortex-M results are therefore identical bit for bit. `docs/arithmetic.md` states the same rules
+//! in prose.
+//!
+//! * **Rounding**: [`rshift_round`] adds half an LSB and shifts right arithmetically, i.e. rounds
+//!   half toward +infinity. [`div_round`] rounds half away from zero. No other rounding exists.
+//! * **Saturation**: every narrowing goes through [`sat_i8`] / [`sat_i16`] / [`sat_i32`].
+//! * **Requantisation**: `y = sat(rshift_round(acc * m, shift))` with `m` a 31-bit multiplier in
+//!   `[2^30, 2^31)` and `shift` in `[1, 126]`, computed in 128-bit ([`requantize`]). Multiplier and
+//!   shift are found on the host by [`Multiplier::from_f64`] and stored in the model blob.
+//! * **Activation formats**: activations are `i8` or `i16` with a power-of-two scale, `value =
+//!   q * 2^-frac` ([`QFormat`]). Weights are `i8`, symmetric, with a scale per output channel (in
+//!   the multiplier). Accumulators are `i32` for `i8` inputs and `i64` for `i16` inputs (exact:
+//!   the model blob writer checks the worst-case bound).
+//! * **Nonlinearities** by table with linear interpolation ([`lut`]): sigmoid and tanh take Q3.12
+//!   and return Q0.15; exp takes Q4.11 in `[-16, 0]` and returns Q0.15; sine takes a 32-bit phase.
+
+pub mod lut;
+mod tables;
+
+/// Fraction bits of gate pre-activations (inputs of sigmoid and tanh): Q3.12, range [-8, 8).
+pub const GATE_FRAC: u8 = 12;
+/// Fraction bits of values in [-1, 1] (hidden states, gates, masks, softmax weights): Q0.15.
+pub const UNIT_FRAC: u8 = 15;
+/// Fraction bits of the 1/8-grid disparity state ("flow" = -disparity/8): Q7.8, so the full
+/// resolution disparity has 1/32 px steps and a range of +-1024 px.
+pub const FLOW_FRAC: u8 = 8;
+/// Fraction bits of the full-resolution disparity output (1/32 px).
+pub const DISP_FRAC: u8 = 5;
+/// Fraction bits of uncertainty `u = log(beta^2)` and of its logit: Q4.11, range [-16, 16).
+pub const LOG_FRAC: u8 = 11;
+/// `1.0` in Q0.15.
+pub const ONE_Q15: i32 = 1 << 15;
+
+/// Saturates to `i8`.
+#[inline(always)]
+pub const fn sat_i8(v: i64) -> i8 {
+    if v > i8::MAX as i64 {
+        i8::MAX
+    } else if v < i8::MIN as i64 {
+        i8::MIN
+    } else {
+        v as i8
+    }
+}
+
+/// Saturates to `i16`.
+#[inline(always)]
+pub const fn sat_i16(v: i64) -> i16 {
+    if v > i16::MAX as i64 {
+        i16::MAX
+    } else if v < i16::MIN as i64 {
+        i16::MIN
+    } else {
+        v as i16
+    }
+}
+
+/// Saturates to `i32`.
+#[inline(always)]
+pub const fn sat_i32(v: i64) -> i32 {
+    if v > i32::MAX as i64 {
+        i32::MAX
+    } else if v < i32::MIN as i64 {
+        i32::MIN
+    } else {
+        v as i32
+    }
+}
+
+/// `round(v / 2^s)`, half toward +infinity; `s = 0` returns `v`; `s >= 63` returns the sign's
+/// rounding of a vanishing value (0, or -1 never: it rounds to 0).
+#[inline(always)]
+pub const fn rshift_round(v: i64, s: u32) -> i64 {
+    if s == 0 {
+        v
+    } else if s >= 63 {
+        0
+    } else {
+        // v + 2^(s-1) cannot overflow unless v is within 2^(s-1) of i64::MAX; saturate then.
+        let half = 1i64 << (s - 1);
+        match v.checked_add(half) {
+            Some(t) => t >> s,
+            None => i64::MAX >> s,
+        }
+    }
+}
+
+/// `v * 2^s` for `s >= 0`, `round(v / 2^-s)` for `s < 0`, saturated to i64.
+#[inline(always)]
+pub const fn shift_round(v: i64, s: i32) -> i64 {
+    if s >= 0 {
+        if s >= 63 {
+            if v > 0 {
+                i64::MAX
+            } else if v < 0 {
+                i64::MIN
+            } else {
+                0
+            }
+        } else {
+            match v.checked_mul(1i64 << s) {
+                Some(p) => p,
+                None => {
+                    if v > 0 {
+                        i64::MAX
+                    } else {
+                        i64::MIN
+                    }
+                }
+            }
+        }
+    } else {
+        rshift_round(v, (-s) as u32)
+    }
+}
+
+/// Converts `v` from `from` fraction bits to `to` fraction bits (rounding as [`rshift_round`]).
+#[inline(always)]
+pub const fn rescale(v: i64, from: i8, to: i8) -> i64 {
+    shift_round(v, to as i32 - from as i32)
+}
+
+/// `n / d` rounded half away from zero; `d == 0` gives 0 (callers never divide by zero; this
+/// keeps the function total).
+#[inline(always)]
+pub const fn div_round(n: i64, d: i64) -> i64 {
+    if d == 0 {
+        return 0;
+    }
+    let (n_abs, neg_n) = if n < 0 { ((n as i128).unsigned_abs(), true) } else { (n as u128, false) };
+    let (d_abs, neg_d) = if d < 0 { ((d as i128).unsigned_abs(), true) } else { (d as u128, false) };
+    let q = (n_abs + d_abs / 2) / d_abs;
+    let q = if neg_n != neg_d { -(q as i128) } else { q as i128 };
+    if q > i64::MAX as i128 {
+        i64::MAX
+    } else if q < i64::MIN as i128 {
+        i64::MIN
+    } else {
+        q as i64
+    }
+}
+
+/// A real multiplier `m * 2^-shift` with `m` in `[2^30, 2^31)`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Multiplier {
+    /// Mantissa, `[2^30, 2^31)` (or 0 for a zero multiplier).
+    pub m: i32,
+    /// Right shift, `[1, 126]`.
+    pub shift: u8,
+}
+
+impl Multiplier {
+    /// The zero multiplier.
+    pub const ZERO: Multiplier = Multiplier { m: 0, shift: 1 };
+
+    /// Nearest representable multiplier to `r >= 0` (host only: float in, integers out).
+    /// Returns `None` when `r` is negative, not finite, or `>= 2^30`.
+    #[cfg(feature = "std")]
+    pub fn from_f64(r: f64) -> Option<Multiplier> {
+        if !r.is_finite() || r < 0.0 || r >= (1u64 << 30) as f64 {
+            return None;
+        }
+        if r == 0.0 {
+            return Some(Multiplier::ZERO);
+        }
+        // r = frac * 2^exp with frac in [0.5, 1): m = round(frac * 2^31), shift = 31 - exp.
+        let mut exp = r.log2().floor() as i32 + 1;
+        let mut frac = r / 2f64.powi(exp);
+        if frac >= 1.0 {
+            frac /= 2.0;
+            exp += 1;
+        }
+        let mut m = (frac * (1u64 << 31) as f64).round() as i64;
+        if m == 1 << 31 {
+            m /= 2;
+            exp += 1;
+        }
+        let shift = 31 - exp;
+        if shift < 1 {
+            return None;
+        }
+        if shift > 126 {
+            return Some(Multiplier::ZERO);
+        }
+        Some(Multiplier { m: m as i32, shift: shift as u8 })
+    }
+
+    /// The real value (host-side reports).
+    #[cfg(feature = "std")]
+    pub fn to_f64(self) -> f64 {
+        self.m as f64 / 2f64.powi(self.shift as i32)
+    }
+}
+
+/// `round(acc * m / 2^shift)` (half toward +infinity) in 128-bit, saturated to i64.
+#[inline(always)]
+pub const fn requantize(acc: i64, mult: Multiplier) -> i64 {
+    let p = acc as i128 * mult.m as i128;
+    let s = mult.shift as u32;
+    let r = (p + (1i128 << (s - 1))) >> s;
+    if r > i64::MAX as i128 {
+        i64::MAX
+    } else if r < i64::MIN as i128 {
+        i64::MIN
+    } else {
+        r as i64
+    }
+}
+
+/// Integer square root: `floor(sqrt(v))`.
+pub const fn isqrt_u64(v: u64) -> u64 {
+    if v < 2 {
+        return v;
+    }
+    // Newton iteration from an upper bound; monotone decreasing to floor(sqrt(v)).
+    let mut x = 1u64 << ((64 - v.leading_zeros()).div_ceil(2));
+    loop {
+        let y = (x + v / x) / 2;
+        if y >= x {
+            return x;
+        }
+        x = y;
+    }
+}
+
+/// Activation format: `value = q * 2^-frac`, stored as `i8` (`bits == 8`) or `i16`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct QFormat {
+    /// Storage width: 8 or 16.
+    pub bits: u8,
+    /// Fraction bits (may exceed `bits`, or be negative for very large ranges).
+    pub frac: i8,
+}
+
+impl QFormat {
+    /// An i16 format.
+    pub const fn i16(frac: i8) -> Self {
+        Self { bits: 16, frac }
+    }
+    /// An i8 format.
+    pub const fn i8(frac: i8) -> Self {
+        Self { bits: 8, frac }
+    }
+    /// Largest stored magnitude.
+    pub const fn qmax(self) -> i64 {
+        if self.bits == 8 { i8::MAX as i64 } else { i16::MAX as i64 }
+    }
+    /// Saturates to this format's storage range.
+    #[inline(always)]
+    pub const fn sat(self, v: i64) -> i64 {
+        let q = self.qmax();
+        if v > q {
+            q
+        } else if v < -q - 1 {
+            -q - 1
+        } else {
+            v
+        }
+    }
+    /// Real value of `q` (host-side only).
+    #[cfg(feature = "std")]
+    pub fn to_f32(self, q: i64) -> f32 {
+        (q as f64 * 2f64.powi(-(self.frac as i32))) as f32
+    }
+    /// Quantises a real value (host-side only).
+    #[cfg(feature = "std")]
+    pub fn quantize(self, v: f32) -> i64 {
+        let scaled = (v as f64 * 2f64.powi(self.frac as i32)).round();
+        self.sat(scaled.clamp(i64::MIN as f64, i64::MAX as f64) as i64)
+    }
+    /// The finest format of `bits` whose range holds `max_abs` (host-side only).
+    #[cfg(feature = "std")]
+    pub fn for_range(bits: u8, max_abs: f32) -> Self {
+        let qmax = if bits == 8 { 127.0f64 } else { 32767.0 };
+        let m = (max_abs as f64).max(1e-12);
+        let frac = (qmax / m).log2().floor().clamp(-60.0, 60.0) as i8;
+        Self { bits, frac }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rounding_rules() {
+        assert_eq!(rshift_round(5, 1), 3); // 2.5 -> 3
+        assert_eq!(rshift_round(-5, 1), -2); // -2.5 -> -2 (half toward +inf)
+        assert_eq!(rshift_round(-6, 1), -3);
+        assert_eq!(rshift_round(7, 2), 2);
+        assert_eq!(rshift_round(i64::MAX, 1), i64::MAX >> 1);
+        assert_eq!(div_round(5, 2), 3);
+        assert_eq!(div_round(-5, 2), -3); // half away from zero
+        assert_eq!(div_round(7, -2), -4);
+        assert_eq!(div_round(1, 0), 0);
+        assert_eq!(shift_round(3, 2), 12);
+        assert_eq!(shift_round(i64::MAX / 2, 2), i64::MAX);
+        assert_eq!(rescale(100, 4, 2), 25);
+        assert_eq!(rescale(100, -1, 1), 400); // negative fraction bits (ranges above qmax)
+        assert_eq!(rescale(100, 2, -2), 6);
+    }
+
+    #[test]
+    fn saturation() {
+        assert_eq!(sat_i8(300), 127);
+        assert_eq!(sat_i8(-300), -128);
+        assert_eq!(sat_i16(40000), 32767);
+        assert_eq!(sat_i32(i64::MIN), i32::MIN);
+        assert_eq!(QFormat::i8(3).sat(-1000), -128);
+    }
+
+    #[test]
+    fn multipliers() {
+        for r in [1e-9, 3.7e-5, 0.25, 0.3333, 1.0, 1.5, 123.456, 65535.9] {
+            let m = Multiplier::from_f64(r).unwrap();
+            assert!((1 << 30..1i64 << 31).contains(&(m.m as i64)), "{r}: {m:?}");
+            assert!(((m.to_f64() - r) / r).abs() < 1e-9, "{r}");
+        }
+        assert_eq!(Multiplier::from_f64(0.0), Some(Multiplier::ZERO));
+        assert_eq!(Multiplier::from_f64(-1.0), None);
+        assert_eq!(Multiplier::from_f64(f64::NAN), None);
+        let half = Multiplier::from_f64(0.5).unwrap();
+        assert_eq!(requantize(3, half), 2); // 1.5 -> 2
+        assert_eq!(requantize(-3, half), -1); // -1.5 -> -1
+        let big = Multiplier::from_f64(1.0e9).unwrap();
+        assert_eq!(requantize(i64::MAX, big), i64::MAX);
+    }
+
+    #[test]
+    fn integer_sqrt() {
+        for v in [0u64, 1, 2, 3, 4, 15, 16, 17, 1 << 40, u64::MAX, (1 << 62) + 12345] {
+            let r = isqrt_u64(v);
+            assert!(r.checked_mul(r).is_some_and(|s| s <= v), "{v}");
+            assert!((r + 1).checked_mul(r + 1).is_none_or(|s| s > v), "{v}");
+        }
+    }
+
+    #[test]
+    fn formats() {
+        let f = QFormat::for_range(8, 3.0);
+        assert_eq!(f, QFormat::i8(5)); // 3.0 * 32 = 96 <= 127 < 3.0 * 64
+        assert_eq!(f.quantize(1.0), 32);
+        assert_eq!(f.quantize(100.0), 127);
+        assert_eq!(QFormat::for_range(16, 1.0).frac, 14);
+    }
+}

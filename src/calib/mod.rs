@@ -1,0 +1,477 @@
+//! Calibration: float weights + calibration pairs -> quantised model (`.muirq`), with a report.
+//!
+//! 1. The float reference runs on the calibration pairs; a [`CalibTrace`] collects, for every
+//!    calibrated activation slot ([`Act`] without a fixed format), the largest magnitude and a
+//!    histogram of magnitudes (32 bins per octave).
+//! 2. Each slot gets the finest power-of-two format that holds its range: the maximum
+//!    ([`RangeMethod::MinMax`]) or a percentile of the magnitudes ([`RangeMethod::Percentile`]).
+//! 3. [`quantize`] folds BatchNorm, the image normalisation, part scales, merged context convs and
+//!    output factors into effective weights, quantises them per output channel (int8 symmetric),
+//!    biases into accumulator units (i64) and derives the requantisation multipliers.
+
+use std::collections::BTreeMap;
+use std::fmt::{self, Write as _};
+
+use crate::arith::{GATE_FRAC, LOG_FRAC, Multiplier, QFormat};
+use crate::float::weights::FloatWeights;
+use crate::kernels::conv::EXTRA_BITS;
+use crate::float::{FloatModel, Tensor, Trace};
+use crate::format::writer::{QuantLayer, QuantModelData};
+use crate::format::{MAX_LEVELS, U_TABLE_LEN};
+use crate::input::ImageView;
+use crate::model::config::Config;
+use crate::model::graph::{Act, PostOp, QLayer};
+use crate::model::layers::ConvId;
+
+const BINS_PER_OCTAVE: f64 = 32.0;
+const MIN_EXP: f64 = -24.0;
+const BINS: usize = 48 * 32;
+
+/// Magnitude statistics of one activation slot.
+#[derive(Clone, Debug)]
+pub struct RangeStats {
+    /// Largest magnitude seen.
+    pub max_abs: f32,
+    /// Values seen.
+    pub count: u64,
+    /// Magnitudes below the first bin (including zeros).
+    pub small: u64,
+    hist: Vec<u64>,
+}
+
+impl Default for RangeStats {
+    fn default() -> Self {
+        Self { max_abs: 0.0, count: 0, small: 0, hist: vec![0; BINS] }
+    }
+}
+
+impl RangeStats {
+    /// Adds values.
+    pub fn add(&mut self, values: &[f32]) {
+        for v in values {
+            let a = v.abs();
+            if !a.is_finite() {
+                continue;
+            }
+            self.count += 1;
+            self.max_abs = self.max_abs.max(a);
+            let b = ((a as f64).log2() - MIN_EXP) * BINS_PER_OCTAVE;
+            if b < 0.0 || a == 0.0 {
+                self.small += 1;
+            } else {
+                self.hist[(b as usize).min(BINS - 1)] += 1;
+            }
+        }
+    }
+
+    /// Magnitude below which a fraction `p` of the values lie (upper edge of the bin).
+    pub fn percentile(&self, p: f64) -> f32 {
+        let target = (p * self.count as f64).ceil() as u64;
+        let mut seen = self.small;
+        if seen >= target {
+            return 2f64.powf(MIN_EXP) as f32;
+        }
+        for (i, n) in self.hist.iter().enumerate() {
+            seen += n;
+            if seen >= target {
+                let edge = 2f64.powf(MIN_EXP + (i + 1) as f64 / BINS_PER_OCTAVE);
+                return (edge as f32).min(self.max_abs);
+            }
+        }
+        self.max_abs
+    }
+
+    /// Fraction of the values whose magnitude exceeds `limit`.
+    pub fn fraction_above(&self, limit: f32) -> f64 {
+        if self.count == 0 {
+            return 0.0;
+        }
+        let b = (((limit as f64).log2() - MIN_EXP) * BINS_PER_OCTAVE).max(0.0) as usize;
+        let above: u64 = self.hist.iter().skip(b + 1).sum();
+        above as f64 / self.count as f64
+    }
+}
+
+/// Collects [`RangeStats`] from the float reference's `q.<slot>` records.
+#[derive(Clone, Debug, Default)]
+pub struct CalibTrace {
+    /// Statistics by slot name.
+    pub stats: BTreeMap<String, RangeStats>,
+}
+
+impl Trace for CalibTrace {
+    fn record(&mut self, name: &str, t: &Tensor) {
+        if let Some(slot) = name.strip_prefix("q.") {
+            self.stats.entry(slot.to_string()).or_default().add(&t.data);
+        }
+    }
+}
+
+/// How a slot's range is chosen from its statistics.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum RangeMethod {
+    /// The largest magnitude seen.
+    MinMax,
+    /// The given quantile of the magnitudes (e.g. 0.9999).
+    Percentile(f64),
+}
+
+impl fmt::Display for RangeMethod {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::MinMax => write!(f, "minmax"),
+            Self::Percentile(p) => write!(f, "percentile {:.4}%", p * 100.0),
+        }
+    }
+}
+
+/// Why calibration failed.
+#[derive(Clone, Debug, PartialEq)]
+pub enum CalibError {
+    /// No calibration pair was given.
+    NoPairs,
+    /// An input pair was rejected.
+    Input(crate::input::InputError),
+    /// A calibrated slot was never observed (the float model did not record it).
+    Unobserved {
+        /// Slot name.
+        act: &'static str,
+    },
+    /// A multiplier is out of the representable range.
+    Multiplier {
+        /// Layer name.
+        layer: &'static str,
+        /// Real value.
+        value: f64,
+    },
+}
+
+impl fmt::Display for CalibError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::NoPairs => write!(f, "no calibration pairs"),
+            Self::Input(e) => write!(f, "calibration pair rejected: {e}"),
+            Self::Unobserved { act } => write!(f, "activation '{act}' was not observed during calibration"),
+            Self::Multiplier { layer, value } => write!(f, "layer '{layer}': requantisation multiplier {value:e} out of range"),
+        }
+    }
+}
+
+impl std::error::Error for CalibError {}
+
+/// The slot's format: fixed by the spec, or from its statistics.
+pub fn choose_formats(cfg: &Config, stats: &BTreeMap<String, RangeStats>, method: RangeMethod) -> Result<[QFormat; Act::COUNT], CalibError> {
+    let mut out = [QFormat::i8(0); Act::COUNT];
+    for &act in Act::ALL {
+        out[act.index()] = match act.fixed_format() {
+            Some(f) => f,
+            None => match stats.get(act.name()) {
+                Some(s) if s.count > 0 => {
+                    let range = match method {
+                        RangeMethod::MinMax => s.max_abs,
+                        RangeMethod::Percentile(p) => s.percentile(p),
+                    };
+                    QFormat::for_range(act.bits(), range.max(1e-6))
+                }
+                _ if !slot_used(act, cfg) => QFormat { bits: act.bits(), frac: 0 },
+                _ => return Err(CalibError::Unobserved { act: act.name() }),
+            },
+        };
+    }
+    Ok(out)
+}
+
+/// True when some computed layer of `cfg` reads or writes `act`.
+pub fn slot_used(act: Act, cfg: &Config) -> bool {
+    ConvId::ALL.iter().filter_map(|id| QLayer::of(*id, cfg)).any(|l| {
+        l.out[0] == act || (l.split < usize::MAX && l.out[1] == act) || l.parts.iter().flatten().any(|p| p.act == act)
+    }) || (act == Act::Glb && cfg.mga)
+        || (act == Act::Corr)
+}
+
+/// Real scale of one part's integers (the image is `2 * pixel - 255` with scale 1/255).
+fn part_scale(act: Act, formats: &[QFormat; Act::COUNT]) -> f64 {
+    if act == Act::Image { 1.0 / 255.0 } else { 2f64.powi(-(formats[act.index()].frac as i32)) }
+}
+
+/// Quantises float weights with the given activation formats.
+pub fn quantize(w: &FloatWeights, formats: &[QFormat; Act::COUNT]) -> Result<QuantModelData, CalibError> {
+    let cfg = w.config;
+    let mut layers = Vec::new();
+    for &id in ConvId::ALL {
+        let Some(ql) = QLayer::of(id, &cfg) else { continue };
+        let Some(fc) = w.get(id) else { continue };
+        let s = fc.shape;
+        let kk = s.k * s.k;
+        // Folded float weights [cout][cin][k*k] and bias (BatchNorm and output factor applied).
+        let mut fw: Vec<f64> = fc.weight.iter().map(|v| *v as f64).collect();
+        let mut fb: Vec<f64> = fc.bias.iter().map(|v| *v as f64).collect();
+        if let Some(bn) = &fc.bn {
+            for c in 0..s.cout {
+                let k = bn.weight[c] as f64 / (bn.var[c] as f64 + crate::float::weights::BN_EPS as f64).sqrt();
+                for v in &mut fw[c * s.cin * kk..(c + 1) * s.cin * kk] {
+                    *v *= k;
+                }
+                fb[c] = (fb[c] - bn.mean[c] as f64) * k + bn.bias[c] as f64;
+            }
+        }
+        // Merged context conv: extra input part with that conv's weights for this gate's chunk.
+        let merged = ql.merged.and_then(|(mid, chunk)| w.get(mid).map(|m| (m, chunk)));
+        let parts: Vec<_> = ql.parts.iter().flatten().copied().collect();
+        let patch = kk * parts.iter().map(|p| p.channels).sum::<usize>();
+        let factor = ql.out_factor as f64;
+        let mut q = QuantLayer {
+            id,
+            k: s.k,
+            stride: s.stride,
+            post: ql.post,
+            parts: parts.iter().map(|p| p.channels).collect(),
+            cout: s.cout,
+            weights: vec![0; s.cout * patch],
+            bias: vec![0; s.cout],
+            mult: vec![Multiplier::ZERO; s.cout],
+        };
+        let mut eff = vec![0f64; patch];
+        let np = parts.len();
+        q.mult = vec![Multiplier::ZERO; s.cout * np];
+        for c in 0..s.cout {
+            let mut bias = fb[c] * factor;
+            let mut o = 0;
+            let mut cin0 = 0;
+            let mut ranges = [(0usize, 0usize); crate::model::graph::MAX_PARTS];
+            for (pi, part) in parts.iter().enumerate() {
+                let scale = part_scale(part.act, formats) * factor;
+                let is_ctx = merged.is_some() && pi == np - 1;
+                let start = o;
+                for ky in 0..s.k {
+                    for kx in 0..s.k {
+                        for ci in 0..part.channels {
+                            let v = match (is_ctx, merged) {
+                                (true, Some((m, chunk))) => {
+                                    let row = chunk * cfg.hidden_dim + c;
+                                    m.weight[(row * m.shape.cin + ci) * kk + ky * s.k + kx] as f64
+                                }
+                                _ => fw[(c * s.cin + cin0 + ci) * kk + ky * s.k + kx],
+                            };
+                            eff[o] = v * scale;
+                            o += 1;
+                        }
+                    }
+                }
+                ranges[pi] = (start, o);
+                if !is_ctx {
+                    cin0 += part.channels;
+                }
+            }
+            if let Some((m, chunk)) = merged {
+                bias += m.bias[chunk * cfg.hidden_dim + c] as f64 * factor;
+            }
+            let out_frac = match ql.post {
+                PostOp::Sigmoid | PostOp::Tanh => GATE_FRAC as i32,
+                _ => formats[ql.out_act(c).index()].frac as i32,
+            } + EXTRA_BITS as i32;
+            // One int8 scale per (channel, part): parts of very different ranges keep full precision.
+            for (pi, &(a, b)) in ranges.iter().enumerate().take(np) {
+                let max = eff[a..b].iter().fold(0f64, |m, v| m.max(v.abs()));
+                let sw = if max > 0.0 { max / 127.0 } else { 1.0 };
+                for (dst, v) in q.weights[c * patch + a..c * patch + b].iter_mut().zip(&eff[a..b]) {
+                    *dst = (v / sw).round().clamp(-127.0, 127.0) as i8;
+                }
+                let r = sw * 2f64.powi(out_frac);
+                q.mult[c * np + pi] = Multiplier::from_f64(r).ok_or(CalibError::Multiplier { layer: id.name(), value: r })?;
+            }
+            q.bias[c] = (bias * 2f64.powi(out_frac)).round().clamp(-(2f64.powi(62)), 2f64.powi(62)) as i64;
+        }
+        layers.push(q);
+    }
+    Ok(QuantModelData {
+        config: cfg,
+        formats: *formats,
+        corr_mults: corr_multipliers(&cfg, formats)?,
+        att_mult: attention_multiplier(&cfg, formats)?,
+        rope_phases: rope_phases(&cfg),
+        u_table: uncertainty_table(&cfg),
+        layers,
+    })
+}
+
+fn corr_multipliers(cfg: &Config, f: &[QFormat; Act::COUNT]) -> Result<Vec<Multiplier>, CalibError> {
+    let ff = f[Act::Fmap.index()].frac as i32;
+    let fcorr = f[Act::Corr.index()].frac as i32;
+    (0..cfg.corr_levels.min(MAX_LEVELS))
+        .map(|l| {
+            let units = if cfg.post_pool { 8 + l as i32 } else { 8 + 2 * l as i32 };
+            let r = 2f64.powi(fcorr - 2 * ff - units) / (cfg.fmap_dim as f64).sqrt();
+            Multiplier::from_f64(r).ok_or(CalibError::Multiplier { layer: "corr lookup", value: r })
+        })
+        .collect()
+}
+
+fn attention_multiplier(cfg: &Config, f: &[QFormat; Act::COUNT]) -> Result<Multiplier, CalibError> {
+    if !cfg.mga {
+        return Ok(Multiplier::ZERO);
+    }
+    let (fq, fk) = (f[Act::MgaQ.index()].frac as i32, f[Act::MgaK.index()].frac as i32);
+    let r = 2f64.powi(LOG_FRAC as i32 - fq - fk) / (cfg.mga_qk_dim as f64).sqrt();
+    Multiplier::from_f64(r).ok_or(CalibError::Multiplier { layer: "attention", value: r })
+}
+
+/// RoPE phase steps (2^32 per turn) of each channel pair: pair `i` of a half turns by
+/// `base^(-i/n)` radians per pixel.
+pub fn rope_phases(cfg: &Config) -> Vec<u32> {
+    if !cfg.mga {
+        return Vec::new();
+    }
+    let pairs = cfg.mga_qk_dim / 2;
+    let n = pairs / 2;
+    (0..pairs)
+        .map(|p| {
+            let i = p % n;
+            let freq = (cfg.mga_rope_base as f64).powf(-(i as f64) / n as f64);
+            let turns = freq / std::f64::consts::TAU;
+            ((turns * 4294967296.0).round() as u64 & 0xFFFF_FFFF) as u32
+        })
+        .collect()
+}
+
+/// `u = ln(eps_min^2 + (eps_max^2 - eps_min^2) sigmoid(b))` in Q4.11 at `b = -16 + i/32`.
+pub fn uncertainty_table(cfg: &Config) -> Vec<i16> {
+    let (lo, hi) = ((cfg.eps_min as f64).powi(2), (cfg.eps_max as f64).powi(2));
+    (0..U_TABLE_LEN)
+        .map(|i| {
+            let b = -16.0 + i as f64 / 32.0;
+            let u = (lo + (hi - lo) / (1.0 + (-b).exp())).ln();
+            (u * 2f64.powi(LOG_FRAC as i32)).round().clamp(-32768.0, 32767.0) as i16
+        })
+        .collect()
+}
+
+/// Calibration settings.
+#[derive(Clone, Copy, Debug)]
+pub struct CalibOptions {
+    /// Range rule.
+    pub method: RangeMethod,
+    /// Refinement iterations run on each pair.
+    pub iters: usize,
+}
+
+/// Result of [`calibrate`].
+#[derive(Clone, Debug)]
+pub struct Calibration {
+    /// The quantised model.
+    pub data: QuantModelData,
+    /// Statistics by slot.
+    pub stats: BTreeMap<String, RangeStats>,
+    /// Range rule used.
+    pub method: RangeMethod,
+}
+
+/// Runs the float model on `pairs`, chooses formats and quantises. `progress(done, total)` is
+/// called after each pair.
+pub fn calibrate(model: &FloatModel, pairs: &[(ImageView<'_>, ImageView<'_>)], opts: CalibOptions, progress: &mut dyn FnMut(usize, usize)) -> Result<Calibration, CalibError> {
+    if pairs.is_empty() {
+        return Err(CalibError::NoPairs);
+    }
+    let mut trace = CalibTrace::default();
+    for (i, (l, r)) in pairs.iter().enumerate() {
+        model.trace_pair(l, r, opts.iters, &mut trace).map_err(CalibError::Input)?;
+        progress(i + 1, pairs.len());
+    }
+    let cfg = *model.config();
+    let formats = choose_formats(&cfg, &trace.stats, opts.method)?;
+    let data = quantize(model.weights(), &formats)?;
+    Ok(Calibration { data, stats: trace.stats, method: opts.method })
+}
+
+impl Calibration {
+    /// Per-slot and per-layer report (Markdown).
+    pub fn report(&self) -> String {
+        let mut s = String::new();
+        let cfg = &self.data.config;
+        let _ = writeln!(s, "# Calibration of {} ({})\n", cfg.name, self.method);
+        let _ = writeln!(s, "| slot | bits | frac | range (max) | representable | clipped |");
+        let _ = writeln!(s, "|---|---|---|---|---|---|");
+        for &act in Act::ALL {
+            let f = self.data.formats[act.index()];
+            let (max, clipped) = match self.stats.get(act.name()) {
+                Some(st) => {
+                    let lim = f.qmax() as f32 * 2f32.powi(-(f.frac as i32));
+                    (format!("{:.4}", st.max_abs), format!("{:.4}%", 100.0 * st.fraction_above(lim)))
+                }
+                None => ("-".into(), "-".into()),
+            };
+            let rep = f.qmax() as f64 * 2f64.powi(-(f.frac as i32));
+            let kind = if act.fixed_format().is_some() { " (fixed)" } else { "" };
+            let _ = writeln!(s, "| {}{} | {} | {} | {} | {:.4} | {} |", act.name(), kind, f.bits, f.frac, max, rep, clipped);
+        }
+        let _ = writeln!(s, "\n| layer | k | cin | cout | post | parts | multiplier (min..max) |");
+        let _ = writeln!(s, "|---|---|---|---|---|---|---|");
+        for l in &self.data.layers {
+            let (lo, hi) = l.mult.iter().map(|m| m.to_f64()).fold((f64::MAX, 0f64), |(a, b), v| (a.min(v), b.max(v)));
+            let _ = writeln!(
+                s,
+                "| {} | {} | {} | {} | {:?} | {} | {:.3e}..{:.3e} |",
+                l.id.name(),
+                l.k,
+                l.parts.iter().sum::<usize>(),
+                l.cout,
+                l.post,
+                l.parts.len(),
+                lo,
+                hi
+            );
+        }
+        s
+    }
+}
+
+/// Every record of a run, in order (for comparing two runs tensor by tensor).
+#[derive(Clone, Debug, Default)]
+pub struct Records(pub Vec<(String, Tensor)>);
+
+impl Trace for Records {
+    fn record(&mut self, name: &str, t: &Tensor) {
+        self.0.push((name.to_string(), t.clone()));
+    }
+}
+
+/// Signal-to-quantisation-noise ratio of one traced tensor (accumulated over its occurrences).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Sqnr {
+    /// Trace name (`q.<slot>` for activation slots).
+    pub name: String,
+    /// `10 log10(sum f^2 / sum (f - q)^2)`.
+    pub db: f64,
+    /// Occurrences compared (e.g. one per iteration).
+    pub count: usize,
+}
+
+/// SQNR of the fixed-point run `fixed` against the float run `float`, pairing the n-th record of a
+/// name in one with the n-th of the same name in the other. Errors accumulate through the network,
+/// so later layers show the end-to-end effect of all earlier quantisation.
+pub fn sqnr(float: &Records, fixed: &Records) -> Vec<Sqnr> {
+    let mut by_name: BTreeMap<&str, Vec<&Tensor>> = BTreeMap::new();
+    for (n, t) in &fixed.0 {
+        by_name.entry(n.as_str()).or_default().push(t);
+    }
+    let mut seen: BTreeMap<&str, usize> = BTreeMap::new();
+    let mut acc: BTreeMap<&str, (f64, f64, usize)> = BTreeMap::new();
+    for (n, f) in &float.0 {
+        let k = seen.entry(n.as_str()).or_default();
+        let idx = *k;
+        *k += 1;
+        let Some(q) = by_name.get(n.as_str()).and_then(|v| v.get(idx)) else { continue };
+        if q.data.len() != f.data.len() {
+            continue;
+        }
+        let e = acc.entry(n.as_str()).or_default();
+        for (a, b) in f.data.iter().zip(&q.data) {
+            e.0 += (*a as f64).powi(2);
+            e.1 += (*a as f64 - *b as f64).powi(2);
+        }
+        e.2 += 1;
+    }
+    acc.into_iter()
+        .map(|(name, (s, e, count))| Sqnr { name: name.to_string(), db: 10.0 * (s.max(1e-30) / e.max(1e-30)).log10(), count })
+        .collect()
+}

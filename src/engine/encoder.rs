@@ -1,0 +1,555 @@
+//! Streaming encoder: image rows -> layer3 (1/8) through line buffers, then the 1/8 and 1/16
+//! heads (hidden state, context, layer4) and the matching features, each a row pipeline.
+//!
+//! Stages pull their input rows on demand ([`Source::ensure`]); every ring holds only the rows
+//! its consumer still needs (3, or 4 in front of a stride-2 block).
+
+use super::plan::{Buf, Bump, Grid};
+use super::ring::{Carver, Ring, last_input_row};
+use crate::arith::sat_i8;
+use crate::format::QuantModel;
+use crate::input::ImageView;
+use crate::kernels::conv::{ConvParams, PartRows, conv_row};
+use crate::kernels::eltwise::{Skip, residual_relu_i8};
+use crate::kernels::norm::{ChannelNorm, normalize, stats_from_sums};
+use crate::kernels::{Elem, OutRow};
+use crate::model::config::Config;
+use crate::model::graph::{Act, QLayer};
+use crate::model::layers::ConvId::{self, *};
+
+/// Shared per-row scratch.
+pub struct Scratch<'a> {
+    /// Patch gather buffer (bytes; viewed as i8 or i16).
+    pub patch: &'a mut [u8],
+    /// A conv2 output row (i16).
+    pub c2: &'a mut [i16],
+    /// A downsample output row (i16).
+    pub ds: &'a mut [i16],
+}
+
+/// Conv params of a layer the model is known to hold.
+pub fn conv<'m>(m: &'m QuantModel<'_>, id: ConvId) -> ConvParams<'m> {
+    // QuantModel::parse checked that every layer the config computes is present.
+    m.conv(id).unwrap_or_else(|| panic!("layer {} missing", id.name()))
+}
+
+/// Runs `conv_row` with the scratch patch typed as `T`.
+pub fn run_conv<T: Elem + bytemuck::Pod>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, out: &mut OutRow<'_>, patch: &mut [u8]) {
+    let n = p.patch_len() * core::mem::size_of::<T>();
+    let patch: &mut [T] = bytemuck::cast_slice_mut(&mut patch[..n]);
+    conv_row(p, inputs, w_in, out, patch);
+}
+
+/// A row producer.
+pub trait Source {
+    /// Element type of the rows.
+    type T: Copy;
+    /// Makes rows up to `row` available (no-op for whole tensors).
+    fn ensure(&mut self, row: usize, m: &QuantModel<'_>, s: &mut Scratch<'_>);
+    /// Input rows of output row `y` of a `k`/`stride` conv.
+    fn part_rows(&self, y: usize, k: usize, stride: usize) -> PartRows<'_, Self::T>;
+    /// Row `r` (must be available).
+    fn row(&self, r: usize) -> &[Self::T];
+    /// Rows of the tensor.
+    fn rows(&self) -> usize;
+    /// Columns of the tensor.
+    fn width(&self) -> usize;
+}
+
+/// A whole tensor as a source.
+pub struct Full<'a, T> {
+    /// HWC data.
+    pub data: &'a [T],
+    /// Rows.
+    pub h: usize,
+    /// Columns.
+    pub w: usize,
+    /// Channels.
+    pub c: usize,
+}
+
+impl<T: Copy> Source for Full<'_, T> {
+    type T = T;
+    fn ensure(&mut self, _: usize, _: &QuantModel<'_>, _: &mut Scratch<'_>) {}
+    fn part_rows(&self, y: usize, k: usize, stride: usize) -> PartRows<'_, T> {
+        PartRows::of_tensor(self.data, self.h, self.w * self.c, y, k, stride)
+    }
+    fn row(&self, r: usize) -> &[T] {
+        &self.data[r * self.w * self.c..(r + 1) * self.w * self.c]
+    }
+    fn rows(&self) -> usize {
+        self.h
+    }
+    fn width(&self) -> usize {
+        self.w
+    }
+}
+
+/// Image rows as `2 * pixel - 255` (i16, 3 channels), right/bottom edge replication.
+pub struct ImageRows<'a, 'i> {
+    img: &'a ImageView<'i>,
+    ring: Ring<'a, i16>,
+    w: usize,
+}
+
+impl Source for ImageRows<'_, '_> {
+    type T = i16;
+    fn ensure(&mut self, row: usize, _: &QuantModel<'_>, _: &mut Scratch<'_>) {
+        while self.ring.produced() <= row {
+            let y = self.ring.produced();
+            let (img, w) = (self.img, self.w);
+            let dst = self.ring.push();
+            for x in 0..w {
+                for c in 0..3 {
+                    dst[x * 3 + c] = 2 * img.at_clamped(c, x, y) as i16 - 255;
+                }
+            }
+        }
+    }
+    fn part_rows(&self, y: usize, k: usize, stride: usize) -> PartRows<'_, i16> {
+        self.ring.part_rows(y, k, stride)
+    }
+    fn row(&self, r: usize) -> &[i16] {
+        self.ring.row(r)
+    }
+    fn rows(&self) -> usize {
+        self.ring.rows()
+    }
+    fn width(&self) -> usize {
+        self.w
+    }
+}
+
+/// A single conv as a stage.
+pub struct ConvStage<'a, S: Source> {
+    src: S,
+    id: ConvId,
+    out: Ring<'a, i8>,
+    w: usize,
+}
+
+impl<'a, S: Source> Source for ConvStage<'a, S>
+where
+    S::T: Elem + bytemuck::Pod,
+{
+    type T = i8;
+    fn ensure(&mut self, row: usize, m: &QuantModel<'_>, s: &mut Scratch<'_>) {
+        let p = conv(m, self.id);
+        while self.out.produced() <= row.min(self.out.rows() - 1) {
+            let y = self.out.produced();
+            self.src.ensure(last_input_row(y, p.k, p.stride, self.src.rows()), m, s);
+            let rows = self.src.part_rows(y, p.k, p.stride);
+            let w_in = self.src.width();
+            run_conv(&p, &[rows], w_in, &mut OutRow::I8(self.out.push()), s.patch);
+        }
+    }
+    fn part_rows(&self, y: usize, k: usize, stride: usize) -> PartRows<'_, i8> {
+        self.out.part_rows(y, k, stride)
+    }
+    fn row(&self, r: usize) -> &[i8] {
+        self.out.row(r)
+    }
+    fn rows(&self) -> usize {
+        self.out.rows()
+    }
+    fn width(&self) -> usize {
+        self.w
+    }
+}
+
+/// A residual block (BatchNorm folded): `out = relu(skip + relu(c2(relu(c1(x)))))`, skip = x or a
+/// 1x1 downsample conv.
+pub struct Block<'a, S: Source<T = i8>> {
+    src: S,
+    ids: [ConvId; 2],
+    ds: Option<ConvId>,
+    stride: usize,
+    skip_frac: i8,
+    out_frac: i8,
+    mid: Ring<'a, i8>,
+    out: Ring<'a, i8>,
+    w: usize,
+}
+
+impl<'a, S: Source<T = i8>> Source for Block<'a, S> {
+    type T = i8;
+    fn ensure(&mut self, row: usize, m: &QuantModel<'_>, s: &mut Scratch<'_>) {
+        let (p1, p2) = (conv(m, self.ids[0]), conv(m, self.ids[1]));
+        let w_in = self.src.width();
+        while self.out.produced() <= row.min(self.out.rows() - 1) {
+            let y = self.out.produced();
+            let need_mid = (y + 1).min(self.mid.rows() - 1);
+            while self.mid.produced() <= need_mid {
+                let r = self.mid.produced();
+                self.src.ensure(last_input_row(r, 3, self.stride, self.src.rows()), m, s);
+                let rows = self.src.part_rows(r, 3, self.stride);
+                run_conv(&p1, &[rows], w_in, &mut OutRow::I8(self.mid.push()), s.patch);
+            }
+            let n = self.w * p2.cout;
+            run_conv(&p2, &[self.mid.part_rows(y, 3, 1)], self.w, &mut OutRow::I16(&mut s.c2[..n]), s.patch);
+            let skip = match self.ds {
+                Some(d) => {
+                    let pd = conv(m, d);
+                    run_conv(&pd, &[self.src.part_rows(y, 1, self.stride)], w_in, &mut OutRow::I16(&mut s.ds[..n]), s.patch);
+                    Skip::Projected(&s.ds[..n])
+                }
+                None => Skip::Input { x: self.src.row(y), frac: self.skip_frac },
+            };
+            residual_relu_i8(&s.c2[..n], skip, self.out_frac, self.out.push());
+        }
+    }
+    fn part_rows(&self, y: usize, k: usize, stride: usize) -> PartRows<'_, i8> {
+        self.out.part_rows(y, k, stride)
+    }
+    fn row(&self, r: usize) -> &[i8] {
+        self.out.row(r)
+    }
+    fn rows(&self) -> usize {
+        self.out.rows()
+    }
+    fn width(&self) -> usize {
+        self.w
+    }
+}
+
+fn frac(m: &QuantModel<'_>, a: Act) -> i8 {
+    m.format(a).frac
+}
+
+fn in_frac(m: &QuantModel<'_>, id: ConvId) -> i8 {
+    QLayer::of(id, m.config()).and_then(|l| l.parts[0]).map_or(0, |p| frac(m, p.act))
+}
+
+#[allow(clippy::too_many_arguments)]
+fn block<'a, S: Source<T = i8>>(
+    src: S,
+    m: &QuantModel<'_>,
+    ids: [ConvId; 2],
+    ds: Option<ConvId>,
+    out_act: Act,
+    c: usize,
+    bufs: (&'a mut [i8], &'a mut [i8]),
+    out_cap: usize,
+) -> Block<'a, S> {
+    let stride = if ds.is_some() && ids[0].shape(m.config()).is_some_and(|s| s.stride == 2) { 2 } else { 1 };
+    let rows = if stride == 2 { src.rows().div_ceil(2) } else { src.rows() };
+    let w = if stride == 2 { src.width().div_ceil(2) } else { src.width() };
+    Block {
+        stride,
+        skip_frac: in_frac(m, ids[0]),
+        out_frac: frac(m, out_act),
+        mid: Ring::new(bufs.0, 3, w * c, rows),
+        out: Ring::new(bufs.1, out_cap, w * c, rows),
+        w,
+        src,
+        ids,
+        ds,
+    }
+}
+
+/// Layout of the trunk's line buffers (relative to the encoder ring region).
+#[derive(Clone, Copy, Debug)]
+pub struct TrunkLayout {
+    /// Image rows (i16).
+    pub image: Buf,
+    /// conv1 output.
+    pub c1: Buf,
+    /// Block mid and out rings, 6 blocks.
+    pub blocks: [(Buf, Buf); 6],
+    /// conv2 and downsample rows (i16).
+    pub c2: Buf,
+    /// Downsample row.
+    pub ds: Buf,
+    /// Total bytes.
+    pub total: usize,
+}
+
+/// Out-ring capacity of each trunk block (4 in front of a stride-2 block).
+const TRUNK_OUT_CAP: [usize; 6] = [3, 4, 3, 4, 3, 1];
+
+impl TrunkLayout {
+    /// Layout for `cfg` on grid `g`.
+    pub const fn new(cfg: &Config, g: &Grid) -> Self {
+        let [d1, d2, d3] = cfg.backbone_dims;
+        let mut b = Bump::new(0);
+        let image = b.take(7 * g.w * 3 * 2);
+        let c1 = b.take(3 * g.w2 * d1);
+        let dims = [(g.w2, d1), (g.w2, d1), (g.w4, d2), (g.w4, d2), (g.w8, d3), (g.w8, d3)];
+        let mut blocks = [(Buf { at: 0, len: 0 }, Buf { at: 0, len: 0 }); 6];
+        let mut i = 0;
+        while i < 6 {
+            let (w, c) = dims[i];
+            blocks[i] = (b.take(3 * w * c), b.take(TRUNK_OUT_CAP[i] * w * c));
+            i += 1;
+        }
+        let row = {
+            let a = g.w2 * d1;
+            let bb = g.w4 * d2;
+            let c = g.w8 * d3;
+            let m = if a > bb { a } else { bb };
+            if m > c { m } else { c }
+        };
+        let c2 = b.take(2 * row);
+        let ds = b.take(2 * row);
+        Self { image, c1, blocks, c2, ds, total: b.at }
+    }
+}
+
+/// Streams one image through conv1 .. layer3 into `l3` (HWC i8, `h8 x w8 x d3`).
+pub fn trunk(m: &QuantModel<'_>, img: &ImageView<'_>, g: &Grid, rings: &mut [u8], patch: &mut [u8], l3: &mut [i8]) {
+    let cfg = *m.config();
+    let [d1, d2, d3] = cfg.backbone_dims;
+    let lay = TrunkLayout::new(&cfg, g);
+    let mut cv = Carver::new(rings);
+    let image = ImageRows { img, ring: Ring::new(cv.i16(lay.image), 7, g.w * 3, g.h), w: g.w };
+    let c1 = ConvStage { src: image, id: Conv1, out: Ring::new(cv.i8(lay.c1), 3, g.w2 * d1, g.h2), w: g.w2 };
+    let mut take = |i: usize| -> (&mut [i8], &mut [i8]) {
+        let (a, b) = lay.blocks[i];
+        (cv.i8(a), cv.i8(b))
+    };
+    let b0 = take(0);
+    let b1 = take(1);
+    let b2 = take(2);
+    let b3 = take(3);
+    let b4 = take(4);
+    let b5 = take(5);
+    let c2 = cv.i16(lay.c2);
+    let ds = cv.i16(lay.ds);
+    use Act as A;
+    let x = block(c1, m, [L1b0c1, L1b0c2], None, A::L1b0o, d1, b0, TRUNK_OUT_CAP[0]);
+    let x = block(x, m, [L1b1c1, L1b1c2], None, A::L1b1o, d1, b1, TRUNK_OUT_CAP[1]);
+    let x = block(x, m, [L2b0c1, L2b0c2], Some(L2b0ds), A::L2b0o, d2, b2, TRUNK_OUT_CAP[2]);
+    let x = block(x, m, [L2b1c1, L2b1c2], None, A::L2b1o, d2, b3, TRUNK_OUT_CAP[3]);
+    let x = block(x, m, [L3b0c1, L3b0c2], Some(L3b0ds), A::L3b0o, d3, b4, TRUNK_OUT_CAP[4]);
+    let mut x = block(x, m, [L3b1c1, L3b1c2], None, A::L3b1o, d3, b5, TRUNK_OUT_CAP[5]);
+    let mut s = Scratch { patch, c2, ds };
+    let row = g.w8 * d3;
+    for y in 0..g.h8 {
+        x.ensure(y, m, &mut s);
+        l3[y * row..(y + 1) * row].copy_from_slice(x.row(y));
+    }
+}
+
+/// Layout of the 1/8 and 1/16 head pipelines (relative to the encoder ring region).
+#[derive(Clone, Copy, Debug)]
+pub struct HeadLayout {
+    /// Two blocks' mid and out rings.
+    pub blocks: [(Buf, Buf); 2],
+    /// conv2 / downsample rows.
+    pub c2: Buf,
+    /// Downsample row.
+    pub ds: Buf,
+    /// InstanceNorm pipeline: raw row (i16), mid ring, blk ring, y row (i16).
+    pub raw: Buf,
+    /// mid ring.
+    pub mid: Buf,
+    /// blk ring.
+    pub blk: Buf,
+    /// normalised row.
+    pub y: Buf,
+    /// Total bytes.
+    pub total: usize,
+}
+
+impl HeadLayout {
+    /// Layout for `cfg` on grid `g`.
+    pub const fn new(cfg: &Config, g: &Grid) -> Self {
+        let d3 = cfg.backbone_dims[2];
+        let w = g.w8; // the 1/16 pipelines are smaller
+        let mut b = Bump::new(0);
+        let blocks = [(b.take(3 * w * d3), b.take(4 * w * d3)), (b.take(3 * w * d3), b.take(4 * w * d3))];
+        let c2 = b.take(2 * w * d3);
+        let ds = b.take(2 * w * d3);
+        let raw = b.take(2 * w * d3);
+        let mid = b.take(3 * w * d3);
+        let blk = b.take(3 * w * d3);
+        let y = b.take(2 * w * d3);
+        Self { blocks, c2, ds, raw, mid, blk, y, total: b.at }
+    }
+}
+
+/// Context heads on the 1/8 (or 1/16) features: block + 3x3 conv; the output rows go to `out`
+/// (HWC, `i16` for the hidden state, `i8` for the context).
+#[allow(clippy::too_many_arguments)]
+fn head(m: &QuantModel<'_>, x: &[i8], h: usize, w: usize, ids: [ConvId; 3], out_act: Act, lay: &HeadLayout, rings: &mut [u8], patch: &mut [u8], out: OutRow<'_>) {
+    let d3 = m.config().backbone_dims[2];
+    let mut cv = Carver::new(rings);
+    let bufs = (cv.i8(lay.blocks[0].0), cv.i8(lay.blocks[0].1));
+    let c2 = cv.i16(lay.c2);
+    let ds = cv.i16(lay.ds);
+    let mut b = block(Full { data: x, h, w, c: d3 }, m, [ids[0], ids[1]], None, out_act, d3, bufs, 3);
+    let mut s = Scratch { patch, c2, ds };
+    let p = conv(m, ids[2]);
+    let n = w * p.cout;
+    let mut out = out;
+    for y in 0..h {
+        b.ensure(last_input_row(y, 3, 1, h), m, &mut s);
+        let rows = b.part_rows(y, 3, 1);
+        match &mut out {
+            OutRow::I8(o) => run_conv(&p, &[rows], w, &mut OutRow::I8(&mut o[y * n..(y + 1) * n]), s.patch),
+            OutRow::I16(o) => run_conv(&p, &[rows], w, &mut OutRow::I16(&mut o[y * n..(y + 1) * n]), s.patch),
+        }
+    }
+}
+
+/// layer4 (two blocks, the first with stride 2) from `l3` into `l4`.
+fn layer4(m: &QuantModel<'_>, l3: &[i8], g: &Grid, lay: &HeadLayout, rings: &mut [u8], patch: &mut [u8], l4: &mut [i8]) {
+    let d3 = m.config().backbone_dims[2];
+    let mut cv = Carver::new(rings);
+    let b0 = (cv.i8(lay.blocks[0].0), cv.i8(lay.blocks[0].1));
+    let b1 = (cv.i8(lay.blocks[1].0), cv.i8(lay.blocks[1].1));
+    let c2 = cv.i16(lay.c2);
+    let ds = cv.i16(lay.ds);
+    let x = block(Full { data: l3, h: g.h8, w: g.w8, c: d3 }, m, [L4b0c1, L4b0c2], Some(L4b0ds), Act::L4b0o, d3, b0, 3);
+    let mut x = block(x, m, [L4b1c1, L4b1c2], None, Act::L4b1o, d3, b1, 1);
+    let mut s = Scratch { patch, c2, ds };
+    let row = g.w16 * d3;
+    for y in 0..g.h16 {
+        x.ensure(y, m, &mut s);
+        l4[y * row..(y + 1) * row].copy_from_slice(x.row(y));
+    }
+}
+
+/// Matching features: InstanceNorm residual block + conv, from `l3` into `f` (HWC i8). The
+/// InstanceNorm statistics need whole maps, so the rows are computed three times: conv1 for its
+/// statistics, conv1 + norm + conv2 for the second statistics, then everything for the output.
+#[allow(clippy::too_many_arguments)]
+fn features(m: &QuantModel<'_>, l3: &[i8], g: &Grid, lay: &HeadLayout, rings: &mut [u8], patch: &mut [u8], norms: &mut [i64], f: &mut [i8]) {
+    let d3 = m.config().backbone_dims[2];
+    let (h, w) = (g.h8, g.w8);
+    let n = (h * w) as i64;
+    let src = Full { data: l3, h, w, c: d3 };
+    let (p1, p2, p3) = (conv(m, FmapC1), conv(m, FmapC2), conv(m, FmapOut));
+    let (f_raw1, f_mid, f_raw2, f_blk, f_l3) =
+        (frac(m, Act::FmapRaw1), frac(m, Act::FmapMid), frac(m, Act::FmapRaw2), frac(m, Act::FmapBlk), frac(m, Act::L3b1o));
+    let mut cv = Carver::new(rings);
+    let raw = cv.i16(lay.raw);
+    let mid_buf = cv.i8(lay.mid);
+    let blk_buf = cv.i8(lay.blk);
+    let ybuf = cv.i16(lay.y);
+    let row = w * d3;
+    let (st1, st2) = norms.split_at_mut(2 * d3);
+    // Pass 1: statistics of conv1.
+    accumulate_stats(st1, d3, |r, out| run_conv(&p1, &[src.part_rows(r, 3, 1)], w, &mut OutRow::I16(out), patch), h, raw, row);
+    let stats1 = finish_stats(st1, d3, n, f_raw1);
+    // mid row r = relu(norm(conv1 row r)) as i8
+    let mid_row = |r: usize, raw: &mut [i16], patch: &mut [u8], dst: &mut [i8]| {
+        run_conv(&p1, &[src.part_rows(r, 3, 1)], w, &mut OutRow::I16(&mut raw[..row]), patch);
+        for (i, (d, v)) in dst.iter_mut().zip(raw.iter()).enumerate() {
+            *d = sat_i8(normalize(*v, stat(stats1, i % d3), f_mid).max(0));
+        }
+    };
+    // Pass 2: statistics of conv2 over the normalised conv1 rows.
+    st2.fill(0);
+    {
+        let mut mid = Ring::new(&mut mid_buf[..], 3, row, h);
+        for y in 0..h {
+            while mid.produced() <= last_input_row(y, 3, 1, h) {
+                let r = mid.produced();
+                mid_row(r, raw, patch, mid.push());
+            }
+            run_conv(&p2, &[mid.part_rows(y, 3, 1)], w, &mut OutRow::I16(&mut ybuf[..row]), patch);
+            add_sums(st2, d3, &ybuf[..row]);
+        }
+    }
+    let stats2 = finish_stats(st2, d3, n, f_raw2);
+    // Pass 3: output rows.
+    let mut mid = Ring::new(&mut mid_buf[..], 3, row, h);
+    let mut blk = Ring::new(&mut blk_buf[..], 3, row, h);
+    let fo = w * p3.cout;
+    for y in 0..h {
+        while blk.produced() <= last_input_row(y, 3, 1, h) {
+            let r = blk.produced();
+            while mid.produced() <= last_input_row(r, 3, 1, h) {
+                let q = mid.produced();
+                mid_row(q, raw, patch, mid.push());
+            }
+            run_conv(&p2, &[mid.part_rows(r, 3, 1)], w, &mut OutRow::I16(&mut ybuf[..row]), patch);
+            for (i, v) in ybuf[..row].iter_mut().enumerate() {
+                *v = crate::arith::sat_i16(normalize(*v, stat(stats2, i % d3), f_blk).max(0));
+            }
+            residual_relu_i8(&ybuf[..row], Skip::Input { x: &l3[r * row..(r + 1) * row], frac: f_l3 }, f_blk, blk.push());
+        }
+        run_conv(&p3, &[blk.part_rows(y, 3, 1)], w, &mut OutRow::I8(&mut f[y * fo..(y + 1) * fo]), patch);
+    }
+}
+
+fn accumulate_stats(st: &mut [i64], c: usize, mut conv_row_fn: impl FnMut(usize, &mut [i16]), h: usize, raw: &mut [i16], row: usize) {
+    st.fill(0);
+    for y in 0..h {
+        conv_row_fn(y, &mut raw[..row]);
+        add_sums(st, c, &raw[..row]);
+    }
+}
+
+fn add_sums(st: &mut [i64], c: usize, row: &[i16]) {
+    for (i, v) in row.iter().enumerate() {
+        let ch = i % c;
+        st[2 * ch] += *v as i64;
+        st[2 * ch + 1] += *v as i64 * *v as i64;
+    }
+}
+
+/// Turns per-channel (sum, sum of squares) into statistics, in place: (mean, recip).
+fn finish_stats(st: &mut [i64], c: usize, n: i64, f_in: i8) -> &[i64] {
+    for ch in 0..c {
+        let s = stats_from_sums(st[2 * ch], st[2 * ch + 1], n, f_in);
+        st[2 * ch] = s.mean;
+        st[2 * ch + 1] = s.recip;
+    }
+    st
+}
+
+fn stat(st: &[i64], ch: usize) -> ChannelNorm {
+    ChannelNorm { mean: st[2 * ch], recip: st[2 * ch + 1] }
+}
+
+/// Frame-zone outputs of the encoder.
+pub struct EncoderOut<'a> {
+    /// Matching features of this image.
+    pub features: &'a mut [i8],
+    /// Left image only: hidden states and context.
+    pub context: Option<ContextOut<'a>>,
+}
+
+/// Context outputs (left image).
+pub struct ContextOut<'a> {
+    /// 1/8 hidden state (Q0.15).
+    pub net08: &'a mut [i16],
+    /// 1/16 hidden state.
+    pub net16: &'a mut [i16],
+    /// 1/8 context (i8).
+    pub inp08: &'a mut [i8],
+    /// 1/16 context.
+    pub inp16: &'a mut [i8],
+}
+
+/// Encoder scratch for one image.
+pub struct EncoderScratch<'a> {
+    /// layer3 (whole).
+    pub l3: &'a mut [i8],
+    /// layer4 (whole).
+    pub l4: &'a mut [i8],
+    /// InstanceNorm statistics.
+    pub norms: &'a mut [i64],
+    /// Line buffers.
+    pub rings: &'a mut [u8],
+    /// Patch scratch.
+    pub patch: &'a mut [u8],
+}
+
+/// Encodes one image: features, and for the left image the context.
+pub fn encode(m: &QuantModel<'_>, img: &ImageView<'_>, g: &Grid, s: EncoderScratch<'_>, out: EncoderOut<'_>) {
+    let cfg = *m.config();
+    trunk(m, img, g, s.rings, s.patch, s.l3);
+    let lay = HeadLayout::new(&cfg, g);
+    features(m, s.l3, g, &lay, s.rings, s.patch, s.norms, out.features);
+    if let Some(ctx) = out.context {
+        use Act as A;
+        head(m, s.l3, g.h8, g.w8, [H08nC1, H08nC2, H08nOut], A::H08no, &lay, s.rings, s.patch, OutRow::I16(ctx.net08));
+        head(m, s.l3, g.h8, g.w8, [H08cC1, H08cC2, H08cOut], A::H08co, &lay, s.rings, s.patch, OutRow::I8(ctx.inp08));
+        layer4(m, s.l3, g, &lay, s.rings, s.patch, s.l4);
+        head(m, s.l4, g.h16, g.w16, [H16nC1, H16nC2, H16nOut], A::H16no, &lay, s.rings, s.patch, OutRow::I16(ctx.net16));
+        head(m, s.l4, g.h16, g.w16, [H16cC1, H16cC2, H16cOut], A::H16co, &lay, s.rings, s.patch, OutRow::I8(ctx.inp16));
+    }
+}

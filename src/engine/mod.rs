@@ -1,0 +1,282 @@
+//! The fixed-point engine: `no_std`, no heap, every byte of working memory in one caller-provided
+//! arena sized by the static [`Plan`].
+//!
+//! ```ignore
+//! const PLAN: Plan = Plan::new(&Config::MUIR_SLIM, 160, 120);
+//! static mut ARENA: Arena<{ PLAN.ram_bytes }> = Arena::new();
+//! let model = QuantModel::parse(MODEL_BYTES)?;             // &'static [u8] in flash
+//! let mut engine = Engine::new(&model, arena_bytes)?;
+//! engine.run(&left, &right, &mut Output { disparity: &mut d, uncertainty: Some(&mut u) })?;
+//! ```
+//!
+//! Order of work per pair: right image encoder (features), left image encoder (features and
+//! context), UFI, MGA keys and statistics, `iters` x (MUD, MGA values, 1/16 GRU twice, motion +
+//! 1/8 GRU, disparity head), final MUD, upsampling. Results equal the plain fixed-point engine
+//! (`crate::reference`) bit for bit.
+
+pub mod encoder;
+#[cfg(feature = "hal")]
+pub mod hal;
+pub mod plan;
+pub mod refine;
+pub mod ring;
+
+use core::fmt;
+
+pub use plan::{Grid, Plan, ram_bytes};
+
+use crate::format::QuantModel;
+use crate::input::{ImageView, InputError, check_pair};
+use ring::Carver;
+
+/// Working memory with the alignment the engine needs; `N` from [`Plan::ram_bytes`].
+#[repr(C, align(8))]
+pub struct Arena<const N: usize>(pub [u8; N]);
+
+impl<const N: usize> Arena<N> {
+    /// A zeroed arena (usable in a `static`).
+    pub const fn new() -> Self {
+        Self([0; N])
+    }
+}
+
+impl<const N: usize> Default for Arena<N> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// Why a run was refused.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum EngineError {
+    /// The image pair is invalid.
+    Input(InputError),
+    /// The arena is smaller than the plan for this image size.
+    ArenaTooSmall {
+        /// Bytes needed.
+        needed: usize,
+        /// Bytes given.
+        given: usize,
+    },
+    /// The arena is not 8-byte aligned.
+    ArenaAlignment,
+    /// An output buffer has the wrong length.
+    OutputSize {
+        /// Values needed (width x height).
+        needed: usize,
+        /// Values given.
+        given: usize,
+    },
+    /// Uncertainty was asked of a model without MUD.
+    NoUncertainty,
+    /// The status pin driven around a frame (`hal::run_with_busy_pin`, feature `hal`) failed.
+    Pin,
+}
+
+impl fmt::Display for EngineError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match *self {
+            Self::Input(e) => write!(f, "{e}"),
+            Self::ArenaTooSmall { needed, given } => {
+                write!(f, "working memory too small: {given} bytes, the plan needs {needed}")
+            }
+            Self::ArenaAlignment => write!(f, "working memory must be 8-byte aligned"),
+            Self::OutputSize { needed, given } => write!(f, "output buffer holds {given} values, {needed} needed"),
+            Self::NoUncertainty => write!(f, "this model has no MUD: it predicts no uncertainty"),
+            Self::Pin => write!(f, "the busy pin could not be driven"),
+        }
+    }
+}
+
+#[cfg(feature = "std")]
+impl std::error::Error for EngineError {}
+
+impl From<InputError> for EngineError {
+    fn from(e: InputError) -> Self {
+        Self::Input(e)
+    }
+}
+
+/// Caller-provided outputs, `width x height` each (the input size), row-major.
+pub struct Output<'o> {
+    /// Left-view disparity, Q10.5 pixels (1/32 px; `fixed::types::I11F5` has the same bits).
+    pub disparity: &'o mut [i16],
+    /// Uncertainty `u` in Q4.11; predicted error `exp(u/2)` px. Needs a model with MUD.
+    pub uncertainty: Option<&'o mut [i16]>,
+}
+
+/// The engine: a parsed model and working memory.
+pub struct Engine<'m, 'a, 'w> {
+    model: &'m QuantModel<'a>,
+    arena: &'w mut [u8],
+}
+
+impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
+    /// Binds a model and an arena (8-byte aligned; at least [`Plan::ram_bytes`] for the image
+    /// size it will run on).
+    pub fn new(model: &'m QuantModel<'a>, arena: &'w mut [u8]) -> Result<Self, EngineError> {
+        if arena.as_ptr() as usize % 8 != 0 {
+            return Err(EngineError::ArenaAlignment);
+        }
+        Ok(Self { model, arena })
+    }
+
+    /// The memory plan for a `width x height` pair with this model.
+    pub fn plan(&self, width: usize, height: usize) -> Plan {
+        Plan::new(self.model.config(), width, height)
+    }
+
+    /// Runs the network on a rectified pair.
+    ///
+    /// # Errors
+    /// Invalid images, an arena smaller than the plan, output buffers of the wrong size, or
+    /// uncertainty asked of a model without MUD. Nothing is written on error.
+    pub fn run(&mut self, left: &ImageView<'_>, right: &ImageView<'_>, out: &mut Output<'_>) -> Result<(), EngineError> {
+        self.run_iters(left, right, self.model.config().iters, out)
+    }
+
+    /// [`Engine::run`] with `iters` refinement iterations.
+    pub fn run_iters(&mut self, left: &ImageView<'_>, right: &ImageView<'_>, iters: usize, out: &mut Output<'_>) -> Result<(), EngineError> {
+        let m = self.model;
+        let cfg = *m.config();
+        check_pair(left, right)?;
+        let (width, height) = (left.width, left.height);
+        let plan = Plan::new(&cfg, width, height);
+        if self.arena.len() < plan.ram_bytes {
+            return Err(EngineError::ArenaTooSmall { needed: plan.ram_bytes, given: self.arena.len() });
+        }
+        let n = width * height;
+        if out.disparity.len() != n {
+            return Err(EngineError::OutputSize { needed: n, given: out.disparity.len() });
+        }
+        match &out.uncertainty {
+            Some(_) if !cfg.mud => return Err(EngineError::NoUncertainty),
+            Some(u) if u.len() != n => return Err(EngineError::OutputSize { needed: n, given: u.len() }),
+            _ => {}
+        }
+        // Encoder: right image first (features only), then the left (features and context).
+        encode_image(m, &plan, self.arena, right, false);
+        encode_image(m, &plan, self.arena, left, true);
+        // Refinement.
+        let mut c = refine_ctx(m, &plan, self.arena);
+        c.st.flow.fill(0);
+        if cfg.ufi {
+            refine::ufi(&mut c);
+        }
+        if cfg.mga {
+            refine::mga_setup(&mut c);
+        }
+        for _ in 0..iters {
+            if cfg.mud {
+                refine::mud_pass(&mut c);
+            }
+            if cfg.mga {
+                refine::mga_values(&mut c);
+            }
+            refine::gru16(&mut c);
+            refine::gru16(&mut c);
+            refine::gru08(&mut c);
+            refine::flow_head(&mut c);
+        }
+        if cfg.mud {
+            refine::mud_pass(&mut c);
+        }
+        refine::upsample(&mut c, width, height, out.disparity, out.uncertainty.as_deref_mut());
+        Ok(())
+    }
+}
+
+/// Encodes one image into the frame zone of an arena laid out by `plan`: matching features, and
+/// for the left image the hidden states and context. Public for the benches, which time phases.
+#[doc(hidden)]
+pub fn encode_image(m: &QuantModel<'_>, plan: &Plan, arena: &mut [u8], img: &ImageView<'_>, left: bool) {
+    let (fr, px, e) = (plan.frame, plan.pixel, plan.encoder);
+    let mut cv = Carver::new(&mut arena[..plan.ram_bytes]);
+    let (f1, f2) = (cv.i8(fr.f1), cv.i8(fr.f2));
+    let (net08, net16, inp08, inp16) = (cv.i16(fr.net08), cv.i16(fr.net16), cv.i8(fr.inp08), cv.i8(fr.inp16));
+    let patch = cv.raw(px.patch);
+    let scratch = encoder::EncoderScratch { l3: cv.i8(e.l3), l4: cv.i8(e.l4), norms: cv.i64(e.norm), rings: cv.raw(e.rings), patch };
+    let out = if left {
+        encoder::EncoderOut { features: f1, context: Some(encoder::ContextOut { net08, net16, inp08, inp16 }) }
+    } else {
+        encoder::EncoderOut { features: f2, context: None }
+    };
+    encoder::encode(m, img, &plan.grid, scratch, out);
+}
+
+/// The refinement context over an arena laid out by `plan`: the frame zone the encoder filled,
+/// the refinement zone and the per-pixel scratch. [`Engine::run_iters`] refines through it;
+/// public for the benches, which call the phases one by one.
+#[doc(hidden)]
+pub fn refine_ctx<'f, 'm, 'a>(m: &'m QuantModel<'a>, plan: &Plan, arena: &'f mut [u8]) -> refine::Ctx<'f, 'm, 'a> {
+    let cfg = *m.config();
+    let (fr, px, r) = (plan.frame, plan.pixel, plan.refine);
+    let mut cv = Carver::new(&mut arena[..plan.ram_bytes]);
+    let frame = refine::Frame {
+        f1: cv.i8(fr.f1),
+        f2: cv.i8(fr.f2),
+        net08: cv.i16(fr.net08),
+        net16: cv.i16(fr.net16),
+        inp08: cv.i8(fr.inp08),
+        inp16: cv.i8(fr.inp16),
+    };
+    let (patch, window, prefix, peaks_row) = (cv.raw(px.patch), cv.i32(px.window), cv.i64(px.prefix), cv.i32(px.peaks_row));
+    let attn = cv.raw(px.attn);
+    let (acc, query) = attn.split_at_mut(8 * cfg.hidden_dim);
+    let logits = cv.i16(px.logits);
+    let (logits, mask_px) = logits.split_at_mut(crate::model::layers::MASK_CHANNELS);
+    let st = refine::State {
+        flow: cv.i16(r.flow),
+        mask: cv.i16(r.mask),
+        u: cv.i16(r.u),
+        keys: cv.i16(r.keys),
+        stats: cv.i64(r.stats),
+        values: cv.i16(r.values),
+    };
+    let pixel = refine::Pixel {
+        patch,
+        window,
+        prefix,
+        peaks_row,
+        acc: bytemuck::cast_slice_mut(acc),
+        query: bytemuck::cast_slice_mut(query),
+        logits,
+        mask_px,
+    };
+    refine::Ctx { m, g: plan.grid, frame, st, px: pixel, rings: cv.raw(r.rings) }
+}
+
+/// Rejection threshold for a predicted-error limit `tau` pixels: a pixel is rejected when its
+/// `u` (Q4.11) exceeds the returned value (`exp(u/2) > tau` <=> `u > 2 ln tau`). Setup-time
+/// conversion with `micromath` (not used inside the engine).
+pub fn u_threshold(tau_px: f32) -> i16 {
+    #[allow(unused_imports)]
+    use micromath::F32Ext;
+    let v = 2.0 * tau_px.max(1e-6).ln() * (1 << crate::arith::LOG_FRAC) as f32;
+    if v >= 32767.0 {
+        32767
+    } else if v <= -32768.0 {
+        -32768
+    } else {
+        v.round() as i16
+    }
+}
+
+/// Marks rejected pixels: every disparity whose uncertainty exceeds `u_max` becomes
+/// [`REJECTED`]. Returns the number of kept pixels.
+pub fn reject(disparity: &mut [i16], uncertainty: &[i16], u_max: i16) -> usize {
+    let mut kept = 0;
+    for (d, u) in disparity.iter_mut().zip(uncertainty) {
+        if *u > u_max {
+            *d = REJECTED;
+        } else {
+            kept += 1;
+        }
+    }
+    kept
+}
+
+/// Disparity value of a rejected pixel (`i16::MIN`, never produced by the network since
+/// disparities are >= -1024 px only by saturation of an invalid state).
+pub const REJECTED: i16 = i16::MIN;

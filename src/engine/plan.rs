@@ -1,0 +1,305 @@
+//! Static memory plan: every byte of working memory for a (config, width, height), computed by
+//! `const fn` so firmware can size a `static` buffer at compile time.
+//!
+//! The arena has two zones:
+//! * **frame** (lives for the whole pair): matching features `f1`, `f2`, hidden states `net08`,
+//!   `net16`, context `inp08`, `inp16`.
+//! * **scratch**, reused by phase: the encoder's line buffers (a phase per image), then the
+//!   refinement phases (UFI, iterations, output), which share their own long-lived part (keys and
+//!   softmax statistics of MGA, masked values, disparity, mask, uncertainty) followed by per-phase
+//!   line buffers.
+//!
+//! Sizes are in bytes, every buffer 8-byte aligned. [`Plan::ram_bytes`] is the total.
+
+use super::encoder::{HeadLayout, TrunkLayout};
+use super::refine::refine_rings;
+use crate::kernels::corr::window_len;
+use crate::model::config::{Config, padded};
+use crate::model::layers::{ConvId, MASK_CHANNELS};
+
+const fn align8(n: usize) -> usize {
+    (n + 7) & !7
+}
+
+const fn max(a: usize, b: usize) -> usize {
+    if a > b { a } else { b }
+}
+
+/// A buffer: byte offset in the arena and byte length.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Buf {
+    /// Byte offset.
+    pub at: usize,
+    /// Byte length.
+    pub len: usize,
+}
+
+impl Buf {
+    /// End offset.
+    pub const fn end(&self) -> usize {
+        self.at + self.len
+    }
+}
+
+/// Sequential allocator used by the plan's `const fn`s.
+#[derive(Clone, Copy, Debug)]
+pub struct Bump {
+    /// Next free offset.
+    pub at: usize,
+}
+
+impl Bump {
+    /// Starts at `at`.
+    pub const fn new(at: usize) -> Self {
+        Self { at: align8(at) }
+    }
+    /// Reserves `len` bytes.
+    pub const fn take(&mut self, len: usize) -> Buf {
+        let b = Buf { at: self.at, len };
+        self.at = align8(self.at + len);
+        b
+    }
+}
+
+/// Grid sizes of a padded input.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Grid {
+    /// Padded width, height.
+    pub w: usize,
+    /// Padded height.
+    pub h: usize,
+    /// 1/2 resolution.
+    pub w2: usize,
+    /// 1/2 resolution rows.
+    pub h2: usize,
+    /// 1/4 resolution.
+    pub w4: usize,
+    /// 1/4 resolution rows.
+    pub h4: usize,
+    /// 1/8 resolution.
+    pub w8: usize,
+    /// 1/8 resolution rows.
+    pub h8: usize,
+    /// 1/16 resolution.
+    pub w16: usize,
+    /// 1/16 resolution rows.
+    pub h16: usize,
+}
+
+impl Grid {
+    /// Grid of an input of `width x height` (before padding).
+    pub const fn new(width: usize, height: usize) -> Self {
+        let (w, h) = (padded(width), padded(height));
+        // conv k3/k7 stride 2 with k/2 padding: ceil(n / 2).
+        let (w2, h2) = (w.div_ceil(2), h.div_ceil(2));
+        let (w4, h4) = (w2.div_ceil(2), h2.div_ceil(2));
+        let (w8, h8) = (w4.div_ceil(2), h4.div_ceil(2));
+        let (w16, h16) = (w8.div_ceil(2), h8.div_ceil(2));
+        Self { w, h, w2, h2, w4, h4, w8, h8, w16, h16 }
+    }
+    /// Pixels of the 1/8 grid.
+    pub const fn n8(&self) -> usize {
+        self.w8 * self.h8
+    }
+    /// Pixels of the 1/16 grid.
+    pub const fn n16(&self) -> usize {
+        self.w16 * self.h16
+    }
+}
+
+/// Frame-long buffers.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct FrameBufs {
+    /// Left matching features, i8 `n8 x fmap`.
+    pub f1: Buf,
+    /// Right matching features.
+    pub f2: Buf,
+    /// 1/8 hidden state, i16 `n8 x hidden`.
+    pub net08: Buf,
+    /// 1/16 hidden state.
+    pub net16: Buf,
+    /// 1/8 context, i8 `n8 x context`.
+    pub inp08: Buf,
+    /// 1/16 context.
+    pub inp16: Buf,
+}
+
+/// Encoder scratch (one image at a time).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct EncoderBufs {
+    /// layer3 output, i8 `n8 x d3` (whole).
+    pub l3: Buf,
+    /// layer4 output, i8 `n16 x d3` (whole).
+    pub l4: Buf,
+    /// Line buffers of the trunk and of the 1/8 and 1/16 heads (overlapping: trunk first).
+    pub rings: Buf,
+    /// InstanceNorm statistics, 2 x d3 x (mean i64, recip i64).
+    pub norm: Buf,
+}
+
+/// Refinement scratch shared by UFI, the iterations and the output phase.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct RefineBufs {
+    /// Disparity state ("flow"), i16 `n8 x flow_channels`.
+    pub flow: Buf,
+    /// Matchability mask of the current iteration, i16 `n8`.
+    pub mask: Buf,
+    /// Uncertainty, i16 `n8`.
+    pub u: Buf,
+    /// MGA keys after RoPE, i16 `n8 x qk`.
+    pub keys: Buf,
+    /// MGA softmax statistics per query: max (i64), sum (i64).
+    pub stats: Buf,
+    /// MGA masked values of the iteration, i16 `n8 x hidden`.
+    pub values: Buf,
+    /// Line buffers of the current phase.
+    pub rings: Buf,
+}
+
+/// Per-pixel scratch shared by all phases (patch gather, lookup window, attention accumulators).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct PixelBufs {
+    /// Conv patch, i16 `max patch`.
+    pub patch: Buf,
+    /// Lookup window (i32) and prefix sums (i64).
+    pub window: Buf,
+    /// Lookup prefix sums.
+    pub prefix: Buf,
+    /// Correlation row for UFI peaks, i32 `w8`.
+    pub peaks_row: Buf,
+    /// Attention accumulators, i64 `hidden`, and one query row, i16 `qk`.
+    pub attn: Buf,
+    /// Mask logits of one pixel, i16 576, and one mask-head pixel.
+    pub logits: Buf,
+}
+
+/// The memory plan.
+#[derive(Clone, Copy, Debug)]
+pub struct Plan {
+    /// Config the plan is for.
+    pub config: Config,
+    /// Input width the plan holds (before padding).
+    pub width: usize,
+    /// Input height.
+    pub height: usize,
+    /// Grid sizes.
+    pub grid: Grid,
+    /// Frame zone.
+    pub frame: FrameBufs,
+    /// Per-pixel scratch.
+    pub pixel: PixelBufs,
+    /// Encoder phase zone.
+    pub encoder: EncoderBufs,
+    /// Refinement zone.
+    pub refine: RefineBufs,
+    /// Bytes of the encoder's line buffers.
+    pub encoder_rings: usize,
+    /// Bytes of the refinement phases' line buffers.
+    pub refine_rings: usize,
+    /// Total bytes.
+    pub ram_bytes: usize,
+}
+
+/// Largest conv patch (elements) of a config.
+pub const fn max_patch(cfg: &Config) -> usize {
+    let mut m = 0;
+    let mut i = 0;
+    while i < ConvId::COUNT {
+        let id = ConvId::ALL[i];
+        if let Some(q) = crate::model::graph::QLayer::of(id, cfg) {
+            if let Some(s) = id.shape(cfg) {
+                m = max(m, s.k * s.k * q.cin());
+            }
+        }
+        i += 1;
+    }
+    m
+}
+
+impl Plan {
+    /// The plan for `cfg` and an input of `width x height`.
+    pub const fn new(cfg: &Config, width: usize, height: usize) -> Plan {
+        let g = Grid::new(width, height);
+        let n8 = g.n8();
+        let n16 = g.n16();
+        let h = cfg.hidden_dim;
+        let d3 = cfg.backbone_dims[2];
+        let mut b = Bump::new(0);
+        let frame = FrameBufs {
+            f1: b.take(n8 * cfg.fmap_dim),
+            f2: b.take(n8 * cfg.fmap_dim),
+            net08: b.take(2 * n8 * h),
+            net16: b.take(2 * n16 * h),
+            inp08: b.take(n8 * cfg.context_dim),
+            inp16: b.take(n16 * cfg.context_dim),
+        };
+        let qk = if cfg.mga { cfg.mga_qk_dim } else { 0 };
+        let pixel = PixelBufs {
+            patch: b.take(2 * max_patch(cfg)),
+            window: b.take(4 * window_len(cfg.corr_levels, cfg.corr_radius)),
+            prefix: b.take(8 * (window_len(cfg.corr_levels, cfg.corr_radius) + 1)),
+            peaks_row: b.take(4 * g.w8),
+            attn: b.take(8 * h + 2 * qk),
+            logits: b.take(2 * MASK_CHANNELS + 2 * cfg.mask_head_dim),
+        };
+        let scratch = b.at;
+        let encoder_rings = max(TrunkLayout::new(cfg, &g).total, HeadLayout::new(cfg, &g).total);
+        let mut e = Bump::new(scratch);
+        let encoder = EncoderBufs {
+            l3: e.take(n8 * d3),
+            l4: e.take(n16 * d3),
+            norm: e.take(2 * 16 * d3),
+            rings: e.take(encoder_rings),
+        };
+        let refine_rings = refine_rings(cfg, &g);
+        let mut r = Bump::new(scratch);
+        let refine = RefineBufs {
+            flow: r.take(2 * n8 * cfg.flow_channels),
+            mask: r.take(2 * n8),
+            u: r.take(2 * n8),
+            keys: r.take(2 * n8 * qk),
+            stats: r.take(if cfg.mga { 16 * n8 } else { 0 }),
+            values: r.take(if cfg.mga { 2 * n8 * h } else { 0 }),
+            rings: r.take(refine_rings),
+        };
+        let ram_bytes = max(e.at, r.at);
+        Plan { config: *cfg, width, height, grid: g, frame, pixel, encoder, refine, encoder_rings, refine_rings, ram_bytes }
+    }
+
+    /// Bytes of the frame zone.
+    pub const fn frame_bytes(&self) -> usize {
+        self.frame.inp16.end()
+    }
+
+    /// Output buffer sizes (not part of the arena): disparity and uncertainty, i16 each.
+    pub const fn output_bytes(&self) -> usize {
+        2 * 2 * self.width * self.height
+    }
+}
+
+/// Working memory in bytes for `cfg` at `width x height`.
+pub const fn ram_bytes(cfg: &Config, width: usize, height: usize) -> usize {
+    Plan::new(cfg, width, height).ram_bytes
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn grids() {
+        let g = Grid::new(160, 120);
+        assert_eq!((g.w, g.h, g.w8, g.h8, g.w16, g.h16), (160, 128, 20, 16, 10, 8));
+        let g = Grid::new(321, 240);
+        assert_eq!((g.w, g.w8), (336, 42));
+    }
+
+    #[test]
+    fn plan_is_const() {
+        const P: Plan = Plan::new(&Config::MUIR_SLIM, 160, 120);
+        const N: usize = P.ram_bytes;
+        static BUF: [u8; N] = [0; N];
+        assert!(!BUF.is_empty());
+        assert!(P.encoder.rings.end() <= P.ram_bytes && P.refine.rings.end() <= P.ram_bytes);
+    }
+}

@@ -1,0 +1,795 @@
+//! Streaming refinement: UFI initialisation, MGA keys and softmax statistics, the iterations
+//! (MUD pass, MGA value pass, slow-fast ConvGRUs with the motion encoder, disparity head) and
+//! the output (final MUD, upsampling mask, convex upsampling).
+//!
+//! Each pass walks the rows of its grid once; stage `i` of a pass computes row `s - lag_i` at step
+//! `s`, reading rows of earlier stages from rings sized by the lag difference plus the kernel
+//! reach. The hidden states are updated in place: with the gates at lag `L` and the candidate at
+//! `L + 1`, the row being blended is never read again by a later gate row. No gate map, no
+//! correlation volume and no attention matrix exists at full size.
+
+use super::encoder::{conv, run_conv};
+use super::plan::{Buf, Bump, Grid};
+use super::ring::{Carver, Ring, last_input_row};
+use crate::arith::{lut, sat_i16};
+use crate::format::QuantModel;
+use crate::kernels::OutRow;
+use crate::kernels::attention::{aggregate_query, query_stats, rope_pixel};
+use crate::kernels::conv::{ConvParams, MAX_K, PartRows};
+use crate::kernels::corr::{LookupParams, LookupScratch, lookup_pixel, peaks_pixel};
+use crate::kernels::eltwise::{blend_q15, mud_mask, mul_plane_q15, mul_q15, proposal_flow};
+use crate::kernels::resample::{interp_row, pool2x_row};
+use crate::kernels::upsample::upsample_pixel;
+use crate::model::config::Config;
+use crate::model::graph::Act;
+use crate::model::layers::{ConvId::*, MASK_CHANNELS};
+
+/// Frame tensors the refinement reads and updates.
+pub struct Frame<'a> {
+    /// Left features.
+    pub f1: &'a [i8],
+    /// Right features.
+    pub f2: &'a [i8],
+    /// 1/8 hidden state.
+    pub net08: &'a mut [i16],
+    /// 1/16 hidden state.
+    pub net16: &'a mut [i16],
+    /// 1/8 context.
+    pub inp08: &'a [i8],
+    /// 1/16 context.
+    pub inp16: &'a [i8],
+}
+
+/// Long-lived refinement buffers.
+pub struct State<'a> {
+    /// Disparity state (Q7.8 flow), `n8 x flow_channels`.
+    pub flow: &'a mut [i16],
+    /// Matchability mask (Q0.15), `n8`.
+    pub mask: &'a mut [i16],
+    /// Uncertainty (Q4.11), `n8`.
+    pub u: &'a mut [i16],
+    /// MGA keys, `n8 x qk`.
+    pub keys: &'a mut [i16],
+    /// MGA statistics, `2 x n8` (max, sum).
+    pub stats: &'a mut [i64],
+    /// MGA masked values, `n8 x hidden`.
+    pub values: &'a mut [i16],
+}
+
+/// Per-pixel scratch.
+pub struct Pixel<'a> {
+    /// Conv patch.
+    pub patch: &'a mut [u8],
+    /// Lookup window.
+    pub window: &'a mut [i32],
+    /// Lookup prefix sums.
+    pub prefix: &'a mut [i64],
+    /// Correlation row for peaks.
+    pub peaks_row: &'a mut [i32],
+    /// Attention accumulators.
+    pub acc: &'a mut [i64],
+    /// One query.
+    pub query: &'a mut [i16],
+    /// Mask logits of one pixel.
+    pub logits: &'a mut [i16],
+    /// Mask-head features of one pixel.
+    pub mask_px: &'a mut [i16],
+}
+
+/// Everything a refinement pass works with.
+pub struct Ctx<'f, 'm, 'a> {
+    /// The model.
+    pub m: &'m QuantModel<'a>,
+    /// Grid.
+    pub g: Grid,
+    /// Frame tensors.
+    pub frame: Frame<'f>,
+    /// Long-lived buffers.
+    pub st: State<'f>,
+    /// Per-pixel scratch.
+    pub px: Pixel<'f>,
+    /// Line-buffer region.
+    pub rings: &'f mut [u8],
+}
+
+fn frac(m: &QuantModel<'_>, a: Act) -> i8 {
+    m.format(a).frac
+}
+
+/// A single row as the input of a 1x1 conv.
+fn one_row(t: &[i16], len: usize) -> PartRows<'_, i16> {
+    full(&t[..len], 1, len, 0, 1)
+}
+
+fn full<'a>(t: &'a [i16], h: usize, row_len: usize, y: usize, k: usize) -> PartRows<'a, i16> {
+    PartRows::of_tensor(t, h, row_len, y, k, 1)
+}
+
+/// Correlation row `y` at disparity state `flow` (Q8, channel 0 of `fc`).
+#[allow(clippy::too_many_arguments)]
+fn lookup_row(m: &QuantModel<'_>, f1: &[i8], f2: &[i8], flow: &[i16], fc: usize, g: &Grid, y: usize, win: &mut [i32], pre: &mut [i64], out: &mut [i16]) {
+    let cfg = m.config();
+    let mults = m.corr_mults();
+    let p = LookupParams { levels: cfg.corr_levels, radius: cfg.corr_radius, post_pool: cfg.post_pool, mults: &mults };
+    let (w, fd, cc) = (g.w8, cfg.fmap_dim, cfg.corr_channels());
+    let f2row = &f2[y * w * fd..(y + 1) * w * fd];
+    let mut s = LookupScratch { window: win, prefix: pre };
+    for x in 0..w {
+        let px = y * w + x;
+        lookup_pixel(&p, &f1[px * fd..(px + 1) * fd], f2row, w, x, flow[px * fc], &mut s, &mut out[x * cc..(x + 1) * cc]);
+    }
+}
+
+/// i8 context row widened to i16.
+fn widen_row(src: &[i8], dst: &mut [i16]) {
+    for (d, s) in dst.iter_mut().zip(src) {
+        *d = *s as i16;
+    }
+}
+
+fn rows<'a>(r: &'a Ring<'_, i16>, y: usize, k: usize) -> PartRows<'a, i16> {
+    r.part_rows(y, k, 1)
+}
+
+/// Produces rows of `ring` up to `upto` (clipped) with `f(row, dst)`.
+fn fill(ring: &mut Ring<'_, i16>, upto: usize, mut f: impl FnMut(usize, &mut [i16])) {
+    let upto = upto.min(ring.rows().saturating_sub(1));
+    while ring.pending() && ring.produced() <= upto {
+        let r = ring.produced();
+        f(r, ring.push());
+    }
+}
+
+fn conv16(p: &ConvParams<'_>, parts: &[PartRows<'_, i16>], w: usize, out: &mut [i16], patch: &mut [u8]) {
+    run_conv(p, parts, w, &mut OutRow::I16(out), patch);
+}
+
+/// Bytes of `rows` i16 rows of `w x c`.
+const fn ring16(w: usize, rows: usize, c: usize) -> usize {
+    2 * rows * w * c
+}
+
+// ------------------------------------------------------------------------------------------------
+// Layouts of the passes' line buffers (relative to the refinement ring region)
+// ------------------------------------------------------------------------------------------------
+
+/// Line buffers of the UFI passes.
+#[derive(Clone, Copy, Debug)]
+pub struct UfiLayout {
+    /// Proposals (d1, d2 per pixel).
+    pub peaks: Buf,
+    /// Proposal flow, whole.
+    pub flow_k: Buf,
+    /// Correlation row.
+    pub corr: Buf,
+    /// Rings: corr features, disparity features, proposal features, candidate, context rows.
+    pub c: Buf,
+    /// Disparity features ring.
+    pub f: Buf,
+    /// Proposal features ring.
+    pub feat: Buf,
+    /// Candidate state ring.
+    pub q: Buf,
+    /// Context rows ring.
+    pub inp: Buf,
+    /// Gate row.
+    pub z: Buf,
+    /// Blended rows waiting for write-back.
+    pub pending: Buf,
+    /// Decoder hidden ring.
+    pub h1: Buf,
+    /// Decoder output row.
+    pub h2: Buf,
+    /// Total bytes.
+    pub total: usize,
+}
+
+impl UfiLayout {
+    /// Layout for `cfg` on `g`.
+    pub const fn new(cfg: &Config, g: &Grid) -> Self {
+        let w = g.w8;
+        let h = cfg.hidden_dim;
+        let fc = cfg.flow_channels;
+        let mut b = Bump::new(0);
+        Self {
+            peaks: b.take(2 * 2 * g.n8()),
+            flow_k: b.take(2 * g.n8() * fc),
+            corr: b.take(2 * w * cfg.corr_channels()),
+            c: b.take(2 * 3 * w * cfg.ufi_corr_dim),
+            f: b.take(2 * 3 * w * cfg.ufi_flow_dim),
+            feat: b.take(2 * 3 * w * (cfg.ufi_dim - fc)),
+            q: b.take(2 * 3 * w * h),
+            inp: b.take(2 * 3 * w * cfg.context_dim),
+            z: b.take(2 * w * h),
+            pending: b.take(2 * 2 * w * h),
+            h1: b.take(2 * 3 * w * cfg.ufi_head_dim),
+            h2: b.take(2 * w * 2),
+            total: b.at,
+        }
+    }
+}
+
+/// Line buffers of the MUD and MGA-value passes.
+#[derive(Clone, Copy, Debug)]
+pub struct MudLayout {
+    /// Correlation rows (3).
+    pub corr: Buf,
+    /// MUD hidden rings.
+    pub mud1: Buf,
+    /// Second MUD ring.
+    pub mud2: Buf,
+    /// MUD output row.
+    pub mud3: Buf,
+    /// MGA mask row.
+    pub hm: Buf,
+    /// MGA value row.
+    pub v: Buf,
+    /// Total bytes.
+    pub total: usize,
+}
+
+impl MudLayout {
+    /// Layout for `cfg` on `g`.
+    pub const fn new(cfg: &Config, g: &Grid) -> Self {
+        let w = g.w8;
+        let mut b = Bump::new(0);
+        Self {
+            corr: b.take(ring16(w, 3, cfg.corr_channels())),
+            mud1: b.take(ring16(w, 3, cfg.mud_dim)),
+            mud2: b.take(ring16(w, 3, cfg.mud_dim)),
+            mud3: b.take(ring16(w, 1, 2)),
+            hm: b.take(ring16(w, 1, 1)),
+            v: b.take(ring16(w, 1, cfg.hidden_dim)),
+            total: b.at,
+        }
+    }
+}
+
+/// Line buffers of a ConvGRU pass (the 1/8 one with the motion encoder; the 1/16 one uses the
+/// GRU rings only, with shorter rows).
+#[derive(Clone, Copy, Debug)]
+pub struct GruLayout {
+    /// Correlation row.
+    pub corr: Buf,
+    /// Masked correlation row (`C * m`).
+    pub corr_m: Buf,
+    /// Motion rings.
+    pub c1: Buf,
+    /// ..
+    pub c2: Buf,
+    /// ..
+    pub f1: Buf,
+    /// ..
+    pub f2: Buf,
+    /// Motion features ring (4); pooled 1/8 state for the 1/16 GRU.
+    pub mo: Buf,
+    /// Upsampled 1/16 state ring (4).
+    pub up: Buf,
+    /// MGA output ring (4).
+    pub glb: Buf,
+    /// Context ring (4).
+    pub inp: Buf,
+    /// Update gate ring (2).
+    pub z: Buf,
+    /// Reset-gated state ring (3).
+    pub rh: Buf,
+    /// Gate row.
+    pub gate: Buf,
+    /// Candidate row.
+    pub q: Buf,
+    /// Total bytes.
+    pub total: usize,
+}
+
+impl GruLayout {
+    /// Layout for `cfg` on `g`.
+    pub const fn new(cfg: &Config, g: &Grid) -> Self {
+        let w = g.w8;
+        let h = cfg.hidden_dim;
+        let fc = cfg.flow_channels;
+        let mut b = Bump::new(0);
+        Self {
+            corr: b.take(ring16(w, 1, cfg.corr_channels())),
+            corr_m: b.take(ring16(w, 1, cfg.corr_channels())),
+            c1: b.take(ring16(w, 3, cfg.motion_corr_dims[0])),
+            c2: b.take(ring16(w, 3, cfg.motion_corr_dims[1])),
+            f1: b.take(ring16(w, 3, cfg.motion_flow_dims[0])),
+            f2: b.take(ring16(w, 3, cfg.motion_flow_dims[1])),
+            mo: b.take(ring16(w, 4, if cfg.motion_dim - fc > h { cfg.motion_dim - fc } else { h })),
+            up: b.take(ring16(w, 4, h)),
+            glb: b.take(ring16(w, 4, h)),
+            inp: b.take(ring16(w, 4, cfg.context_dim)),
+            z: b.take(ring16(w, 2, h)),
+            rh: b.take(ring16(w, 3, h)),
+            gate: b.take(ring16(w, 1, h)),
+            q: b.take(ring16(w, 1, h)),
+            total: b.at,
+        }
+    }
+}
+
+/// Line buffers of the disparity head and of the output (mask head, upsampling) passes.
+#[derive(Clone, Copy, Debug)]
+pub struct HeadLayout {
+    /// Head hidden ring (3).
+    pub head: Buf,
+    /// Head output row.
+    pub head_out: Buf,
+    /// Disparity channel 0 for the upsampler.
+    pub flow0: Buf,
+    /// Total bytes.
+    pub total: usize,
+}
+
+impl HeadLayout {
+    /// Layout for `cfg` on `g`.
+    pub const fn new(cfg: &Config, g: &Grid) -> Self {
+        let w = g.w8;
+        let mh = if cfg.flow_head_dim > cfg.mask_head_dim { cfg.flow_head_dim } else { cfg.mask_head_dim };
+        let mut b = Bump::new(0);
+        Self {
+            head: b.take(ring16(w, 3, mh)),
+            head_out: b.take(ring16(w, 1, cfg.flow_channels)),
+            flow0: b.take(2 * g.n8()),
+            total: b.at,
+        }
+    }
+}
+
+/// Bytes of the refinement line buffers: the largest pass.
+pub const fn refine_rings(cfg: &Config, g: &Grid) -> usize {
+    let a = UfiLayout::new(cfg, g).total;
+    let b = MudLayout::new(cfg, g).total;
+    let c = GruLayout::new(cfg, g).total;
+    let d = HeadLayout::new(cfg, g).total;
+    let ab = if a > b { a } else { b };
+    let cd = if c > d { c } else { d };
+    if ab > cd { ab } else { cd }
+}
+
+// ------------------------------------------------------------------------------------------------
+// UFI
+// ------------------------------------------------------------------------------------------------
+
+/// UFI: three proposals, the gated initializer (in place on `net08`), then the candidate with the
+/// lowest uncertainty per pixel into `flow`.
+pub fn ufi(c: &mut Ctx<'_, '_, '_>) {
+    let m = c.m;
+    let cfg = *m.config();
+    let g = c.g;
+    let (w, h8, n8) = (g.w8, g.h8, g.n8());
+    let (hd, fc, fd) = (cfg.hidden_dim, cfg.flow_channels, cfg.fmap_dim);
+    let lay = UfiLayout::new(&cfg, &g);
+    let mut cv = Carver::new(c.rings);
+    let peaks = cv.i16(lay.peaks);
+    let flow_k = cv.i16(lay.flow_k);
+    let corr = cv.i16(lay.corr);
+    let (b_c, b_f, b_feat, b_q, b_inp) = (cv.i16(lay.c), cv.i16(lay.f), cv.i16(lay.feat), cv.i16(lay.q), cv.i16(lay.inp));
+    let z = cv.i16(lay.z);
+    let pend = cv.i16(lay.pending);
+    let b_h1 = cv.i16(lay.h1);
+    let h2 = cv.i16(lay.h2);
+    // Proposals.
+    for y in 0..h8 {
+        let f2row = &c.frame.f2[y * w * fd..(y + 1) * w * fd];
+        for x in 0..w {
+            let p = y * w + x;
+            let (d1, d2) = peaks_pixel(&c.frame.f1[p * fd..(p + 1) * fd], f2row, x, cfg.ufi_peak_separation, c.px.peaks_row);
+            peaks[2 * p] = d1 as i16;
+            peaks[2 * p + 1] = d2 as i16;
+        }
+    }
+    let set_flow = |k: usize, flow_k: &mut [i16]| {
+        for p in 0..n8 {
+            flow_k[p * fc] = if k == 0 { 0 } else { proposal_flow(peaks[2 * p + k - 1] as u16) };
+        }
+    };
+    let (pc, pf, pconv, pq, pz, ph1, ph2) =
+        (conv(m, UfiC), conv(m, UfiF), conv(m, UfiConv), conv(m, UfiQ), conv(m, UfiZ), conv(m, UfiHead1), conv(m, UfiHead2));
+    let cc = cfg.corr_channels();
+    let fl_row = w * fc;
+    // Rows of the proposal features (lags 0 and 1) shared by the initializer and the decoder.
+    macro_rules! feature_rows {
+        ($s:expr, $rc:expr, $rf:expr, $rfeat:expr) => {{
+            let s = $s;
+            if s < h8 {
+                lookup_row(m, c.frame.f1, c.frame.f2, flow_k, fc, &g, s, c.px.window, c.px.prefix, corr);
+                conv16(&pc, &[full(corr, 1, w * cc, 0, 1)], w, $rc.push(), c.px.patch);
+                conv16(&pf, &[full(flow_k, h8, fl_row, s, 3)], w, $rf.push(), c.px.patch);
+            }
+            if s >= 1 && s - 1 < h8 {
+                let r = s - 1;
+                conv16(&pconv, &[rows(&$rc, r, 3), rows(&$rf, r, 3)], w, $rfeat.push(), c.px.patch);
+            }
+        }};
+    }
+    for k in 0..3 {
+        set_flow(k, flow_k);
+        let mut rc = Ring::new(&mut b_c[..], 3, w * cfg.ufi_corr_dim, h8);
+        let mut rf = Ring::new(&mut b_f[..], 3, w * cfg.ufi_flow_dim, h8);
+        let mut rfeat = Ring::new(&mut b_feat[..], 3, w * (cfg.ufi_dim - fc), h8);
+        let mut rq = Ring::new(&mut b_q[..], 3, w * hd, h8);
+        let mut rinp = Ring::new(&mut b_inp[..], 3, w * cfg.context_dim, h8);
+        let mut rpend = Ring::new(&mut pend[..], 2, w * hd, h8);
+        let row = w * hd;
+        for s in 0..h8 + 4 {
+            // lag 0 and 1: corr, disparity and proposal features
+            feature_rows!(s, rc, rf, rfeat);
+            // lag 2: candidate state q = tanh(convq([feat, flow_k, ctx]))
+            if s >= 2 && s - 2 < h8 {
+                let r = s - 2;
+                fill(&mut rinp, last_input_row(r, 3, 1, h8), |y, d| widen_row(&c.frame.inp08[y * w * cfg.context_dim..(y + 1) * w * cfg.context_dim], d));
+                conv16(&pq, &[rows(&rfeat, r, 3), full(flow_k, h8, fl_row, r, 3), rows(&rinp, r, 3)], w, rq.push(), c.px.patch);
+            }
+            // lag 3: gate and blend (write-back one row later: the next gate row reads this one)
+            if s >= 3 && s - 3 < h8 {
+                let r = s - 3;
+                conv16(&pz, &[full(c.frame.net08, h8, row, r, 3), rows(&rq, r, 3)], w, &mut z[..row], c.px.patch);
+                let dst = rpend.push();
+                dst.copy_from_slice(&c.frame.net08[r * row..(r + 1) * row]);
+                blend_q15(dst, &z[..row], rq.row(r));
+                if r >= 1 {
+                    c.frame.net08[(r - 1) * row..r * row].copy_from_slice(rpend.row(r - 1));
+                }
+            }
+        }
+        c.frame.net08[(h8 - 1) * row..h8 * row].copy_from_slice(rpend.row(h8 - 1));
+    }
+    // Decoder: per proposal a refined disparity and an uncertainty; keep the least uncertain.
+    let table = m.u_table();
+    for k in 0..3 {
+        set_flow(k, flow_k);
+        let mut rc = Ring::new(&mut b_c[..], 3, w * cfg.ufi_corr_dim, h8);
+        let mut rf = Ring::new(&mut b_f[..], 3, w * cfg.ufi_flow_dim, h8);
+        let mut rfeat = Ring::new(&mut b_feat[..], 3, w * (cfg.ufi_dim - fc), h8);
+        let mut rh1 = Ring::new(&mut b_h1[..], 3, w * cfg.ufi_head_dim, h8);
+        for s in 0..h8 + 4 {
+            feature_rows!(s, rc, rf, rfeat);
+            if s >= 2 && s - 2 < h8 {
+                let r = s - 2;
+                conv16(&ph1, &[full(c.frame.net08, h8, w * hd, r, 3), rows(&rfeat, r, 3), full(flow_k, h8, fl_row, r, 3)], w, rh1.push(), c.px.patch);
+            }
+            if s >= 3 && s - 3 < h8 {
+                let r = s - 3;
+                conv16(&ph2, &[rows(&rh1, r, 3)], w, &mut h2[..2 * w], c.px.patch);
+                for x in 0..w {
+                    let p = r * w + x;
+                    let cand_flow = sat_i16(flow_k[p * fc] as i64 + h2[2 * x] as i64);
+                    let cand_u = lut::table_q11(&table, h2[2 * x + 1]);
+                    // strictly smaller: ties keep the earlier proposal (argmin, first)
+                    if k == 0 || cand_u < c.st.u[p] {
+                        c.st.u[p] = cand_u;
+                        c.st.flow[p * fc] = cand_flow;
+                    }
+                }
+            }
+        }
+    }
+}
+
+// ------------------------------------------------------------------------------------------------
+// MGA setup
+// ------------------------------------------------------------------------------------------------
+
+/// Query (or key) of pixel `p` at (x, y): 1x1 conv of the context, then RoPE.
+#[allow(clippy::too_many_arguments)]
+fn qk_pixel(p: &ConvParams<'_>, inp08: &[i8], ctx: usize, x: usize, y: usize, w: usize, phases: &[u32], patch: &mut [u8], out: &mut [i16]) {
+    let i = y * w + x;
+    let mut r = [None; MAX_K];
+    r[0] = Some(&inp08[i * ctx..(i + 1) * ctx]);
+    run_conv(p, &[PartRows { rows: r }], 1, &mut OutRow::I16(out), patch);
+    rope_pixel(out, x, y, phases);
+}
+
+fn rope_phases(m: &QuantModel<'_>) -> [u32; 512] {
+    let mut ph = [0u32; 512];
+    for (i, v) in ph.iter_mut().enumerate().take(m.config().mga_qk_dim / 2) {
+        *v = m.rope_phase(i);
+    }
+    ph
+}
+
+/// Keys (after RoPE) and every query's softmax statistics; once per frame.
+pub fn mga_setup(c: &mut Ctx<'_, '_, '_>) {
+    let m = c.m;
+    let cfg = *m.config();
+    let (w, h8, qk, ctx) = (c.g.w8, c.g.h8, cfg.mga_qk_dim, cfg.context_dim);
+    let phases = rope_phases(m);
+    let phases = &phases[..qk / 2];
+    let (pq, pk) = (conv(m, MgaQuery), conv(m, MgaKey));
+    for y in 0..h8 {
+        for x in 0..w {
+            let p = y * w + x;
+            qk_pixel(&pk, c.frame.inp08, ctx, x, y, w, phases, c.px.patch, &mut c.st.keys[p * qk..(p + 1) * qk]);
+        }
+    }
+    let am = m.att_mult();
+    for y in 0..h8 {
+        for x in 0..w {
+            let p = y * w + x;
+            qk_pixel(&pq, c.frame.inp08, ctx, x, y, w, phases, c.px.patch, c.px.query);
+            let (mx, sum) = query_stats(c.px.query, c.st.keys, am);
+            c.st.stats[2 * p] = mx;
+            c.st.stats[2 * p + 1] = sum;
+        }
+    }
+}
+
+// ------------------------------------------------------------------------------------------------
+// Iteration passes
+// ------------------------------------------------------------------------------------------------
+
+/// MUD pass: matchability mask into `mask`, uncertainty into `u`.
+pub fn mud_pass(c: &mut Ctx<'_, '_, '_>) {
+    let m = c.m;
+    let cfg = *m.config();
+    let g = c.g;
+    let (w, h8, hd, fc, cc) = (g.w8, g.h8, cfg.hidden_dim, cfg.flow_channels, cfg.corr_channels());
+    let lay = MudLayout::new(&cfg, &g);
+    let mut cv = Carver::new(c.rings);
+    let mut rcorr = Ring::new(cv.i16(lay.corr), 3, w * cc, h8);
+    let mut r1 = Ring::new(cv.i16(lay.mud1), 3, w * cfg.mud_dim, h8);
+    let mut r2 = Ring::new(cv.i16(lay.mud2), 3, w * cfg.mud_dim, h8);
+    let out = cv.i16(lay.mud3);
+    let (p1, p2, p3) = (conv(m, Mud1), conv(m, Mud2), conv(m, Mud3));
+    let table = m.u_table();
+    for s in 0..h8 + 3 {
+        if s < h8 {
+            lookup_row(m, c.frame.f1, c.frame.f2, c.st.flow, fc, &g, s, c.px.window, c.px.prefix, rcorr.push());
+        }
+        if s >= 1 && s - 1 < h8 {
+            let r = s - 1;
+            conv16(&p1, &[full(c.frame.net08, h8, w * hd, r, 3), rows(&rcorr, r, 3), full(c.st.flow, h8, w * fc, r, 3)], w, r1.push(), c.px.patch);
+        }
+        if s >= 2 && s - 2 < h8 {
+            conv16(&p2, &[rows(&r1, s - 2, 3)], w, r2.push(), c.px.patch);
+        }
+        if s >= 3 && s - 3 < h8 {
+            let r = s - 3;
+            conv16(&p3, &[rows(&r2, r, 3)], w, &mut out[..2 * w], c.px.patch);
+            for x in 0..w {
+                c.st.mask[r * w + x] = mud_mask(out[2 * x]);
+                c.st.u[r * w + x] = lut::table_q11(&table, out[2 * x + 1]);
+            }
+        }
+    }
+}
+
+/// MGA value pass: `values = value(net08) * sigmoid(mask conv([net08, corr, flow, m]))`.
+pub fn mga_values(c: &mut Ctx<'_, '_, '_>) {
+    let m = c.m;
+    let cfg = *m.config();
+    let g = c.g;
+    let (w, h8, hd, fc, cc) = (g.w8, g.h8, cfg.hidden_dim, cfg.flow_channels, cfg.corr_channels());
+    let lay = MudLayout::new(&cfg, &g);
+    let mut cv = Carver::new(c.rings);
+    let mut rcorr = Ring::new(cv.i16(lay.corr), 3, w * cc, h8);
+    let hm = cv.i16(lay.hm);
+    let v = cv.i16(lay.v);
+    let (pm, pv) = (conv(m, MgaMask), conv(m, MgaValue));
+    for s in 0..h8 + 1 {
+        if s < h8 {
+            lookup_row(m, c.frame.f1, c.frame.f2, c.st.flow, fc, &g, s, c.px.window, c.px.prefix, rcorr.push());
+        }
+        if s >= 1 {
+            let r = s - 1;
+            let parts = [
+                full(c.frame.net08, h8, w * hd, r, 3),
+                rows(&rcorr, r, 3),
+                full(c.st.flow, h8, w * fc, r, 3),
+                full(c.st.mask, h8, w, r, 3),
+            ];
+            conv16(&pm, &parts, w, &mut hm[..w], c.px.patch);
+            conv16(&pv, &[full(c.frame.net08, h8, w * hd, r, 1)], w, &mut v[..w * hd], c.px.patch);
+            mul_plane_q15(&v[..w * hd], &hm[..w], hd, &mut c.st.values[r * w * hd..(r + 1) * w * hd]);
+        }
+    }
+}
+
+/// The 1/16 ConvGRU step: `net16 = gru16(net16, ctx16, pool2x(net08))`, in place.
+pub fn gru16(c: &mut Ctx<'_, '_, '_>) {
+    let m = c.m;
+    let cfg = *m.config();
+    let g = c.g;
+    let (w8, h8, w, h, hd, ctx) = (g.w8, g.h8, g.w16, g.h16, cfg.hidden_dim, cfg.context_dim);
+    let lay = GruLayout::new(&cfg, &g);
+    let mut cv = Carver::new(c.rings);
+    let row = w * hd;
+    let mut pool = Ring::new(cv.i16(lay.mo), 4, row, h);
+    let mut inp = Ring::new(cv.i16(lay.inp), 4, w * ctx, h);
+    let mut rz = Ring::new(cv.i16(lay.z), 2, row, h);
+    let mut rh = Ring::new(cv.i16(lay.rh), 3, row, h);
+    let gate = cv.i16(lay.gate);
+    let q = cv.i16(lay.q);
+    let (pz, pr, pq) = (conv(m, Gru16Z), conv(m, Gru16R), conv(m, Gru16Q));
+    for s in 0..h + 2 {
+        if s < h {
+            pool2x_row(c.frame.net08, h8, w8, hd, s, pool.push());
+            widen_row(&c.frame.inp16[s * w * ctx..(s + 1) * w * ctx], inp.push());
+        }
+        if s >= 1 && s - 1 < h {
+            let r = s - 1;
+            let parts = [full(c.frame.net16, h, row, r, 3), rows(&pool, r, 3), rows(&inp, r, 3)];
+            conv16(&pz, &parts, w, rz.push(), c.px.patch);
+            conv16(&pr, &parts, w, &mut gate[..row], c.px.patch);
+            mul_q15(&gate[..row], &c.frame.net16[r * row..(r + 1) * row], rh.push());
+        }
+        if s >= 2 {
+            let r = s - 2;
+            conv16(&pq, &[rows(&rh, r, 3), rows(&pool, r, 3), rows(&inp, r, 3)], w, &mut q[..row], c.px.patch);
+            blend_q15(&mut c.frame.net16[r * row..(r + 1) * row], rz.row(r), &q[..row]);
+        }
+    }
+}
+
+/// Motion encoder and the 1/8 ConvGRU: `net08 = gru08(net08, ctx08, [motion, interp(net16), glb])`,
+/// in place; the correlation is looked up at the current disparity row by row.
+pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
+    let m = c.m;
+    let cfg = *m.config();
+    let g = c.g;
+    let (w, h8, hd, fc, cc, ctx) = (g.w8, g.h8, cfg.hidden_dim, cfg.flow_channels, cfg.corr_channels(), cfg.context_dim);
+    let lay = GruLayout::new(&cfg, &g);
+    let mut cv = Carver::new(c.rings);
+    let corr = cv.i16(lay.corr);
+    let corr_m = cv.i16(lay.corr_m);
+    let mut rc1 = Ring::new(cv.i16(lay.c1), 3, w * cfg.motion_corr_dims[0], h8);
+    let mut rc2 = Ring::new(cv.i16(lay.c2), 3, w * cfg.motion_corr_dims[1], h8);
+    let mut rf1 = Ring::new(cv.i16(lay.f1), 3, w * cfg.motion_flow_dims[0], h8);
+    let mut rf2 = Ring::new(cv.i16(lay.f2), 3, w * cfg.motion_flow_dims[1], h8);
+    let mut rmo = Ring::new(cv.i16(lay.mo), 4, w * (cfg.motion_dim - fc), h8);
+    let mut rup = Ring::new(cv.i16(lay.up), 4, w * hd, h8);
+    let mut rglb = Ring::new(cv.i16(lay.glb), 4, w * hd, h8);
+    let mut rinp = Ring::new(cv.i16(lay.inp), 4, w * ctx, h8);
+    let mut rz = Ring::new(cv.i16(lay.z), 2, w * hd, h8);
+    let mut rrh = Ring::new(cv.i16(lay.rh), 3, w * hd, h8);
+    let gate = cv.i16(lay.gate);
+    let q = cv.i16(lay.q);
+    let (pc1, pc2, pf1, pf2, pmo) = (conv(m, MotC1), conv(m, MotC2), conv(m, MotF1), conv(m, MotF2), conv(m, MotOut));
+    let (pz, pr, pq) = (conv(m, Gru08Z), conv(m, Gru08R), conv(m, Gru08Q));
+    let pquery = if cfg.mga { Some(conv(m, MgaQuery)) } else { None };
+    let phases = rope_phases(m);
+    let phases = &phases[..cfg.mga_qk_dim / 2];
+    let (am, glb_shift) = (m.att_mult(), frac(m, Act::Glb) - frac(m, Act::MgaV));
+    let row = w * hd;
+    for s in 0..h8 + 4 {
+        if s < h8 {
+            lookup_row(m, c.frame.f1, c.frame.f2, c.st.flow, fc, &g, s, c.px.window, c.px.prefix, &mut corr[..w * cc]);
+            // corr features: cat[C, C * m, m] with MUD (three parts), C alone without
+            if cfg.mud {
+                let mrow = &c.st.mask[s * w..(s + 1) * w];
+                mul_plane_q15(&corr[..w * cc], mrow, cc, &mut corr_m[..w * cc]);
+                conv16(&pc1, &[one_row(corr, w * cc), one_row(corr_m, w * cc), one_row(mrow, w)], w, rc1.push(), c.px.patch);
+            } else {
+                conv16(&pc1, &[one_row(corr, w * cc)], w, rc1.push(), c.px.patch);
+            }
+            conv16(&pf1, &[full(c.st.flow, h8, w * fc, s, 7)], w, rf1.push(), c.px.patch);
+        }
+        if s >= 1 && s - 1 < h8 {
+            let r = s - 1;
+            conv16(&pc2, &[rows(&rc1, r, 3)], w, rc2.push(), c.px.patch);
+            conv16(&pf2, &[rows(&rf1, r, 3)], w, rf2.push(), c.px.patch);
+        }
+        if s >= 2 && s - 2 < h8 {
+            let r = s - 2;
+            conv16(&pmo, &[rows(&rc2, r, 3), rows(&rf2, r, 3)], w, rmo.push(), c.px.patch);
+        }
+        if s >= 3 && s - 3 < h8 {
+            let r = s - 3;
+            let upto = last_input_row(r, 3, 1, h8);
+            let (net16, w16, h16) = (&*c.frame.net16, g.w16, g.h16);
+            fill(&mut rup, upto, |y, d| interp_row(net16, h16, w16, hd, h8, w, y, d));
+            fill(&mut rinp, upto, |y, d| widen_row(&c.frame.inp08[y * w * ctx..(y + 1) * w * ctx], d));
+            if let Some(pqy) = &pquery {
+                let st = &c.st;
+                let px = &mut c.px;
+                fill(&mut rglb, upto, |y, d| {
+                    for x in 0..w {
+                        let p = y * w + x;
+                        qk_pixel(pqy, c.frame.inp08, ctx, x, y, w, phases, px.patch, px.query);
+                        let stats = (st.stats[2 * p], st.stats[2 * p + 1]);
+                        aggregate_query(px.query, st.keys, st.values, hd, stats, am, glb_shift, px.acc, &mut d[x * hd..(x + 1) * hd]);
+                    }
+                });
+            }
+            let net = full(c.frame.net08, h8, row, r, 3);
+            let fl = full(c.st.flow, h8, w * fc, r, 3);
+            let mut parts = [net, rows(&rmo, r, 3), fl, rows(&rup, r, 3), rows(&rinp, r, 3), rows(&rinp, r, 3)];
+            let n = if cfg.mga {
+                parts[4] = rows(&rglb, r, 3);
+                6
+            } else {
+                5
+            };
+            conv16(&pz, &parts[..n], w, rz.push(), c.px.patch);
+            conv16(&pr, &parts[..n], w, &mut gate[..row], c.px.patch);
+            mul_q15(&gate[..row], &c.frame.net08[r * row..(r + 1) * row], rrh.push());
+        }
+        if s >= 4 {
+            let r = s - 4;
+            let fl = full(c.st.flow, h8, w * fc, r, 3);
+            let mut parts = [rows(&rrh, r, 3), rows(&rmo, r, 3), fl, rows(&rup, r, 3), rows(&rinp, r, 3), rows(&rinp, r, 3)];
+            let n = if cfg.mga {
+                parts[4] = rows(&rglb, r, 3);
+                6
+            } else {
+                5
+            };
+            conv16(&pq, &parts[..n], w, &mut q[..row], c.px.patch);
+            blend_q15(&mut c.frame.net08[r * row..(r + 1) * row], rz.row(r), &q[..row]);
+        }
+    }
+}
+
+/// Disparity head: `flow += conv2(relu(conv1(net08)))`, row by row.
+pub fn flow_head(c: &mut Ctx<'_, '_, '_>) {
+    let m = c.m;
+    let cfg = *m.config();
+    let g = c.g;
+    let (w, h8, hd, fc) = (g.w8, g.h8, cfg.hidden_dim, cfg.flow_channels);
+    let lay = HeadLayout::new(&cfg, &g);
+    let mut cv = Carver::new(c.rings);
+    let mut rh = Ring::new(cv.i16(lay.head), 3, w * cfg.flow_head_dim, h8);
+    let out = cv.i16(lay.head_out);
+    let (p1, p2) = (conv(m, Flow1), conv(m, Flow2));
+    for s in 0..h8 + 1 {
+        if s < h8 {
+            conv16(&p1, &[full(c.frame.net08, h8, w * hd, s, 3)], w, rh.push(), c.px.patch);
+        }
+        if s >= 1 {
+            let r = s - 1;
+            conv16(&p2, &[rows(&rh, r, 3)], w, &mut out[..w * fc], c.px.patch);
+            for x in 0..w {
+                let i = (r * w + x) * fc;
+                c.st.flow[i] = sat_i16(c.st.flow[i] as i64 + out[x * fc] as i64);
+            }
+        }
+    }
+}
+
+/// Upsampling: mask head and convex upsampling of disparity (Q10.5 px) and uncertainty (Q4.11)
+/// into the cropped `width x height` outputs.
+pub fn upsample(c: &mut Ctx<'_, '_, '_>, width: usize, height: usize, disp: &mut [i16], mut unc: Option<&mut [i16]>) {
+    let m = c.m;
+    let cfg = *m.config();
+    let g = c.g;
+    let (w, h8, hd, fc, mh) = (g.w8, g.h8, cfg.hidden_dim, cfg.flow_channels, cfg.mask_head_dim);
+    let lay = HeadLayout::new(&cfg, &g);
+    let mut cv = Carver::new(c.rings);
+    let mid = cv.i16(lay.head);
+    let flow0 = cv.i16(lay.flow0);
+    let (p1, p2) = (conv(m, Mask1), conv(m, Mask2));
+    let mask_frac = frac(m, Act::MaskLogit);
+    // channel 0 of the disparity state (the only one with MUIR; RAFT's y is 0)
+    for (d, f) in flow0.iter_mut().zip(c.st.flow.chunks_exact(fc)) {
+        *d = f[0];
+    }
+    let u_src: Option<&[i16]> = if cfg.mud { Some(&*c.st.u) } else { None };
+    let mut dblk = [0i16; 64];
+    let mut ublk = [0i16; 64];
+    for y in 0..h8 {
+        conv16(&p1, &[full(c.frame.net08, h8, w * hd, y, 3)], w, &mut mid[..w * mh], c.px.patch);
+        for x in 0..w {
+            let mut r = [None; MAX_K];
+            r[0] = Some(&mid[x * mh..(x + 1) * mh]);
+            conv16(&p2, &[PartRows { rows: r }], 1, &mut c.px.logits[..MASK_CHANNELS], c.px.patch);
+            upsample_pixel(&c.px.logits[..MASK_CHANNELS], mask_frac, &flow0[..g.n8()], u_src, h8, w, y, x, &mut dblk, u_src.map(|_| &mut ublk[..]), 8);
+            for dy in 0..8 {
+                let oy = 8 * y + dy;
+                if oy >= height {
+                    break;
+                }
+                for dx in 0..8 {
+                    let ox = 8 * x + dx;
+                    if ox >= width {
+                        break;
+                    }
+                    disp[oy * width + ox] = dblk[dy * 8 + dx];
+                    if let Some(u) = unc.as_deref_mut() {
+                        u[oy * width + ox] = ublk[dy * 8 + dx];
+                    }
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,118 @@
+//! Line buffers and arena carving.
+
+use super::plan::Buf;
+use crate::kernels::conv::{MAX_K, PartRows};
+
+/// Splits typed, disjoint buffers off an arena, in increasing offset order.
+pub struct Carver<'a> {
+    rest: &'a mut [u8],
+    pos: usize,
+}
+
+impl<'a> Carver<'a> {
+    /// Carves from `arena` (8-byte aligned, checked by the engine).
+    pub fn new(arena: &'a mut [u8]) -> Self {
+        Self { rest: arena, pos: 0 }
+    }
+
+    /// Restarts carving at absolute offset `at` (>= the current position) of a region that begins
+    /// at `base` within the original arena. Used for nested layouts.
+    fn bytes(&mut self, b: Buf) -> &'a mut [u8] {
+        // Plans lay buffers out in increasing order without overlap; a violation is a bug in the
+        // plan code, caught by the engine tests.
+        assert!(b.at >= self.pos, "buffers carved out of order");
+        let rest = core::mem::take(&mut self.rest);
+        let (_, tail) = rest.split_at_mut(b.at - self.pos);
+        let (buf, tail) = tail.split_at_mut(b.len);
+        self.rest = tail;
+        self.pos = b.end();
+        buf
+    }
+
+    /// A byte buffer viewed as `i8`.
+    pub fn i8(&mut self, b: Buf) -> &'a mut [i8] {
+        bytemuck::cast_slice_mut(self.bytes(b))
+    }
+    /// A byte buffer viewed as `i16`.
+    pub fn i16(&mut self, b: Buf) -> &'a mut [i16] {
+        bytemuck::cast_slice_mut(self.bytes(b))
+    }
+    /// A byte buffer viewed as `i32`.
+    pub fn i32(&mut self, b: Buf) -> &'a mut [i32] {
+        bytemuck::cast_slice_mut(self.bytes(b))
+    }
+    /// A byte buffer viewed as `i64`.
+    pub fn i64(&mut self, b: Buf) -> &'a mut [i64] {
+        bytemuck::cast_slice_mut(self.bytes(b))
+    }
+    /// Raw bytes.
+    pub fn raw(&mut self, b: Buf) -> &'a mut [u8] {
+        self.bytes(b)
+    }
+}
+
+/// A ring of `cap` rows of `len` elements over a tensor of `rows` rows: row `r` lives in slot
+/// `r % cap` from the moment it is pushed until `cap` newer rows are.
+pub struct Ring<'a, T> {
+    buf: &'a mut [T],
+    cap: usize,
+    len: usize,
+    rows: usize,
+    next: usize,
+}
+
+impl<'a, T: Copy> Ring<'a, T> {
+    /// A ring over `buf` (at least `cap * len` elements).
+    pub fn new(buf: &'a mut [T], cap: usize, len: usize, rows: usize) -> Self {
+        assert!(buf.len() >= cap * len, "ring buffer too small");
+        Self { buf, cap, len, rows, next: 0 }
+    }
+
+    /// Rows pushed so far (the next row to produce).
+    pub fn produced(&self) -> usize {
+        self.next
+    }
+
+    /// Total rows of the tensor.
+    pub fn rows(&self) -> usize {
+        self.rows
+    }
+
+    /// True while rows remain to be produced.
+    pub fn pending(&self) -> bool {
+        self.next < self.rows
+    }
+
+    /// Row `r`, which must still be held.
+    pub fn row(&self, r: usize) -> &[T] {
+        assert!(r < self.next && r + self.cap >= self.next, "ring row {r} not held (next {}, cap {})", self.next, self.cap);
+        let s = r % self.cap;
+        &self.buf[s * self.len..(s + 1) * self.len]
+    }
+
+    /// The slot of the next row; it counts as produced once this returns.
+    pub fn push(&mut self) -> &mut [T] {
+        let s = self.next % self.cap;
+        self.next += 1;
+        &mut self.buf[s * self.len..(s + 1) * self.len]
+    }
+
+    /// The `k` input rows output row `y` of a `k`-kernel, stride-`stride` conv reads (`None` in
+    /// the zero padding).
+    pub fn part_rows(&self, y: usize, k: usize, stride: usize) -> PartRows<'_, T> {
+        let mut rows = [None; MAX_K];
+        for (ky, r) in rows.iter_mut().enumerate().take(k) {
+            let iy = (y * stride + ky) as isize - (k / 2) as isize;
+            if iy >= 0 && (iy as usize) < self.rows {
+                *r = Some(self.row(iy as usize));
+            }
+        }
+        PartRows { rows }
+    }
+}
+
+/// Highest input row output row `y` of a `k`/`stride` conv reads, clipped to the tensor.
+pub const fn last_input_row(y: usize, k: usize, stride: usize, rows: usize) -> usize {
+    let r = y * stride + k / 2;
+    if r >= rows { rows - 1 } else { r }
+}

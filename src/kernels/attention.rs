@@ -1,0 +1,123 @@
+//! MGA attention in fixed point: 2D RoPE, softmax statistics and aggregation, streaming over keys.
+//!
+//! Logits `l_ij = q_i . k_j` are exact i64. The query's softmax statistics, `max_j l_ij` and
+//! `S_i = sum_j e_ij` with `e_ij = exp_q11(requantize(l_ij - max_i, m))`, do not change across
+//! iterations (query and key come from the context), so they are computed once per frame; each
+//! iteration then aggregates `glb_i = div_round(sum_j e_ij * v_j << shift, S_i)` in one pass over
+//! the keys. No N x N matrix exists; the plain twin builds it and must give the same bits.
+
+use crate::arith::{Multiplier, div_round, lut, requantize, rshift_round, sat_i16, shift_round};
+
+/// 2D RoPE of one pixel's query or key (`v`: channel pairs `(2i, 2i+1)`; the first half of the
+/// pairs turns with the column `x`, the second with the row `y`). `phase[i]` is pair `i`'s phase
+/// step per pixel (`2^32` = one turn).
+pub fn rope_pixel(v: &mut [i16], x: usize, y: usize, phase: &[u32]) {
+    let pairs = v.len() / 2;
+    let n = pairs / 2;
+    for (i, inc) in phase.iter().enumerate().take(pairs) {
+        let pos = if i < n { x } else { y } as u32;
+        let ph = pos.wrapping_mul(*inc);
+        let (c, s) = (lut::cos_phase(ph) as i64, lut::sin_phase(ph) as i64);
+        let (a, b) = (v[2 * i] as i64, v[2 * i + 1] as i64);
+        v[2 * i] = sat_i16(rshift_round(a * c - b * s, 15));
+        v[2 * i + 1] = sat_i16(rshift_round(a * s + b * c, 15));
+    }
+}
+
+#[inline(always)]
+fn logit(q: &[i16], k: &[i16]) -> i64 {
+    let mut s = 0i64;
+    for (a, b) in q.iter().zip(k) {
+        s += *a as i64 * *b as i64;
+    }
+    s
+}
+
+/// Softmax weight (Q0.15) of a logit relative to its query's maximum.
+#[inline(always)]
+pub fn weight(l: i64, max: i64, m: Multiplier) -> i32 {
+    let d = requantize(l - max, m);
+    lut::exp_q11(d.clamp(-32768, 0) as i32)
+}
+
+/// Softmax statistics of query `q` over all keys (`keys`: `n x c` HWC): `(max, sum of weights)`.
+pub fn query_stats(q: &[i16], keys: &[i16], m: Multiplier) -> (i64, i64) {
+    let c = q.len();
+    let max = keys.chunks_exact(c).map(|k| logit(q, k)).max().unwrap_or(0);
+    let sum = keys.chunks_exact(c).map(|k| weight(logit(q, k), max, m) as i64).sum();
+    (max, sum)
+}
+
+/// Aggregated values for query `q` (`values`: `n x cv` HWC) into `out` (`cv`), in the values'
+/// format shifted by `shift` fraction bits. `acc` is scratch of `cv` values.
+#[allow(clippy::too_many_arguments)]
+pub fn aggregate_query(q: &[i16], keys: &[i16], values: &[i16], cv: usize, stats: (i64, i64), m: Multiplier, shift: i8, acc: &mut [i64], out: &mut [i16]) {
+    let c = q.len();
+    let acc = &mut acc[..cv];
+    acc.fill(0);
+    for (k, v) in keys.chunks_exact(c).zip(values.chunks_exact(cv)) {
+        let e = weight(logit(q, k), stats.0, m) as i64;
+        if e == 0 {
+            continue;
+        }
+        for (a, v) in acc.iter_mut().zip(v) {
+            *a += e * *v as i64;
+        }
+    }
+    for (o, a) in out.iter_mut().zip(acc.iter()) {
+        *o = sat_i16(div_round(shift_round(*a, shift as i32), stats.1));
+    }
+}
+
+/// Plain twin: builds the `n x n` weight matrix, then every output (host tests only).
+#[cfg(feature = "std")]
+pub fn attention_plain(queries: &[i16], keys: &[i16], values: &[i16], c: usize, cv: usize, m: Multiplier, shift: i8) -> Vec<i16> {
+    let n = queries.len() / c;
+    let logits: Vec<i64> = (0..n * n).map(|ij| logit(&queries[ij / n * c..][..c], &keys[ij % n * c..][..c])).collect();
+    let mut out = vec![0i16; n * cv];
+    for i in 0..n {
+        let row = &logits[i * n..(i + 1) * n];
+        let max = *row.iter().max().unwrap_or(&0);
+        let e: Vec<i64> = row.iter().map(|l| weight(*l, max, m) as i64).collect();
+        let s: i64 = e.iter().sum();
+        for ch in 0..cv {
+            let a: i64 = (0..n).map(|j| e[j] * values[j * cv + ch] as i64).sum();
+            out[i * cv + ch] = sat_i16(div_round(shift_round(a, shift as i32), s));
+        }
+    }
+    out
+}
+
+#[cfg(all(test, feature = "std"))]
+mod tests {
+    use super::super::testutil::Rng;
+    use super::*;
+
+    #[test]
+    fn streaming_matches_matrix() {
+        let mut r = Rng(3);
+        let (n, c, cv) = (45, 8, 5);
+        let q: Vec<i16> = (0..n * c).map(|_| r.i16() / 64).collect();
+        let k: Vec<i16> = (0..n * c).map(|_| r.i16() / 64).collect();
+        let v: Vec<i16> = (0..n * cv).map(|_| r.i16()).collect();
+        let m = Multiplier { m: 1 << 30, shift: 26 };
+        let want = attention_plain(&q, &k, &v, c, cv, m, -1);
+        let mut acc = vec![0i64; cv];
+        for i in 0..n {
+            let st = query_stats(&q[i * c..][..c], &k, m);
+            let mut out = vec![0i16; cv];
+            aggregate_query(&q[i * c..][..c], &k, &v, cv, st, m, -1, &mut acc, &mut out);
+            assert_eq!(out, want[i * cv..(i + 1) * cv]);
+        }
+        assert!(want.iter().any(|x| *x != 0));
+    }
+
+    #[test]
+    fn rope_rotates() {
+        let mut v = [1000i16, 0, 1000, 0];
+        rope_pixel(&mut v, 0, 0, &[1 << 30, 1 << 30]);
+        assert_eq!(v, [1000, 0, 1000, 0]);
+        rope_pixel(&mut v, 1, 2, &[1 << 30, 1 << 30]); // x: quarter turn, y: half turn
+        assert_eq!(v, [0, 1000, -1000, 0]);
+    }
+}

@@ -1,0 +1,279 @@
+//! Convolution with int8 weights over a multi-part input (the concatenation of several tensors,
+//! each with its own format folded into the weights), int32/int64 accumulation and per-output-
+//! channel requantisation.
+//!
+//! Weight order per output channel: `[part][ky][kx][c]` (a patch gathered from HWC rows). Padding
+//! is `k / 2` zeros on every side.
+//!
+//! Each (output channel, part) has its own weight scale, so parts of very different ranges (a
+//! Q0.15 hidden state beside an i8 context) keep the full int8 precision. The exact partial sum of
+//! part `p` is requantised with `mult[c][p]` to the output format with [`EXTRA_BITS`] more fraction
+//! bits; the parts' results and the bias (same units) are summed, then rounded:
+//! `y = post(rshift_round(bias[c] + sum_p requantize(sum(w * x)_p, mult[c][p]), EXTRA_BITS))`.
+
+use super::{Elem, OutRow, dot_plain};
+use crate::arith::{Multiplier, lut, requantize};
+use crate::model::graph::PostOp;
+
+/// Largest kernel size.
+pub const MAX_K: usize = 7;
+
+/// Little-endian `i64` array stored in bytes (bias in accumulator units).
+#[derive(Clone, Copy, Debug)]
+pub struct BiasRef<'a>(pub &'a [u8]);
+
+impl BiasRef<'_> {
+    /// Bias of channel `c`.
+    #[inline(always)]
+    pub fn get(&self, c: usize) -> i64 {
+        let b = &self.0[8 * c..8 * c + 8];
+        i64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]])
+    }
+}
+
+/// Extra fraction bits of the per-part requantised sums (see the module doc).
+pub const EXTRA_BITS: u32 = 8;
+
+/// Per-(channel, part) multipliers stored as 8 bytes each: `m` (i32 LE), `shift` (u8), 3 zero
+/// bytes; entry `c * parts + p`.
+#[derive(Clone, Copy, Debug)]
+pub struct MultRef<'a>(pub &'a [u8]);
+
+impl MultRef<'_> {
+    /// Multiplier of channel `c`.
+    #[inline(always)]
+    pub fn get(&self, c: usize) -> Multiplier {
+        let b = &self.0[8 * c..8 * c + 8];
+        Multiplier { m: i32::from_le_bytes([b[0], b[1], b[2], b[3]]), shift: b[4].clamp(1, 126) }
+    }
+}
+
+/// Encodes multipliers in the [`MultRef`] layout (host: blob writer and tests).
+#[cfg(feature = "std")]
+pub fn encode_mults(m: &[Multiplier]) -> Vec<u8> {
+    m.iter().flat_map(|m| {
+        let mut b = [0u8; 8];
+        b[..4].copy_from_slice(&m.m.to_le_bytes());
+        b[4] = m.shift;
+        b
+    })
+    .collect()
+}
+
+/// Encodes biases in the [`BiasRef`] layout.
+#[cfg(feature = "std")]
+pub fn encode_bias(b: &[i64]) -> Vec<u8> {
+    b.iter().flat_map(|v| v.to_le_bytes()).collect()
+}
+
+/// A quantised convolution.
+#[derive(Clone, Copy, Debug)]
+pub struct ConvParams<'a> {
+    /// Kernel size.
+    pub k: usize,
+    /// Stride.
+    pub stride: usize,
+    /// Channels of each input part, in weight order.
+    pub parts: &'a [usize],
+    /// Output channels.
+    pub cout: usize,
+    /// `cout x (k * k * sum(parts))` int8 weights.
+    pub weights: &'a [i8],
+    /// Bias per output channel (accumulator units).
+    pub bias: BiasRef<'a>,
+    /// Requantisation per output channel and part (`c * parts + p`).
+    pub mult: MultRef<'a>,
+    /// Activation after requantisation.
+    pub post: PostOp,
+}
+
+impl ConvParams<'_> {
+    /// Patch length `k * k * sum(parts)`.
+    pub fn patch_len(&self) -> usize {
+        self.k * self.k * self.parts.iter().sum::<usize>()
+    }
+    /// Output width for an input of width `w_in`.
+    pub fn out_width(&self, w_in: usize) -> usize {
+        (w_in + 2 * (self.k / 2) - self.k) / self.stride + 1
+    }
+}
+
+/// Contribution of part `part`'s exact partial sum to output channel `c` (output units with
+/// [`EXTRA_BITS`] more fraction bits).
+#[inline(always)]
+pub fn part_sum(p: &ConvParams<'_>, c: usize, part: usize, acc: i64) -> i64 {
+    requantize(acc, p.mult.get(c * p.parts.len() + part))
+}
+
+/// Bias, rounding and activation of output channel `c` from the sum of its parts' contributions.
+#[inline(always)]
+pub fn finish(p: &ConvParams<'_>, c: usize, sum: i64) -> i64 {
+    let v = crate::arith::rshift_round(sum.saturating_add(p.bias.get(c)), EXTRA_BITS);
+    match p.post {
+        PostOp::None => v,
+        PostOp::Relu => v.max(0),
+        PostOp::Sigmoid => lut::sigmoid_q12(crate::arith::sat_i16(v)) as i64,
+        PostOp::Tanh => lut::tanh_q12(crate::arith::sat_i16(v)) as i64,
+    }
+}
+
+/// The `k` input rows one output row reads from one part: `rows[ky]` is input row
+/// `y * stride - k/2 + ky`, `None` where that row lies in the zero padding. Each row holds
+/// `w_in * channels` values (HWC).
+#[derive(Clone, Copy, Debug)]
+pub struct PartRows<'a, T> {
+    /// Row slices, `k` of them used.
+    pub rows: [Option<&'a [T]>; MAX_K],
+}
+
+impl<'a, T> PartRows<'a, T> {
+    /// Rows `y*stride - k/2 + ky` of a whole HWC tensor `t` (`h` rows of `row_len` values).
+    pub fn of_tensor(t: &'a [T], h: usize, row_len: usize, y: usize, k: usize, stride: usize) -> Self {
+        let mut rows = [None; MAX_K];
+        for (ky, r) in rows.iter_mut().enumerate().take(k) {
+            let iy = (y * stride + ky) as isize - (k / 2) as isize;
+            if iy >= 0 && (iy as usize) < h {
+                *r = Some(&t[iy as usize * row_len..(iy as usize + 1) * row_len]);
+            }
+        }
+        Self { rows }
+    }
+}
+
+/// Computes one output row (`out_width * cout` values) from the parts' input rows. `patch` is
+/// scratch of at least [`ConvParams::patch_len`] elements.
+pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, out: &mut OutRow<'_>, patch: &mut [T]) {
+    let k = p.k;
+    let pad = (k / 2) as isize;
+    let kl = p.patch_len();
+    let patch = &mut patch[..kl];
+    let w_out = p.out_width(w_in);
+    for ox in 0..w_out {
+        // Gather the patch: [part][ky][kx][c], zeros outside the input.
+        let mut o = 0;
+        for (part, &ch) in inputs.iter().zip(p.parts) {
+            for ky in 0..k {
+                let row = part.rows[ky];
+                for kx in 0..k {
+                    let ix = (ox * p.stride + kx) as isize - pad;
+                    let dst = &mut patch[o..o + ch];
+                    match row {
+                        Some(r) if ix >= 0 && (ix as usize) < w_in => {
+                            dst.copy_from_slice(&r[ix as usize * ch..(ix as usize + 1) * ch])
+                        }
+                        _ => dst.fill(T::default()),
+                    }
+                    o += ch;
+                }
+            }
+        }
+        for c in 0..p.cout {
+            let w = &p.weights[c * kl..(c + 1) * kl];
+            let mut sum = 0i64;
+            let mut o = 0;
+            for (part, &ch) in p.parts.iter().enumerate() {
+                let n = ch * k * k;
+                sum = sum.saturating_add(part_sum(p, c, part, T::dot(&w[o..o + n], &patch[o..o + n])));
+                o += n;
+            }
+            out.set(ox * p.cout + c, finish(p, c, sum));
+        }
+    }
+}
+
+/// Plain twin of [`conv_row`] over whole tensors: `inputs[i]` is part `i` as an HWC tensor of
+/// `h_in x w_in x parts[i]`; writes the whole `h_out x w_out x cout` output.
+pub fn conv_plain<T: Elem>(p: &ConvParams<'_>, inputs: &[&[T]], h_in: usize, w_in: usize, out: &mut OutRow<'_>) {
+    let k = p.k as isize;
+    let pad = k / 2;
+    let kl = p.patch_len();
+    let h_out = (h_in + 2 * (p.k / 2) - p.k) / p.stride + 1;
+    let w_out = p.out_width(w_in);
+    for oy in 0..h_out {
+        for ox in 0..w_out {
+            for c in 0..p.cout {
+                let wts = &p.weights[c * kl..(c + 1) * kl];
+                let mut sum = 0i64;
+                let mut o = 0;
+                for (part, (t, &ch)) in inputs.iter().zip(p.parts).enumerate() {
+                    let mut acc = 0i64;
+                    for ky in 0..k {
+                        for kx in 0..k {
+                            let iy = (oy * p.stride) as isize + ky - pad;
+                            let ix = (ox * p.stride) as isize + kx - pad;
+                            if iy >= 0 && ix >= 0 && (iy as usize) < h_in && (ix as usize) < w_in {
+                                let base = (iy as usize * w_in + ix as usize) * ch;
+                                acc += dot_plain(&wts[o..o + ch], &t[base..base + ch]);
+                            }
+                            o += ch;
+                        }
+                    }
+                    sum = sum.saturating_add(part_sum(p, c, part, acc));
+                }
+                out.set((oy * w_out + ox) * p.cout + c, finish(p, c, sum));
+            }
+        }
+    }
+}
+
+#[cfg(all(test, feature = "std"))]
+mod tests {
+    use super::super::testutil::Rng;
+    use super::*;
+
+    fn random_layer(r: &mut Rng, k: usize, stride: usize, parts: &[usize], cout: usize, post: PostOp) -> (Vec<i8>, Vec<u8>, Vec<u8>) {
+        let kl = k * k * parts.iter().sum::<usize>();
+        let w: Vec<i8> = (0..cout * kl).map(|_| r.i8()).collect();
+        let b: Vec<i64> = (0..cout).map(|_| (r.next() as i64) >> 50).collect();
+        let m: Vec<Multiplier> = (0..cout * parts.len())
+            .map(|_| Multiplier { m: (1 << 30) + (r.below(1 << 30) as i32), shift: 4 + r.below(16) as u8 })
+            .collect();
+        let _ = (stride, post);
+        (w, encode_bias(&b), encode_mults(&m))
+    }
+
+    fn check<T: Elem>(make: impl Fn(&mut Rng) -> T, k: usize, stride: usize, parts: &[usize], cout: usize, post: PostOp, out16: bool) {
+        let mut r = Rng(0xC0FFEE + k as u64 * 31 + stride as u64);
+        let (h, w) = (7, 9);
+        let (wts, bias, mult) = random_layer(&mut r, k, stride, parts, cout, post);
+        let p = ConvParams { k, stride, parts, cout, weights: &wts, bias: BiasRef(&bias), mult: MultRef(&mult), post };
+        let tensors: Vec<Vec<T>> = parts.iter().map(|&c| (0..h * w * c).map(|_| make(&mut r)).collect()).collect();
+        let refs: Vec<&[T]> = tensors.iter().map(|t| t.as_slice()).collect();
+        let (ho, wo) = ((h + 2 * (k / 2) - k) / stride + 1, p.out_width(w));
+        let mut a16 = vec![0i16; ho * wo * cout];
+        let mut a8 = vec![0i8; ho * wo * cout];
+        let mut b16 = a16.clone();
+        let mut b8 = a8.clone();
+        {
+            let mut out = if out16 { OutRow::I16(&mut a16) } else { OutRow::I8(&mut a8) };
+            conv_plain(&p, &refs, h, w, &mut out);
+        }
+        let mut patch = vec![T::default(); p.patch_len()];
+        for oy in 0..ho {
+            let rows: Vec<PartRows<T>> =
+                tensors.iter().zip(parts).map(|(t, &c)| PartRows::of_tensor(t, h, w * c, oy, k, stride)).collect();
+            let mut out = if out16 {
+                OutRow::I16(&mut b16[oy * wo * cout..(oy + 1) * wo * cout])
+            } else {
+                OutRow::I8(&mut b8[oy * wo * cout..(oy + 1) * wo * cout])
+            };
+            conv_row(&p, &rows, w, &mut out, &mut patch);
+        }
+        assert_eq!(a16, b16);
+        assert_eq!(a8, b8);
+        assert!(a16.iter().any(|v| *v != 0) || a8.iter().any(|v| *v != 0), "all zero: k {k} s {stride} {parts:?} {post:?} {out16}");
+    }
+
+    #[test]
+    fn row_kernel_matches_plain_twin() {
+        for post in [PostOp::None, PostOp::Relu, PostOp::Sigmoid, PostOp::Tanh] {
+            check(|r| r.i8(), 3, 1, &[5, 3], 4, post, false);
+            check(|r| r.i8(), 3, 2, &[6], 5, post, true);
+            check(|r| r.i16(), 3, 1, &[4, 1, 7], 3, post, true);
+            check(|r| r.i16(), 1, 1, &[9], 6, post, true);
+            check(|r| r.i8(), 7, 2, &[3], 4, post, false);
+            check(|r| r.i16(), 7, 1, &[1], 4, post, true);
+            check(|r| r.i8(), 1, 2, &[4], 3, post, false);
+        }
+    }
+}

@@ -1,0 +1,243 @@
+//! Correlation lookup and UFI proposals from int8 feature rows; no correlation volume.
+//!
+//! `C(x1, x2) = <f1(x1), f2(x2)>` is an exact i32 dot product (features i8); columns outside the
+//! row are 0. A lookup for one left pixel needs only the columns its samples touch: the tiled
+//! kernel computes them once into a window of at most [`window_len`] columns and reads box sums
+//! from its prefix sums, so its memory depends on neither the image width nor the disparity range.
+//!
+//! Sample numerators (exact integers), with `centre = (x << 8) + flow` (Q8, `flow` = -disparity):
+//! * post-pooling, level `l`, offset `j`: first sub-sample `p0 = centre + (j << (8+l)) - ((2^l - 1) << 7)`,
+//!   `m = p0 >> 8`, `a = p0 & 255`: `(256 - a) * S(m, m + 2^l) + a * S(m + 1, m + 1 + 2^l)` with
+//!   `S(u, v) = sum_{u <= t < v} C(t)`; units: C / (256 * 2^l).
+//! * RAFT pyramid, level `l`: `q = centre + (j << (8+l))`, `i = q >> (8+l)`, `a = q & (2^(8+l) - 1)`:
+//!   `(2^(8+l) - a) * B(i) + a * B(i + 1)` with `B(k)` the sum of block `k` of `2^l` columns
+//!   (0 unless `k < floor(w / 2^l)`); units: C / 2^(8+2l).
+//!
+//! Each numerator is requantised with the level's multiplier (blob) into the `Corr` format.
+
+use crate::arith::{Multiplier, requantize, sat_i16};
+
+/// Parameters of a lookup.
+#[derive(Clone, Copy, Debug)]
+pub struct LookupParams<'a> {
+    /// Levels.
+    pub levels: usize,
+    /// Radius (2r+1 samples per level).
+    pub radius: usize,
+    /// Post-pooling (MUIR) or RAFT pyramid.
+    pub post_pool: bool,
+    /// Multiplier per level: numerator units to the output format.
+    pub mults: &'a [Multiplier],
+}
+
+/// Columns one lookup can touch (window length of the tiled kernel).
+pub const fn window_len(levels: usize, radius: usize) -> usize {
+    let s = 1usize << (levels - 1);
+    // post-pooling spans 2 (r s + (s-1)/2) + 3 columns, the pyramid s (2r + 3) + 1.
+    s * (2 * radius + 3) + 4
+}
+
+#[inline(always)]
+fn dot_i8(a: &[i8], b: &[i8]) -> i32 {
+    let mut s = 0i32;
+    for (x, y) in a.iter().zip(b) {
+        s += *x as i32 * *y as i32;
+    }
+    s
+}
+
+/// Column range `[lo, hi)` (possibly outside the row) the samples of a pixel touch.
+fn span(p: &LookupParams<'_>, centre: i64) -> (i64, i64) {
+    let l = p.levels as u32 - 1;
+    let s = 1i64 << l;
+    let r = p.radius as i64;
+    if p.post_pool {
+        let reach = (r << (8 + l)) + ((s - 1) << 7);
+        ((centre - reach) >> 8, ((centre + reach) >> 8) + 2)
+    } else {
+        let q = centre >> (8 + l);
+        ((q - r) * s, (q + r + 2) * s)
+    }
+}
+
+/// Scratch of the tiled lookup.
+pub struct LookupScratch<'a> {
+    /// Correlations of the window's columns.
+    pub window: &'a mut [i32],
+    /// Prefix sums of `window` (one longer).
+    pub prefix: &'a mut [i64],
+}
+
+/// Tiled lookup for left pixel `x` of a row: `f1` is the pixel's feature vector, `f2` the right
+/// feature row (`w * c`, HWC), `flow` the pixel's Q8 flow. Writes `levels * (2r+1)` values.
+#[allow(clippy::too_many_arguments)]
+pub fn lookup_pixel(p: &LookupParams<'_>, f1: &[i8], f2: &[i8], w: usize, x: usize, flow: i16, s: &mut LookupScratch<'_>, out: &mut [i16]) {
+    let c = f1.len();
+    let centre = ((x as i64) << 8) + flow as i64;
+    let (lo, hi) = span(p, centre);
+    let n = (hi - lo) as usize;
+    let win = &mut s.window[..n];
+    for (i, v) in win.iter_mut().enumerate() {
+        let col = lo + i as i64;
+        *v = if col >= 0 && (col as usize) < w { dot_i8(f1, &f2[col as usize * c..(col as usize + 1) * c]) } else { 0 };
+    }
+    let pre = &mut s.prefix[..n + 1];
+    pre[0] = 0;
+    for i in 0..n {
+        pre[i + 1] = pre[i] + win[i] as i64;
+    }
+    // S(u, v) over columns, clipped to the window (columns outside it hold no samples' data and
+    // those outside the row are 0 by construction).
+    let box_sum = |u: i64, v: i64| {
+        let a = (u - lo).clamp(0, n as i64) as usize;
+        let b = (v - lo).clamp(0, n as i64) as usize;
+        pre[b] - pre[a]
+    };
+    let k = 2 * p.radius + 1;
+    let r = p.radius as i64;
+    for lvl in 0..p.levels {
+        let s_l = 1i64 << lvl;
+        let mult = p.mults[lvl];
+        for (jj, j) in (-r..=r).enumerate() {
+            let num = if p.post_pool {
+                let p0 = centre + (j << (8 + lvl)) - ((s_l - 1) << 7);
+                let (m, a) = (p0 >> 8, p0 & 255);
+                (256 - a) * box_sum(m, m + s_l) + a * box_sum(m + 1, m + 1 + s_l)
+            } else {
+                let q = centre + (j << (8 + lvl));
+                let (i, a) = (q >> (8 + lvl), q & ((1i64 << (8 + lvl)) - 1));
+                let blocks = (w >> lvl) as i64;
+                let block = |b: i64| if b >= 0 && b < blocks { box_sum(b * s_l, (b + 1) * s_l) } else { 0 };
+                ((1i64 << (8 + lvl)) - a) * block(i) + a * block(i + 1)
+            };
+            out[lvl * k + jj] = sat_i16(requantize(num, mult));
+        }
+    }
+}
+
+/// Plain twin of [`lookup_pixel`]: every sub-sample interpolated on its own, every correlation
+/// recomputed from the features.
+pub fn lookup_pixel_plain(p: &LookupParams<'_>, f1: &[i8], f2: &[i8], w: usize, x: usize, flow: i16, out: &mut [i16]) {
+    let c = f1.len();
+    let corr = |col: i64| -> i64 {
+        if col >= 0 && (col as usize) < w { dot_i8(f1, &f2[col as usize * c..(col as usize + 1) * c]) as i64 } else { 0 }
+    };
+    let centre = ((x as i64) << 8) + flow as i64;
+    let k = 2 * p.radius + 1;
+    let r = p.radius as i64;
+    for lvl in 0..p.levels {
+        let s_l = 1i64 << lvl;
+        for (jj, j) in (-r..=r).enumerate() {
+            let mut num = 0i64;
+            if p.post_pool {
+                for i in 0..s_l {
+                    let pos = centre + (j << (8 + lvl)) + ((2 * i - s_l + 1) << 7);
+                    let (m, a) = (pos >> 8, pos & 255);
+                    num += (256 - a) * corr(m) + a * corr(m + 1);
+                }
+            } else {
+                let q = centre + (j << (8 + lvl));
+                let (i, a) = (q >> (8 + lvl), q & ((1i64 << (8 + lvl)) - 1));
+                let blocks = (w >> lvl) as i64;
+                let block = |b: i64| -> i64 {
+                    if b < 0 || b >= blocks {
+                        return 0;
+                    }
+                    (b * s_l..(b + 1) * s_l).map(corr).sum()
+                };
+                num = ((1i64 << (8 + lvl)) - a) * block(i) + a * block(i + 1);
+            }
+            out[lvl * k + jj] = sat_i16(requantize(num, p.mults[lvl]));
+        }
+    }
+}
+
+/// UFI proposals for left pixel `x`: integer disparities `(d1, d2)` of the highest correlations
+/// over `d in [0, x]`, `d2` at least `separation` from `d1` (`d1` again if none is); ties go to the
+/// smaller d. `row` is scratch of at least `x + 1` values.
+pub fn peaks_pixel(f1: &[i8], f2: &[i8], x: usize, separation: usize, row: &mut [i32]) -> (u16, u16) {
+    let c = f1.len();
+    for d in 0..=x {
+        row[d] = dot_i8(f1, &f2[(x - d) * c..(x - d + 1) * c]);
+    }
+    let best = |skip: Option<usize>| {
+        let mut arg: Option<usize> = None;
+        for d in 0..=x {
+            if skip.is_some_and(|d1| d.abs_diff(d1) < separation) {
+                continue;
+            }
+            if arg.is_none_or(|a| row[d] > row[a]) {
+                arg = Some(d);
+            }
+        }
+        arg
+    };
+    let d1 = best(None).unwrap_or(0);
+    let d2 = best(Some(d1)).unwrap_or(d1);
+    (d1 as u16, d2 as u16)
+}
+
+/// Plain twin of [`peaks_pixel`] (no row buffer: correlations recomputed per comparison).
+pub fn peaks_pixel_plain(f1: &[i8], f2: &[i8], x: usize, separation: usize) -> (u16, u16) {
+    let c = f1.len();
+    let corr = |d: usize| dot_i8(f1, &f2[(x - d) * c..(x - d + 1) * c]);
+    let mut d1 = 0;
+    for d in 1..=x {
+        if corr(d) > corr(d1) {
+            d1 = d;
+        }
+    }
+    let mut d2: Option<usize> = None;
+    for d in 0..=x {
+        if d.abs_diff(d1) >= separation && d2.is_none_or(|b| corr(d) > corr(b)) {
+            d2 = Some(d);
+        }
+    }
+    (d1 as u16, d2.unwrap_or(d1) as u16)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::testutil::Rng;
+    use super::*;
+
+    #[test]
+    fn tiled_lookup_matches_plain_twin() {
+        let mut r = Rng(99);
+        for &(levels, radius, post_pool) in &[(4, 4, true), (4, 4, false), (2, 3, true), (3, 2, false)] {
+            let (w, c) = (37, 16);
+            let f1: Vec<i8> = (0..w * c).map(|_| r.i8()).collect();
+            let f2: Vec<i8> = (0..w * c).map(|_| r.i8()).collect();
+            let mults: Vec<Multiplier> = (0..levels).map(|l| Multiplier { m: 1 << 30, shift: 14 + l as u8 }).collect();
+            let p = LookupParams { levels, radius, post_pool, mults: &mults };
+            let wl = window_len(levels, radius);
+            let (mut win, mut pre) = (vec![0i32; wl], vec![0i64; wl + 1]);
+            let k = levels * (2 * radius + 1);
+            let (mut a, mut b) = (vec![0i16; k], vec![0i16; k]);
+            for x in 0..w {
+                for flow in [0i16, -1, -255, -256, -300, -(x as i16) * 256 - 77, 513, -9000, 9000] {
+                    let mut s = LookupScratch { window: &mut win, prefix: &mut pre };
+                    lookup_pixel(&p, &f1[x * c..(x + 1) * c], &f2, w, x, flow, &mut s, &mut a);
+                    lookup_pixel_plain(&p, &f1[x * c..(x + 1) * c], &f2, w, x, flow, &mut b);
+                    assert_eq!(a, b, "x {x} flow {flow} levels {levels} post {post_pool}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn peaks_match_plain_twin() {
+        let mut r = Rng(5);
+        let (w, c) = (40, 8);
+        let f1: Vec<i8> = (0..w * c).map(|_| r.i8() / 16).collect();
+        let f2: Vec<i8> = (0..w * c).map(|_| r.i8() / 16).collect();
+        let mut row = vec![0i32; w];
+        for x in 0..w {
+            for sep in [1, 2, 5] {
+                let a = peaks_pixel(&f1[x * c..(x + 1) * c], &f2, x, sep, &mut row);
+                let b = peaks_pixel_plain(&f1[x * c..(x + 1) * c], &f2, x, sep);
+                assert_eq!(a, b, "x {x}");
+            }
+        }
+    }
+}

@@ -1,0 +1,91 @@
+//! Element-wise integer operations: residual add, GRU blend, Q0.15 products, format changes.
+
+use crate::arith::{rescale, rshift_round, sat_i16, sat_i8};
+
+/// `out = relu(y + rescale(skip))`: residual-block output. `y` is the block's second conv,
+/// requantised to the output format (`out_frac`) but kept in i16 so the sum saturates only once;
+/// `skip` is the block input in `skip_frac` (i8) or the downsample conv output in `out_frac`.
+pub fn residual_relu_i8(y: &[i16], skip: Skip<'_>, out_frac: i8, out: &mut [i8]) {
+    for (i, o) in out.iter_mut().enumerate() {
+        let s = match skip {
+            Skip::Input { x, frac } => rescale(x[i] as i64, frac, out_frac),
+            Skip::Projected(p) => p[i] as i64,
+        };
+        *o = sat_i8((y[i] as i64 + s).max(0));
+    }
+}
+
+/// Skip connection of a residual block.
+#[derive(Clone, Copy)]
+pub enum Skip<'a> {
+    /// The block input itself, with its fraction bits.
+    Input {
+        /// Values.
+        x: &'a [i8],
+        /// Fraction bits of `x`.
+        frac: i8,
+    },
+    /// A 1x1 downsample conv output already in the block's output format.
+    Projected(&'a [i16]),
+}
+
+/// GRU / UFI blend in place: `h = h + z * (q - h)` (= `(1 - z) h + z q`), all Q0.15.
+pub fn blend_q15(h: &mut [i16], z: &[i16], q: &[i16]) {
+    for ((h, z), q) in h.iter_mut().zip(z).zip(q) {
+        let d = *q as i64 - *h as i64;
+        *h = sat_i16(*h as i64 + rshift_round(*z as i64 * d, 15));
+    }
+}
+
+/// `out = x * m` with `m` in Q0.15 (format of `x` kept).
+pub fn mul_q15(x: &[i16], m: &[i16], out: &mut [i16]) {
+    for ((o, x), m) in out.iter_mut().zip(x).zip(m) {
+        *o = sat_i16(rshift_round(*x as i64 * *m as i64, 15));
+    }
+}
+
+/// `out[p * c + i] = x[p * c + i] * m[p]`: every channel of pixel `p` times its Q0.15 scalar.
+pub fn mul_plane_q15(x: &[i16], m: &[i16], c: usize, out: &mut [i16]) {
+    for ((o, x), m) in out.chunks_mut(c).zip(x.chunks(c)).zip(m) {
+        for (o, x) in o.iter_mut().zip(x) {
+            *o = sat_i16(rshift_round(*x as i64 * *m as i64, 15));
+        }
+    }
+}
+
+/// Converts i16 values between fraction bits, saturating.
+pub fn rescale_i16(x: &[i16], from: i8, to: i8, out: &mut [i16]) {
+    for (o, x) in out.iter_mut().zip(x) {
+        *o = sat_i16(crate::arith::shift_round(*x as i64, to as i32 - from as i32));
+    }
+}
+
+/// Matchability mask (Q0.15) from the MUD's first output (Q4.11): `sigmoid`.
+#[inline]
+pub fn mud_mask(a: i16) -> i16 {
+    crate::arith::lut::sigmoid_q12(sat_i16(crate::arith::shift_round(a as i64, 1)))
+}
+
+/// Q7.8 disparity state ("flow" = -disparity) of an integer 1/8-grid disparity proposal.
+#[inline]
+pub fn proposal_flow(d: u16) -> i16 {
+    sat_i16(-((d as i64) << crate::arith::FLOW_FRAC))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn blend_and_products() {
+        let mut h = [0i16, 16384, -32768, 32767];
+        blend_q15(&mut h, &[32767, 16384, 0, 32767], &[32767, -16384, 5, -32768]);
+        assert_eq!(h, [32766, 0, -32768, -32766]);
+        let mut o = [0i16; 2];
+        mul_q15(&[1000, -1000], &[16384, 16384], &mut o);
+        assert_eq!(o, [500, -500]);
+        let mut o8 = [0i8; 3];
+        residual_relu_i8(&[10, -50, 120], Skip::Input { x: &[8, 8, 40], frac: 2 }, 1, &mut o8);
+        assert_eq!(o8, [14, 0, 127]);
+    }
+}

@@ -1,0 +1,162 @@
+//! Fixed-point kernels. Every function computes with the rules of [`crate::arith`] only.
+//!
+//! Tensors are HWC: element `(y, x, c)` of a `h x w x c` tensor at `(y * w + x) * c + c`, so one
+//! image row (`w * c` values) is contiguous: the unit the streaming engine keeps in line buffers.
+//!
+//! Each family has a row (or pixel) kernel used by the streaming engine and a plain twin over whole
+//! tensors used by the reference engine (`crate::reference`); their tests check identical bits.
+
+pub mod attention;
+pub mod conv;
+pub mod corr;
+pub mod eltwise;
+pub mod norm;
+pub mod resample;
+pub mod upsample;
+
+/// Activation storage type: `i8` or `i16`.
+pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + 'static {
+    /// Storage width in bits.
+    const BITS: u8;
+    /// Widening conversion.
+    fn to_i32(self) -> i32;
+    /// Saturating narrowing.
+    fn from_i64_sat(v: i64) -> Self;
+    /// Exact dot product with i8 weights (`w.len() == x.len()`), optimised path.
+    fn dot(w: &[i8], x: &[Self]) -> i64;
+    /// The slice as a conv output row.
+    fn as_out(d: &mut [Self]) -> OutRow<'_>;
+}
+
+impl Elem for i8 {
+    const BITS: u8 = 8;
+    #[inline(always)]
+    fn to_i32(self) -> i32 {
+        self as i32
+    }
+    #[inline(always)]
+    fn from_i64_sat(v: i64) -> Self {
+        crate::arith::sat_i8(v)
+    }
+    #[inline]
+    fn dot(w: &[i8], x: &[i8]) -> i64 {
+        // |w*x| <= 2^14, so an i32 sum is exact for up to 2^17 terms (every layer has fewer).
+        let mut acc = 0i32;
+        for (a, b) in w.iter().zip(x) {
+            acc += *a as i32 * *b as i32;
+        }
+        acc as i64
+    }
+    fn as_out(d: &mut [i8]) -> OutRow<'_> {
+        OutRow::I8(d)
+    }
+}
+
+impl Elem for i16 {
+    const BITS: u8 = 16;
+    #[inline(always)]
+    fn to_i32(self) -> i32 {
+        self as i32
+    }
+    #[inline(always)]
+    fn from_i64_sat(v: i64) -> Self {
+        crate::arith::sat_i16(v)
+    }
+    #[inline]
+    fn dot(w: &[i8], x: &[i16]) -> i64 {
+        // |w*x| <= 2^22: chunks of 256 terms sum exactly in i32; chunk sums add in i64. Integer
+        // addition is exact, so the result equals the plain i64 sum.
+        let mut acc = 0i64;
+        for (wc, xc) in w.chunks(256).zip(x.chunks(256)) {
+            let mut s = 0i32;
+            for (a, b) in wc.iter().zip(xc) {
+                s += *a as i32 * *b as i32;
+            }
+            acc += s as i64;
+        }
+        acc
+    }
+    fn as_out(d: &mut [i16]) -> OutRow<'_> {
+        OutRow::I16(d)
+    }
+}
+
+/// Plain exact dot product (reference twin of [`Elem::dot`]).
+pub fn dot_plain<T: Elem>(w: &[i8], x: &[T]) -> i64 {
+    w.iter().zip(x).map(|(a, b)| *a as i64 * b.to_i32() as i64).sum()
+}
+
+/// A mutable output row of either storage type.
+pub enum OutRow<'a> {
+    /// i8 storage.
+    I8(&'a mut [i8]),
+    /// i16 storage.
+    I16(&'a mut [i16]),
+}
+
+impl OutRow<'_> {
+    /// Stores `v` (already saturated to the row's range by the caller's format) at `i`.
+    #[inline(always)]
+    pub fn set(&mut self, i: usize, v: i64) {
+        match self {
+            OutRow::I8(r) => r[i] = crate::arith::sat_i8(v),
+            OutRow::I16(r) => r[i] = crate::arith::sat_i16(v),
+        }
+    }
+    /// Length in elements.
+    pub fn len(&self) -> usize {
+        match self {
+            OutRow::I8(r) => r.len(),
+            OutRow::I16(r) => r.len(),
+        }
+    }
+    /// True when empty.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+#[cfg(test)]
+pub(crate) mod testutil {
+    /// Small deterministic generator for kernel tests (xorshift64*).
+    pub struct Rng(pub u64);
+    impl Rng {
+        pub fn next(&mut self) -> u64 {
+            self.0 ^= self.0 >> 12;
+            self.0 ^= self.0 << 25;
+            self.0 ^= self.0 >> 27;
+            self.0.wrapping_mul(0x2545F4914F6CDD1D)
+        }
+        pub fn i8(&mut self) -> i8 {
+            (self.next() >> 56) as i8
+        }
+        pub fn i16(&mut self) -> i16 {
+            (self.next() >> 48) as i16
+        }
+        pub fn below(&mut self, n: u64) -> u64 {
+            self.next() % n
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::testutil::Rng;
+    use super::*;
+
+    #[test]
+    fn dot_paths_agree() {
+        let mut r = Rng(7);
+        for n in [0, 1, 9, 255, 256, 257, 1000, 5760] {
+            let w: Vec<i8> = (0..n).map(|_| r.i8()).collect();
+            let x8: Vec<i8> = (0..n).map(|_| r.i8()).collect();
+            let x16: Vec<i16> = (0..n).map(|_| r.i16()).collect();
+            assert_eq!(i8::dot(&w, &x8), dot_plain(&w, &x8));
+            assert_eq!(i16::dot(&w, &x16), dot_plain(&w, &x16));
+            // extremes
+            let wm = vec![-128i8; n];
+            let xm = vec![i16::MIN; n];
+            assert_eq!(i16::dot(&wm, &xm), dot_plain(&wm, &xm));
+        }
+    }
+}
