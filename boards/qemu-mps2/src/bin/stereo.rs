@@ -1,0 +1,224 @@
+//! One stereo frame of the muir fixed-point engine on a Cortex-M7 (QEMU `mps2-an500`).
+//!
+//! The quantised `muir-slim` model is read in place from flash, the working memory is one
+//! `static` arena sized at compile time by the engine's memory plan (no heap), and the frame is
+//! computed between the `bench_start` / `bench_end` markers that the QEMU instruction-count
+//! plugin watches, with the board's user LED 0 lit while it runs (`run_with_busy_pin`).
+//!
+//! Output over semihosting: a machine-readable `MUIR-RESULT ...` line (compared with
+//! `expected.txt` by `run-tests.sh`, and with the host engine by the host test
+//! `host-tests/firmware.rs`), then a human-readable line; exit status 0, or 1 after a
+//! `MUIR-ERROR ...` line when the engine refuses the model or the pair.
+
+#![no_std]
+#![no_main]
+
+use core::cell::UnsafeCell;
+use core::fmt;
+use core::ptr::{read_volatile, write_volatile};
+
+use cortex_m_rt::entry;
+use embedded_hal::digital::{ErrorKind, ErrorType, OutputPin};
+use muir::Config;
+use muir::engine::hal::run_with_busy_pin;
+use muir::engine::{Arena, Engine, Output, Plan, reject, u_threshold};
+use muir::format::{QuantModel, crc32};
+use muir::input::{ImageView, PixelFormat};
+use semihosting::{eprintln, println, process};
+
+#[cfg(not(feature = "frame-160x120"))]
+mod frame {
+    pub const W: usize = 64;
+    pub const H: usize = 48;
+    pub static LEFT: &[u8] = include_bytes!("../../assets/left_64x48.gray");
+    pub static RIGHT: &[u8] = include_bytes!("../../assets/right_64x48.gray");
+}
+#[cfg(feature = "frame-160x120")]
+mod frame {
+    pub const W: usize = 160;
+    pub const H: usize = 120;
+    pub static LEFT: &[u8] = include_bytes!("../../assets/left_160x120.gray");
+    pub static RIGHT: &[u8] = include_bytes!("../../assets/right_160x120.gray");
+}
+use frame::{H, LEFT, RIGHT, W};
+
+/// The memory plan of this image size, evaluated at compile time.
+const PLAN: Plan = Plan::new(&Config::MUIR_SLIM, W, H);
+
+/// A `static` that `main` borrows mutably, once (zero-initialised ones land in `.bss`: no flash).
+struct Static<T>(UnsafeCell<T>);
+
+// SAFETY: single core, no interrupt handler touches these; `take` hands out one borrow.
+unsafe impl<T> Sync for Static<T> {}
+
+impl<T> Static<T> {
+    const fn new(value: T) -> Self {
+        Self(UnsafeCell::new(value))
+    }
+    /// # Safety
+    /// At most once per static, and nothing else may access it afterwards.
+    #[allow(clippy::mut_from_ref)]
+    unsafe fn take(&'static self) -> &'static mut T {
+        unsafe { &mut *self.0.get() }
+    }
+}
+
+/// All of the engine's working memory.
+static ARENA: Static<Arena<{ PLAN.ram_bytes }>> = Static::new(Arena::new());
+/// Outputs: disparity (Q10.5 px) and uncertainty (Q4.11), then a copy for the rejection count.
+static DISPARITY: Static<[i16; W * H]> = Static::new([0; W * H]);
+static UNCERTAINTY: Static<[i16; W * H]> = Static::new([0; W * H]);
+static KEPT: Static<[i16; W * H]> = Static::new([0; W * H]);
+
+/// The `.muirq` blob in flash, 8-byte aligned like the sections inside it.
+#[repr(C, align(8))]
+struct Aligned<B: ?Sized>(B);
+static MODEL: &Aligned<[u8]> =
+    &Aligned(*include_bytes!(concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/muir-slim.muirq")));
+
+/// Start of the measured region (the QEMU plugin counts instructions from here to `bench_end`).
+/// The two markers have different bodies so that the compiler cannot fold them into one address.
+#[unsafe(no_mangle)]
+#[inline(never)]
+pub extern "C" fn bench_start() {
+    unsafe { write_volatile(BENCH_PHASE.0.get(), 1) };
+}
+
+/// End of the measured region.
+#[unsafe(no_mangle)]
+#[inline(never)]
+pub extern "C" fn bench_end() {
+    unsafe { write_volatile(BENCH_PHASE.0.get(), 2) };
+}
+
+/// 1 inside a measured region, 2 after it (visible to a debugger).
+static BENCH_PHASE: Static<u32> = Static::new(0);
+
+/// MPS2 FPGA IO block: `FPGAIO->LED0` at offset 0 drives the user LEDs (bit n = USERLEDn). QEMU maps
+/// `mps2-fpgaio` at 0x4002_8000 on mps2-an385/an386/an500/an511 (`info mtree`) with two LEDs.
+const FPGAIO_LED0: *mut u32 = 0x4002_8000 as *mut u32;
+
+/// A user LED of the MPS2 FPGA IO block as an `embedded-hal` output pin. Each write is read back:
+/// a register that does not hold the value (another board, no FPGA IO block) is a pin error.
+struct FpgaLed {
+    bit: u32,
+    /// Level changes driven (a logic analyser would see as many edges).
+    edges: u32,
+}
+
+#[derive(Debug)]
+struct LedStuck;
+
+impl embedded_hal::digital::Error for LedStuck {
+    fn kind(&self) -> ErrorKind {
+        ErrorKind::Other
+    }
+}
+
+impl ErrorType for FpgaLed {
+    type Error = LedStuck;
+}
+
+impl FpgaLed {
+    fn set(&mut self, on: bool) -> Result<(), LedStuck> {
+        let mask = 1 << self.bit;
+        // SAFETY: a device register of the MPS2 FPGA IO block; single core, no interrupts use it.
+        let old = unsafe { read_volatile(FPGAIO_LED0) };
+        let new = if on { old | mask } else { old & !mask };
+        unsafe { write_volatile(FPGAIO_LED0, new) };
+        if (unsafe { read_volatile(FPGAIO_LED0) } & mask != 0) != on {
+            return Err(LedStuck);
+        }
+        self.edges += u32::from((old & mask != 0) != on);
+        Ok(())
+    }
+}
+
+impl OutputPin for FpgaLed {
+    fn set_high(&mut self) -> Result<(), LedStuck> {
+        self.set(true)
+    }
+    fn set_low(&mut self) -> Result<(), LedStuck> {
+        self.set(false)
+    }
+}
+
+/// Prints `MUIR-ERROR <what>: <error>` and exits with status 1.
+fn fail(what: &str, e: impl fmt::Display) -> ! {
+    eprintln!("MUIR-ERROR {what}: {e}");
+    process::exit(1)
+}
+
+/// A fixed-point value with `FRAC` fraction bits, printed with `DIGITS` decimals (truncated).
+struct Fix<const FRAC: u8, const DIGITS: u32>(i64);
+
+impl<const FRAC: u8, const DIGITS: u32> fmt::Display for Fix<FRAC, DIGITS> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let a = self.0.unsigned_abs();
+        let scale = 10u64.pow(DIGITS);
+        let frac = ((a & ((1 << FRAC) - 1)) * scale) >> FRAC;
+        let sign = if self.0 < 0 { "-" } else { "" };
+        write!(f, "{sign}{}.{frac:0w$}", a >> FRAC, w = DIGITS as usize)
+    }
+}
+
+/// A disparity (Q10.5 px) for printing, with two decimals.
+fn px(v: i64) -> Fix<{ muir::arith::DISP_FRAC }, 2> {
+    Fix(v)
+}
+
+/// CRC-32 of `v` as little-endian i16 bytes (the in-memory layout on this little-endian core).
+fn crc_i16(v: &[i16]) -> u32 {
+    crc32(bytemuck::cast_slice(v))
+}
+
+#[entry]
+fn main() -> ! {
+    // SAFETY: `main` runs once and is the only user of these statics.
+    let (arena, disparity, uncertainty, kept) = unsafe { (ARENA.take(), DISPARITY.take(), UNCERTAINTY.take(), KEPT.take()) };
+
+    let model = QuantModel::parse(&MODEL.0).unwrap_or_else(|e| fail("model", e));
+    if *model.config() != Config::MUIR_SLIM {
+        fail("model", "the embedded model is not muir-slim, the config this firmware's memory plan is for");
+    }
+    let left = ImageView::new(W, H, PixelFormat::Gray8, LEFT).unwrap_or_else(|e| fail("left image", e));
+    let right = ImageView::new(W, H, PixelFormat::Gray8, RIGHT).unwrap_or_else(|e| fail("right image", e));
+    let mut engine = Engine::new(&model, &mut arena.0).unwrap_or_else(|e| fail("engine", e));
+    let mut led = FpgaLed { bit: 0, edges: 0 };
+    let mut out = Output { disparity: &mut disparity[..], uncertainty: Some(&mut uncertainty[..]) };
+
+    // An empty region first: the plugin's count for it is the markers' own cost.
+    bench_start();
+    bench_end();
+    bench_start();
+    let result = run_with_busy_pin(&mut engine, &left, &right, &mut out, &mut led);
+    bench_end();
+    result.unwrap_or_else(|e| fail("frame", e));
+
+    let d_crc = crc_i16(disparity);
+    let u_crc = crc_i16(uncertainty);
+    kept.copy_from_slice(disparity);
+    let kept_1px = reject(kept, uncertainty, u_threshold(1.0));
+    println!(
+        "MUIR-RESULT width={W} height={H} ram={} disparity_crc=0x{d_crc:08x} uncertainty_crc=0x{u_crc:08x} kept_1px={kept_1px}",
+        PLAN.ram_bytes
+    );
+
+    let (min, max) = disparity.iter().fold((i16::MAX, i16::MIN), |(a, b), &d| (a.min(d), b.max(d)));
+    let sum: i64 = disparity.iter().map(|&d| i64::from(d)).sum();
+    // SAFETY: read-only system register.
+    let part = (unsafe { (*cortex_m::peripheral::CPUID::PTR).base.read() } >> 4) & 0xFFF;
+    println!(
+        "muir-slim {W}x{H} on CPU part 0x{part:03x} (0xc27: Cortex-M7): disparity {}..{} px, mean {} px; \
+         {kept_1px} of {} pixels with predicted error <= 1 px; working RAM {} bytes (one static arena, no heap); \
+         model {} bytes read in place from flash; busy LED edges {}",
+        px(min.into()),
+        px(max.into()),
+        px(sum / (W * H) as i64),
+        W * H,
+        PLAN.ram_bytes,
+        MODEL.0.len(),
+        led.edges,
+    );
+    process::exit(0)
+}
