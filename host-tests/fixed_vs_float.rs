@@ -1,0 +1,166 @@
+//! Rust float reference -> fixed-point engine, on the shipped model and real pairs.
+//!
+//! `models/muir-slim.safetensors` (float) and `models/muir-slim.muirq` (its quantised blob, made by
+//! `muir quantize` on calibration pairs that are not used here, see models/README.md) run on five
+//! real scenes from `../shared/data`, each cropped to 320x240 with its ground truth. Over the five
+//! pairs it reports issue #4's targets (mean |d_fixed - d_float| <= 0.1 px, >= 99 % of pixels
+//! within 1 px, fixed EPE vs ground truth <= 1.05 x float EPE, rejection masks at tau = 1 px
+//! agreeing on >= 98 % of pixels), asserts the EPE one, and holds the other three at the measured
+//! level (`MAX_MEAN_DIFF`, `MIN_WITHIN_1PX`, `MIN_REJECT_AGREE`) until the engine meets them. The per-layer SQNR
+//! (fixed engine vs float, accumulated over a whole run) is printed.
+
+use std::path::{Path, PathBuf};
+
+use muir::calib::{Records, sqnr};
+use muir::engine::{Engine, Output, Plan, u_threshold};
+use muir::float::{FloatModel, FloatWeights};
+use muir::format::QuantModel;
+use muir::io::{OwnedImage, read_ground_truth, read_png};
+use muir::reference::Reference;
+
+const ROOT: &str = env!("CARGO_MANIFEST_DIR");
+const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data");
+/// Regression bounds for the targets not met yet. Measured with the shipped model (2026-11-22):
+/// mean |d_fixed - d_float| 0.2593 px, 96.08 % within 1 px, rejection agreement 97.69 %.
+const MAX_MEAN_DIFF: f64 = 0.30;
+const MIN_WITHIN_1PX: f64 = 0.95;
+const MIN_REJECT_AGREE: f64 = 0.97;
+
+const W: usize = 320;
+const H: usize = 240;
+
+/// (scene, crop x, crop y): textured windows of five scenes of different datasets.
+const SCENES: [(&str, usize, usize); 5] = [
+    ("middlebury2001/tsukuba", 32, 24),
+    ("middlebury2003/teddy", 100, 80),
+    ("middlebury2005/Art", 120, 100),
+    ("middlebury2006/Aloe", 90, 90),
+    ("eth3d_twoview/playground", 400, 150),
+];
+
+struct Pair {
+    name: &'static str,
+    left: OwnedImage,
+    right: OwnedImage,
+    gt: Vec<f32>,
+}
+
+fn pairs() -> Option<Vec<Pair>> {
+    if !Path::new(DATA).exists() {
+        println!("skipped: {DATA} is absent (../shared not checked out)");
+        return None;
+    }
+    Some(
+        SCENES
+            .iter()
+            .map(|&(name, x, y)| {
+                let dir = Path::new(DATA).join(name);
+                let l = read_png(dir.join("left.png")).unwrap();
+                let r = read_png(dir.join("right.png")).unwrap();
+                let g = read_ground_truth(&dir).unwrap();
+                let gt = (y..y + H).flat_map(|yy| g.data[yy * g.width + x..yy * g.width + x + W].to_vec()).collect();
+                Pair { name, left: l.crop(x, y, W, H).unwrap(), right: r.crop(x, y, W, H).unwrap(), gt }
+            })
+            .collect(),
+    )
+}
+
+fn model(name: &str) -> PathBuf {
+    Path::new(ROOT).join("models").join(name)
+}
+
+#[test]
+fn fixed_engine_matches_float_reference_on_real_pairs() {
+    let Some(pairs) = pairs() else { return };
+    let float_bytes = std::fs::read(model("muir-slim.safetensors")).expect("shipped float model");
+    let blob = std::fs::read(model("muir-slim.muirq")).expect("shipped quantised model");
+    let float = FloatModel::new(FloatWeights::from_safetensors(&float_bytes, None).unwrap());
+    let q = QuantModel::parse(&blob).unwrap();
+    assert_eq!(q.config(), float.config(), "the blob must be the float model's");
+    let plan = Plan::new(q.config(), W, H);
+    let mut arena = vec![0u64; plan.ram_bytes.div_ceil(8)];
+    let mut engine = Engine::new(&q, bytemuck::cast_slice_mut(&mut arena)).unwrap();
+    let u_max = u_threshold(1.0);
+
+    let (mut sum_diff, mut within, mut n) = (0f64, 0usize, 0usize);
+    let (mut epe_f, mut epe_q, mut n_gt) = (0f64, 0f64, 0usize);
+    let (mut agree, mut kept_f, mut kept_q) = (0usize, 0usize, 0usize);
+    println!("| pair | mean abs diff (px) | within 1 px | EPE float | EPE fixed | reject agree (tau 1 px) |");
+    println!("|---|---|---|---|---|---|");
+    for p in &pairs {
+        let fp = float.predict(&p.left.view(), &p.right.view(), None).unwrap();
+        let mut d = vec![0i16; W * H];
+        let mut u = vec![0i16; W * H];
+        engine.run(&p.left.view(), &p.right.view(), &mut Output { disparity: &mut d, uncertainty: Some(&mut u) }).unwrap();
+        let fu = fp.uncertainty.as_ref().unwrap();
+        let (mut sd, mut wi, mut ef, mut eq, mut ng, mut ag) = (0f64, 0, 0f64, 0f64, 0, 0);
+        for i in 0..W * H {
+            let (df, dq) = (fp.disparity[i], d[i] as f32 / 32.0);
+            let diff = (df - dq).abs();
+            sd += diff as f64;
+            wi += (diff <= 1.0) as usize;
+            if p.gt[i].is_finite() {
+                ef += (df - p.gt[i]).abs() as f64;
+                eq += (dq - p.gt[i]).abs() as f64;
+                ng += 1;
+            }
+            let (rf, rq) = ((0.5 * fu[i]).exp() > 1.0, u[i] > u_max);
+            ag += (rf == rq) as usize;
+            kept_f += !rf as usize;
+            kept_q += !rq as usize;
+        }
+        println!(
+            "| {} | {:.4} | {:.2}% | {:.3} | {:.3} | {:.2}% |",
+            p.name,
+            sd / (W * H) as f64,
+            100.0 * wi as f64 / (W * H) as f64,
+            ef / ng as f64,
+            eq / ng as f64,
+            100.0 * ag as f64 / (W * H) as f64
+        );
+        sum_diff += sd;
+        within += wi;
+        n += W * H;
+        epe_f += ef;
+        epe_q += eq;
+        n_gt += ng;
+        agree += ag;
+    }
+    let mean_diff = sum_diff / n as f64;
+    let within = within as f64 / n as f64;
+    let (epe_f, epe_q) = (epe_f / n_gt as f64, epe_q / n_gt as f64);
+    let agree = agree as f64 / n as f64;
+    println!(
+        "| all five | {mean_diff:.4} | {:.2}% | {epe_f:.3} | {epe_q:.3} | {:.2}% |\nkept at tau 1 px: float {:.1}%, fixed {:.1}%",
+        100.0 * within,
+        100.0 * agree,
+        100.0 * kept_f as f64 / n as f64,
+        100.0 * kept_q as f64 / n as f64
+    );
+
+    // Per-layer SQNR on the first pair (cumulative: the fixed run vs the float run).
+    let p = &pairs[0];
+    let (mut fr, mut qr) = (Records::default(), Records::default());
+    float.trace_pair(&p.left.view(), &p.right.view(), float.config().iters, &mut fr).unwrap();
+    Reference::new(&q).predict(&p.left.view(), &p.right.view(), None, &mut qr).unwrap();
+    println!("\nper-layer SQNR on {} (dB, accumulated over occurrences):", p.name);
+    for s in sqnr(&fr, &qr).iter().filter(|s| s.name.starts_with("q.") || s.name.starts_with("up.")) {
+        println!("  {:<16} {:>6.1}  ({}x)", s.name, s.db, s.count);
+    }
+
+    // Issue #4's targets, reported pass/fail; the one the engine meets is asserted as it is.
+    let report = |what: &str, met: bool| println!("target {what}: {}", if met { "met" } else { "NOT MET" });
+    report(&format!("mean |d_fixed - d_float| <= 0.1 px (got {mean_diff:.4})"), mean_diff <= 0.1);
+    report(&format!(">= 99% within 1 px (got {:.2}%)", 100.0 * within), within >= 0.99);
+    report(&format!("fixed EPE <= 1.05 x float EPE (got {epe_q:.3} vs {epe_f:.3})"), epe_q <= 1.05 * epe_f);
+    report(&format!("rejection agreement >= 98% (got {:.2}%)", 100.0 * agree), agree >= 0.98);
+    assert!(epe_q <= 1.05 * epe_f, "fixed EPE {epe_q:.3} > 1.05 x float EPE {epe_f:.3}");
+    // The per-pixel targets are not met yet (README "Accuracy"): quantisation noise, mostly from
+    // the i8 backbone and features, grows over the 7 recurrent iterations, and near-tied
+    // correlation peaks make UFI pick another proposal in a few pixels. These bounds hold the level
+    // measured with the shipped model so that a regression fails; tighten them as the engine
+    // improves.
+    assert!(mean_diff <= MAX_MEAN_DIFF, "mean |d_fixed - d_float| = {mean_diff:.4} px > {MAX_MEAN_DIFF} (regression)");
+    assert!(within >= MIN_WITHIN_1PX, "{:.2}% of pixels within 1 px < {:.0}% (regression)", 100.0 * within, 100.0 * MIN_WITHIN_1PX);
+    assert!(agree >= MIN_REJECT_AGREE, "rejection masks agree on {:.2}% < {:.0}% (regression)", 100.0 * agree, 100.0 * MIN_REJECT_AGREE);
+}
