@@ -5,6 +5,8 @@
 //! 128x96 crop of Middlebury 2001 tsukuba from `../shared/data` and is skipped, with a note, when
 //! that folder is absent; the error cases use synthetic images.
 
+mod support;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
@@ -60,27 +62,11 @@ fn assert_fails(o: &Output, needles: &[&str]) {
 fn write_model(dir: &Scratch, name: &str, config: &Config, metadata: bool) -> PathBuf {
     let mut bytes = to_safetensors(&seeded::state_dict(config, 1), config, &[]).unwrap();
     if !metadata {
-        bytes = strip_metadata(&bytes);
+        bytes = support::strip_safetensors_metadata(&bytes);
     }
     let path = dir.path(name);
     std::fs::write(&path, bytes).unwrap();
     path
-}
-
-/// Removes `__metadata__` from a safetensors header (data offsets are relative to the data block,
-/// so the data is kept as is).
-fn strip_metadata(bytes: &[u8]) -> Vec<u8> {
-    let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
-    let mut header: serde_json::Value = serde_json::from_slice(&bytes[8..8 + n]).unwrap();
-    header.as_object_mut().unwrap().remove("__metadata__");
-    let mut h = serde_json::to_vec(&header).unwrap();
-    while h.len() % 8 != 0 {
-        h.push(b' ');
-    }
-    let mut out = (h.len() as u64).to_le_bytes().to_vec();
-    out.extend_from_slice(&h);
-    out.extend_from_slice(&bytes[8 + n..]);
-    out
 }
 
 /// A textured synthetic gray image.

@@ -4,6 +4,8 @@
 //! `fixtures/raft-stereo-realtime-params.txt` is a copy of `shared/reference/`: every state_dict key
 //! of the public `raftstereo-realtime.pth` with its shape and dtype.
 
+mod support;
+
 use muir::Config;
 use muir::float::seeded;
 use muir::float::weights::{FloatWeights, Param, ParamData, StateDict, WeightError, to_safetensors};
@@ -36,19 +38,9 @@ fn checkpoint_state_dict(prefix: &str) -> StateDict {
 }
 
 fn bytes_without_config(sd: &StateDict) -> Vec<u8> {
-    // to_safetensors always writes the config; strip it by rewriting through the safetensors crate.
+    // to_safetensors always writes the config; strip it from the header.
     let with = to_safetensors(sd, &Config::RAFT_STEREO_REALTIME, &[]).unwrap();
-    let n = u64::from_le_bytes(with[..8].try_into().unwrap()) as usize;
-    let mut header: serde_json::Value = serde_json::from_slice(&with[8..8 + n]).unwrap();
-    header.as_object_mut().unwrap().remove("__metadata__");
-    let mut h = serde_json::to_vec(&header).unwrap();
-    while h.len() % 8 != 0 {
-        h.push(b' ');
-    }
-    let mut out = (h.len() as u64).to_le_bytes().to_vec();
-    out.extend_from_slice(&h);
-    out.extend_from_slice(&with[8 + n..]);
-    out
+    support::strip_safetensors_metadata(&with)
 }
 
 #[test]
