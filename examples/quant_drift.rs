@@ -1,0 +1,89 @@
+//! Where the fixed engine's disparity leaves the float reference's, on the fixed_vs_float test's
+//! five 320x240 crops:
+//! 1. mean |d_fixed - d_float| and the share within 1 px after 0, 1, 2, 4 and 7 iterations;
+//! 2. the same after 7 iterations when float tensors replace the fixed ones at one point
+//!    (`Reference::with_injected`): the features and context, the UFI peaks, or the whole
+//!    initial state (disparity + hidden state). What an injection removes is that stage's share.
+//!
+//! `cargo run --release --example quant_drift [-- MODEL_STEM]` (default `models/muir-slim`).
+
+use std::path::Path;
+
+use muir::calib::Records;
+use muir::float::{FloatModel, FloatWeights, NoTrace};
+use muir::format::QuantModel;
+use muir::io::{OwnedImage, read_png};
+use muir::reference::Reference;
+
+const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data");
+const SCENES: [(&str, usize, usize); 5] = [
+    ("middlebury2001/tsukuba", 32, 24),
+    ("middlebury2003/teddy", 100, 80),
+    ("middlebury2005/Art", 120, 100),
+    ("middlebury2006/Aloe", 90, 90),
+    ("eth3d_twoview/playground", 400, 150),
+];
+const W: usize = 320;
+const H: usize = 240;
+
+/// Sum of |diff| and count within 1 px.
+fn compare(float: &[f32], fixed: &[i16]) -> (f64, usize) {
+    float.iter().zip(fixed).fold((0.0, 0), |(s, w), (a, b)| {
+        let d = (a - *b as f32 / 32.0).abs();
+        (s + d as f64, w + (d <= 1.0) as usize)
+    })
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let stem = std::env::args().nth(1).unwrap_or_else(|| "models/muir-slim".into());
+    let float = FloatModel::new(FloatWeights::from_safetensors(&std::fs::read(format!("{stem}.safetensors"))?, None)?);
+    let blob = std::fs::read(format!("{stem}.muirq"))?;
+    let q = QuantModel::parse(&blob)?;
+    let mut pairs: Vec<(OwnedImage, OwnedImage)> = Vec::new();
+    for &(name, x, y) in &SCENES {
+        let dir = Path::new(DATA).join(name);
+        let crop = |f: &str| -> Result<OwnedImage, Box<dyn std::error::Error>> {
+            Ok(read_png(dir.join(f))?.crop(x, y, W, H).ok_or("crop outside the image")?)
+        };
+        pairs.push((crop("left.png")?, crop("right.png")?));
+    }
+    let n = (SCENES.len() * W * H) as f64;
+
+    println!("| iterations | mean abs diff (px) | within 1 px |\n|---|---|---|");
+    for iters in [0usize, 1, 2, 4, 7] {
+        let (mut sd, mut wi) = (0.0, 0);
+        for (l, r) in &pairs {
+            let f = float.predict(&l.view(), &r.view(), Some(iters))?;
+            let d = Reference::new(&q).predict(&l.view(), &r.view(), Some(iters), &mut NoTrace)?;
+            let (s, w) = compare(&f.disparity, &d.disparity);
+            sd += s;
+            wi += w;
+        }
+        println!("| {iters} | {:.4} | {:.2}% |", sd / n, 100.0 * wi as f64 / n);
+    }
+
+    let iters = float.config().iters;
+    let points: [(&str, &[&str]); 5] = [
+        ("nothing", &[]),
+        ("features + context (fmap1/2, inp08/16)", &["fmap1", "fmap2", "inp08", "inp16"]),
+        ("UFI peaks", &["ufi.peaks"]),
+        ("features + context + UFI peaks", &["fmap1", "fmap2", "inp08", "inp16", "ufi.peaks"]),
+        ("initial state (init.flow, init.net08)", &["init.flow", "init.net08"]),
+    ];
+    println!("\n| float tensors injected | mean abs diff (px) | within 1 px |\n|---|---|---|");
+    for (what, names) in points {
+        let (mut sd, mut wi) = (0.0, 0);
+        for (l, r) in &pairs {
+            let mut rec = Records::default();
+            let f = float.trace_pair(&l.view(), &r.view(), iters, &mut rec)?;
+            rec.0.retain(|(name, _)| names.contains(&name.as_str()));
+            let d = Reference::with_injected(&q, &rec).predict(&l.view(), &r.view(), None, &mut NoTrace)?;
+            let fd: Vec<f32> = (0..H).flat_map(|y| f.disparity.data[y * f.disparity.w..y * f.disparity.w + W].to_vec()).collect();
+            let (s, w) = compare(&fd, &d.disparity);
+            sd += s;
+            wi += w;
+        }
+        println!("| {what} | {:.4} | {:.2}% |", sd / n, 100.0 * wi as f64 / n);
+    }
+    Ok(())
+}
