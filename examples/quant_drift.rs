@@ -2,8 +2,9 @@
 //! five 320x240 crops:
 //! 1. mean |d_fixed - d_float| and the share within 1 px after 0, 1, 2, 4 and 7 iterations;
 //! 2. the same after 7 iterations when float tensors replace the fixed ones at one point
-//!    (`Reference::with_injected`): the features and context, the UFI peaks, or the whole
-//!    initial state (disparity + hidden state). What an injection removes is that stage's share.
+//!    (`Reference::with_injected`): the backbone trunk output, the matching features, the context,
+//!    the UFI peaks, or the whole initial state (disparity + hidden state). Each injected tensor is
+//!    quantised to its slot, so what an injection removes is the noise accumulated upstream of it.
 //!
 //! `cargo run --release --example quant_drift [-- MODEL_STEM]` (default `models/muir-slim`).
 
@@ -63,8 +64,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
 
     let iters = float.config().iters;
-    let points: [(&str, &[&str]); 5] = [
+    let points: [(&str, &[&str]); 8] = [
         ("nothing", &[]),
+        ("backbone trunk output (1/8, layer3)", &["backbone.layer3"]),
+        ("matching features (fmap1/2)", &["fmap1", "fmap2"]),
+        ("context (inp08/16)", &["inp08", "inp16"]),
         ("features + context (fmap1/2, inp08/16)", &["fmap1", "fmap2", "inp08", "inp16"]),
         ("UFI peaks", &["ufi.peaks"]),
         ("features + context + UFI peaks", &["fmap1", "fmap2", "inp08", "inp16", "ufi.peaks"]),

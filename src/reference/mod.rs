@@ -98,9 +98,10 @@ impl<'m, 'a> Reference<'m, 'a> {
         Self { m, inject: None }
     }
 
-    /// Diagnostic: replaces the tensors named `fmap1`, `fmap2`, `net08.init` (after UFI) and
-    /// `init.flow` by the given float records, quantised to their slots, so that the effect of
-    /// quantising one part of the network can be measured on its own.
+    /// Diagnostic: replaces the tensors named `backbone.layer3`, `fmap1`, `fmap2`, `inp08`,
+    /// `inp16`, `ufi.peaks`, `init.flow` and `init.net08` (after UFI) by the given float records,
+    /// quantised to their slots, so that the effect of quantising one part of the network can be
+    /// measured on its own (`examples/quant_drift.rs`).
     #[doc(hidden)]
     pub fn with_injected(m: &'m QuantModel<'a>, float_records: &'m crate::calib::Records) -> Self {
         Self { m, inject: Some(float_records) }
@@ -232,8 +233,13 @@ impl<'m, 'a> Reference<'m, 'a> {
     /// The encoder on padded integer images.
     pub fn encode(&self, left: &QT<i16>, right: &QT<i16>, tr: &mut dyn Trace) -> Ctx {
         use Act as A;
-        let xl = self.trunk(left, tr);
-        let xr = self.trunk(right, tr);
+        let (mut xl, mut xr) = (self.trunk(left, tr), self.trunk(right, tr));
+        if let Some(t) = self.injected("backbone.layer3") {
+            // The float trace holds left and right concatenated along channels.
+            let c = t.c / 2;
+            xl = self.quantize_like(&t.channels(0, c), self.frac(A::L3b1o));
+            xr = self.quantize_like(&t.channels(c, c), self.frac(A::L3b1o));
+        }
         let f1 = self.fmap(&xl, tr);
         let f2 = self.fmap(&xr, tr);
         self.record(tr, "fmap1", &f1, self.frac(A::Fmap));
