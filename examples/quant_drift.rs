@@ -8,24 +8,17 @@
 //!
 //! `cargo run --release --example quant_drift [-- MODEL_STEM]` (default `models/muir-slim`).
 
-use std::path::Path;
+// The test's crops; the ground truth it also loads is not needed here.
+#[path = "../host-tests/support/crops.rs"]
+#[allow(dead_code)]
+mod crops;
 
 use muir::calib::Records;
 use muir::float::{FloatModel, FloatWeights, NoTrace};
 use muir::format::QuantModel;
-use muir::io::{OwnedImage, read_png};
 use muir::reference::Reference;
 
-const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data");
-const SCENES: [(&str, usize, usize); 5] = [
-    ("middlebury2001/tsukuba", 32, 24),
-    ("middlebury2003/teddy", 100, 80),
-    ("middlebury2005/Art", 120, 100),
-    ("middlebury2006/Aloe", 90, 90),
-    ("eth3d_twoview/playground", 400, 150),
-];
-const W: usize = 320;
-const H: usize = 240;
+use crops::{H, W};
 
 /// Sum of |diff| and count within 1 px.
 fn compare(float: &[f32], fixed: &[i16]) -> (f64, usize) {
@@ -40,15 +33,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let float = FloatModel::new(FloatWeights::from_safetensors(&std::fs::read(format!("{stem}.safetensors"))?, None)?);
     let blob = std::fs::read(format!("{stem}.muirq"))?;
     let q = QuantModel::parse(&blob)?;
-    let mut pairs: Vec<(OwnedImage, OwnedImage)> = Vec::new();
-    for &(name, x, y) in &SCENES {
-        let dir = Path::new(DATA).join(name);
-        let crop = |f: &str| -> Result<OwnedImage, Box<dyn std::error::Error>> {
-            Ok(read_png(dir.join(f))?.crop(x, y, W, H).ok_or("crop outside the image")?)
-        };
-        pairs.push((crop("left.png")?, crop("right.png")?));
-    }
-    let n = (SCENES.len() * W * H) as f64;
+    let pairs: Vec<_> = crops::pairs().ok_or("needs ../shared/data")?.into_iter().map(|p| (p.left, p.right)).collect();
+    let n = (pairs.len() * W * H) as f64;
 
     println!("| iterations | mean abs diff (px) | within 1 px |\n|---|---|---|");
     for iters in [0usize, 1, 2, 4, 7] {
