@@ -296,25 +296,25 @@ fn kernels(c: &mut Criterion, fast: &Model, att: Option<&Attention>) {
         })
     });
 
-    // Backbone layer1 conv (i8 input, 3x3, 64 -> 64) over 4 rows of the 1/2 grid.
+    // Backbone layer1 conv (u8 input and output, 3x3, 64 -> 64) over 4 rows of the 1/2 grid.
     let p = qm.conv(ConvId::L1b0c1).unwrap();
     let w = g8.w2;
-    let x: Vec<i8> = (0..rows * w * p.parts[0]).map(|_| r.i8()).collect();
-    let mut out = vec![0i8; rows * w * p.cout];
-    let mut patch = vec![0i8; p.patch_len()];
+    let x: Vec<u8> = (0..rows * w * p.parts[0]).map(|_| r.i8() as u8).collect();
+    let mut out = vec![0u8; rows * w * p.cout];
+    let mut patch = vec![0u8; p.patch_len()];
     g.throughput(Throughput::Elements((rows * w * p.patch_len() * p.cout) as u64));
-    g.bench_function(format!("conv_row layer1 i8 3x3 64->64 ({rows} rows of {w})"), |b| {
+    g.bench_function(format!("conv_row layer1 u8 3x3 64->64 ({rows} rows of {w})"), |b| {
         b.iter(|| {
             for y in 0..rows {
                 let pr = [PartRows::of_tensor(&x, rows, w * p.parts[0], y, 3, 1)];
-                conv_row(&p, &pr, w, &mut OutRow::I8(&mut out[y * w * p.cout..(y + 1) * w * p.cout]), &mut patch);
+                conv_row(&p, &pr, w, &mut OutRow::U8(&mut out[y * w * p.cout..(y + 1) * w * p.cout]), &mut patch);
             }
             black_box(&out);
         })
     });
-    g.bench_function(format!("conv_plain layer1 i8 3x3 64->64 ({rows} rows of {w})"), |b| {
+    g.bench_function(format!("conv_plain layer1 u8 3x3 64->64 ({rows} rows of {w})"), |b| {
         b.iter(|| {
-            conv_plain(&p, &[&x[..]], rows, w, &mut OutRow::I8(&mut out));
+            conv_plain(&p, &[&x[..]], rows, w, &mut OutRow::U8(&mut out));
             black_box(&out);
         })
     });

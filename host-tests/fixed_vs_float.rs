@@ -5,9 +5,10 @@
 //! real scenes from `../shared/data`, each cropped to 320x240 with its ground truth. Over the five
 //! pairs it reports issue #4's targets (mean |d_fixed - d_float| <= 0.1 px, >= 99 % of pixels
 //! within 1 px, fixed EPE vs ground truth <= 1.05 x float EPE, rejection masks at tau = 1 px
-//! agreeing on >= 98 % of pixels), asserts the EPE one, and holds the other three at the measured
-//! level (`MAX_MEAN_DIFF`, `MIN_WITHIN_1PX`, `MIN_REJECT_AGREE`) until the engine meets them. The per-layer SQNR
-//! (fixed engine vs float, accumulated over a whole run) is printed.
+//! agreeing on >= 98 % of pixels), asserts the two the engine meets (EPE, rejection agreement),
+//! and holds the other two at the measured level (`MAX_MEAN_DIFF`, `MIN_WITHIN_1PX`) until the
+//! engine meets them. The per-layer SQNR (fixed engine vs float, accumulated over a whole run) is
+//! printed.
 
 #[path = "support/crops.rs"]
 mod crops;
@@ -23,11 +24,11 @@ use muir::format::QuantModel;
 use muir::reference::Reference;
 
 const ROOT: &str = env!("CARGO_MANIFEST_DIR");
-/// Regression bounds for the targets not met yet. Measured with the shipped model (2026-11-22):
-/// mean |d_fixed - d_float| 0.2593 px, 96.08 % within 1 px, rejection agreement 97.69 %.
-const MAX_MEAN_DIFF: f64 = 0.30;
-const MIN_WITHIN_1PX: f64 = 0.95;
-const MIN_REJECT_AGREE: f64 = 0.97;
+/// Regression bounds for the targets not met yet. Measured with the shipped model and u8 backbone
+/// activations (2026-12-01): mean |d_fixed - d_float| 0.1582 px, 98.04 % within 1 px (with i8
+/// backbone activations, 2026-11-22: 0.2593 px, 96.08 %).
+const MAX_MEAN_DIFF: f64 = 0.18;
+const MIN_WITHIN_1PX: f64 = 0.975;
 
 fn model(name: &str) -> PathBuf {
     Path::new(ROOT).join("models").join(name)
@@ -119,12 +120,13 @@ fn fixed_engine_matches_float_reference_on_real_pairs() {
     report(&format!("fixed EPE <= 1.05 x float EPE (got {epe_q:.3} vs {epe_f:.3})"), epe_q <= 1.05 * epe_f);
     report(&format!("rejection agreement >= 98% (got {:.2}%)", 100.0 * agree), agree >= 0.98);
     assert!(epe_q <= 1.05 * epe_f, "fixed EPE {epe_q:.3} > 1.05 x float EPE {epe_f:.3}");
-    // The per-pixel targets are not met yet (README "Accuracy", `examples/quant_drift.rs`): the i8
-    // backbone's noise in the matching features and the near-tied correlation peaks it flips in
-    // UFI's proposal search; the iterations damp the difference (0.38 px after UFI, 0.26 px after
-    // 7). These bounds hold the level measured with the shipped model so that a regression fails;
-    // tighten them as the engine improves.
+    assert!(agree >= 0.98, "rejection masks agree on {:.2}% < 98%", 100.0 * agree);
+    // The mean and within-1-px targets are not met yet (README "Accuracy",
+    // `examples/quant_drift.rs`): the 8-bit backbone's noise in the matching features and the
+    // near-tied correlation peaks it flips in UFI's proposal search, then the update block's own
+    // quantisation; the iterations damp the difference (0.25 px after UFI, 0.16 px after 7). These
+    // bounds hold the level measured with the shipped model so that a regression fails; tighten
+    // them as the engine improves.
     assert!(mean_diff <= MAX_MEAN_DIFF, "mean |d_fixed - d_float| = {mean_diff:.4} px > {MAX_MEAN_DIFF} (regression)");
-    assert!(within >= MIN_WITHIN_1PX, "{:.2}% of pixels within 1 px < {:.0}% (regression)", 100.0 * within, 100.0 * MIN_WITHIN_1PX);
-    assert!(agree >= MIN_REJECT_AGREE, "rejection masks agree on {:.2}% < {:.0}% (regression)", 100.0 * agree, 100.0 * MIN_REJECT_AGREE);
+    assert!(within >= MIN_WITHIN_1PX, "{:.2}% of pixels within 1 px < {:.1}% (regression)", 100.0 * within, 100.0 * MIN_WITHIN_1PX);
 }

@@ -7,12 +7,14 @@
 //!
 //! * **Rounding**: [`rshift_round`] adds half an LSB and shifts right arithmetically, i.e. rounds
 //!   half toward +infinity. [`div_round`] rounds half away from zero. No other rounding exists.
-//! * **Saturation**: every narrowing goes through [`sat_i8`] / [`sat_i16`] / [`sat_i32`].
+//! * **Saturation**: every narrowing goes through [`sat_i8`] / [`sat_u8`] / [`sat_i16`] /
+//!   [`sat_i32`].
 //! * **Requantisation**: `y = sat(rshift_round(acc * m, shift))` with `m` a 31-bit multiplier in
 //!   `[2^30, 2^31)` and `shift` in `[1, 126]`, computed in 128-bit ([`requantize`]). Multiplier and
 //!   shift are found on the host by [`Multiplier::from_f64`] and stored in the model blob.
-//! * **Activation formats**: activations are `i8` or `i16` with a power-of-two scale, `value =
-//!   q * 2^-frac` ([`QFormat`]). Weights are `i8`, symmetric, with a scale per output channel (in
+//! * **Activation formats**: activations are `i8`, `u8` or `i16` with a power-of-two scale,
+//!   `value = q * 2^-frac` ([`QFormat`]). `u8` holds the tensors that follow a ReLU (the backbone
+//!   and the context): they are never negative, so the sign bit would waste half the codes. Weights are `i8`, symmetric, with a scale per output channel (in
 //!   the multiplier). Accumulators are `i32` for `i8` inputs and `i64` for `i16` inputs (exact:
 //!   the model blob writer checks the worst-case bound).
 //! * **Nonlinearities** by table with linear interpolation ([`lut`]): sigmoid and tanh take Q3.12
@@ -44,6 +46,18 @@ pub const fn sat_i8(v: i64) -> i8 {
         i8::MIN
     } else {
         v as i8
+    }
+}
+
+/// Saturates to `u8` (values below 0 become 0: a ReLU for free).
+#[inline(always)]
+pub const fn sat_u8(v: i64) -> u8 {
+    if v > u8::MAX as i64 {
+        u8::MAX
+    } else if v < 0 {
+        0
+    } else {
+        v as u8
     }
 }
 
@@ -228,7 +242,8 @@ pub const fn isqrt_u64(v: u64) -> u64 {
     }
 }
 
-/// Activation format: `value = q * 2^-frac`, stored as `i8` (`bits == 8`) or `i16`.
+/// Activation format: `value = q * 2^-frac`, stored as `i8` (`bits == 8`), `u8` (`bits == 8`,
+/// `unsigned`) or `i16`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct QFormat {
@@ -236,29 +251,44 @@ pub struct QFormat {
     pub bits: u8,
     /// Fraction bits (may exceed `bits`, or be negative for very large ranges).
     pub frac: i8,
+    /// Unsigned storage (`u8`, range `[0, 255]`); only with `bits == 8`.
+    pub unsigned: bool,
 }
 
 impl QFormat {
     /// An i16 format.
     pub const fn i16(frac: i8) -> Self {
-        Self { bits: 16, frac }
+        Self { bits: 16, frac, unsigned: false }
     }
     /// An i8 format.
     pub const fn i8(frac: i8) -> Self {
-        Self { bits: 8, frac }
+        Self { bits: 8, frac, unsigned: false }
     }
-    /// Largest stored magnitude.
+    /// A u8 format.
+    pub const fn u8(frac: i8) -> Self {
+        Self { bits: 8, frac, unsigned: true }
+    }
+    /// Largest stored value.
     pub const fn qmax(self) -> i64 {
-        if self.bits == 8 { i8::MAX as i64 } else { i16::MAX as i64 }
+        if self.unsigned {
+            u8::MAX as i64
+        } else if self.bits == 8 {
+            i8::MAX as i64
+        } else {
+            i16::MAX as i64
+        }
+    }
+    /// Smallest stored value.
+    pub const fn qmin(self) -> i64 {
+        if self.unsigned { 0 } else { -self.qmax() - 1 }
     }
     /// Saturates to this format's storage range.
     #[inline(always)]
     pub const fn sat(self, v: i64) -> i64 {
-        let q = self.qmax();
-        if v > q {
-            q
-        } else if v < -q - 1 {
-            -q - 1
+        if v > self.qmax() {
+            self.qmax()
+        } else if v < self.qmin() {
+            self.qmin()
         } else {
             v
         }
@@ -274,13 +304,12 @@ impl QFormat {
         let scaled = (v as f64 * 2f64.powi(self.frac as i32)).round();
         self.sat(scaled.clamp(i64::MIN as f64, i64::MAX as f64) as i64)
     }
-    /// The finest format of `bits` whose range holds `max_abs` (host-side only).
+    /// The finest format of this storage whose range holds `max_abs` (host-side only).
     #[cfg(feature = "std")]
-    pub fn for_range(bits: u8, max_abs: f32) -> Self {
-        let qmax = if bits == 8 { 127.0f64 } else { 32767.0 };
+    pub fn for_range(self, max_abs: f32) -> Self {
         let m = (max_abs as f64).max(1e-12);
-        let frac = (qmax / m).log2().floor().clamp(-60.0, 60.0) as i8;
-        Self { bits, frac }
+        let frac = (self.qmax() as f64 / m).log2().floor().clamp(-60.0, 60.0) as i8;
+        Self { frac, ..self }
     }
 }
 
@@ -313,6 +342,10 @@ mod tests {
         assert_eq!(sat_i16(40000), 32767);
         assert_eq!(sat_i32(i64::MIN), i32::MIN);
         assert_eq!(QFormat::i8(3).sat(-1000), -128);
+        assert_eq!(sat_u8(300), 255);
+        assert_eq!(sat_u8(-3), 0);
+        assert_eq!(QFormat::u8(3).sat(-1000), 0);
+        assert_eq!(QFormat::u8(3).sat(1000), 255);
     }
 
     #[test]
@@ -343,10 +376,15 @@ mod tests {
 
     #[test]
     fn formats() {
-        let f = QFormat::for_range(8, 3.0);
+        let f = QFormat::i8(0).for_range(3.0);
         assert_eq!(f, QFormat::i8(5)); // 3.0 * 32 = 96 <= 127 < 3.0 * 64
         assert_eq!(f.quantize(1.0), 32);
         assert_eq!(f.quantize(100.0), 127);
-        assert_eq!(QFormat::for_range(16, 1.0).frac, 14);
+        assert_eq!(QFormat::i16(0).for_range(1.0).frac, 14);
+        // u8: one more bit for the same range (3.0 * 64 = 192 <= 255), no negative codes.
+        let u = QFormat::u8(0).for_range(3.0);
+        assert_eq!(u, QFormat::u8(6));
+        assert_eq!(u.quantize(-1.0), 0);
+        assert_eq!(u.quantize(100.0), 255);
     }
 }

@@ -131,7 +131,7 @@ struct QuantizeArgs {
     /// Crop each calibration pair to at most W x H (top-left corner), e.g. 320x240.
     #[arg(long, value_name = "WxH", value_parser = parse_size)]
     max_size: Option<(usize, usize)>,
-    /// Range rule: percentile (of the magnitudes) or minmax.
+    /// Range rule: percentile (of the magnitudes), minmax, or mse (least expected squared error).
     #[arg(long, value_enum, default_value_t = Method::Percentile)]
     method: Method,
     /// Percentile for --method percentile.
@@ -152,6 +152,8 @@ enum Method {
     Percentile,
     /// The largest observed magnitude.
     Minmax,
+    /// The format with the least expected squared error (clipping + rounding) over the histogram.
+    Mse,
 }
 
 #[derive(Args, Debug)]
@@ -527,6 +529,7 @@ fn quantize(args: &QuantizeArgs) -> Result<(), String> {
     let pairs: Vec<_> = images.iter().map(|(l, r)| (l.view(), r.view())).collect();
     let method = match args.method {
         Method::Minmax => RangeMethod::MinMax,
+        Method::Mse => RangeMethod::Mse,
         Method::Percentile if (50.0..=100.0).contains(&args.percentile) => RangeMethod::Percentile(args.percentile / 100.0),
         Method::Percentile => return Err(format!("--percentile {} is not in [50, 100]", args.percentile)),
     };

@@ -4,7 +4,9 @@
 //!    calibrated activation slot ([`Act`] without a fixed format), the largest magnitude and a
 //!    histogram of magnitudes (32 bins per octave).
 //! 2. Each slot gets the finest power-of-two format that holds its range: the maximum
-//!    ([`RangeMethod::MinMax`]) or a percentile of the magnitudes ([`RangeMethod::Percentile`]).
+//!    ([`RangeMethod::MinMax`]) or a percentile of the magnitudes ([`RangeMethod::Percentile`]);
+//!    or the format with the least expected squared error, clipping plus rounding, over the
+//!    histogram ([`RangeMethod::Mse`]).
 //! 3. [`quantize`] folds BatchNorm, the image normalisation, part scales, merged context convs and
 //!    output factors into effective weights, quantises them per output channel (int8 symmetric),
 //!    biases into accumulator units (i64) and derives the requantisation multipliers.
@@ -81,6 +83,30 @@ impl RangeStats {
         self.max_abs
     }
 
+    /// Expected squared error per value of storing the values in format `f`: clipping above the
+    /// largest code, rounding below (`a^2` for magnitudes that round to 0, else `step^2 / 12`).
+    /// Each bin counts at its geometric centre.
+    pub fn quant_mse(&self, f: QFormat) -> f64 {
+        if self.count == 0 {
+            return 0.0;
+        }
+        let step = 2f64.powi(-(f.frac as i32));
+        let lim = f.qmax() as f64 * step;
+        let mut err = 0.0;
+        for (i, n) in self.hist.iter().enumerate().filter(|(_, n)| **n > 0) {
+            let a = 2f64.powf(MIN_EXP + (i as f64 + 0.5) / BINS_PER_OCTAVE).min(self.max_abs as f64);
+            let e = if a > lim {
+                (a - lim).powi(2)
+            } else if a < step / 2.0 {
+                a * a
+            } else {
+                step * step / 12.0
+            };
+            err += *n as f64 * e;
+        }
+        err / self.count as f64
+    }
+
     /// Fraction of the values whose magnitude exceeds `limit`.
     pub fn fraction_above(&self, limit: f32) -> f64 {
         if self.count == 0 {
@@ -114,6 +140,9 @@ pub enum RangeMethod {
     MinMax,
     /// The given quantile of the magnitudes (e.g. 0.9999).
     Percentile(f64),
+    /// The least expected squared error ([`RangeStats::quant_mse`]) among the formats from the
+    /// one that holds the maximum to 6 bits finer.
+    Mse,
 }
 
 impl fmt::Display for RangeMethod {
@@ -121,6 +150,7 @@ impl fmt::Display for RangeMethod {
         match self {
             Self::MinMax => write!(f, "minmax"),
             Self::Percentile(p) => write!(f, "percentile {:.4}%", p * 100.0),
+            Self::Mse => write!(f, "least squared error"),
         }
     }
 }
@@ -167,13 +197,19 @@ pub fn choose_formats(cfg: &Config, stats: &BTreeMap<String, RangeStats>, method
             Some(f) => f,
             None => match stats.get(act.name()) {
                 Some(s) if s.count > 0 => {
-                    let range = match method {
-                        RangeMethod::MinMax => s.max_abs,
-                        RangeMethod::Percentile(p) => s.percentile(p),
-                    };
-                    QFormat::for_range(act.bits(), range.max(1e-6))
+                    match method {
+                        RangeMethod::MinMax => act.storage().for_range(s.max_abs.max(1e-6)),
+                        RangeMethod::Percentile(p) => act.storage().for_range(s.percentile(p).max(1e-6)),
+                        RangeMethod::Mse => {
+                            let widest = act.storage().for_range(s.max_abs.max(1e-6));
+                            (0..=6)
+                                .map(|d| QFormat { frac: widest.frac.saturating_add(d), ..widest })
+                                .min_by(|a, b| s.quant_mse(*a).total_cmp(&s.quant_mse(*b)))
+                                .unwrap_or(widest)
+                        }
+                    }
                 }
-                _ if !slot_used(act, cfg) => QFormat { bits: act.bits(), frac: 0 },
+                _ if !slot_used(act, cfg) => act.storage(),
                 _ => return Err(CalibError::Unobserved { act: act.name() }),
             },
         };
@@ -474,4 +510,51 @@ pub fn sqnr(float: &Records, fixed: &Records) -> Vec<Sqnr> {
     acc.into_iter()
         .map(|(name, (s, e, count))| Sqnr { name: name.to_string(), db: 10.0 * (s.max(1e-30) / e.max(1e-30)).log10(), count })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn stats(values: &[f32]) -> RangeStats {
+        let mut s = RangeStats::default();
+        s.add(values);
+        s
+    }
+
+    #[test]
+    fn percentile_and_clipping() {
+        let v: Vec<f32> = (1..=1000).map(|i| i as f32 / 100.0).collect(); // 0.01 .. 10
+        let s = stats(&v);
+        assert_eq!(s.count, 1000);
+        assert_eq!(s.max_abs, 10.0);
+        let p = s.percentile(0.5);
+        assert!((4.9..5.2).contains(&p), "{p}");
+        assert!((s.fraction_above(5.0) - 0.5).abs() < 0.02);
+    }
+
+    #[test]
+    fn mse_trades_clipping_against_rounding() {
+        let best = |s: &RangeStats| {
+            let widest = QFormat::u8(0).for_range(s.max_abs);
+            (0..=6).map(|d| QFormat { frac: widest.frac + d, ..widest }).min_by(|a, b| s.quant_mse(*a).total_cmp(&s.quant_mse(*b)))
+        };
+        let mut v: Vec<f32> = (0..100_000).map(|i| (i % 1000) as f32 * 0.0009).collect(); // 0 .. 0.8991
+        // No outlier: clipping costs more than the step saves; the format that holds the maximum.
+        let s = stats(&v);
+        assert_eq!(QFormat::u8(0).for_range(s.max_abs), QFormat::u8(8));
+        assert_eq!(best(&s), Some(QFormat::u8(8)));
+        // One mild outlier: halving the step for 100,000 values beats clipping one.
+        v.push(1.3);
+        let s = stats(&v);
+        assert_eq!(QFormat::u8(0).for_range(s.max_abs), QFormat::u8(7));
+        assert!(s.quant_mse(QFormat::u8(8)) < s.quant_mse(QFormat::u8(7)));
+        assert_eq!(best(&s), Some(QFormat::u8(8)));
+        // A far outlier pulls the range most of the way: clipping it to ~1 would cost more than
+        // the rounding noise of all the others at a coarse step.
+        v.push(100.0);
+        let s = stats(&v);
+        assert_eq!(QFormat::u8(0).for_range(s.max_abs), QFormat::u8(1));
+        assert_eq!(best(&s), Some(QFormat::u8(2)));
+    }
 }

@@ -6,11 +6,11 @@
 
 use super::plan::{Buf, Bump, Grid};
 use super::ring::{Carver, Ring, last_input_row};
-use crate::arith::sat_i8;
+use crate::arith::sat_u8;
 use crate::format::QuantModel;
 use crate::input::ImageView;
 use crate::kernels::conv::{ConvParams, PartRows, conv_row};
-use crate::kernels::eltwise::{Skip, residual_relu_i8};
+use crate::kernels::eltwise::{Skip, residual_relu_u8};
 use crate::kernels::norm::{ChannelNorm, normalize, stats_from_sums};
 use crate::kernels::{Elem, OutRow};
 use crate::model::config::Config;
@@ -124,7 +124,7 @@ impl Source for ImageRows<'_, '_> {
 pub struct ConvStage<'a, S: Source> {
     src: S,
     id: ConvId,
-    out: Ring<'a, i8>,
+    out: Ring<'a, u8>,
     w: usize,
 }
 
@@ -132,7 +132,7 @@ impl<'a, S: Source> Source for ConvStage<'a, S>
 where
     S::T: Elem + bytemuck::Pod,
 {
-    type T = i8;
+    type T = u8;
     fn ensure(&mut self, row: usize, m: &QuantModel<'_>, s: &mut Scratch<'_>) {
         let p = conv(m, self.id);
         while self.out.produced() <= row.min(self.out.rows() - 1) {
@@ -140,13 +140,13 @@ where
             self.src.ensure(last_input_row(y, p.k, p.stride, self.src.rows()), m, s);
             let rows = self.src.part_rows(y, p.k, p.stride);
             let w_in = self.src.width();
-            run_conv(&p, &[rows], w_in, &mut OutRow::I8(self.out.push()), s.patch);
+            run_conv(&p, &[rows], w_in, &mut OutRow::U8(self.out.push()), s.patch);
         }
     }
-    fn part_rows(&self, y: usize, k: usize, stride: usize) -> PartRows<'_, i8> {
+    fn part_rows(&self, y: usize, k: usize, stride: usize) -> PartRows<'_, u8> {
         self.out.part_rows(y, k, stride)
     }
-    fn row(&self, r: usize) -> &[i8] {
+    fn row(&self, r: usize) -> &[u8] {
         self.out.row(r)
     }
     fn rows(&self) -> usize {
@@ -159,20 +159,20 @@ where
 
 /// A residual block (BatchNorm folded): `out = relu(skip + relu(c2(relu(c1(x)))))`, skip = x or a
 /// 1x1 downsample conv.
-pub struct Block<'a, S: Source<T = i8>> {
+pub struct Block<'a, S: Source<T = u8>> {
     src: S,
     ids: [ConvId; 2],
     ds: Option<ConvId>,
     stride: usize,
     skip_frac: i8,
     out_frac: i8,
-    mid: Ring<'a, i8>,
-    out: Ring<'a, i8>,
+    mid: Ring<'a, u8>,
+    out: Ring<'a, u8>,
     w: usize,
 }
 
-impl<'a, S: Source<T = i8>> Source for Block<'a, S> {
-    type T = i8;
+impl<'a, S: Source<T = u8>> Source for Block<'a, S> {
+    type T = u8;
     fn ensure(&mut self, row: usize, m: &QuantModel<'_>, s: &mut Scratch<'_>) {
         let (p1, p2) = (conv(m, self.ids[0]), conv(m, self.ids[1]));
         let w_in = self.src.width();
@@ -183,7 +183,7 @@ impl<'a, S: Source<T = i8>> Source for Block<'a, S> {
                 let r = self.mid.produced();
                 self.src.ensure(last_input_row(r, 3, self.stride, self.src.rows()), m, s);
                 let rows = self.src.part_rows(r, 3, self.stride);
-                run_conv(&p1, &[rows], w_in, &mut OutRow::I8(self.mid.push()), s.patch);
+                run_conv(&p1, &[rows], w_in, &mut OutRow::U8(self.mid.push()), s.patch);
             }
             let n = self.w * p2.cout;
             run_conv(&p2, &[self.mid.part_rows(y, 3, 1)], self.w, &mut OutRow::I16(&mut s.c2[..n]), s.patch);
@@ -195,13 +195,13 @@ impl<'a, S: Source<T = i8>> Source for Block<'a, S> {
                 }
                 None => Skip::Input { x: self.src.row(y), frac: self.skip_frac },
             };
-            residual_relu_i8(&s.c2[..n], skip, self.out_frac, self.out.push());
+            residual_relu_u8(&s.c2[..n], skip, self.out_frac, self.out.push());
         }
     }
-    fn part_rows(&self, y: usize, k: usize, stride: usize) -> PartRows<'_, i8> {
+    fn part_rows(&self, y: usize, k: usize, stride: usize) -> PartRows<'_, u8> {
         self.out.part_rows(y, k, stride)
     }
-    fn row(&self, r: usize) -> &[i8] {
+    fn row(&self, r: usize) -> &[u8] {
         self.out.row(r)
     }
     fn rows(&self) -> usize {
@@ -221,14 +221,14 @@ fn in_frac(m: &QuantModel<'_>, id: ConvId) -> i8 {
 }
 
 #[allow(clippy::too_many_arguments)]
-fn block<'a, S: Source<T = i8>>(
+fn block<'a, S: Source<T = u8>>(
     src: S,
     m: &QuantModel<'_>,
     ids: [ConvId; 2],
     ds: Option<ConvId>,
     out_act: Act,
     c: usize,
-    bufs: (&'a mut [i8], &'a mut [i8]),
+    bufs: (&'a mut [u8], &'a mut [u8]),
     out_cap: usize,
 ) -> Block<'a, S> {
     let stride = if ds.is_some() && ids[0].shape(m.config()).is_some_and(|s| s.stride == 2) { 2 } else { 1 };
@@ -295,17 +295,17 @@ impl TrunkLayout {
     }
 }
 
-/// Streams one image through conv1 .. layer3 into `l3` (HWC i8, `h8 x w8 x d3`).
-pub fn trunk(m: &QuantModel<'_>, img: &ImageView<'_>, g: &Grid, rings: &mut [u8], patch: &mut [u8], l3: &mut [i8]) {
+/// Streams one image through conv1 .. layer3 into `l3` (HWC u8, `h8 x w8 x d3`).
+pub fn trunk(m: &QuantModel<'_>, img: &ImageView<'_>, g: &Grid, rings: &mut [u8], patch: &mut [u8], l3: &mut [u8]) {
     let cfg = *m.config();
     let [d1, d2, d3] = cfg.backbone_dims;
     let lay = TrunkLayout::new(&cfg, g);
     let mut cv = Carver::new(rings);
     let image = ImageRows { img, ring: Ring::new(cv.i16(lay.image), 7, g.w * 3, g.h), w: g.w };
-    let c1 = ConvStage { src: image, id: Conv1, out: Ring::new(cv.i8(lay.c1), 3, g.w2 * d1, g.h2), w: g.w2 };
-    let mut take = |i: usize| -> (&mut [i8], &mut [i8]) {
+    let c1 = ConvStage { src: image, id: Conv1, out: Ring::new(cv.u8(lay.c1), 3, g.w2 * d1, g.h2), w: g.w2 };
+    let mut take = |i: usize| -> (&mut [u8], &mut [u8]) {
         let (a, b) = lay.blocks[i];
-        (cv.i8(a), cv.i8(b))
+        (cv.u8(a), cv.u8(b))
     };
     let b0 = take(0);
     let b1 = take(1);
@@ -369,12 +369,12 @@ impl HeadLayout {
 }
 
 /// Context heads on the 1/8 (or 1/16) features: block + 3x3 conv; the output rows go to `out`
-/// (HWC, `i16` for the hidden state, `i8` for the context).
+/// (HWC, `i16` for the hidden state, `u8` for the context).
 #[allow(clippy::too_many_arguments)]
-fn head(m: &QuantModel<'_>, x: &[i8], h: usize, w: usize, ids: [ConvId; 3], out_act: Act, lay: &HeadLayout, rings: &mut [u8], patch: &mut [u8], out: OutRow<'_>) {
+fn head(m: &QuantModel<'_>, x: &[u8], h: usize, w: usize, ids: [ConvId; 3], out_act: Act, lay: &HeadLayout, rings: &mut [u8], patch: &mut [u8], out: OutRow<'_>) {
     let d3 = m.config().backbone_dims[2];
     let mut cv = Carver::new(rings);
-    let bufs = (cv.i8(lay.blocks[0].0), cv.i8(lay.blocks[0].1));
+    let bufs = (cv.u8(lay.blocks[0].0), cv.u8(lay.blocks[0].1));
     let c2 = cv.i16(lay.c2);
     let ds = cv.i16(lay.ds);
     let mut b = block(Full { data: x, h, w, c: d3 }, m, [ids[0], ids[1]], None, out_act, d3, bufs, 3);
@@ -387,17 +387,18 @@ fn head(m: &QuantModel<'_>, x: &[i8], h: usize, w: usize, ids: [ConvId; 3], out_
         let rows = b.part_rows(y, 3, 1);
         match &mut out {
             OutRow::I8(o) => run_conv(&p, &[rows], w, &mut OutRow::I8(&mut o[y * n..(y + 1) * n]), s.patch),
+            OutRow::U8(o) => run_conv(&p, &[rows], w, &mut OutRow::U8(&mut o[y * n..(y + 1) * n]), s.patch),
             OutRow::I16(o) => run_conv(&p, &[rows], w, &mut OutRow::I16(&mut o[y * n..(y + 1) * n]), s.patch),
         }
     }
 }
 
 /// layer4 (two blocks, the first with stride 2) from `l3` into `l4`.
-fn layer4(m: &QuantModel<'_>, l3: &[i8], g: &Grid, lay: &HeadLayout, rings: &mut [u8], patch: &mut [u8], l4: &mut [i8]) {
+fn layer4(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &HeadLayout, rings: &mut [u8], patch: &mut [u8], l4: &mut [u8]) {
     let d3 = m.config().backbone_dims[2];
     let mut cv = Carver::new(rings);
-    let b0 = (cv.i8(lay.blocks[0].0), cv.i8(lay.blocks[0].1));
-    let b1 = (cv.i8(lay.blocks[1].0), cv.i8(lay.blocks[1].1));
+    let b0 = (cv.u8(lay.blocks[0].0), cv.u8(lay.blocks[0].1));
+    let b1 = (cv.u8(lay.blocks[1].0), cv.u8(lay.blocks[1].1));
     let c2 = cv.i16(lay.c2);
     let ds = cv.i16(lay.ds);
     let x = block(Full { data: l3, h: g.h8, w: g.w8, c: d3 }, m, [L4b0c1, L4b0c2], Some(L4b0ds), Act::L4b0o, d3, b0, 3);
@@ -414,7 +415,7 @@ fn layer4(m: &QuantModel<'_>, l3: &[i8], g: &Grid, lay: &HeadLayout, rings: &mut
 /// InstanceNorm statistics need whole maps, so the rows are computed three times: conv1 for its
 /// statistics, conv1 + norm + conv2 for the second statistics, then everything for the output.
 #[allow(clippy::too_many_arguments)]
-fn features(m: &QuantModel<'_>, l3: &[i8], g: &Grid, lay: &HeadLayout, rings: &mut [u8], patch: &mut [u8], norms: &mut [i64], f: &mut [i8]) {
+fn features(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &HeadLayout, rings: &mut [u8], patch: &mut [u8], norms: &mut [i64], f: &mut [i8]) {
     let d3 = m.config().backbone_dims[2];
     let (h, w) = (g.h8, g.w8);
     let n = (h * w) as i64;
@@ -424,19 +425,19 @@ fn features(m: &QuantModel<'_>, l3: &[i8], g: &Grid, lay: &HeadLayout, rings: &m
         (frac(m, Act::FmapRaw1), frac(m, Act::FmapMid), frac(m, Act::FmapRaw2), frac(m, Act::FmapBlk), frac(m, Act::L3b1o));
     let mut cv = Carver::new(rings);
     let raw = cv.i16(lay.raw);
-    let mid_buf = cv.i8(lay.mid);
-    let blk_buf = cv.i8(lay.blk);
+    let mid_buf = cv.u8(lay.mid);
+    let blk_buf = cv.u8(lay.blk);
     let ybuf = cv.i16(lay.y);
     let row = w * d3;
     let (st1, st2) = norms.split_at_mut(2 * d3);
     // Pass 1: statistics of conv1.
     accumulate_stats(st1, d3, |r, out| run_conv(&p1, &[src.part_rows(r, 3, 1)], w, &mut OutRow::I16(out), patch), h, raw, row);
     let stats1 = finish_stats(st1, d3, n, f_raw1);
-    // mid row r = relu(norm(conv1 row r)) as i8
-    let mid_row = |r: usize, raw: &mut [i16], patch: &mut [u8], dst: &mut [i8]| {
+    // mid row r = relu(norm(conv1 row r)) as u8 (the saturation is the ReLU)
+    let mid_row = |r: usize, raw: &mut [i16], patch: &mut [u8], dst: &mut [u8]| {
         run_conv(&p1, &[src.part_rows(r, 3, 1)], w, &mut OutRow::I16(&mut raw[..row]), patch);
         for (i, (d, v)) in dst.iter_mut().zip(raw.iter()).enumerate() {
-            *d = sat_i8(normalize(*v, stat(stats1, i % d3), f_mid).max(0));
+            *d = sat_u8(normalize(*v, stat(stats1, i % d3), f_mid));
         }
     };
     // Pass 2: statistics of conv2 over the normalised conv1 rows.
@@ -468,7 +469,7 @@ fn features(m: &QuantModel<'_>, l3: &[i8], g: &Grid, lay: &HeadLayout, rings: &m
             for (i, v) in ybuf[..row].iter_mut().enumerate() {
                 *v = crate::arith::sat_i16(normalize(*v, stat(stats2, i % d3), f_blk).max(0));
             }
-            residual_relu_i8(&ybuf[..row], Skip::Input { x: &l3[r * row..(r + 1) * row], frac: f_l3 }, f_blk, blk.push());
+            residual_relu_u8(&ybuf[..row], Skip::Input { x: &l3[r * row..(r + 1) * row], frac: f_l3 }, f_blk, blk.push());
         }
         run_conv(&p3, &[blk.part_rows(y, 3, 1)], w, &mut OutRow::I8(&mut f[y * fo..(y + 1) * fo]), patch);
     }
@@ -518,18 +519,18 @@ pub struct ContextOut<'a> {
     pub net08: &'a mut [i16],
     /// 1/16 hidden state.
     pub net16: &'a mut [i16],
-    /// 1/8 context (i8).
-    pub inp08: &'a mut [i8],
+    /// 1/8 context (u8).
+    pub inp08: &'a mut [u8],
     /// 1/16 context.
-    pub inp16: &'a mut [i8],
+    pub inp16: &'a mut [u8],
 }
 
 /// Encoder scratch for one image.
 pub struct EncoderScratch<'a> {
     /// layer3 (whole).
-    pub l3: &'a mut [i8],
+    pub l3: &'a mut [u8],
     /// layer4 (whole).
-    pub l4: &'a mut [i8],
+    pub l4: &'a mut [u8],
     /// InstanceNorm statistics.
     pub norms: &'a mut [i64],
     /// Line buffers.
@@ -547,9 +548,9 @@ pub fn encode(m: &QuantModel<'_>, img: &ImageView<'_>, g: &Grid, s: EncoderScrat
     if let Some(ctx) = out.context {
         use Act as A;
         head(m, s.l3, g.h8, g.w8, [H08nC1, H08nC2, H08nOut], A::H08no, &lay, s.rings, s.patch, OutRow::I16(ctx.net08));
-        head(m, s.l3, g.h8, g.w8, [H08cC1, H08cC2, H08cOut], A::H08co, &lay, s.rings, s.patch, OutRow::I8(ctx.inp08));
+        head(m, s.l3, g.h8, g.w8, [H08cC1, H08cC2, H08cOut], A::H08co, &lay, s.rings, s.patch, OutRow::U8(ctx.inp08));
         layer4(m, s.l3, g, &lay, s.rings, s.patch, s.l4);
         head(m, s.l4, g.h16, g.w16, [H16nC1, H16nC2, H16nOut], A::H16no, &lay, s.rings, s.patch, OutRow::I16(ctx.net16));
-        head(m, s.l4, g.h16, g.w16, [H16cC1, H16cC2, H16cOut], A::H16co, &lay, s.rings, s.patch, OutRow::I8(ctx.inp16));
+        head(m, s.l4, g.h16, g.w16, [H16cC1, H16cC2, H16cOut], A::H16co, &lay, s.rings, s.patch, OutRow::U8(ctx.inp16));
     }
 }

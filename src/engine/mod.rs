@@ -194,9 +194,9 @@ pub fn encode_image(m: &QuantModel<'_>, plan: &Plan, arena: &mut [u8], img: &Ima
     let (fr, px, e) = (plan.frame, plan.pixel, plan.encoder);
     let mut cv = Carver::new(&mut arena[..plan.ram_bytes]);
     let (f1, f2) = (cv.i8(fr.f1), cv.i8(fr.f2));
-    let (net08, net16, inp08, inp16) = (cv.i16(fr.net08), cv.i16(fr.net16), cv.i8(fr.inp08), cv.i8(fr.inp16));
+    let (net08, net16, inp08, inp16) = (cv.i16(fr.net08), cv.i16(fr.net16), cv.u8(fr.inp08), cv.u8(fr.inp16));
     let patch = cv.raw(px.patch);
-    let scratch = encoder::EncoderScratch { l3: cv.i8(e.l3), l4: cv.i8(e.l4), norms: cv.i64(e.norm), rings: cv.raw(e.rings), patch };
+    let scratch = encoder::EncoderScratch { l3: cv.u8(e.l3), l4: cv.u8(e.l4), norms: cv.i64(e.norm), rings: cv.raw(e.rings), patch };
     let out = if left {
         encoder::EncoderOut { features: f1, context: Some(encoder::ContextOut { net08, net16, inp08, inp16 }) }
     } else {
@@ -218,8 +218,8 @@ pub fn refine_ctx<'f, 'm, 'a>(m: &'m QuantModel<'a>, plan: &Plan, arena: &'f mut
         f2: cv.i8(fr.f2),
         net08: cv.i16(fr.net08),
         net16: cv.i16(fr.net16),
-        inp08: cv.i8(fr.inp08),
-        inp16: cv.i8(fr.inp16),
+        inp08: cv.u8(fr.inp08),
+        inp16: cv.u8(fr.inp16),
     };
     let (patch, window, prefix, peaks_row) = (cv.raw(px.patch), cv.i32(px.window), cv.i64(px.prefix), cv.i32(px.peaks_row));
     let attn = cv.raw(px.attn);

@@ -118,7 +118,7 @@ pub struct FrameBufs {
     pub net08: Buf,
     /// 1/16 hidden state.
     pub net16: Buf,
-    /// 1/8 context, i8 `n8 x context`.
+    /// 1/8 context, u8 `n8 x context`.
     pub inp08: Buf,
     /// 1/16 context.
     pub inp16: Buf,
@@ -127,9 +127,9 @@ pub struct FrameBufs {
 /// Encoder scratch (one image at a time).
 #[derive(Clone, Copy, Debug, Default)]
 pub struct EncoderBufs {
-    /// layer3 output, i8 `n8 x d3` (whole).
+    /// layer3 output, u8 `n8 x d3` (whole).
     pub l3: Buf,
-    /// layer4 output, i8 `n16 x d3` (whole).
+    /// layer4 output, u8 `n16 x d3` (whole).
     pub l4: Buf,
     /// Line buffers of the trunk and of the 1/8 and 1/16 heads (overlapping: trunk first).
     pub rings: Buf,

@@ -34,10 +34,10 @@ pub struct Frame<'a> {
     pub net08: &'a mut [i16],
     /// 1/16 hidden state.
     pub net16: &'a mut [i16],
-    /// 1/8 context.
-    pub inp08: &'a [i8],
+    /// 1/8 context (u8).
+    pub inp08: &'a [u8],
     /// 1/16 context.
-    pub inp16: &'a [i8],
+    pub inp16: &'a [u8],
 }
 
 /// Long-lived refinement buffers.
@@ -120,8 +120,8 @@ fn lookup_row(m: &QuantModel<'_>, f1: &[i8], f2: &[i8], flow: &[i16], fc: usize,
     }
 }
 
-/// i8 context row widened to i16.
-fn widen_row(src: &[i8], dst: &mut [i16]) {
+/// u8 context row widened to i16.
+fn widen_row(src: &[u8], dst: &mut [i16]) {
     for (d, s) in dst.iter_mut().zip(src) {
         *d = *s as i16;
     }
@@ -473,7 +473,7 @@ pub fn ufi(c: &mut Ctx<'_, '_, '_>) {
 
 /// Query (or key) of pixel `p` at (x, y): 1x1 conv of the context, then RoPE.
 #[allow(clippy::too_many_arguments)]
-fn qk_pixel(p: &ConvParams<'_>, inp08: &[i8], ctx: usize, x: usize, y: usize, w: usize, phases: &[u32], patch: &mut [u8], out: &mut [i16]) {
+fn qk_pixel(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, x: usize, y: usize, w: usize, phases: &[u32], patch: &mut [u8], out: &mut [i16]) {
     let i = y * w + x;
     let mut r = [None; MAX_K];
     r[0] = Some(&inp08[i * ctx..(i + 1) * ctx]);

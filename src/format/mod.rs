@@ -6,12 +6,12 @@
 //! | offset | size | content |
 //! |---|---|---|
 //! | 0 | 4 | magic `MUIQ` |
-//! | 4 | 2 | format version ([`VERSION`]) |
+//! | 4 | 2 | format version ([`VERSION`]; 2: backbone and context activations are u8) |
 //! | 6 | 2 | 0 |
 //! | 8 | 4 | total length in bytes |
 //! | 12 | 4 | CRC-32 (IEEE) of bytes `16..total` |
 //! | 16 | 128 | config record ([`config_record`]) |
-//! | 144 | 2 x `Act::COUNT` | activation formats: bits (u8), fraction bits (i8) |
+//! | 144 | 2 x `Act::COUNT` | activation formats: bits (u8), fraction bits (i8); signedness is the slot's ([`Act::unsigned`]) |
 //! | .. | 64 + 8 + 4 + 4 x pairs | extras: lookup multipliers per level (8 slots), attention logit multiplier, RoPE pair count and phase steps |
 //! | .. | 2050 | uncertainty table (1025 x i16, Q4.11 logit to Q4.11 `u`) |
 //! | .. | 8 x `ConvId::COUNT` | layer directory: offset (u32), length (u32); 0 = absent |
@@ -42,7 +42,7 @@ use crate::model::layers::ConvId;
 /// Magic bytes.
 pub const MAGIC: [u8; 4] = *b"MUIQ";
 /// Format version written and read by this crate.
-pub const VERSION: u16 = 1;
+pub const VERSION: u16 = 2;
 /// Size of the fixed header.
 pub const HEADER_LEN: usize = 16;
 /// Size of the config record.
@@ -378,7 +378,8 @@ impl<'a> QuantModel<'a> {
         let mut formats = [QFormat::i8(0); Act::COUNT];
         for &act in Act::ALL {
             let o = FORMATS_AT + 2 * act.index();
-            let f = QFormat { bits: blob[o], frac: blob[o + 1] as i8 };
+            // Signedness is the slot's (the arithmetic spec's), not the blob's.
+            let f = QFormat { bits: blob[o], frac: blob[o + 1] as i8, unsigned: act.unsigned() };
             let fixed_ok = act.fixed_format().is_none_or(|x| x == f);
             if f.bits != act.bits() || !fixed_ok || !(-24..=40).contains(&f.frac) {
                 return Err(BlobError::Format { act });

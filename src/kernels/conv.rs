@@ -232,7 +232,14 @@ mod tests {
         (w, encode_bias(&b), encode_mults(&m))
     }
 
-    fn check<T: Elem>(make: impl Fn(&mut Rng) -> T, k: usize, stride: usize, parts: &[usize], cout: usize, post: PostOp, out16: bool) {
+    #[derive(Clone, Copy, PartialEq)]
+    enum Out {
+        I8,
+        U8,
+        I16,
+    }
+
+    fn check<T: Elem>(make: impl Fn(&mut Rng) -> T, k: usize, stride: usize, parts: &[usize], cout: usize, post: PostOp, out: Out) {
         let mut r = Rng(0xC0FFEE + k as u64 * 31 + stride as u64);
         let (h, w) = (7, 9);
         let (wts, bias, mult) = random_layer(&mut r, k, stride, parts, cout, post);
@@ -242,38 +249,52 @@ mod tests {
         let (ho, wo) = ((h + 2 * (k / 2) - k) / stride + 1, p.out_width(w));
         let mut a16 = vec![0i16; ho * wo * cout];
         let mut a8 = vec![0i8; ho * wo * cout];
+        let mut au = vec![0u8; ho * wo * cout];
         let mut b16 = a16.clone();
         let mut b8 = a8.clone();
+        let mut bu = au.clone();
         {
-            let mut out = if out16 { OutRow::I16(&mut a16) } else { OutRow::I8(&mut a8) };
-            conv_plain(&p, &refs, h, w, &mut out);
+            let mut o = match out {
+                Out::I16 => OutRow::I16(&mut a16),
+                Out::I8 => OutRow::I8(&mut a8),
+                Out::U8 => OutRow::U8(&mut au),
+            };
+            conv_plain(&p, &refs, h, w, &mut o);
         }
         let mut patch = vec![T::default(); p.patch_len()];
         for oy in 0..ho {
             let rows: Vec<PartRows<T>> =
                 tensors.iter().zip(parts).map(|(t, &c)| PartRows::of_tensor(t, h, w * c, oy, k, stride)).collect();
-            let mut out = if out16 {
-                OutRow::I16(&mut b16[oy * wo * cout..(oy + 1) * wo * cout])
-            } else {
-                OutRow::I8(&mut b8[oy * wo * cout..(oy + 1) * wo * cout])
+            let r = oy * wo * cout..(oy + 1) * wo * cout;
+            let mut o = match out {
+                Out::I16 => OutRow::I16(&mut b16[r]),
+                Out::I8 => OutRow::I8(&mut b8[r]),
+                Out::U8 => OutRow::U8(&mut bu[r]),
             };
-            conv_row(&p, &rows, w, &mut out, &mut patch);
+            conv_row(&p, &rows, w, &mut o, &mut patch);
         }
         assert_eq!(a16, b16);
         assert_eq!(a8, b8);
-        assert!(a16.iter().any(|v| *v != 0) || a8.iter().any(|v| *v != 0), "all zero: k {k} s {stride} {parts:?} {post:?} {out16}");
+        assert_eq!(au, bu);
+        let nonzero = a16.iter().any(|v| *v != 0) || a8.iter().any(|v| *v != 0) || au.iter().any(|v| *v != 0);
+        assert!(nonzero, "all zero: k {k} s {stride} {parts:?} {post:?}");
     }
 
     #[test]
     fn row_kernel_matches_plain_twin() {
         for post in [PostOp::None, PostOp::Relu, PostOp::Sigmoid, PostOp::Tanh] {
-            check(|r| r.i8(), 3, 1, &[5, 3], 4, post, false);
-            check(|r| r.i8(), 3, 2, &[6], 5, post, true);
-            check(|r| r.i16(), 3, 1, &[4, 1, 7], 3, post, true);
-            check(|r| r.i16(), 1, 1, &[9], 6, post, true);
-            check(|r| r.i8(), 7, 2, &[3], 4, post, false);
-            check(|r| r.i16(), 7, 1, &[1], 4, post, true);
-            check(|r| r.i8(), 1, 2, &[4], 3, post, false);
+            check(|r| r.i8(), 3, 1, &[5, 3], 4, post, Out::I8);
+            check(|r| r.i8(), 3, 2, &[6], 5, post, Out::I16);
+            check(|r| r.i16(), 3, 1, &[4, 1, 7], 3, post, Out::I16);
+            check(|r| r.i16(), 1, 1, &[9], 6, post, Out::I16);
+            check(|r| r.i8(), 7, 2, &[3], 4, post, Out::I8);
+            check(|r| r.i16(), 7, 1, &[1], 4, post, Out::I16);
+            check(|r| r.i8(), 1, 2, &[4], 3, post, Out::I8);
+            // u8 (ReLU) activations: the backbone and the context.
+            check(|r| r.i8() as u8, 3, 1, &[5, 3], 4, post, Out::U8);
+            check(|r| r.i8() as u8, 3, 2, &[6], 5, post, Out::I16);
+            check(|r| r.i8() as u8, 1, 2, &[4], 3, post, Out::U8);
+            check(|r| r.i16(), 7, 2, &[3], 4, post, Out::U8);
         }
     }
 }

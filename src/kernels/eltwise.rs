@@ -1,17 +1,18 @@
 //! Element-wise integer operations: residual add, GRU blend, Q0.15 products, format changes.
 
-use crate::arith::{rescale, rshift_round, sat_i16, sat_i8};
+use crate::arith::{rescale, rshift_round, sat_i16, sat_u8};
 
-/// `out = relu(y + rescale(skip))`: residual-block output. `y` is the block's second conv,
-/// requantised to the output format (`out_frac`) but kept in i16 so the sum saturates only once;
-/// `skip` is the block input in `skip_frac` (i8) or the downsample conv output in `out_frac`.
-pub fn residual_relu_i8(y: &[i16], skip: Skip<'_>, out_frac: i8, out: &mut [i8]) {
+/// `out = relu(y + rescale(skip))`: residual-block output (u8, so the ReLU is the saturation).
+/// `y` is the block's second conv, requantised to the output format (`out_frac`) but kept in i16
+/// so the sum saturates only once; `skip` is the block input in `skip_frac` (u8) or the
+/// downsample conv output in `out_frac`.
+pub fn residual_relu_u8(y: &[i16], skip: Skip<'_>, out_frac: i8, out: &mut [u8]) {
     for (i, o) in out.iter_mut().enumerate() {
         let s = match skip {
             Skip::Input { x, frac } => rescale(x[i] as i64, frac, out_frac),
             Skip::Projected(p) => p[i] as i64,
         };
-        *o = sat_i8((y[i] as i64 + s).max(0));
+        *o = sat_u8(y[i] as i64 + s);
     }
 }
 
@@ -21,7 +22,7 @@ pub enum Skip<'a> {
     /// The block input itself, with its fraction bits.
     Input {
         /// Values.
-        x: &'a [i8],
+        x: &'a [u8],
         /// Fraction bits of `x`.
         frac: i8,
     },
@@ -84,8 +85,8 @@ mod tests {
         let mut o = [0i16; 2];
         mul_q15(&[1000, -1000], &[16384, 16384], &mut o);
         assert_eq!(o, [500, -500]);
-        let mut o8 = [0i8; 3];
-        residual_relu_i8(&[10, -50, 120], Skip::Input { x: &[8, 8, 40], frac: 2 }, 1, &mut o8);
-        assert_eq!(o8, [14, 0, 127]);
+        let mut o8 = [0u8; 4];
+        residual_relu_u8(&[10, -50, 120, 250], Skip::Input { x: &[8, 8, 40, 40], frac: 2 }, 1, &mut o8);
+        assert_eq!(o8, [14, 0, 140, 255]);
     }
 }

@@ -14,10 +14,12 @@ pub mod norm;
 pub mod resample;
 pub mod upsample;
 
-/// Activation storage type: `i8` or `i16`.
+/// Activation storage type: `i8`, `u8` or `i16`.
 pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + 'static {
     /// Storage width in bits.
     const BITS: u8;
+    /// Storage format with 0 fraction bits (`QFormat::{i8, u8, i16}(0)`).
+    const STORAGE: crate::arith::QFormat;
     /// Widening conversion.
     fn to_i32(self) -> i32;
     /// Saturating narrowing.
@@ -30,6 +32,7 @@ pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + 'static {
 
 impl Elem for i8 {
     const BITS: u8 = 8;
+    const STORAGE: crate::arith::QFormat = crate::arith::QFormat::i8(0);
     #[inline(always)]
     fn to_i32(self) -> i32 {
         self as i32
@@ -52,8 +55,35 @@ impl Elem for i8 {
     }
 }
 
+impl Elem for u8 {
+    const BITS: u8 = 8;
+    const STORAGE: crate::arith::QFormat = crate::arith::QFormat::u8(0);
+    #[inline(always)]
+    fn to_i32(self) -> i32 {
+        self as i32
+    }
+    #[inline(always)]
+    fn from_i64_sat(v: i64) -> Self {
+        crate::arith::sat_u8(v)
+    }
+    #[inline]
+    fn dot(w: &[i8], x: &[u8]) -> i64 {
+        // |w*x| <= 128 * 255 < 2^15, so an i32 sum is exact for up to 2^16 terms (every layer
+        // has fewer).
+        let mut acc = 0i32;
+        for (a, b) in w.iter().zip(x) {
+            acc += *a as i32 * *b as i32;
+        }
+        acc as i64
+    }
+    fn as_out(d: &mut [u8]) -> OutRow<'_> {
+        OutRow::U8(d)
+    }
+}
+
 impl Elem for i16 {
     const BITS: u8 = 16;
+    const STORAGE: crate::arith::QFormat = crate::arith::QFormat::i16(0);
     #[inline(always)]
     fn to_i32(self) -> i32 {
         self as i32
@@ -90,6 +120,8 @@ pub fn dot_plain<T: Elem>(w: &[i8], x: &[T]) -> i64 {
 pub enum OutRow<'a> {
     /// i8 storage.
     I8(&'a mut [i8]),
+    /// u8 storage (ReLU outputs).
+    U8(&'a mut [u8]),
     /// i16 storage.
     I16(&'a mut [i16]),
 }
@@ -100,6 +132,7 @@ impl OutRow<'_> {
     pub fn set(&mut self, i: usize, v: i64) {
         match self {
             OutRow::I8(r) => r[i] = crate::arith::sat_i8(v),
+            OutRow::U8(r) => r[i] = crate::arith::sat_u8(v),
             OutRow::I16(r) => r[i] = crate::arith::sat_i16(v),
         }
     }
@@ -107,6 +140,7 @@ impl OutRow<'_> {
     pub fn len(&self) -> usize {
         match self {
             OutRow::I8(r) => r.len(),
+            OutRow::U8(r) => r.len(),
             OutRow::I16(r) => r.len(),
         }
     }
@@ -150,6 +184,9 @@ mod tests {
         for n in [0, 1, 9, 255, 256, 257, 1000, 5760] {
             let w: Vec<i8> = (0..n).map(|_| r.i8()).collect();
             let x8: Vec<i8> = (0..n).map(|_| r.i8()).collect();
+            let xu: Vec<u8> = (0..n).map(|_| r.i8() as u8).collect();
+            assert_eq!(u8::dot(&w, &xu), dot_plain(&w, &xu));
+            assert_eq!(u8::dot(&vec![-128i8; n], &vec![255u8; n]), dot_plain(&vec![-128i8; n], &vec![255u8; n]));
             let x16: Vec<i16> = (0..n).map(|_| r.i16()).collect();
             assert_eq!(i8::dot(&w, &x8), dot_plain(&w, &x8));
             assert_eq!(i16::dot(&w, &x16), dot_plain(&w, &x16));

@@ -12,7 +12,7 @@ use super::layers::{ConvId, MASK_CHANNELS};
 use crate::arith::{FLOW_FRAC, GATE_FRAC, LOG_FRAC, QFormat, UNIT_FRAC};
 
 macro_rules! acts {
-    ($($id:ident = $name:literal $bits:literal $(fixed $frac:expr)?,)*) => {
+    ($($id:ident = $name:literal $ty:ident $(fixed $frac:expr)?,)*) => {
         /// An activation slot: a tensor (or family of same-format tensors) of the quantised network.
         #[allow(missing_docs)]
         #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
@@ -29,15 +29,23 @@ macro_rules! acts {
             pub const fn name(self) -> &'static str {
                 match self { $(Act::$id => $name,)* }
             }
+            /// Storage type (`i8`, `u8` or `i16`) as a format with 0 fraction bits.
+            pub const fn storage(self) -> QFormat {
+                match self { $(Act::$id => QFormat::$ty(0),)* }
+            }
             /// Storage width (8 or 16 bits).
             pub const fn bits(self) -> u8 {
-                match self { $(Act::$id => $bits,)* }
+                self.storage().bits
+            }
+            /// Unsigned storage (`u8`): the slot follows a ReLU.
+            pub const fn unsigned(self) -> bool {
+                self.storage().unsigned
             }
             /// The format when fixed by the arithmetic spec; `None` when chosen by calibration.
             pub const fn fixed_format(self) -> Option<QFormat> {
                 #[allow(unreachable_patterns)]
                 match self {
-                    $($(Act::$id => Some(QFormat { bits: $bits, frac: $frac as i8 }),)?)*
+                    $($(Act::$id => Some(QFormat::$ty($frac as i8)),)?)*
                     _ => None,
                 }
             }
@@ -52,33 +60,34 @@ macro_rules! acts {
 acts! {
     // Input image: 2 * pixel - 255 as i16 (scale 1/255, folded into conv1's weights), so that the
     // zero padding of conv1 is the normalised image's 0 as in the float network.
-    Image = "image" 16 fixed 0,
-    // Backbone, i8.
-    C1 = "c1" 8,
-    L1b0m = "l1b0m" 8, L1b0o = "l1b0o" 8, L1b1m = "l1b1m" 8, L1b1o = "l1b1o" 8,
-    L2b0m = "l2b0m" 8, L2b0o = "l2b0o" 8, L2b1m = "l2b1m" 8, L2b1o = "l2b1o" 8,
-    L3b0m = "l3b0m" 8, L3b0o = "l3b0o" 8, L3b1m = "l3b1m" 8, L3b1o = "l3b1o" 8,
-    L4b0m = "l4b0m" 8, L4b0o = "l4b0o" 8, L4b1m = "l4b1m" 8, L4b1o = "l4b1o" 8,
-    H08nm = "h08nm" 8, H08no = "h08no" 8, H08cm = "h08cm" 8, H08co = "h08co" 8,
-    H16nm = "h16nm" 8, H16no = "h16no" 8, H16cm = "h16cm" 8, H16co = "h16co" 8,
-    // Matching features: conv outputs before InstanceNorm are i16, the rest i8.
-    FmapRaw1 = "fmap_raw1" 16, FmapMid = "fmap_mid" 8, FmapRaw2 = "fmap_raw2" 16, FmapBlk = "fmap_blk" 8,
-    Fmap = "fmap" 8,
+    Image = "image" i16 fixed 0,
+    // Backbone: every tensor follows a ReLU, so u8 (twice the codes of i8 for the same range).
+    C1 = "c1" u8,
+    L1b0m = "l1b0m" u8, L1b0o = "l1b0o" u8, L1b1m = "l1b1m" u8, L1b1o = "l1b1o" u8,
+    L2b0m = "l2b0m" u8, L2b0o = "l2b0o" u8, L2b1m = "l2b1m" u8, L2b1o = "l2b1o" u8,
+    L3b0m = "l3b0m" u8, L3b0o = "l3b0o" u8, L3b1m = "l3b1m" u8, L3b1o = "l3b1o" u8,
+    L4b0m = "l4b0m" u8, L4b0o = "l4b0o" u8, L4b1m = "l4b1m" u8, L4b1o = "l4b1o" u8,
+    H08nm = "h08nm" u8, H08no = "h08no" u8, H08cm = "h08cm" u8, H08co = "h08co" u8,
+    H16nm = "h16nm" u8, H16no = "h16no" u8, H16cm = "h16cm" u8, H16co = "h16co" u8,
+    // Matching features: conv outputs before InstanceNorm are i16, the normalised (ReLU) ones u8,
+    // the features themselves (no ReLU) i8.
+    FmapRaw1 = "fmap_raw1" i16, FmapMid = "fmap_mid" u8, FmapRaw2 = "fmap_raw2" i16, FmapBlk = "fmap_blk" u8,
+    Fmap = "fmap" i8,
     // Fixed formats of the update block.
-    Gate = "gate" 16 fixed GATE_FRAC,
-    Unit = "unit" 16 fixed UNIT_FRAC,
-    Flow = "flow" 16 fixed FLOW_FRAC,
-    Log = "log" 16 fixed LOG_FRAC,
-    // Context and update block, i16.
-    // Context: i8 storage (frame-long, the largest tensors after the features); widened to i16 rows
-    // where an i16 conv reads it.
-    Inp08 = "inp08" 8, Inp16 = "inp16" 8,
-    Corr = "corr" 16,
-    MotC1 = "mot_c1" 16, MotC2 = "mot_c2" 16, MotF1 = "mot_f1" 16, MotF2 = "mot_f2" 16, MotOut = "mot_out" 16,
-    FlowMid = "flow_mid" 16, MaskMid = "mask_mid" 16, MaskLogit = "mask_logit" 16,
-    Mud1 = "mud1" 16, Mud2 = "mud2" 16,
-    UfiC = "ufi_c" 16, UfiF = "ufi_f" 16, UfiFeat = "ufi_feat" 16, UfiHead = "ufi_head" 16,
-    MgaQ = "mga_q" 16, MgaK = "mga_k" 16, MgaV = "mga_v" 16, Glb = "glb" 16,
+    Gate = "gate" i16 fixed GATE_FRAC,
+    Unit = "unit" i16 fixed UNIT_FRAC,
+    Flow = "flow" i16 fixed FLOW_FRAC,
+    Log = "log" i16 fixed LOG_FRAC,
+    // Context: u8 storage (frame-long, the largest tensors after the features; after a ReLU);
+    // widened to i16 rows where an i16 conv reads it.
+    Inp08 = "inp08" u8, Inp16 = "inp16" u8,
+    // Update block, i16.
+    Corr = "corr" i16,
+    MotC1 = "mot_c1" i16, MotC2 = "mot_c2" i16, MotF1 = "mot_f1" i16, MotF2 = "mot_f2" i16, MotOut = "mot_out" i16,
+    FlowMid = "flow_mid" i16, MaskMid = "mask_mid" i16, MaskLogit = "mask_logit" i16,
+    Mud1 = "mud1" i16, Mud2 = "mud2" i16,
+    UfiC = "ufi_c" i16, UfiF = "ufi_f" i16, UfiFeat = "ufi_feat" i16, UfiHead = "ufi_head" i16,
+    MgaQ = "mga_q" i16, MgaK = "mga_k" i16, MgaV = "mga_v" i16, Glb = "glb" i16,
 }
 
 /// What follows the requantisation of a conv output.
@@ -304,11 +313,28 @@ mod tests {
         }
     }
 
+    /// A u8 slot has no negative codes: every conv that writes it must end in a ReLU, except the
+    /// residual blocks' 1x1 downsample convs, whose i16 output is added to the block's conv and
+    /// clamped at 0 by the residual ReLU (`eltwise::residual_relu_u8`).
+    #[test]
+    fn unsigned_slots_follow_a_relu() {
+        for cfg in Config::PRESETS {
+            for &id in ConvId::ALL {
+                let Some(ql) = QLayer::of(id, &cfg) else { continue };
+                let unsigned_out = ql.out[0].unsigned() || (ql.split < usize::MAX && ql.out[1].unsigned());
+                if unsigned_out && ql.post != PostOp::Relu {
+                    assert!(id.name().contains("downsample"), "{} writes a u8 slot without a ReLU", id.name());
+                }
+            }
+        }
+    }
+
     #[test]
     fn fixed_and_calibrated_slots() {
         assert_eq!(Act::Unit.fixed_format(), Some(QFormat::i16(15)));
         assert_eq!(Act::Fmap.fixed_format(), None);
         assert_eq!(Act::Fmap.bits(), 8);
+        assert!(!Act::Fmap.unsigned() && Act::L3b1o.unsigned() && Act::Inp08.unsigned());
         for (i, a) in Act::ALL.iter().enumerate() {
             assert_eq!(a.index(), i);
         }

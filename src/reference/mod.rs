@@ -10,7 +10,7 @@ use crate::input::{ImageView, InputError, check_pair};
 use crate::kernels::attention::{attention_plain, rope_pixel};
 use crate::kernels::conv::conv_plain;
 use crate::kernels::corr::{LookupParams, lookup_pixel_plain, peaks_pixel_plain};
-use crate::kernels::eltwise::{Skip, blend_q15, mud_mask, mul_plane_q15, mul_q15, proposal_flow, residual_relu_i8};
+use crate::kernels::eltwise::{Skip, blend_q15, mud_mask, mul_plane_q15, mul_q15, proposal_flow, residual_relu_u8};
 use crate::kernels::norm::{channel_stats, normalize};
 use crate::kernels::resample::{interp_row, pool2x_row};
 use crate::kernels::upsample::upsample_pixel;
@@ -86,7 +86,7 @@ pub struct Ctx {
     pub net08: QT<i16>,
     /// 1/16 hidden state.
     pub net16: QT<i16>,
-    /// 1/8 context (stored i8, widened once here since only i16 convs read it).
+    /// 1/8 context (stored u8, widened once here since only i16 convs read it).
     pub inp08: QT<i16>,
     /// 1/16 context.
     pub inp16: QT<i16>,
@@ -113,7 +113,7 @@ impl<'m, 'a> Reference<'m, 'a> {
 
     /// `t` (CHW float) quantised into an HWC tensor of format `frac`.
     fn quantize_like<T: Elem>(&self, t: &Tensor, frac: i8) -> QT<T> {
-        let f = crate::arith::QFormat { bits: T::BITS, frac };
+        let f = crate::arith::QFormat { frac, ..T::STORAGE };
         let mut q = QT::<T>::zeros(t.h, t.w, t.c);
         for ch in 0..t.c {
             for p in 0..t.h * t.w {
@@ -150,20 +150,20 @@ impl<'m, 'a> Reference<'m, 'a> {
         }
     }
 
-    fn block(&self, x: &QT<i8>, ids: [ConvId; 2], ds: Option<ConvId>, acts: [Act; 2], tr: &mut dyn Trace) -> QT<i8> {
-        let mid: QT<i8> = self.conv(ids[0], &[x]);
+    fn block(&self, x: &QT<u8>, ids: [ConvId; 2], ds: Option<ConvId>, acts: [Act; 2], tr: &mut dyn Trace) -> QT<u8> {
+        let mid: QT<u8> = self.conv(ids[0], &[x]);
         self.record(tr, &format!("q.{}", acts[0].name()), &mid, self.frac(acts[0]));
         let y: QT<i16> = self.conv(ids[1], &[&mid]);
         let f_out = self.frac(acts[1]);
-        let mut out = QT::<i8>::zeros(y.h, y.w, y.c);
+        let mut out = QT::<u8>::zeros(y.h, y.w, y.c);
         match ds {
             Some(d) => {
                 let p: QT<i16> = self.conv(d, &[x]);
-                residual_relu_i8(&y.d, Skip::Projected(&p.d), f_out, &mut out.d);
+                residual_relu_u8(&y.d, Skip::Projected(&p.d), f_out, &mut out.d);
             }
             None => {
                 let f_in = self.in_frac(ids[0]);
-                residual_relu_i8(&y.d, Skip::Input { x: &x.d, frac: f_in }, f_out, &mut out.d)
+                residual_relu_u8(&y.d, Skip::Input { x: &x.d, frac: f_in }, f_out, &mut out.d)
             }
         }
         self.record(tr, &format!("q.{}", acts[1].name()), &out, f_out);
@@ -188,8 +188,8 @@ impl<'m, 'a> Reference<'m, 'a> {
         t
     }
 
-    fn trunk(&self, img: &QT<i16>, tr: &mut dyn Trace) -> QT<i8> {
-        let c1: QT<i8> = self.conv(Conv1, &[img]);
+    fn trunk(&self, img: &QT<i16>, tr: &mut dyn Trace) -> QT<u8> {
+        let c1: QT<u8> = self.conv(Conv1, &[img]);
         self.record(tr, "q.c1", &c1, self.frac(Act::C1));
         use Act as A;
         let x = self.block(&c1, [L1b0c1, L1b0c2], None, [A::L1b0m, A::L1b0o], tr);
@@ -212,18 +212,18 @@ impl<'m, 'a> Reference<'m, 'a> {
         out
     }
 
-    fn fmap(&self, l3: &QT<i8>, tr: &mut dyn Trace) -> QT<i8> {
+    fn fmap(&self, l3: &QT<u8>, tr: &mut dyn Trace) -> QT<i8> {
         let raw1: QT<i16> = self.conv(FmapC1, &[l3]);
         self.record(tr, "q.fmap_raw1", &raw1, self.frac(Act::FmapRaw1));
         let mid16 = self.instance_norm_relu(&raw1, self.frac(Act::FmapRaw1), self.frac(Act::FmapMid));
-        let mid = QT { h: mid16.h, w: mid16.w, c: mid16.c, d: mid16.d.iter().map(|v| i8::from_i64_sat(*v as i64)).collect() };
+        let mid = QT { h: mid16.h, w: mid16.w, c: mid16.c, d: mid16.d.iter().map(|v| u8::from_i64_sat(*v as i64)).collect() };
         self.record(tr, "q.fmap_mid", &mid, self.frac(Act::FmapMid));
         let raw2: QT<i16> = self.conv(FmapC2, &[&mid]);
         self.record(tr, "q.fmap_raw2", &raw2, self.frac(Act::FmapRaw2));
         let f_blk = self.frac(Act::FmapBlk);
         let y = self.instance_norm_relu(&raw2, self.frac(Act::FmapRaw2), f_blk);
-        let mut blk = QT::<i8>::zeros(y.h, y.w, y.c);
-        residual_relu_i8(&y.d, Skip::Input { x: &l3.d, frac: self.frac(Act::L3b1o) }, f_blk, &mut blk.d);
+        let mut blk = QT::<u8>::zeros(y.h, y.w, y.c);
+        residual_relu_u8(&y.d, Skip::Input { x: &l3.d, frac: self.frac(Act::L3b1o) }, f_blk, &mut blk.d);
         self.record(tr, "q.fmap_blk", &blk, f_blk);
         let f: QT<i8> = self.conv(FmapOut, &[&blk]);
         self.record(tr, "q.fmap", &f, self.frac(Act::Fmap));
@@ -244,13 +244,13 @@ impl<'m, 'a> Reference<'m, 'a> {
         let f2 = self.fmap(&xr, tr);
         self.record(tr, "fmap1", &f1, self.frac(A::Fmap));
         self.record(tr, "fmap2", &f2, self.frac(A::Fmap));
-        let head = |x: &QT<i8>, ids: [ConvId; 3], acts: [Act; 2], tr: &mut dyn Trace| -> QT<i16> {
+        let head = |x: &QT<u8>, ids: [ConvId; 3], acts: [Act; 2], tr: &mut dyn Trace| -> QT<i16> {
             let b = self.block(x, [ids[0], ids[1]], None, acts, tr);
             self.conv(ids[2], &[&b])
         };
-        let head8 = |x: &QT<i8>, ids: [ConvId; 3], acts: [Act; 2], tr: &mut dyn Trace| -> QT<i16> {
+        let head8 = |x: &QT<u8>, ids: [ConvId; 3], acts: [Act; 2], tr: &mut dyn Trace| -> QT<i16> {
             let b = self.block(x, [ids[0], ids[1]], None, acts, tr);
-            widen(&self.conv::<i8, i8>(ids[2], &[&b]))
+            widen(&self.conv::<u8, u8>(ids[2], &[&b]))
         };
         let net08 = head(&xl, [H08nC1, H08nC2, H08nOut], [A::H08nm, A::H08no], tr);
         let inp08 = head8(&xl, [H08cC1, H08cC2, H08cOut], [A::H08cm, A::H08co], tr);
@@ -393,8 +393,8 @@ impl<'m, 'a> Reference<'m, 'a> {
         let cfg = *self.cfg();
         let mut c = self.encode(left, right, tr);
         if let (Some(a), Some(b)) = (self.injected("inp08"), self.injected("inp16")) {
-            c.inp08 = widen(&self.quantize_like::<i8>(a, self.frac(A::Inp08)));
-            c.inp16 = widen(&self.quantize_like::<i8>(b, self.frac(A::Inp16)));
+            c.inp08 = widen(&self.quantize_like::<u8>(a, self.frac(A::Inp08)));
+            c.inp16 = widen(&self.quantize_like::<u8>(b, self.frac(A::Inp16)));
         }
         if let (Some(a), Some(b)) = (self.injected("fmap1"), self.injected("fmap2")) {
             c.f1 = self.quantize_like(a, self.frac(A::Fmap));
@@ -555,8 +555,8 @@ impl<'m, 'a> Reference<'m, 'a> {
     }
 }
 
-/// i8 tensor as i16 (same values).
-pub fn widen(x: &QT<i8>) -> QT<i16> {
+/// u8 tensor as i16 (same values).
+pub fn widen(x: &QT<u8>) -> QT<i16> {
     QT { h: x.h, w: x.w, c: x.c, d: x.d.iter().map(|v| *v as i16).collect() }
 }
 
