@@ -5,6 +5,11 @@
 //!    (`Reference::with_injected`): the backbone trunk output, the matching features, the context,
 //!    the UFI peaks, or the whole initial state (disparity + hidden state). Each injected tensor is
 //!    quantised to its slot, so what an injection removes is the noise accumulated upstream of it.
+//! 3. the float network with only its weights rounded (per output channel, symmetric, to +-127 as
+//!    in the blob, or to finer steps) and float activations: how much of the difference the int8
+//!    weights of the encoder (layers reading u8 slots) and of the update block cause on their own
+//!    (the blob scales each input part of a multi-part layer separately, so the update block's
+//!    figure here is an upper bound).
 //!
 //! `cargo run --release --example quant_drift [-- MODEL_STEM]` (default `models/muir-slim`).
 
@@ -16,6 +21,8 @@ mod crops;
 use muir::calib::Records;
 use muir::float::{FloatModel, FloatWeights, NoTrace};
 use muir::format::QuantModel;
+use muir::model::graph::{Act, QLayer};
+use muir::model::layers::ConvId;
 use muir::reference::Reference;
 
 use crops::{H, W};
@@ -30,7 +37,8 @@ fn compare(float: &[f32], fixed: &[i16]) -> (f64, usize) {
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let stem = std::env::args().nth(1).unwrap_or_else(|| "models/muir-slim".into());
-    let float = FloatModel::new(FloatWeights::from_safetensors(&std::fs::read(format!("{stem}.safetensors"))?, None)?);
+    let weights = FloatWeights::from_safetensors(&std::fs::read(format!("{stem}.safetensors"))?, None)?;
+    let float = FloatModel::new(weights.clone());
     let blob = std::fs::read(format!("{stem}.muirq"))?;
     let q = QuantModel::parse(&blob)?;
     let pairs: Vec<_> = crops::pairs().ok_or("needs ../shared/data")?.into_iter().map(|p| (p.left, p.right)).collect();
@@ -74,6 +82,39 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             wi += w;
         }
         println!("| {what} | {:.4} | {:.2}% |", sd / n, 100.0 * wi as f64 / n);
+    }
+
+    println!("\n| weights rounded (float activations) | steps | mean abs diff (px) | within 1 px |\n|---|---|---|---|");
+    let reference: Vec<Vec<f32>> =
+        pairs.iter().map(|(l, r)| float.predict(&l.view(), &r.view(), None).map(|p| p.disparity)).collect::<Result<_, _>>()?;
+    for encoder in [true, false] {
+        for levels in [127.0f64, 511.0, 2047.0] {
+            let mut w = weights.clone();
+            let cfg = w.config;
+            for &id in ConvId::ALL {
+                let Some(ql) = QLayer::of(id, &cfg) else { continue };
+                let reads_u8 = ql.parts.iter().flatten().all(|p| p.act.unsigned() || p.act == Act::Image);
+                let Some(c) = w.get_mut(id).filter(|_| reads_u8 == encoder) else { continue };
+                let per = c.weight.len() / c.shape.cout;
+                for row in c.weight.chunks_mut(per) {
+                    let step = row.iter().fold(0f32, |m, v| m.max(v.abs())) as f64 / levels;
+                    if step > 0.0 {
+                        row.iter_mut().for_each(|v| *v = ((*v as f64 / step).round() * step) as f32);
+                    }
+                }
+            }
+            let rounded = FloatModel::new(w);
+            let (mut sd, mut wi) = (0.0, 0);
+            for ((l, r), d0) in pairs.iter().zip(&reference) {
+                let d = rounded.predict(&l.view(), &r.view(), None)?.disparity;
+                for (a, b) in d.iter().zip(d0) {
+                    sd += (a - b).abs() as f64;
+                    wi += ((a - b).abs() <= 1.0) as usize;
+                }
+            }
+            let what = if encoder { "encoder (layers reading u8 slots)" } else { "update block (all other layers)" };
+            println!("| {what} | +-{levels} | {:.4} | {:.2}% |", sd / n, 100.0 * wi as f64 / n);
+        }
     }
     Ok(())
 }

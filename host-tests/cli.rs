@@ -268,6 +268,17 @@ fn quantize_then_run_fixed_with_rejection() {
     let o = muir(&[&"quantize", &"--model", &model, &"--calib", &calib, &"--out", &q, &"--report", &report]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(std::fs::read_to_string(&report).unwrap().contains("| corr |"));
+    // GPTQ rounding and the least-squared-error range rule give a valid blob as well, with
+    // different weights (same layers, same formats table size).
+    let q2 = s.path("slim-gptq.muirq");
+    let o = muir(&[&"quantize", &"--model", &model, &"--calib", &calib, &"--out", &q2, &"--rounding", &"gptq", &"--method", &"mse"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("GPTQ"), "{}", stderr(&o));
+    let (b1, b2) = (std::fs::read(&q).unwrap(), std::fs::read(&q2).unwrap());
+    assert_eq!(b1.len(), b2.len());
+    assert_ne!(b1, b2);
+    let o = muir(&[&"quantize", &"--model", &model, &"--calib", &calib, &"--out", &q2, &"--rounding", &"best"]);
+    assert_eq!(o.status.code(), Some(2));
     let (disp, unc, png) = (s.path("d.pfm"), s.path("u.pfm"), s.path("d.png"));
     let o = muir(&[
         &"run", &"--engine", &"fixed", &"--model", &q, &"--left", &left, &"--right", &right, &"--disparity", &disp,

@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 
-use muir::calib::{CalibOptions, RangeMethod, calibrate};
+use muir::calib::{CalibOptions, RangeMethod, Rounding, calibrate};
 use muir::engine::{Output, REJECTED, reject, u_threshold};
 use muir::float::weights::{ParamData, config_to_json, parse_safetensors};
 use muir::float::{FloatModel, FloatWeights};
@@ -137,12 +137,25 @@ struct QuantizeArgs {
     /// Percentile for --method percentile.
     #[arg(long, default_value_t = 99.99)]
     percentile: f64,
+    /// Weight rounding: nearest, or gptq (backbone convs: each rounding error compensated on the
+    /// weights not rounded yet, from the calibration inputs' second moments).
+    #[arg(long, value_enum, default_value_t = RoundingArg::Nearest)]
+    rounding: RoundingArg,
     /// Output: quantised model.
     #[arg(long, value_name = "OUT.muirq")]
     out: PathBuf,
     /// Output: per-slot and per-layer calibration report (Markdown).
     #[arg(long, value_name = "REPORT.md")]
     report: Option<PathBuf>,
+}
+
+/// Weight rounding of calibration.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum RoundingArg {
+    /// Every weight to the nearest int8 step.
+    Nearest,
+    /// GPTQ: each weight's rounding error compensated on the weights not yet rounded.
+    Gptq,
 }
 
 /// Range rule of calibration.
@@ -539,7 +552,11 @@ fn quantize(args: &QuantizeArgs) -> Result<(), String> {
     }
     let start = Instant::now();
     let iters = model.config().iters;
-    let cal = calibrate(&model, &pairs, CalibOptions { method, iters }, &mut |done, total| {
+    let rounding = match args.rounding {
+        RoundingArg::Gptq => Rounding::Gptq,
+        RoundingArg::Nearest => Rounding::Nearest,
+    };
+    let cal = calibrate(&model, &pairs, CalibOptions { method, iters, rounding }, &mut |done, total| {
         bar.set_position(done as u64);
         if !std::io::stderr().is_terminal() {
             eprintln!("calibration pair {done}/{total}");
@@ -554,7 +571,7 @@ fn quantize(args: &QuantizeArgs) -> Result<(), String> {
         std::fs::write(r, cal.report()).map_err(|e| format!("{}: {e}", r.display()))?;
     }
     eprintln!(
-        "muir: quantised {} ({method}) on {} pairs in {:.1} s: {} ({} bytes)",
+        "muir: quantised {} ({method}, {rounding}) on {} pairs in {:.1} s: {} ({} bytes)",
         model.config().name,
         pairs.len(),
         start.elapsed().as_secs_f64(),

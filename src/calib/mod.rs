@@ -9,7 +9,11 @@
 //!    histogram ([`RangeMethod::Mse`]).
 //! 3. [`quantize`] folds BatchNorm, the image normalisation, part scales, merged context convs and
 //!    output factors into effective weights, quantises them per output channel (int8 symmetric),
-//!    biases into accumulator units (i64) and derives the requantisation multipliers.
+//!    biases into accumulator units (i64) and derives the requantisation multipliers. Weights are
+//!    rounded to nearest, or ([`Rounding::Gptq`], the backbone's convs) with error compensation
+//!    from the second moments of each layer's input patches ([`gptq`]).
+
+pub mod gptq;
 
 use std::collections::BTreeMap;
 use std::fmt::{self, Write as _};
@@ -24,6 +28,7 @@ use crate::input::ImageView;
 use crate::model::config::Config;
 use crate::model::graph::{Act, PostOp, QLayer};
 use crate::model::layers::ConvId;
+use gptq::{InputMoments, Rounder};
 
 const BINS_PER_OCTAVE: f64 = 32.0;
 const MIN_EXP: f64 = -24.0;
@@ -118,17 +123,47 @@ impl RangeStats {
     }
 }
 
-/// Collects [`RangeStats`] from the float reference's `q.<slot>` records.
+/// Collects [`RangeStats`] from the float reference's `q.<slot>` records, and for
+/// [`Rounding::Gptq`] the second moments of the backbone convs' input patches.
 #[derive(Clone, Debug, Default)]
 pub struct CalibTrace {
     /// Statistics by slot name.
     pub stats: BTreeMap<String, RangeStats>,
+    /// Input-patch moments by layer.
+    pub moments: BTreeMap<ConvId, InputMoments>,
+    /// Layers whose moments are collected, by input slot name: (layer, k, stride).
+    consumers: BTreeMap<&'static str, Vec<(ConvId, usize, usize)>>,
+}
+
+/// Input patches sampled per recorded tensor and layer for the moments.
+const MOMENT_PATCHES: usize = 1024;
+
+impl CalibTrace {
+    /// A trace for `cfg`; with `rounding == Gptq` it also collects the input moments of every
+    /// conv that reads a single u8 slot (the backbone, its heads and the feature head).
+    pub fn new(cfg: &Config, rounding: Rounding) -> Self {
+        let mut consumers: BTreeMap<&'static str, Vec<(ConvId, usize, usize)>> = BTreeMap::new();
+        if rounding == Rounding::Gptq {
+            for &id in ConvId::ALL {
+                let (Some(ql), Some(s)) = (QLayer::of(id, cfg), id.shape(cfg)) else { continue };
+                if let [Some(p), None, None, None, None, None] = ql.parts {
+                    if p.act.unsigned() && ql.merged.is_none() {
+                        consumers.entry(p.act.name()).or_default().push((id, s.k, s.stride));
+                    }
+                }
+            }
+        }
+        Self { consumers, ..Self::default() }
+    }
 }
 
 impl Trace for CalibTrace {
     fn record(&mut self, name: &str, t: &Tensor) {
         if let Some(slot) = name.strip_prefix("q.") {
             self.stats.entry(slot.to_string()).or_default().add(&t.data);
+            for &(id, k, stride) in self.consumers.get(slot).into_iter().flatten() {
+                self.moments.entry(id).or_insert_with(|| InputMoments::new(k * k * t.c)).add_patches(t, k, stride, MOMENT_PATCHES);
+            }
         }
     }
 }
@@ -230,8 +265,13 @@ fn part_scale(act: Act, formats: &[QFormat; Act::COUNT]) -> f64 {
     if act == Act::Image { 1.0 / 255.0 } else { 2f64.powi(-(formats[act.index()].frac as i32)) }
 }
 
-/// Quantises float weights with the given activation formats.
+/// Quantises float weights with the given activation formats, rounding weights to nearest.
 pub fn quantize(w: &FloatWeights, formats: &[QFormat; Act::COUNT]) -> Result<QuantModelData, CalibError> {
+    quantize_with(w, formats, &BTreeMap::new())
+}
+
+/// [`quantize`], with GPTQ rounding for the layers that have input moments.
+pub fn quantize_with(w: &FloatWeights, formats: &[QFormat; Act::COUNT], moments: &BTreeMap<ConvId, InputMoments>) -> Result<QuantModelData, CalibError> {
     let cfg = w.config;
     let mut layers = Vec::new();
     for &id in ConvId::ALL {
@@ -269,6 +309,7 @@ pub fn quantize(w: &FloatWeights, formats: &[QFormat; Act::COUNT]) -> Result<Qua
         };
         let mut eff = vec![0f64; patch];
         let np = parts.len();
+        let rounder = moments.get(&id).filter(|m| np == 1 && merged.is_none() && m.d == patch).and_then(Rounder::new);
         q.mult = vec![Multiplier::ZERO; s.cout * np];
         for c in 0..s.cout {
             let mut bias = fb[c] * factor;
@@ -310,8 +351,14 @@ pub fn quantize(w: &FloatWeights, formats: &[QFormat; Act::COUNT]) -> Result<Qua
             for (pi, &(a, b)) in ranges.iter().enumerate().take(np) {
                 let max = eff[a..b].iter().fold(0f64, |m, v| m.max(v.abs()));
                 let sw = if max > 0.0 { max / 127.0 } else { 1.0 };
-                for (dst, v) in q.weights[c * patch + a..c * patch + b].iter_mut().zip(&eff[a..b]) {
-                    *dst = (v / sw).round().clamp(-127.0, 127.0) as i8;
+                let dst = &mut q.weights[c * patch + a..c * patch + b];
+                match &rounder {
+                    Some(r) => dst.copy_from_slice(&r.round(&eff[a..b], sw)),
+                    None => {
+                        for (dst, v) in dst.iter_mut().zip(&eff[a..b]) {
+                            *dst = (v / sw).round().clamp(-127.0, 127.0) as i8;
+                        }
+                    }
                 }
                 let r = sw * 2f64.powi(out_frac);
                 q.mult[c * np + pi] = Multiplier::from_f64(r).ok_or(CalibError::Multiplier { layer: id.name(), value: r })?;
@@ -382,6 +429,25 @@ pub fn uncertainty_table(cfg: &Config) -> Vec<i16> {
         .collect()
 }
 
+/// How weights are rounded to their int8 steps.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum Rounding {
+    /// Each weight to the nearest step.
+    #[default]
+    Nearest,
+    /// Backbone convs with GPTQ error compensation ([`gptq`]), the others to nearest.
+    Gptq,
+}
+
+impl fmt::Display for Rounding {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Self::Nearest => "round to nearest",
+            Self::Gptq => "GPTQ rounding of the backbone",
+        })
+    }
+}
+
 /// Calibration settings.
 #[derive(Clone, Copy, Debug)]
 pub struct CalibOptions {
@@ -389,6 +455,8 @@ pub struct CalibOptions {
     pub method: RangeMethod,
     /// Refinement iterations run on each pair.
     pub iters: usize,
+    /// Weight rounding.
+    pub rounding: Rounding,
 }
 
 /// Result of [`calibrate`].
@@ -400,6 +468,8 @@ pub struct Calibration {
     pub stats: BTreeMap<String, RangeStats>,
     /// Range rule used.
     pub method: RangeMethod,
+    /// Weight rounding used.
+    pub rounding: Rounding,
 }
 
 /// Runs the float model on `pairs`, chooses formats and quantises. `progress(done, total)` is
@@ -408,15 +478,15 @@ pub fn calibrate(model: &FloatModel, pairs: &[(ImageView<'_>, ImageView<'_>)], o
     if pairs.is_empty() {
         return Err(CalibError::NoPairs);
     }
-    let mut trace = CalibTrace::default();
+    let mut trace = CalibTrace::new(model.config(), opts.rounding);
     for (i, (l, r)) in pairs.iter().enumerate() {
         model.trace_pair(l, r, opts.iters, &mut trace).map_err(CalibError::Input)?;
         progress(i + 1, pairs.len());
     }
     let cfg = *model.config();
     let formats = choose_formats(&cfg, &trace.stats, opts.method)?;
-    let data = quantize(model.weights(), &formats)?;
-    Ok(Calibration { data, stats: trace.stats, method: opts.method })
+    let data = quantize_with(model.weights(), &formats, &trace.moments)?;
+    Ok(Calibration { data, stats: trace.stats, method: opts.method, rounding: opts.rounding })
 }
 
 impl Calibration {
@@ -424,7 +494,7 @@ impl Calibration {
     pub fn report(&self) -> String {
         let mut s = String::new();
         let cfg = &self.data.config;
-        let _ = writeln!(s, "# Calibration of {} ({})\n", cfg.name, self.method);
+        let _ = writeln!(s, "# Calibration of {} ({}, {})\n", cfg.name, self.method, self.rounding);
         let _ = writeln!(s, "| slot | bits | frac | range (max) | representable | clipped |");
         let _ = writeln!(s, "|---|---|---|---|---|---|");
         for &act in Act::ALL {
