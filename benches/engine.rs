@@ -14,7 +14,7 @@ use std::time::Duration;
 use criterion::{BenchmarkId, Criterion, SamplingMode, Throughput, criterion_group, criterion_main};
 
 use muir::Config;
-use muir::calib::{CalibOptions, RangeMethod, calibrate};
+use muir::calib::{CalibOptions, RangeMethod, Rounding, calibrate};
 use muir::engine::{Engine, Output, Plan, encode_image, refine, refine_ctx};
 use muir::float::{FloatModel, FloatWeights, seeded};
 use muir::format::QuantModel;
@@ -77,7 +77,7 @@ struct Model {
 fn model(cfg: Config, calib: &(OwnedImage, OwnedImage)) -> Model {
     let float = FloatModel::new(FloatWeights::from_state_dict(seeded::state_dict(&cfg, 11), &cfg).unwrap());
     let pairs = [(calib.0.view(), calib.1.view())];
-    let opts = CalibOptions { method: RangeMethod::Percentile(0.9999), iters: cfg.iters };
+    let opts = CalibOptions { method: RangeMethod::Percentile(0.9999), iters: cfg.iters, rounding: Rounding::Nearest };
     let cal = calibrate(&float, &pairs, opts, &mut |_, _| {}).unwrap();
     Model { cfg, float, blob: muir::format::writer::write(&cal.data) }
 }

@@ -7,7 +7,7 @@ use std::cell::Cell;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use muir::Config;
-use muir::calib::{CalibOptions, RangeMethod, calibrate};
+use muir::calib::{CalibOptions, RangeMethod, Rounding, calibrate};
 use muir::engine::{Engine, EngineError, Output, Plan, REJECTED, reject, u_threshold};
 use muir::float::{FloatModel, FloatWeights, NoTrace, seeded};
 use muir::format::{BlobError, QuantModel, writer};
@@ -81,7 +81,7 @@ fn blob(cfg: &Config) -> Vec<u8> {
     let model = FloatModel::new(FloatWeights::from_state_dict(seeded::state_dict(cfg, 11), cfg).unwrap());
     let (l, r) = pair(96, 64, 3, false);
     let pairs = [(view(&l, 96, 64, false), view(&r, 96, 64, false))];
-    let cal = calibrate(&model, &pairs, CalibOptions { method: RangeMethod::Percentile(0.9999), iters: 3 }, &mut |_, _| {}).unwrap();
+    let cal = calibrate(&model, &pairs, CalibOptions { method: RangeMethod::Percentile(0.9999), iters: 3, rounding: Rounding::Nearest }, &mut |_, _| {}).unwrap();
     writer::write(&cal.data)
 }
 
@@ -182,7 +182,7 @@ fn malformed_blobs_are_typed_errors() {
     let cal = {
         let model = FloatModel::new(FloatWeights::from_state_dict(seeded::state_dict(&cfg, 11), &cfg).unwrap());
         let (l, r) = pair(64, 48, 3, false);
-        calibrate(&model, &[(view(&l, 64, 48, false), view(&r, 64, 48, false))], CalibOptions { method: RangeMethod::MinMax, iters: 1 }, &mut |_, _| {})
+        calibrate(&model, &[(view(&l, 64, 48, false), view(&r, 64, 48, false))], CalibOptions { method: RangeMethod::MinMax, iters: 1, rounding: Rounding::Nearest }, &mut |_, _| {})
             .unwrap()
             .data
     };
