@@ -50,6 +50,9 @@ fn fixed_engine_matches_float_reference_on_real_pairs() {
     let (mut sum_diff, mut within, mut n) = (0f64, 0usize, 0usize);
     let (mut epe_f, mut epe_q, mut n_gt) = (0f64, 0f64, 0usize);
     let (mut agree, mut kept_f, mut kept_q) = (0usize, 0usize, 0usize);
+    // Where the disagreement lies: [float within 1 px of GT, float off by more, float kept at
+    // tau = 1 px], each (sum |diff|, within 1 px, pixels).
+    let mut split = [(0f64, 0usize, 0usize); 3];
     println!("| pair | mean abs diff (px) | within 1 px | EPE float | EPE fixed | reject agree (tau 1 px) |");
     println!("|---|---|---|---|---|---|");
     for p in &pairs {
@@ -65,11 +68,20 @@ fn fixed_engine_matches_float_reference_on_real_pairs() {
             sd += diff as f64;
             wi += (diff <= 1.0) as usize;
             if p.gt[i].is_finite() {
+                let k = if (df - p.gt[i]).abs() <= 1.0 { 0 } else { 1 };
+                split[k].0 += diff as f64;
+                split[k].1 += (diff <= 1.0) as usize;
+                split[k].2 += 1;
                 ef += (df - p.gt[i]).abs() as f64;
                 eq += (dq - p.gt[i]).abs() as f64;
                 ng += 1;
             }
             let (rf, rq) = ((0.5 * fu[i]).exp() > 1.0, u[i] > u_max);
+            if !rf {
+                split[2].0 += diff as f64;
+                split[2].1 += (diff <= 1.0) as usize;
+                split[2].2 += 1;
+            }
             ag += (rf == rq) as usize;
             kept_f += !rf as usize;
             kept_q += !rq as usize;
@@ -102,6 +114,16 @@ fn fixed_engine_matches_float_reference_on_real_pairs() {
         100.0 * kept_f as f64 / n as f64,
         100.0 * kept_q as f64 / n as f64
     );
+    let names = ["float within 1 px of GT", "float off GT by > 1 px", "float kept at tau 1 px"];
+    for (name, (sd, wi, np)) in names.iter().zip(split) {
+        println!(
+            "{name}: {:.1}% of {}, mean abs diff {:.4} px, within 1 px {:.2}%",
+            100.0 * np as f64 / if name.contains("GT") { n_gt } else { n } as f64,
+            if name.contains("GT") { "the GT pixels" } else { "all pixels" },
+            sd / np.max(1) as f64,
+            100.0 * wi as f64 / np.max(1) as f64
+        );
+    }
 
     // Per-layer SQNR on the first pair (cumulative: the fixed run vs the float run).
     let p = &pairs[0];
