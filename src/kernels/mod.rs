@@ -9,6 +9,8 @@
 pub mod attention;
 pub mod conv;
 pub mod corr;
+#[cfg(all(target_arch = "arm", feature = "dsp"))]
+pub mod dsp;
 pub mod eltwise;
 pub mod norm;
 pub mod resample;
@@ -43,7 +45,10 @@ impl Elem for i8 {
     }
     #[inline]
     fn dot(w: &[i8], x: &[i8]) -> i64 {
+        #[cfg(all(target_arch = "arm", feature = "dsp"))]
+        return dsp::dot_i8(w, x) as i64;
         // |w*x| <= 2^14, so an i32 sum is exact for up to 2^17 terms (every layer has fewer).
+        #[allow(unreachable_code)]
         let mut acc = 0i32;
         for (a, b) in w.iter().zip(x) {
             acc += *a as i32 * *b as i32;
@@ -68,8 +73,11 @@ impl Elem for u8 {
     }
     #[inline]
     fn dot(w: &[i8], x: &[u8]) -> i64 {
+        #[cfg(all(target_arch = "arm", feature = "dsp"))]
+        return dsp::dot_u8(w, x) as i64;
         // |w*x| <= 128 * 255 < 2^15, so an i32 sum is exact for up to 2^16 terms (every layer
         // has fewer).
+        #[allow(unreachable_code)]
         let mut acc = 0i32;
         for (a, b) in w.iter().zip(x) {
             acc += *a as i32 * *b as i32;
@@ -98,10 +106,16 @@ impl Elem for i16 {
         // addition is exact, so the result equals the plain i64 sum.
         let mut acc = 0i64;
         for (wc, xc) in w.chunks(256).zip(x.chunks(256)) {
-            let mut s = 0i32;
-            for (a, b) in wc.iter().zip(xc) {
-                s += *a as i32 * *b as i32;
-            }
+            #[cfg(all(target_arch = "arm", feature = "dsp"))]
+            let s = dsp::dot_i16_chunk(wc, xc);
+            #[cfg(not(all(target_arch = "arm", feature = "dsp")))]
+            let s = {
+                let mut s = 0i32;
+                for (a, b) in wc.iter().zip(xc) {
+                    s += *a as i32 * *b as i32;
+                }
+                s
+            };
             acc += s as i64;
         }
         acc

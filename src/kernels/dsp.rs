@@ -1,0 +1,172 @@
+//! Dot products with int8 weights on the Armv7E-M DSP extension (Cortex-M4/M7), feature `dsp`.
+//!
+//! `SMLAD` multiplies two pairs of 16-bit halves and adds both products to a 32-bit accumulator:
+//! two MACs per instruction. Four int8 weights are widened into two pairs with `SXTB16` (bytes 0
+//! and 2, then bytes 1 and 3 after a rotation); four u8 activations likewise with `UXTB16`, four
+//! i8 ones with `SXTB16`, and four i16 activations (two words) are re-paired with `PKHBT`/`PKHTB`,
+//! the way CMSIS-NN does it. Two loads, four widenings or packs and two `SMLAD`s make four MACs.
+//!
+//! The results are the same integers as the portable loops in `kernels` (host and target stay
+//! bit-exact): every product and partial sum fits in `i32` under the same bounds as there (u8 and
+//! i8 inputs: `|w x| < 2^15`, fewer than 2^16 terms; i16 inputs: chunks of 256 terms,
+//! `|w x| <= 2^22`), so the accumulation order does not matter and `SMLAD` never overflows. The
+//! QEMU firmware test checks the whole frame against the host engine.
+
+use core::arch::asm;
+
+/// The 4 bytes at `i` as a little-endian word; the caller guarantees `i + 4 <= b.len()`.
+#[inline(always)]
+fn word(b: &[u8], i: usize) -> u32 {
+    debug_assert!(i + 4 <= b.len());
+    // SAFETY: `i + 4 <= b.len()` (every caller loops while `i + 4 <= n`, n <= b.len()); Cortex-M4/M7
+    // load unaligned words in one instruction.
+    unsafe { core::ptr::read_unaligned(b.as_ptr().add(i) as *const u32) }
+}
+
+/// The 2 i16 values at `i` as one word (low half first); the caller guarantees `i + 2 <= x.len()`.
+#[inline(always)]
+fn pair(x: &[i16], i: usize) -> u32 {
+    debug_assert!(i + 2 <= x.len());
+    // SAFETY: as for `word`.
+    unsafe { core::ptr::read_unaligned(x.as_ptr().add(i) as *const u32) }
+}
+
+#[inline(always)]
+fn bytes_of_i8(x: &[i8]) -> &[u8] {
+    // SAFETY: i8 and u8 have the same size, alignment and validity.
+    unsafe { core::slice::from_raw_parts(x.as_ptr() as *const u8, x.len()) }
+}
+
+/// Bytes 0 and 2 of `x`, sign-extended into two 16-bit halves.
+#[inline(always)]
+fn sxtb16(x: u32) -> u32 {
+    let r;
+    // SAFETY: register-only DSP instruction of Armv7E-M.
+    unsafe { asm!("sxtb16 {r}, {x}", r = lateout(reg) r, x = in(reg) x, options(pure, nomem, nostack, preserves_flags)) };
+    r
+}
+
+/// Bytes 1 and 3 of `x`, sign-extended into two 16-bit halves.
+#[inline(always)]
+fn sxtb16_ror8(x: u32) -> u32 {
+    let r;
+    // SAFETY: as above.
+    unsafe { asm!("sxtb16 {r}, {x}, ror #8", r = lateout(reg) r, x = in(reg) x, options(pure, nomem, nostack, preserves_flags)) };
+    r
+}
+
+/// Bytes 0 and 2 of `x`, zero-extended into two 16-bit halves.
+#[inline(always)]
+fn uxtb16(x: u32) -> u32 {
+    let r;
+    // SAFETY: as above.
+    unsafe { asm!("uxtb16 {r}, {x}", r = lateout(reg) r, x = in(reg) x, options(pure, nomem, nostack, preserves_flags)) };
+    r
+}
+
+/// Bytes 1 and 3 of `x`, zero-extended into two 16-bit halves.
+#[inline(always)]
+fn uxtb16_ror8(x: u32) -> u32 {
+    let r;
+    // SAFETY: as above.
+    unsafe { asm!("uxtb16 {r}, {x}, ror #8", r = lateout(reg) r, x = in(reg) x, options(pure, nomem, nostack, preserves_flags)) };
+    r
+}
+
+/// Low half of `lo` below the low half of `hi`: `(lo[15:0], hi[15:0])`.
+#[inline(always)]
+fn pkhbt(lo: u32, hi: u32) -> u32 {
+    let r;
+    // SAFETY: as above.
+    unsafe { asm!("pkhbt {r}, {a}, {b}, lsl #16", r = lateout(reg) r, a = in(reg) lo, b = in(reg) hi, options(pure, nomem, nostack, preserves_flags)) };
+    r
+}
+
+/// High half of `lo` below the high half of `hi`: `(lo[31:16], hi[31:16])`.
+#[inline(always)]
+fn pkhtb(lo: u32, hi: u32) -> u32 {
+    let r;
+    // SAFETY: as above.
+    unsafe { asm!("pkhtb {r}, {a}, {b}, asr #16", r = lateout(reg) r, a = in(reg) hi, b = in(reg) lo, options(pure, nomem, nostack, preserves_flags)) };
+    r
+}
+
+/// `acc + a.lo * b.lo + a.hi * b.hi` (signed 16-bit halves).
+#[inline(always)]
+fn smlad(a: u32, b: u32, acc: i32) -> i32 {
+    let r;
+    // SAFETY: register-only; SMLAD sets the Q flag on overflow, which the bounds above exclude and
+    // nothing reads.
+    unsafe { asm!("smlad {r}, {a}, {b}, {c}", r = lateout(reg) r, a = in(reg) a, b = in(reg) b, c = in(reg) acc, options(pure, nomem, nostack)) };
+    r
+}
+
+/// `sum w[i] * x[i]` for u8 activations.
+#[inline]
+pub fn dot_u8(w: &[i8], x: &[u8]) -> i32 {
+    let n = w.len().min(x.len());
+    let wb = bytes_of_i8(w);
+    let mut acc = 0i32;
+    let mut i = 0;
+    while i + 8 <= n {
+        let (wv, xv) = (word(wb, i), word(x, i));
+        let (wv2, xv2) = (word(wb, i + 4), word(x, i + 4));
+        acc = smlad(sxtb16(wv), uxtb16(xv), acc);
+        acc = smlad(sxtb16_ror8(wv), uxtb16_ror8(xv), acc);
+        acc = smlad(sxtb16(wv2), uxtb16(xv2), acc);
+        acc = smlad(sxtb16_ror8(wv2), uxtb16_ror8(xv2), acc);
+        i += 8;
+    }
+    while i + 4 <= n {
+        let (wv, xv) = (word(wb, i), word(x, i));
+        acc = smlad(sxtb16(wv), uxtb16(xv), acc);
+        acc = smlad(sxtb16_ror8(wv), uxtb16_ror8(xv), acc);
+        i += 4;
+    }
+    while i < n {
+        acc += w[i] as i32 * x[i] as i32;
+        i += 1;
+    }
+    acc
+}
+
+/// `sum a[i] * b[i]` for i8 values (weights or matching features).
+#[inline]
+pub fn dot_i8(a: &[i8], b: &[i8]) -> i32 {
+    let n = a.len().min(b.len());
+    let (ab, bb) = (bytes_of_i8(a), bytes_of_i8(b));
+    let mut acc = 0i32;
+    let mut i = 0;
+    while i + 4 <= n {
+        let (av, bv) = (word(ab, i), word(bb, i));
+        acc = smlad(sxtb16(av), sxtb16(bv), acc);
+        acc = smlad(sxtb16_ror8(av), sxtb16_ror8(bv), acc);
+        i += 4;
+    }
+    while i < n {
+        acc += a[i] as i32 * b[i] as i32;
+        i += 1;
+    }
+    acc
+}
+
+/// `sum w[i] * x[i]` for i16 activations, at most 256 terms (the caller chunks).
+#[inline]
+pub fn dot_i16_chunk(w: &[i8], x: &[i16]) -> i32 {
+    let n = w.len().min(x.len());
+    let wb = bytes_of_i8(w);
+    let mut acc = 0i32;
+    let mut i = 0;
+    while i + 4 <= n {
+        let wv = word(wb, i);
+        let (x01, x23) = (pair(x, i), pair(x, i + 2));
+        acc = smlad(sxtb16(wv), pkhbt(x01, x23), acc);
+        acc = smlad(sxtb16_ror8(wv), pkhtb(x01, x23), acc);
+        i += 4;
+    }
+    while i < n {
+        acc += w[i] as i32 * x[i] as i32;
+        i += 1;
+    }
+    acc
+}
