@@ -212,8 +212,23 @@ impl Multiplier {
 }
 
 /// `round(acc * m / 2^shift)` (half toward +infinity) in 128-bit, saturated to i64.
+///
+/// Most accumulators fit in i32; then `|acc * m| < 2^62` and, for `shift <= 62`, the rounding
+/// constant keeps the sum below 2^63, so 64-bit arithmetic gives exactly the 128-bit result (a
+/// single `SMULL` on Cortex-M instead of a 128-bit multiply and shift).
 #[inline(always)]
 pub const fn requantize(acc: i64, mult: Multiplier) -> i64 {
+    if acc >= i32::MIN as i64 && acc <= i32::MAX as i64 && mult.shift <= 62 && mult.shift >= 1 {
+        let p = acc * mult.m as i64;
+        let s = mult.shift as u32;
+        return (p + (1i64 << (s - 1))) >> s;
+    }
+    requantize_wide(acc, mult)
+}
+
+/// [`requantize`] for any operands, in 128-bit.
+#[inline(never)]
+pub const fn requantize_wide(acc: i64, mult: Multiplier) -> i64 {
     let p = acc as i128 * mult.m as i128;
     let s = mult.shift as u32;
     let r = (p + (1i128 << (s - 1))) >> s;
@@ -363,6 +378,24 @@ mod tests {
         assert_eq!(requantize(-3, half), -1); // -1.5 -> -1
         let big = Multiplier::from_f64(1.0e9).unwrap();
         assert_eq!(requantize(i64::MAX, big), i64::MAX);
+    }
+
+    #[test]
+    fn requantize_fast_path_is_the_wide_one() {
+        let mut x = 0x243F6A8885A308D3u64;
+        let mut next = move || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            x
+        };
+        let edges = [0i64, 1, -1, i32::MAX as i64, i32::MIN as i64, i32::MAX as i64 + 1, i32::MIN as i64 - 1, i64::MAX, i64::MIN];
+        for i in 0..200_000 {
+            let acc = if i < 9 * 40 { edges[i % 9] } else { (next() as i64) >> (next() % 64) };
+            let m = Multiplier { m: ((1u64 << 30) + next() % (1u64 << 30)) as i32, shift: 1 + (next() % 126) as u8 };
+            let m = if i % 7 == 0 { Multiplier { m: i32::MAX, ..m } } else { m };
+            assert_eq!(requantize(acc, m), requantize_wide(acc, m), "{acc} {m:?}");
+        }
     }
 
     #[test]

@@ -167,7 +167,24 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
                 }
             }
         }
-        for c in 0..p.cout {
+        // Output channels in pairs: `dot2` loads each activation once for two weight rows.
+        let mut c = 0;
+        while c + 2 <= p.cout {
+            let (w0, w1) = (&p.weights[c * kl..(c + 1) * kl], &p.weights[(c + 1) * kl..(c + 2) * kl]);
+            let (mut s0, mut s1) = (0i64, 0i64);
+            let mut o = 0;
+            for (part, &ch) in p.parts.iter().enumerate() {
+                let n = ch * k * k;
+                let (d0, d1) = T::dot2(&w0[o..o + n], &w1[o..o + n], &patch[o..o + n]);
+                s0 = s0.saturating_add(part_sum(p, c, part, d0));
+                s1 = s1.saturating_add(part_sum(p, c + 1, part, d1));
+                o += n;
+            }
+            out.set(ox * p.cout + c, finish(p, c, s0));
+            out.set(ox * p.cout + c + 1, finish(p, c + 1, s1));
+            c += 2;
+        }
+        if c < p.cout {
             let w = &p.weights[c * kl..(c + 1) * kl];
             let mut sum = 0i64;
             let mut o = 0;

@@ -157,6 +157,15 @@ pub fn dot_i16_chunk(w: &[i8], x: &[i16]) -> i32 {
     let wb = bytes_of_i8(w);
     let mut acc = 0i32;
     let mut i = 0;
+    while i + 8 <= n {
+        let (wv, wv2) = (word(wb, i), word(wb, i + 4));
+        let (x01, x23, x45, x67) = (pair(x, i), pair(x, i + 2), pair(x, i + 4), pair(x, i + 6));
+        acc = smlad(sxtb16(wv), pkhbt(x01, x23), acc);
+        acc = smlad(sxtb16_ror8(wv), pkhtb(x01, x23), acc);
+        acc = smlad(sxtb16(wv2), pkhbt(x45, x67), acc);
+        acc = smlad(sxtb16_ror8(wv2), pkhtb(x45, x67), acc);
+        i += 8;
+    }
     while i + 4 <= n {
         let wv = word(wb, i);
         let (x01, x23) = (pair(x, i), pair(x, i + 2));
@@ -169,4 +178,54 @@ pub fn dot_i16_chunk(w: &[i8], x: &[i16]) -> i32 {
         i += 1;
     }
     acc
+}
+
+/// Two u8 dot products sharing the activations (two output channels).
+#[inline]
+pub fn dot2_u8(w0: &[i8], w1: &[i8], x: &[u8]) -> (i32, i32) {
+    let n = w0.len().min(w1.len()).min(x.len());
+    let (b0, b1) = (bytes_of_i8(w0), bytes_of_i8(w1));
+    let (mut a0, mut a1) = (0i32, 0i32);
+    let mut i = 0;
+    while i + 4 <= n {
+        let xv = word(x, i);
+        let (xl, xh) = (uxtb16(xv), uxtb16_ror8(xv));
+        let (v0, v1) = (word(b0, i), word(b1, i));
+        a0 = smlad(sxtb16(v0), xl, a0);
+        a0 = smlad(sxtb16_ror8(v0), xh, a0);
+        a1 = smlad(sxtb16(v1), xl, a1);
+        a1 = smlad(sxtb16_ror8(v1), xh, a1);
+        i += 4;
+    }
+    while i < n {
+        a0 += w0[i] as i32 * x[i] as i32;
+        a1 += w1[i] as i32 * x[i] as i32;
+        i += 1;
+    }
+    (a0, a1)
+}
+
+/// Two i16 dot products sharing the activations, at most 256 terms (the caller chunks).
+#[inline]
+pub fn dot2_i16_chunk(w0: &[i8], w1: &[i8], x: &[i16]) -> (i32, i32) {
+    let n = w0.len().min(w1.len()).min(x.len());
+    let (b0, b1) = (bytes_of_i8(w0), bytes_of_i8(w1));
+    let (mut a0, mut a1) = (0i32, 0i32);
+    let mut i = 0;
+    while i + 4 <= n {
+        let (x01, x23) = (pair(x, i), pair(x, i + 2));
+        let (xl, xh) = (pkhbt(x01, x23), pkhtb(x01, x23));
+        let (v0, v1) = (word(b0, i), word(b1, i));
+        a0 = smlad(sxtb16(v0), xl, a0);
+        a0 = smlad(sxtb16_ror8(v0), xh, a0);
+        a1 = smlad(sxtb16(v1), xl, a1);
+        a1 = smlad(sxtb16_ror8(v1), xh, a1);
+        i += 4;
+    }
+    while i < n {
+        a0 += w0[i] as i32 * x[i] as i32;
+        a1 += w1[i] as i32 * x[i] as i32;
+        i += 1;
+    }
+    (a0, a1)
 }

@@ -28,6 +28,12 @@ pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + 'static {
     fn from_i64_sat(v: i64) -> Self;
     /// Exact dot product with i8 weights (`w.len() == x.len()`), optimised path.
     fn dot(w: &[i8], x: &[Self]) -> i64;
+    /// Two dot products over the same activations (two output channels): on Cortex-M the
+    /// activations are loaded and widened once for both. Same integers as two [`Elem::dot`]s.
+    #[inline]
+    fn dot2(w0: &[i8], w1: &[i8], x: &[Self]) -> (i64, i64) {
+        (Self::dot(w0, x), Self::dot(w1, x))
+    }
     /// The slice as a conv output row.
     fn as_out(d: &mut [Self]) -> OutRow<'_>;
 }
@@ -84,6 +90,12 @@ impl Elem for u8 {
         }
         acc as i64
     }
+    #[cfg(all(target_arch = "arm", feature = "dsp"))]
+    #[inline]
+    fn dot2(w0: &[i8], w1: &[i8], x: &[u8]) -> (i64, i64) {
+        let (a, b) = dsp::dot2_u8(w0, w1, x);
+        (a as i64, b as i64)
+    }
     fn as_out(d: &mut [u8]) -> OutRow<'_> {
         OutRow::U8(d)
     }
@@ -119,6 +131,18 @@ impl Elem for i16 {
             acc += s as i64;
         }
         acc
+    }
+    #[cfg(all(target_arch = "arm", feature = "dsp"))]
+    #[inline]
+    fn dot2(w0: &[i8], w1: &[i8], x: &[i16]) -> (i64, i64) {
+        // Same 256-term chunks as `dot`, so every partial sum stays exact in i32.
+        let (mut a, mut b) = (0i64, 0i64);
+        for ((c0, c1), xc) in w0.chunks(256).zip(w1.chunks(256)).zip(x.chunks(256)) {
+            let (s0, s1) = dsp::dot2_i16_chunk(c0, c1, xc);
+            a += s0 as i64;
+            b += s1 as i64;
+        }
+        (a, b)
     }
     fn as_out(d: &mut [i16]) -> OutRow<'_> {
         OutRow::I16(d)
