@@ -37,41 +37,36 @@ fn bytes_of_i8(x: &[i8]) -> &[u8] {
     unsafe { core::slice::from_raw_parts(x.as_ptr() as *const u8, x.len()) }
 }
 
-/// Bytes 0 and 2 of `x`, sign-extended into two 16-bit halves.
-#[inline(always)]
-fn sxtb16(x: u32) -> u32 {
-    let r;
-    // SAFETY: register-only DSP instruction of Armv7E-M.
-    unsafe { asm!("sxtb16 {r}, {x}", r = lateout(reg) r, x = in(reg) x, options(pure, nomem, nostack, preserves_flags)) };
-    r
+/// A register-only DSP instruction of Armv7E-M with one operand, as a function.
+macro_rules! unary {
+    ($(#[$doc:meta])* $name:ident = $insn:literal) => {
+        $(#[$doc])*
+        #[inline(always)]
+        fn $name(x: u32) -> u32 {
+            let r;
+            // SAFETY: one register-only instruction; no memory, stack or flags touched.
+            unsafe { asm!($insn, r = lateout(reg) r, x = in(reg) x, options(pure, nomem, nostack, preserves_flags)) };
+            r
+        }
+    };
 }
 
-/// Bytes 1 and 3 of `x`, sign-extended into two 16-bit halves.
-#[inline(always)]
-fn sxtb16_ror8(x: u32) -> u32 {
-    let r;
-    // SAFETY: as above.
-    unsafe { asm!("sxtb16 {r}, {x}, ror #8", r = lateout(reg) r, x = in(reg) x, options(pure, nomem, nostack, preserves_flags)) };
-    r
-}
-
-/// Bytes 0 and 2 of `x`, zero-extended into two 16-bit halves.
-#[inline(always)]
-fn uxtb16(x: u32) -> u32 {
-    let r;
-    // SAFETY: as above.
-    unsafe { asm!("uxtb16 {r}, {x}", r = lateout(reg) r, x = in(reg) x, options(pure, nomem, nostack, preserves_flags)) };
-    r
-}
-
-/// Bytes 1 and 3 of `x`, zero-extended into two 16-bit halves.
-#[inline(always)]
-fn uxtb16_ror8(x: u32) -> u32 {
-    let r;
-    // SAFETY: as above.
-    unsafe { asm!("uxtb16 {r}, {x}, ror #8", r = lateout(reg) r, x = in(reg) x, options(pure, nomem, nostack, preserves_flags)) };
-    r
-}
+unary!(
+    /// Bytes 0 and 2 of `x`, sign-extended into two 16-bit halves.
+    sxtb16 = "sxtb16 {r}, {x}"
+);
+unary!(
+    /// Bytes 1 and 3 of `x`, sign-extended into two 16-bit halves.
+    sxtb16_ror8 = "sxtb16 {r}, {x}, ror #8"
+);
+unary!(
+    /// Bytes 0 and 2 of `x`, zero-extended into two 16-bit halves.
+    uxtb16 = "uxtb16 {r}, {x}"
+);
+unary!(
+    /// Bytes 1 and 3 of `x`, zero-extended into two 16-bit halves.
+    uxtb16_ror8 = "uxtb16 {r}, {x}, ror #8"
+);
 
 /// Low half of `lo` below the low half of `hi`: `(lo[15:0], hi[15:0])`.
 #[inline(always)]
