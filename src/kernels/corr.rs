@@ -40,7 +40,7 @@ pub const fn window_len(levels: usize, radius: usize) -> usize {
 #[inline(always)]
 fn dot_i8(a: &[i8], b: &[i8]) -> i32 {
     #[cfg(all(target_arch = "arm", feature = "dsp"))]
-    return super::dsp::dot_i8(a, b);
+    return super::dsp::dot(a, b);
     #[allow(unreachable_code)]
     let mut s = 0i32;
     for (x, y) in a.iter().zip(b) {

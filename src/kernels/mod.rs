@@ -52,7 +52,7 @@ impl Elem for i8 {
     #[inline]
     fn dot(w: &[i8], x: &[i8]) -> i64 {
         #[cfg(all(target_arch = "arm", feature = "dsp"))]
-        return dsp::dot_i8(w, x) as i64;
+        return dsp::dot(w, x) as i64;
         // |w*x| <= 2^14, so an i32 sum is exact for up to 2^17 terms (every layer has fewer).
         #[allow(unreachable_code)]
         let mut acc = 0i32;
@@ -80,7 +80,7 @@ impl Elem for u8 {
     #[inline]
     fn dot(w: &[i8], x: &[u8]) -> i64 {
         #[cfg(all(target_arch = "arm", feature = "dsp"))]
-        return dsp::dot_u8(w, x) as i64;
+        return dsp::dot(w, x) as i64;
         // |w*x| <= 128 * 255 < 2^15, so an i32 sum is exact for up to 2^16 terms (every layer
         // has fewer).
         #[allow(unreachable_code)]
@@ -93,7 +93,7 @@ impl Elem for u8 {
     #[cfg(all(target_arch = "arm", feature = "dsp"))]
     #[inline]
     fn dot2(w0: &[i8], w1: &[i8], x: &[u8]) -> (i64, i64) {
-        let (a, b) = dsp::dot2_u8(w0, w1, x);
+        let (a, b) = dsp::dot2(w0, w1, x);
         (a as i64, b as i64)
     }
     fn as_out(d: &mut [u8]) -> OutRow<'_> {
@@ -119,7 +119,7 @@ impl Elem for i16 {
         let mut acc = 0i64;
         for (wc, xc) in w.chunks(256).zip(x.chunks(256)) {
             #[cfg(all(target_arch = "arm", feature = "dsp"))]
-            let s = dsp::dot_i16_chunk(wc, xc);
+            let s = dsp::dot(wc, xc);
             #[cfg(not(all(target_arch = "arm", feature = "dsp")))]
             let s = {
                 let mut s = 0i32;
@@ -138,7 +138,7 @@ impl Elem for i16 {
         // Same 256-term chunks as `dot`, so every partial sum stays exact in i32.
         let (mut a, mut b) = (0i64, 0i64);
         for ((c0, c1), xc) in w0.chunks(256).zip(w1.chunks(256)).zip(x.chunks(256)) {
-            let (s0, s1) = dsp::dot2_i16_chunk(c0, c1, xc);
+            let (s0, s1) = dsp::dot2(c0, c1, xc);
             a += s0 as i64;
             b += s1 as i64;
         }
