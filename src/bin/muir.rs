@@ -36,6 +36,9 @@ enum Command {
     Info(InfoArgs),
     /// Quantises a float model with calibration pairs into a fixed-point model (.muirq).
     Quantize(QuantizeArgs),
+    /// Moves a float model's weights onto the int8 grid the quantiser uses (quantisation-aware
+    /// export): the float engine then runs the integer engine's weights.
+    Snap(SnapArgs),
     /// Prints the static working memory (RAM) of the fixed-point engine per config and size.
     Plan(PlanArgs),
     /// Prints multiply-accumulates per frame by stage (Markdown table), per config and size.
@@ -149,6 +152,19 @@ struct QuantizeArgs {
     report: Option<PathBuf>,
 }
 
+#[derive(Args, Debug)]
+struct SnapArgs {
+    /// Float model (safetensors).
+    #[arg(long, value_name = "M.safetensors")]
+    model: PathBuf,
+    /// Config preset for files without config metadata.
+    #[arg(long, value_name = "NAME", value_parser = parse_preset)]
+    config: Option<Config>,
+    /// Output: the snapped float model (safetensors; other tensors and metadata kept).
+    #[arg(long, value_name = "OUT.safetensors")]
+    out: PathBuf,
+}
+
 /// Weight rounding of calibration.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 enum RoundingArg {
@@ -223,6 +239,7 @@ fn main() -> ExitCode {
         Command::Run(args) => run(&args),
         Command::Info(args) => info(&args),
         Command::Quantize(args) => quantize(&args),
+        Command::Snap(args) => snap(&args),
         Command::Plan(args) => plan(&args),
         Command::Macs(args) => macs(&args),
     };
@@ -578,6 +595,36 @@ fn quantize(args: &QuantizeArgs) -> Result<(), String> {
         args.out.display(),
         blob.len()
     );
+    Ok(())
+}
+
+fn snap(args: &SnapArgs) -> Result<(), String> {
+    check_output(&args.out)?;
+    let at = |e: &dyn std::fmt::Display| format!("{}: {e}", args.model.display());
+    let bytes = std::fs::read(&args.model).map_err(|e| at(&e))?;
+    let mut file = parse_safetensors(&bytes).map_err(|e| at(&e))?;
+    let config = match (file.config, args.config) {
+        (Some(found), Some(named)) if found != named => {
+            return Err(at(&format!("the file's config '{}' differs from --config {}", found.name, named.name)));
+        }
+        (Some(c), _) | (None, Some(c)) => c,
+        (None, None) => return Err(at(&muir::float::WeightError::NoConfig)),
+    };
+    let weights = FloatWeights::from_state_dict(file.tensors.clone(), &config).map_err(|e| at(&e))?;
+    let (snapped, rms) = muir::calib::snap_to_grid(&weights);
+    let mut layers = 0;
+    for &id in muir::model::layers::ConvId::ALL {
+        if let (Some(fc), Some(p)) = (snapped.get(id), file.tensors.get_mut(&format!("{}.weight", id.name()))) {
+            p.data = ParamData::F32(fc.weight.clone());
+            layers += 1;
+        }
+    }
+    file.metadata.insert("muir_int8_grid".into(), "weights snapped to the int8 grid by `muir snap`".into());
+    let extra: Vec<(&str, String)> =
+        file.metadata.iter().filter(|(k, _)| k.as_str() != muir::float::weights::CONFIG_KEY).map(|(k, v)| (k.as_str(), v.clone())).collect();
+    let out = muir::float::weights::to_safetensors(&file.tensors, &config, &extra).map_err(|e| e.to_string())?;
+    std::fs::write(&args.out, out).map_err(|e| format!("{}: {e}", args.out.display()))?;
+    eprintln!("muir: snapped {layers} layers of {} to the int8 grid (RMS relative change {rms:.2e}): {}", config.name, args.out.display());
     Ok(())
 }
 

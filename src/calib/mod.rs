@@ -270,32 +270,99 @@ pub fn quantize(w: &FloatWeights, formats: &[QFormat; Act::COUNT]) -> Result<Qua
     quantize_with(w, formats, &BTreeMap::new())
 }
 
+/// Where one effective weight comes from: the layer's own weight (index into
+/// [`FloatConv::weight`](crate::float::weights::FloatConv)) or the merged context conv's.
+#[derive(Clone, Copy, Debug)]
+enum Source {
+    Own(usize),
+    Merged(ConvId, usize),
+}
+
+/// One output channel of a blob layer in effective units: BatchNorm, the input parts' scales and the
+/// output factor folded in, parts in the blob's order (`ky, kx, ci` within a part). Each part
+/// `ranges[p]` gets its own int8 scale.
+struct EffectiveChannel {
+    eff: Vec<f64>,
+    src: Vec<Source>,
+    ranges: Vec<(usize, usize)>,
+    bias: f64,
+}
+
+/// The effective weights of output channel `c` of layer `id`; `part_scale(act)` is the real value
+/// of one step of the part's input slot.
+fn effective_channel(w: &FloatWeights, id: ConvId, ql: &QLayer, c: usize, part_scale: &dyn Fn(Act) -> f64) -> Option<EffectiveChannel> {
+    let cfg = w.config;
+    let fc = w.get(id)?;
+    let s = fc.shape;
+    let kk = s.k * s.k;
+    // BatchNorm folded into the weights and bias.
+    let (bn_k, mut bias) = match &fc.bn {
+        Some(bn) => {
+            let k = bn.weight[c] as f64 / (bn.var[c] as f64 + crate::float::weights::BN_EPS as f64).sqrt();
+            (k, (fc.bias[c] as f64 - bn.mean[c] as f64) * k + bn.bias[c] as f64)
+        }
+        None => (1.0, fc.bias[c] as f64),
+    };
+    // Merged context conv: extra input part with that conv's weights for this gate's chunk.
+    let merged = ql.merged.and_then(|(mid, chunk)| w.get(mid).map(|m| (mid, m, chunk)));
+    let parts: Vec<_> = ql.parts.iter().flatten().copied().collect();
+    let np = parts.len();
+    let factor = ql.out_factor as f64;
+    let mut ch = EffectiveChannel { eff: Vec::new(), src: Vec::new(), ranges: Vec::new(), bias: 0.0 };
+    let mut cin0 = 0;
+    for (pi, part) in parts.iter().enumerate() {
+        let scale = part_scale(part.act) * factor;
+        let is_ctx = merged.is_some() && pi == np - 1;
+        let start = ch.eff.len();
+        for ky in 0..s.k {
+            for kx in 0..s.k {
+                for ci in 0..part.channels {
+                    let (v, src) = match (is_ctx, merged) {
+                        (true, Some((mid, m, chunk))) => {
+                            let row = chunk * cfg.hidden_dim + c;
+                            let i = (row * m.shape.cin + ci) * kk + ky * s.k + kx;
+                            (m.weight[i] as f64, Source::Merged(mid, i))
+                        }
+                        _ => {
+                            let i = (c * s.cin + cin0 + ci) * kk + ky * s.k + kx;
+                            (fc.weight[i] as f64 * bn_k, Source::Own(i))
+                        }
+                    };
+                    ch.eff.push(v * scale);
+                    ch.src.push(src);
+                }
+            }
+        }
+        ch.ranges.push((start, ch.eff.len()));
+        if !is_ctx {
+            cin0 += part.channels;
+        }
+    }
+    if let Some((_, m, chunk)) = merged {
+        bias += m.bias[chunk * cfg.hidden_dim + c] as f64;
+    }
+    ch.bias = bias * factor;
+    Some(ch)
+}
+
+/// The int8 step of one part: its largest magnitude maps to 127 (symmetric, per output channel).
+fn weight_step(eff: &[f64]) -> f64 {
+    let max = eff.iter().fold(0f64, |m, v| m.max(v.abs()));
+    if max > 0.0 { max / 127.0 } else { 1.0 }
+}
+
 /// [`quantize`], with GPTQ rounding for the layers that have input moments.
 pub fn quantize_with(w: &FloatWeights, formats: &[QFormat; Act::COUNT], moments: &BTreeMap<ConvId, InputMoments>) -> Result<QuantModelData, CalibError> {
     let cfg = w.config;
+    let scale = |act: Act| part_scale(act, formats);
     let mut layers = Vec::new();
     for &id in ConvId::ALL {
         let Some(ql) = QLayer::of(id, &cfg) else { continue };
         let Some(fc) = w.get(id) else { continue };
         let s = fc.shape;
-        let kk = s.k * s.k;
-        // Folded float weights [cout][cin][k*k] and bias (BatchNorm and output factor applied).
-        let mut fw: Vec<f64> = fc.weight.iter().map(|v| *v as f64).collect();
-        let mut fb: Vec<f64> = fc.bias.iter().map(|v| *v as f64).collect();
-        if let Some(bn) = &fc.bn {
-            for c in 0..s.cout {
-                let k = bn.weight[c] as f64 / (bn.var[c] as f64 + crate::float::weights::BN_EPS as f64).sqrt();
-                for v in &mut fw[c * s.cin * kk..(c + 1) * s.cin * kk] {
-                    *v *= k;
-                }
-                fb[c] = (fb[c] - bn.mean[c] as f64) * k + bn.bias[c] as f64;
-            }
-        }
-        // Merged context conv: extra input part with that conv's weights for this gate's chunk.
-        let merged = ql.merged.and_then(|(mid, chunk)| w.get(mid).map(|m| (m, chunk)));
         let parts: Vec<_> = ql.parts.iter().flatten().copied().collect();
-        let patch = kk * parts.iter().map(|p| p.channels).sum::<usize>();
-        let factor = ql.out_factor as f64;
+        let patch = s.k * s.k * parts.iter().map(|p| p.channels).sum::<usize>();
+        let np = parts.len();
         let mut q = QuantLayer {
             id,
             k: s.k,
@@ -305,57 +372,23 @@ pub fn quantize_with(w: &FloatWeights, formats: &[QFormat; Act::COUNT], moments:
             cout: s.cout,
             weights: vec![0; s.cout * patch],
             bias: vec![0; s.cout],
-            mult: vec![Multiplier::ZERO; s.cout],
+            mult: vec![Multiplier::ZERO; s.cout * np],
         };
-        let mut eff = vec![0f64; patch];
-        let np = parts.len();
-        let rounder = moments.get(&id).filter(|m| np == 1 && merged.is_none() && m.d == patch).and_then(Rounder::new);
-        q.mult = vec![Multiplier::ZERO; s.cout * np];
+        let rounder = moments.get(&id).filter(|m| np == 1 && ql.merged.is_none() && m.d == patch).and_then(Rounder::new);
         for c in 0..s.cout {
-            let mut bias = fb[c] * factor;
-            let mut o = 0;
-            let mut cin0 = 0;
-            let mut ranges = [(0usize, 0usize); crate::model::graph::MAX_PARTS];
-            for (pi, part) in parts.iter().enumerate() {
-                let scale = part_scale(part.act, formats) * factor;
-                let is_ctx = merged.is_some() && pi == np - 1;
-                let start = o;
-                for ky in 0..s.k {
-                    for kx in 0..s.k {
-                        for ci in 0..part.channels {
-                            let v = match (is_ctx, merged) {
-                                (true, Some((m, chunk))) => {
-                                    let row = chunk * cfg.hidden_dim + c;
-                                    m.weight[(row * m.shape.cin + ci) * kk + ky * s.k + kx] as f64
-                                }
-                                _ => fw[(c * s.cin + cin0 + ci) * kk + ky * s.k + kx],
-                            };
-                            eff[o] = v * scale;
-                            o += 1;
-                        }
-                    }
-                }
-                ranges[pi] = (start, o);
-                if !is_ctx {
-                    cin0 += part.channels;
-                }
-            }
-            if let Some((m, chunk)) = merged {
-                bias += m.bias[chunk * cfg.hidden_dim + c] as f64 * factor;
-            }
+            let Some(ch) = effective_channel(w, id, &ql, c, &scale) else { continue };
             let out_frac = match ql.post {
                 PostOp::Sigmoid | PostOp::Tanh => GATE_FRAC as i32,
                 _ => formats[ql.out_act(c).index()].frac as i32,
             } + EXTRA_BITS as i32;
             // One int8 scale per (channel, part): parts of very different ranges keep full precision.
-            for (pi, &(a, b)) in ranges.iter().enumerate().take(np) {
-                let max = eff[a..b].iter().fold(0f64, |m, v| m.max(v.abs()));
-                let sw = if max > 0.0 { max / 127.0 } else { 1.0 };
+            for (pi, &(a, b)) in ch.ranges.iter().enumerate() {
+                let sw = weight_step(&ch.eff[a..b]);
                 let dst = &mut q.weights[c * patch + a..c * patch + b];
                 match &rounder {
-                    Some(r) => dst.copy_from_slice(&r.round(&eff[a..b], sw)),
+                    Some(r) => dst.copy_from_slice(&r.round(&ch.eff[a..b], sw)),
                     None => {
-                        for (dst, v) in dst.iter_mut().zip(&eff[a..b]) {
+                        for (dst, v) in dst.iter_mut().zip(&ch.eff[a..b]) {
                             *dst = (v / sw).round().clamp(-127.0, 127.0) as i8;
                         }
                     }
@@ -363,7 +396,7 @@ pub fn quantize_with(w: &FloatWeights, formats: &[QFormat; Act::COUNT], moments:
                 let r = sw * 2f64.powi(out_frac);
                 q.mult[c * np + pi] = Multiplier::from_f64(r).ok_or(CalibError::Multiplier { layer: id.name(), value: r })?;
             }
-            q.bias[c] = (bias * 2f64.powi(out_frac)).round().clamp(-(2f64.powi(62)), 2f64.powi(62)) as i64;
+            q.bias[c] = (ch.bias * 2f64.powi(out_frac)).round().clamp(-(2f64.powi(62)), 2f64.powi(62)) as i64;
         }
         layers.push(q);
     }
@@ -376,6 +409,48 @@ pub fn quantize_with(w: &FloatWeights, formats: &[QFormat; Act::COUNT], moments:
         u_table: uncertainty_table(&cfg),
         layers,
     })
+}
+
+/// Moves every weight the blob quantises onto its int8 grid: each (output channel, input part)
+/// group of effective weights becomes `q * step` with `q` the integer [`quantize`] rounds it to
+/// (BatchNorm stays separate: a weight is scaled so that its folded value lands on the grid).
+/// Quantising the result reproduces the same integers exactly, so the float reference of the
+/// snapped model runs the weights the integer engine runs and the two differ by activation
+/// rounding only. Returns the snapped weights and the RMS relative change of the moved weights.
+pub fn snap_to_grid(w: &FloatWeights) -> (FloatWeights, f64) {
+    let cfg = w.config;
+    let mut out = w.clone();
+    let (mut num, mut den) = (0f64, 0f64);
+    // Part scales are powers of two (or the image's) times a per-layer factor: a constant per
+    // group, which the grid does not depend on, so unit scales will do.
+    let unit = |_: Act| 1.0;
+    for &id in ConvId::ALL {
+        let Some(ql) = QLayer::of(id, &cfg) else { continue };
+        let Some(cout) = w.get(id).map(|fc| fc.shape.cout) else { continue };
+        for c in 0..cout {
+            let Some(ch) = effective_channel(w, id, &ql, c, &unit) else { continue };
+            for &(a, b) in &ch.ranges {
+                let sw = weight_step(&ch.eff[a..b]);
+                for (v, src) in ch.eff[a..b].iter().zip(&ch.src[a..b]) {
+                    if *v == 0.0 {
+                        continue;
+                    }
+                    let ratio = (v / sw).round().clamp(-127.0, 127.0) * sw / v;
+                    let (conv, i) = match *src {
+                        Source::Own(i) => (id, i),
+                        Source::Merged(mid, i) => (mid, i),
+                    };
+                    if let Some(fc) = out.get_mut(conv) {
+                        let old = fc.weight[i] as f64;
+                        fc.weight[i] = (old * ratio) as f32;
+                        num += (old * (ratio - 1.0)).powi(2);
+                        den += old * old;
+                    }
+                }
+            }
+        }
+    }
+    (out, if den > 0.0 { (num / den).sqrt() } else { 0.0 })
 }
 
 fn corr_multipliers(cfg: &Config, f: &[QFormat; Act::COUNT]) -> Result<Vec<Multiplier>, CalibError> {
@@ -626,5 +701,61 @@ mod tests {
         let s = stats(&v);
         assert_eq!(QFormat::u8(0).for_range(s.max_abs), QFormat::u8(1));
         assert_eq!(best(&s), Some(QFormat::u8(2)));
+    }
+}
+
+#[cfg(test)]
+mod snap_tests {
+    use super::*;
+    use crate::float::seeded;
+
+    /// Integers of every (layer, channel, part) group, and each group's largest distance of
+    /// `eff / step` from an integer.
+    fn grid(w: &FloatWeights) -> (Vec<i64>, f64) {
+        let (mut ints, mut off) = (Vec::new(), 0f64);
+        for &id in ConvId::ALL {
+            let Some(ql) = QLayer::of(id, &w.config) else { continue };
+            let Some(cout) = w.get(id).map(|fc| fc.shape.cout) else { continue };
+            for c in 0..cout {
+                let Some(ch) = effective_channel(w, id, &ql, c, &|_| 1.0) else { continue };
+                for &(a, b) in &ch.ranges {
+                    let sw = weight_step(&ch.eff[a..b]);
+                    for v in &ch.eff[a..b] {
+                        let x = v / sw;
+                        ints.push(x.round() as i64);
+                        off = off.max((x - x.round()).abs());
+                    }
+                }
+            }
+        }
+        (ints, off)
+    }
+
+    #[test]
+    fn snapped_weights_sit_on_the_grid_they_round_to() {
+        for cfg in Config::PRESETS {
+            let w = FloatWeights::from_state_dict(seeded::state_dict(&cfg, 11), &cfg).unwrap();
+            let (ints, off) = grid(&w);
+            assert!(off > 0.4, "{}: seeded weights are off the grid", cfg.name);
+            let (s, rms) = snap_to_grid(&w);
+            // Rounding to 255 levels moves a weight by at most half a step: a small relative change.
+            assert!(rms > 1e-4 && rms < 0.02, "{}: {rms}", cfg.name);
+            let (snapped_ints, snapped_off) = grid(&s);
+            assert_eq!(snapped_ints, ints, "{}: snapping changed an integer", cfg.name);
+            assert!(snapped_off < 1e-4, "{}: {snapped_off}", cfg.name);
+            // Idempotent: a second snap moves nothing beyond f32 rounding.
+            let (_, again) = snap_to_grid(&s);
+            assert!(again < 1e-6, "{}: {again}", cfg.name);
+            // Layers the blob does not quantise are untouched, biases and BatchNorm too.
+            for &id in ConvId::ALL {
+                if let (Some(a), Some(b)) = (w.get(id), s.get(id)) {
+                    assert_eq!(a.bias, b.bias);
+                    assert_eq!(a.bn, b.bn);
+                    if QLayer::of(id, &cfg).is_none() && !ConvId::ALL.iter().any(|m| QLayer::of(*m, &cfg).is_some_and(|q| q.merged.is_some_and(|(mid, _)| mid == id))) {
+                        assert_eq!(a.weight, b.weight, "{}", id.name());
+                    }
+                }
+            }
+        }
     }
 }
