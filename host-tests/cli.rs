@@ -339,3 +339,35 @@ fn macs_prints_a_table_per_preset() {
     assert!(out.lines().any(|l| l.starts_with("| gru08 | ")), "{out}");
     assert_eq!(muir(&[&"macs", &"--size", &"10x10"]).status.code(), Some(2));
 }
+
+#[test]
+fn snap_writes_a_model_on_the_int8_grid() {
+    let s = Scratch::new("snap");
+    let model = write_model(&s, "seeded.safetensors", &Config::MUIR_SLIM, true);
+    let out = s.path("snapped.safetensors");
+    let o = muir(&[&"snap", &"--model", &model, &"--out", &out]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let first = o;
+    // The output is a valid model of the same config, with every weight moved by at most half an
+    // int8 step of its group (so by well under its group's largest magnitude / 127).
+    let a = muir::float::FloatWeights::from_safetensors(&std::fs::read(&model).unwrap(), None).unwrap();
+    let b = muir::float::FloatWeights::from_safetensors(&std::fs::read(&out).unwrap(), None).unwrap();
+    assert_eq!(b.config, Config::MUIR_SLIM);
+    let conv = muir::model::layers::ConvId::Conv1;
+    let (wa, wb) = (&a.get(conv).unwrap().weight, &b.get(conv).unwrap().weight);
+    assert_ne!(wa, wb);
+    let max = wa.iter().fold(0f32, |m, v| m.max(v.abs()));
+    assert!(wa.iter().zip(wb).all(|(x, y)| (x - y).abs() <= max / 127.0), "conv1 moved by more than a step");
+    // Snapping again moves nothing beyond f32 rounding; a missing input is a runtime error.
+    let again = s.path("again.safetensors");
+    let o = muir(&[&"snap", &"--model", &out, &"--out", &again]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let rms = |o: &Output| -> f64 {
+        let e = stderr(o);
+        let at = e.find("RMS relative change ").map(|i| i + "RMS relative change ".len()).unwrap();
+        e[at..].split(')').next().unwrap().parse().unwrap()
+    };
+    assert!(rms(&first) > 1e-4, "{}", stderr(&first));
+    assert!(rms(&o) < 1e-6, "{}", stderr(&o));
+    assert_fails(&muir(&[&"snap", &"--model", &s.path("missing.safetensors"), &"--out", &again]), &["missing.safetensors"]);
+}
