@@ -1,0 +1,59 @@
+#!/usr/bin/env bash
+# Ships a trained float model as the default `muir-slim` and re-makes everything that depends on
+# it, in order:
+#   1. models/muir-slim.safetensors      <- the given model file
+#   2. models/muir-slim.muirq + .calib.md (`muir quantize`, the calibration command of models/README.md)
+#   3. host-tests/fixtures/golden/shipped* (float parity fixture, PyTorch twin)
+#   4. boards/qemu-mps2 expected CRCs     (MUIR_UPDATE_EXPECTED=1 cargo test --test firmware)
+#   5. models/muir-slim.eval.{json,md}, models/sgbm.eval.json, docs/results/*_middlebury*.png
+#      (`python -m muir.evaluate --sgbm` on the 28 Middlebury scenes)
+# What it does not touch: the figures quoted in README.md / models/README.md (re-measure them with
+# the commands given there) and the fixed_vs_float regression bounds.
+#
+# Usage: bash scripts/ship-model.sh RUN_DIR/model.safetensors
+# Needs ../shared/data, PyTorch (python/README.md) and, for step 4, qemu-system-arm.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+if [[ $# -ne 1 || "$1" == -h || "$1" == --help ]]; then
+    sed -n '2,14p' "$0" | sed 's/^# \{0,1\}//'
+    [[ $# -eq 1 ]] && exit 0 || exit 2
+fi
+src=$1
+[[ -f "$src" ]] || { echo "error: no model file $src" >&2; exit 1; }
+data=../shared/data
+[[ -d "$data/nogt" ]] || { echo "error: $data/nogt not found (calibration pairs)" >&2; exit 1; }
+
+step() { echo "== $*" >&2; }
+
+step "1/5 model"
+cargo build --release --bin muir
+./target/release/muir info --model "$src" >/dev/null
+[[ "$(realpath "$src")" == "$(realpath models/muir-slim.safetensors)" ]] || cp "$src" models/muir-slim.safetensors
+
+step "2/5 quantised blob"
+./target/release/muir quantize --model models/muir-slim.safetensors \
+    --calib "$data/nogt/oakd_desk" --calib "$data/nogt/oakd_living_room" \
+    --calib "$data/nogt/kitti2015_000051_11" --calib "$data/nogt/oakd_stairs" \
+    --max-size 320x240 --out models/muir-slim.muirq --report models/muir-slim.calib.md
+
+step "3/5 float parity fixture"
+PYTHONPATH=python python -m muir.golden --shipped models/muir-slim.safetensors
+
+step "4/5 firmware CRCs"
+MUIR_UPDATE_EXPECTED=1 cargo test --release --test firmware
+
+step "5/5 evaluation"
+out=runs/eval/shipped
+rm -rf "$out"
+PYTHONPATH=python python -m muir.evaluate --model models/muir-slim.safetensors --name muir-slim --sgbm --out "$out" \
+    --vis middlebury2003/teddy,middlebury2005/Art,middlebury2005/Books
+cp "$out/muir-slim.json" models/muir-slim.eval.json
+cp "$out/sgbm.json" models/sgbm.eval.json
+sed 's|model=[^,]*/models/muir-slim.safetensors|model=models/muir-slim.safetensors|' "$out/results.md" > models/muir-slim.eval.md
+for f in docs/results/*_middlebury*.png; do      # docs/results/<method>_<data set>_<scene>.png
+    b=$(basename "$f")
+    method=${b%%_middlebury*}
+    cp "$out/vis/$method/${b#"${method}"_}" "$f"
+done
+step "done: now re-measure the README figures (README.md, models/README.md) and commit"
