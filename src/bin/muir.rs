@@ -265,19 +265,7 @@ fn load_model(args: &ModelArgs) -> Result<LoadedModel, String> {
     let at = |e: &dyn std::fmt::Display| format!("{}: {e}", path.display());
     let bytes = std::fs::read(path).map_err(|e| at(&e))?;
     let file = parse_safetensors(&bytes).map_err(|e| at(&e))?;
-    let config = match (file.config, args.config) {
-        (Some(found), Some(named)) if found != named => {
-            let how = if found.name == named.name { " (same name, different fields)" } else { "" };
-            return Err(format!(
-                "{}: the file's config '{}' differs from --config {}{how}",
-                path.display(),
-                found.name,
-                named.name
-            ));
-        }
-        (Some(c), _) | (None, Some(c)) => c,
-        (None, None) => return Err(at(&muir::float::WeightError::NoConfig)),
-    };
+    let config = model_config(path, file.config, args.config)?;
     let tensors = file.tensors.len();
     let values = file
         .tensors
@@ -289,6 +277,19 @@ fn load_model(args: &ModelArgs) -> Result<LoadedModel, String> {
         .sum();
     let weights = FloatWeights::from_state_dict(file.tensors, &config).map_err(|e| at(&e))?;
     Ok(LoadedModel { weights, tensors, values, bytes: bytes.len() })
+}
+
+/// The config of the model file at `path`: the one in its metadata (`found`) or the one named on
+/// the command line; both must agree when both are there.
+fn model_config(path: &Path, found: Option<Config>, named: Option<Config>) -> Result<Config, String> {
+    match (found, named) {
+        (Some(found), Some(named)) if found != named => {
+            let how = if found.name == named.name { " (same name, different fields)" } else { "" };
+            Err(format!("{}: the file's config '{}' differs from --config {}{how}", path.display(), found.name, named.name))
+        }
+        (Some(c), _) | (None, Some(c)) => Ok(c),
+        (None, None) => Err(format!("{}: {}", path.display(), muir::float::WeightError::NoConfig)),
+    }
 }
 
 /// A prediction in real units, whichever engine made it.
@@ -603,13 +604,7 @@ fn snap(args: &SnapArgs) -> Result<(), String> {
     let at = |e: &dyn std::fmt::Display| format!("{}: {e}", args.model.display());
     let bytes = std::fs::read(&args.model).map_err(|e| at(&e))?;
     let mut file = parse_safetensors(&bytes).map_err(|e| at(&e))?;
-    let config = match (file.config, args.config) {
-        (Some(found), Some(named)) if found != named => {
-            return Err(at(&format!("the file's config '{}' differs from --config {}", found.name, named.name)));
-        }
-        (Some(c), _) | (None, Some(c)) => c,
-        (None, None) => return Err(at(&muir::float::WeightError::NoConfig)),
-    };
+    let config = model_config(&args.model, file.config, args.config)?;
     let weights = FloatWeights::from_state_dict(file.tensors.clone(), &config).map_err(|e| at(&e))?;
     let (snapped, rms) = muir::calib::snap_to_grid(&weights);
     let mut layers = 0;
