@@ -48,13 +48,34 @@ class ResidualBlock(nn.Module):
             raise ValueError(norm)
         # `downsample.1` and `norm3` are the same module: the checkpoint holds both names.
         self.downsample = nn.Sequential(nn.Conv2d(cin, cout, 1, stride=stride), self.norm3) if shape_change else None
+        # Quantisation-aware training (muir.qat.attach): the engine's slot names and rounding.
+        self.slots = None
+        self.aq = None
 
     def forward(self, x):
+        if self.aq is not None and self.aq.enabled:
+            return self._forward_quantised(x)
         y = self.relu(self.norm1(self.conv1(x)))
         y = self.relu(self.norm2(self.conv2(y)))
         if self.downsample is not None:
             x = self.downsample(x)
         return self.relu(x + y)
+
+    def _forward_quantised(self, x):
+        """As `forward`, each tensor the engine stores rounded to its slot (src/engine/encoder.rs)."""
+        q = self.aq
+        if len(self.slots) == 4:  # InstanceNorm block of the feature head: raw conv outputs are slots
+            raw1, mid, raw2, out = self.slots
+            y = q(mid, self.relu(self.norm1(q(raw1, self.conv1(x)))))
+            y = self.relu(self.norm2(q(raw2, self.conv2(y))))
+        else:
+            mid, out = self.slots
+            y = q(mid, self.relu(self.norm1(self.conv1(x))))
+            y = self.relu(self.norm2(self.conv2(y)))
+        if self.downsample is not None:
+            x = self.downsample(x)
+        # Both branches on the output grid (i16), then the saturating add + ReLU.
+        return q(out, self.relu(q(out, x, saturate=False) + q(out, y, saturate=False)))
 
 
 class MultiBasicEncoder(nn.Module):
@@ -81,8 +102,10 @@ class MultiBasicEncoder(nn.Module):
             self.layer5 = nn.Sequential(ResidualBlock(d3, d3, "batch", 2), ResidualBlock(d3, d3, "batch", 1))
             self.outputs32 = nn.ModuleList([nn.Conv2d(d3, c, 3, padding=1) for c in heads])
 
-    def trunk(self, x, trace=None, prefix=""):
+    def trunk(self, x, trace=None, prefix="", aq=None):
         x = self.relu1(self.norm1(self.conv1(x)))
+        if aq is not None:
+            x = aq("c1", x)
         _rec(trace, prefix + "conv1", x)
         x = self.layer1(x)
         _rec(trace, prefix + "layer1", x)
@@ -351,6 +374,7 @@ class MUIR(nn.Module):
             self.ufi = UFI(cfg)
         if cfg.mga:
             self.mga = MGA(cfg)
+        self.aq = None  # muir.qat.ActQuant when training with the engine's rounding simulated
 
     def freeze_bn(self):
         """BatchNorm keeps its stored statistics in training too (as RAFT-Stereo trains)."""
@@ -366,10 +390,13 @@ class MUIR(nn.Module):
     # -- stages ------------------------------------------------------------------------------------
     def encode(self, left, right, trace=None):
         cfg = self.cfg
-        x = self.cnet.trunk(normalize_image(torch.cat([left, right], dim=0)), trace, "backbone.")
+        aq = self.aq
+        x = self.cnet.trunk(normalize_image(torch.cat([left, right], dim=0)), trace, "backbone.", aq)
         bsz = left.shape[0]
         xl = x[:bsz]
         fm = self.conv2(x)
+        if aq is not None:
+            fm = aq("fmap", fm)
         f1, f2 = fm[:bsz], fm[bsz:]
         _rec(trace, "fmap1", f1)
         _rec(trace, "fmap2", f2)
@@ -378,6 +405,8 @@ class MUIR(nn.Module):
         c16 = [head(y) for head in self.cnet.outputs16]
         net08, net16 = torch.tanh(c08[0]), torch.tanh(c16[0])
         inp08, inp16 = F.relu(c08[1]), F.relu(c16[1])
+        if aq is not None:
+            inp08, inp16 = aq("inp08", inp08), aq("inp16", inp16)
         _rec(trace, "net08.init", net08)
         _rec(trace, "net16.init", net16)
         _rec(trace, "inp08", inp08)

@@ -131,6 +131,15 @@ def sequence_loss(out, gt, valid, cfg: Config, gamma: float = 0.9):
     return total, m
 
 
+def consistency_loss(out_q, out_f, gamma: float = 0.9):
+    """Quantisation-aware term: mean |d_rounded - d_float| over all pixels (float detached), for every
+    prediction with the sequence loss's weights. It asks for agreement where the answer is wrong too,
+    which the ground-truth loss alone does not."""
+    dq, df = out_q["disp"], out_f["disp"]
+    n = len(dq)
+    return sum(gamma ** (n - 1 - i) * (a - b.detach()).abs().mean() for i, (a, b) in enumerate(zip(dq, df)))
+
+
 # ------------------------------------------------------------------------------------------------
 # Model set-up
 # ------------------------------------------------------------------------------------------------
@@ -225,7 +234,7 @@ def parse_hw(s: str):
 # ------------------------------------------------------------------------------------------------
 # Logging helpers
 # ------------------------------------------------------------------------------------------------
-CSV_FIELDS = ["step", "lr", "loss", "epe", "epe0", "bad1", "bad3", "pred_err", "cand", "step_s", "data_s", "time"]
+CSV_FIELDS = ["step", "lr", "loss", "epe", "epe0", "bad1", "bad3", "pred_err", "cand", "qat_diff", "step_s", "data_s", "time"]
 
 
 def plot_curves(csv_path: str, png_path: str):
@@ -247,8 +256,9 @@ def plot_curves(csv_path: str, png_path: str):
         ax[0].plot(step, col(k), label=k)
     ax[0].set_yscale("log")
     ax[0].set_title("training loss (Eq. 7 + candidates)")
-    for k in ("epe", "epe0", "pred_err"):
-        ax[1].plot(step, col(k), label=k)
+    for k in ("epe", "epe0", "pred_err", "qat_diff"):
+        if np.isfinite(col(k)).any():
+            ax[1].plot(step, col(k), label=k)
     ax[1].set_yscale("log")
     ax[1].set_title("EPE (final, initial) and mean predicted error exp(u/2), px")
     ax[1].legend()
@@ -300,6 +310,13 @@ def build_parser():
     p.add_argument("--resume", nargs="?", const="auto", default=None,
                    help="continue from OUT/ckpt_last.pt (or the given checkpoint)")
     p.add_argument("--init", default=None, help="start from these weights (.safetensors or ckpt .pt)")
+    p.add_argument("--qat", default=None, metavar="REPORT.md",
+                   help="quantisation-aware: simulate the integer engine's encoder activation rounding with the "
+                        "slot formats of this calibration report (muir quantize --report)")
+    p.add_argument("--qat-p", type=float, default=0.5,
+                   help="with --qat: fraction of steps run with the rounding (the rest run the float network)")
+    p.add_argument("--qat-consistency", type=float, default=10.0,
+                   help="with --qat: weight of |d_rounded - d_float| on rounded steps (costs one more forward pass)")
     return p
 
 
@@ -353,6 +370,18 @@ def main(argv=None):
             model.load_state_dict(load_file(args.init), strict=True)
         else:
             model.load_state_dict(torch.load(args.init, map_location="cpu", weights_only=False)["model"], strict=True)
+    aq = None
+    if args.qat:
+        from . import qat
+
+        try:
+            aq = qat.ActQuant(qat.read_report(args.qat))
+        except (OSError, ValueError) as e:
+            print(f"error: --qat: {e}", file=sys.stderr)
+            return 2
+        qat.attach(model, aq)
+        print(f"quantisation-aware: {len(aq.grid)} encoder slots from {args.qat}, on {100 * args.qat_p:.0f}% of steps",
+              file=sys.stderr)
     model.to(dev).train()
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.wd, betas=(0.9, 0.999), eps=1e-8)
     sched = torch.optim.lr_scheduler.OneCycleLR(
@@ -450,6 +479,7 @@ def main(argv=None):
     writer.writerows(kept_rows)
 
     acc, n_acc, t_acc, d_acc = {}, 0, 0.0, 0.0
+    qat_acc = [0.0, 0]  # sum and count of mean |d_rounded - d_float| (final) over rounded steps
     bad_steps = 0
     last = {}
     t_start = time.time()
@@ -460,8 +490,29 @@ def main(argv=None):
         t0 = time.time()
         left, right, gt = (x.to(dev, non_blocking=True) for x in (left, right, gt))
         valid = torch.isfinite(gt) & (gt >= 0) & (gt < MAX_GT)
+        ref = None
+        if aq is not None:
+            aq.enabled = random.random() < args.qat_p
+            if aq.enabled and args.qat_consistency > 0:
+                # The float network's answer on the same batch, with the same mask-binarisation coins.
+                rng = torch.get_rng_state()
+                rng_cuda = torch.cuda.get_rng_state() if dev.type == "cuda" else None
+                aq.enabled = False
+                with torch.no_grad():
+                    ref = model(left, right, iters=iters, train_out=True, binarize_p=args.binarize_p)
+                aq.enabled = True
+                torch.set_rng_state(rng)
+                if rng_cuda is not None:
+                    torch.cuda.set_rng_state(rng_cuda)
         out = model(left, right, iters=iters, train_out=True, binarize_p=args.binarize_p)
         loss, m = sequence_loss(out, gt, valid, cfg, args.gamma)
+        if ref is not None:
+            cons = consistency_loss(out, ref, args.gamma)
+            loss = loss + args.qat_consistency * cons
+            with torch.no_grad():
+                qd = (out["disp"][-1] - ref["disp"][-1]).abs().mean().item()
+            qat_acc[0] += qd
+            qat_acc[1] += 1
         opt.zero_grad(set_to_none=True)
         if not torch.isfinite(loss):
             bad_steps += 1
@@ -494,10 +545,15 @@ def main(argv=None):
             row = {"step": step, "lr": f"{lr_used:.3e}", "step_s": f"{t_acc / n_acc:.3f}",
                    "data_s": f"{d_acc / n_acc:.3f}", "time": f"{time.time():.0f}"}
             row.update({k: f"{v:.5g}" for k, v in avg.items()})
+            qat_txt = ""
+            if qat_acc[1]:
+                row["qat_diff"] = f"{qat_acc[0] / qat_acc[1]:.5g}"
+                qat_txt = f" qat |dq-df| {qat_acc[0] / qat_acc[1]:.3f}"
+                qat_acc[0], qat_acc[1] = 0.0, 0
             writer.writerow(row)
             csv_f.flush()
             print(f"step {step}/{args.steps} loss {avg['loss']:.3f} epe {avg['epe']:.3f} (init {avg['epe0']:.3f}) "
-                  f"bad1 {100 * avg['bad1']:.1f}% pred_err {avg.get('pred_err', float('nan')):.2f} "
+                  f"bad1 {100 * avg['bad1']:.1f}% pred_err {avg.get('pred_err', float('nan')):.2f}{qat_txt} "
                   f"lr {lr_used:.2e} | {t_acc / n_acc:.2f}s/step data {d_acc / n_acc:.3f}s "
                   f"{sps:.3f} steps/s ETA {fmt_time(eta)} [{torch.get_num_threads()} thr]", file=sys.stderr, flush=True)
             last = {k: round(v, 5) for k, v in avg.items()}

@@ -1,0 +1,148 @@
+"""Quantisation-aware training: the integer engine's activation rounding, simulated in the twin.
+
+The fixed-point engine stores the encoder's activations in 8 bits (`u8` after a ReLU, the matching
+features `i8`), each slot with a power-of-two scale chosen by calibration (`muir quantize`, whose
+report lists `slot | bits | frac`). That rounding noise, not the weights' (README, "Fixed vs float"),
+is what separates the two engines on ambiguous pixels. `ActQuant` rounds the same tensors to the same
+grids in the forward pass, with a straight-through gradient, so that a model can be fine-tuned to be
+insensitive to it (`python -m muir.train --qat models/muir-slim.calib.md`).
+
+Slots simulated (src/model/graph.rs): the backbone (`c1`, `l*b*m/o`), the context/hidden heads
+(`h08*`, `h16*`, `inp08`, `inp16`) and the matching-feature head (`fmap_raw1`, `fmap_mid`, `fmap_raw2`,
+`fmap_blk`, `fmap`). The update block's slots are 16-bit and are left in float.
+"""
+from __future__ import annotations
+
+import re
+
+import torch
+
+# Storage of the simulated slots (the arithmetic spec, src/model/graph.rs): (bits, unsigned).
+_U8 = (8, True)
+ENCODER_SLOTS = {
+    "c1": _U8,
+    **{f"l{l}b{b}{k}": _U8 for l in range(1, 5) for b in range(2) for k in "mo"},
+    **{f"h{r}{h}{k}": _U8 for r in ("08", "16") for h in "nc" for k in "mo"},
+    "fmap_raw1": (16, False), "fmap_mid": _U8, "fmap_raw2": (16, False), "fmap_blk": _U8, "fmap": (8, False),
+    "inp08": _U8, "inp16": _U8,
+}
+
+
+def read_report(path: str) -> dict[str, int]:
+    """Fraction bits per slot from a calibration report (`| slot | bits | frac | ...` rows)."""
+    fracs = {}
+    with open(path) as f:
+        for line in f:
+            m = re.match(r"\|\s*([a-z0-9_]+)\s*\|\s*(\d+)\s*\|\s*(-?\d+)\s*\|", line)
+            if m:
+                fracs[m.group(1)] = int(m.group(3))
+    missing = sorted(s for s in ENCODER_SLOTS if s not in fracs)
+    if missing:
+        raise ValueError(f"{path}: no format for slot(s) {', '.join(missing)}")
+    return fracs
+
+
+class ActQuant:
+    """Rounds a slot's tensor to the engine's grid (round to nearest, saturate), straight-through."""
+
+    def __init__(self, fracs: dict[str, int]):
+        self.grid = {}
+        for slot, (bits, unsigned) in ENCODER_SLOTS.items():
+            lo, hi = (0, 2**bits - 1) if unsigned else (-(2 ** (bits - 1)), 2 ** (bits - 1) - 1)
+            self.grid[slot] = (2.0 ** fracs[slot], lo, hi)
+        self.enabled = False
+
+    def __call__(self, slot: str, x: torch.Tensor, saturate: bool = True) -> torch.Tensor:
+        """`saturate=False` for an i16 intermediate on the slot's grid (a residual branch before the add)."""
+        if not self.enabled:
+            return x
+        s, lo, hi = self.grid[slot]
+        q = torch.round(x * s)
+        if saturate:
+            q = torch.clamp(q, lo, hi)
+        return x + (q / s - x).detach()
+
+
+def attach(model, aq: ActQuant | None):
+    """Wires `aq` into `model`'s encoder (None detaches): names each residual block's slots."""
+    enc = model.cnet
+    named = [(enc.layer1, "l1"), (enc.layer2, "l2"), (enc.layer3, "l3"), (enc.layer4, "l4")]
+    for seq, name in named:
+        for b, blk in enumerate(seq):
+            blk.slots = (f"{name}b{b}m", f"{name}b{b}o")
+            blk.aq = aq
+    for heads, r in ((enc.outputs08, "08"), (enc.outputs16, "16")):
+        for head, h in zip(heads, "nc"):
+            head[0].slots = (f"h{r}{h}m", f"h{r}{h}o")
+            head[0].aq = aq
+    model.conv2[0].slots = ("fmap_raw1", "fmap_mid", "fmap_raw2", "fmap_blk")
+    model.conv2[0].aq = aq
+    model.aq = aq
+
+
+# The five real 320x240 crops of host-tests/support/crops.rs (scene, x, y).
+CROPS = [
+    ("middlebury2001/tsukuba", 32, 24),
+    ("middlebury2003/teddy", 100, 80),
+    ("middlebury2005/Art", 120, 100),
+    ("middlebury2006/Aloe", 90, 90),
+    ("eth3d_twoview/playground", 400, 150),
+]
+
+
+def main(argv=None):
+    """Simulated fixed vs float on the fixed_vs_float crops: checks that the simulation tracks the
+    engine (compare with `cargo test --release --test fixed_vs_float -- --nocapture`)."""
+    import argparse
+    import os
+
+    import sys
+
+    import numpy as np
+    from PIL import Image
+
+    from .checkpoint import load_model
+
+    ap = argparse.ArgumentParser(prog="python -m muir.qat", description=main.__doc__)
+    ap.add_argument("--model", default="models/muir-slim.safetensors")
+    ap.add_argument("--report", default="models/muir-slim.calib.md", help="calibration report (slot formats)")
+    ap.add_argument("--data", default="../shared/data")
+    ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    args = ap.parse_args(argv)
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    try:
+        m = load_model(args.model, "muir-slim")
+        aq = ActQuant(read_report(args.report))
+    except (OSError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    attach(m, aq)
+
+    def tensor(path, x, y):
+        a = np.asarray(Image.open(path).convert("RGB"))[y : y + 240, x : x + 320]
+        return torch.from_numpy(a.copy()).permute(2, 0, 1)[None].float()
+
+    diffs = []
+    print("| pair | mean |d_rounded - d_float| px | within 1 px % |")
+    print("|---|---:|---:|")
+    for name, x, y in CROPS:
+        d = os.path.join(args.data, name)
+        left, right = tensor(os.path.join(d, "left.png"), x, y), tensor(os.path.join(d, "right.png"), x, y)
+        with torch.no_grad():
+            aq.enabled = False
+            d0, _ = m(left, right)
+            aq.enabled = True
+            d1, _ = m(left, right)
+        e = (d0 - d1).abs().flatten()
+        diffs.append(e)
+        print(f"| {name} | {e.mean():.4f} | {100 * (e < 1).float().mean():.2f} |", flush=True)
+    e = torch.cat(diffs)
+    print(f"| all five | {e.mean():.4f} | {100 * (e < 1).float().mean():.2f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.exit(main())
