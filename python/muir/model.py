@@ -74,8 +74,9 @@ class ResidualBlock(nn.Module):
             y = self.relu(self.norm2(self.conv2(y)))
         if self.downsample is not None:
             x = self.downsample(x)
-        # Both branches on the output grid (i16), then the saturating add + ReLU.
-        return q(out, self.relu(q(out, x, saturate=False) + q(out, y, saturate=False)))
+        # Both branches on the output slot's grid (i16), then the saturating add + ReLU.
+        s = q.scale(out, self.relu(x + y))
+        return q(out, self.relu(q(out, x, saturate=False, scale=s) + q(out, y, saturate=False, scale=s)), scale=s)
 
 
 class MultiBasicEncoder(nn.Module):

@@ -13,6 +13,7 @@ Slots simulated (src/model/graph.rs): the backbone (`c1`, `l*b*m/o`), the contex
 """
 from __future__ import annotations
 
+import math
 import re
 
 import torch
@@ -42,25 +43,64 @@ def read_report(path: str) -> dict[str, int]:
     return fracs
 
 
-class ActQuant:
-    """Rounds a slot's tensor to the engine's grid (round to nearest, saturate), straight-through."""
+def dynamic_frac(x: torch.Tensor, qmax: int, percentile: float = 99.99) -> int:
+    """The calibration's rule (`QFormat::for_range`, `muir quantize --method percentile`) on one
+    tensor: the most fraction bits whose range still holds the given percentile of |x|."""
+    a = x.detach().abs().flatten()
+    k = max(1, int(a.numel() * (1.0 - percentile / 100.0)))
+    p = float(a.topk(k).values[-1]) if a.numel() > k else float(a.max())
+    return int(math.floor(math.log2(qmax / max(p, 1e-12))))
 
-    def __init__(self, fracs: dict[str, int]):
+
+class ActQuant:
+    """Rounds a slot's tensor to the engine's grid (round to nearest, saturate), straight-through;
+    with `weights`, the encoder convs' weights too (see `attach`).
+
+    With `fracs` the grids are fixed (those of a blob: `python -m muir.qat` compares with the engine);
+    without, each call re-derives its slot's grid from the tensor by the calibration rule, so that
+    training follows the formats a re-calibration of the trained weights will choose (fixed grids let
+    the float steps grow activations past the range, where saturation then breaks the rounded steps).
+    """
+
+    def __init__(self, fracs: dict[str, int] | None = None, weights: bool = True):
         self.grid = {}
         for slot, (bits, unsigned) in ENCODER_SLOTS.items():
             lo, hi = (0, 2**bits - 1) if unsigned else (-(2 ** (bits - 1)), 2 ** (bits - 1) - 1)
-            self.grid[slot] = (2.0 ** fracs[slot], lo, hi)
+            self.grid[slot] = (None if fracs is None else 2.0 ** fracs[slot], lo, hi)
         self.enabled = False
+        self.weights = weights
 
-    def __call__(self, slot: str, x: torch.Tensor, saturate: bool = True) -> torch.Tensor:
-        """`saturate=False` for an i16 intermediate on the slot's grid (a residual branch before the add)."""
+    def scale(self, slot: str, x: torch.Tensor) -> float:
+        """2^frac of `slot` (fixed, or derived from `x`, the slot's float value)."""
+        s, _, hi = self.grid[slot]
+        return 2.0 ** dynamic_frac(x, hi) if s is None else s
+
+    def __call__(self, slot: str, x: torch.Tensor, saturate: bool = True, scale: float | None = None) -> torch.Tensor:
+        """`saturate=False` for an i16 intermediate on the slot's grid (a residual branch before the
+        add, with `scale` = the slot's, from the sum)."""
         if not self.enabled:
             return x
-        s, lo, hi = self.grid[slot]
+        _, lo, hi = self.grid[slot]
+        s = self.scale(slot, x) if scale is None else scale
         q = torch.round(x * s)
         if saturate:
             q = torch.clamp(q, lo, hi)
         return x + (q / s - x).detach()
+
+
+def _quantised_conv_forward(conv, aq):
+    """`conv.forward` with its weight rounded as the blob stores it when `aq` is enabled: int8,
+    symmetric, one scale per output channel (BatchNorm and the input slot's scale fold into that
+    per-channel scale, so rounding the raw weight per channel is the same grid)."""
+
+    def forward(x):
+        w = conv.weight
+        if aq is not None and aq.enabled and aq.weights:
+            s = w.detach().abs().amax(dim=(1, 2, 3), keepdim=True).clamp(min=1e-12) / 127.0
+            w = w + (torch.round(w / s) * s - w).detach()
+        return conv._conv_forward(x, w, conv.bias)
+
+    return forward
 
 
 def attach(model, aq: ActQuant | None):
@@ -78,6 +118,14 @@ def attach(model, aq: ActQuant | None):
     model.conv2[0].slots = ("fmap_raw1", "fmap_mid", "fmap_raw2", "fmap_blk")
     model.conv2[0].aq = aq
     model.aq = aq
+    # Weights of the encoder's convs (single-input-part layers; the update block's convs read
+    # several slots, each with its own weight scale in the blob, and are not simulated).
+    for mod in list(enc.modules()) + list(model.conv2.modules()):
+        if isinstance(mod, torch.nn.Conv2d):
+            if aq is None:
+                mod.__dict__.pop("forward", None)
+            else:
+                mod.forward = _quantised_conv_forward(mod, aq)
 
 
 # The five real 320x240 crops of host-tests/support/crops.rs (scene, x, y).
@@ -108,12 +156,13 @@ def main(argv=None):
     ap.add_argument("--report", default="models/muir-slim.calib.md", help="calibration report (slot formats)")
     ap.add_argument("--data", default="../shared/data")
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    ap.add_argument("--activations-only", action="store_true", help="do not round the encoder's weights")
     args = ap.parse_args(argv)
     if args.threads > 0:
         torch.set_num_threads(args.threads)
     try:
         m = load_model(args.model, "muir-slim")
-        aq = ActQuant(read_report(args.report))
+        aq = ActQuant(read_report(args.report), weights=not args.activations_only)
     except (OSError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -310,12 +310,15 @@ def build_parser():
     p.add_argument("--resume", nargs="?", const="auto", default=None,
                    help="continue from OUT/ckpt_last.pt (or the given checkpoint)")
     p.add_argument("--init", default=None, help="start from these weights (.safetensors or ckpt .pt)")
-    p.add_argument("--qat", default=None, metavar="REPORT.md",
-                   help="quantisation-aware: simulate the integer engine's encoder activation rounding with the "
-                        "slot formats of this calibration report (muir quantize --report)")
+    p.add_argument("--qat", default=None, metavar="REPORT.md|dynamic",
+                   help="quantisation-aware: simulate the integer engine's encoder activation rounding, with the "
+                        "slot formats of this calibration report (muir quantize --report) or, with 'dynamic', "
+                        "formats re-derived from each batch by the calibration's percentile rule")
     p.add_argument("--qat-p", type=float, default=0.5,
                    help="with --qat: fraction of steps run with the rounding (the rest run the float network)")
-    p.add_argument("--qat-consistency", type=float, default=10.0,
+    p.add_argument("--qat-activations-only", action="store_true",
+                   help="with --qat: leave the encoder's weights unrounded (default: int8 per output channel)")
+    p.add_argument("--qat-consistency", type=float, default=3.0,
                    help="with --qat: weight of |d_rounded - d_float| on rounded steps (costs one more forward pass)")
     return p
 
@@ -375,12 +378,12 @@ def main(argv=None):
         from . import qat
 
         try:
-            aq = qat.ActQuant(qat.read_report(args.qat))
+            aq = qat.ActQuant(None if args.qat == "dynamic" else qat.read_report(args.qat), weights=not args.qat_activations_only)
         except (OSError, ValueError) as e:
             print(f"error: --qat: {e}", file=sys.stderr)
             return 2
         qat.attach(model, aq)
-        print(f"quantisation-aware: {len(aq.grid)} encoder slots from {args.qat}, on {100 * args.qat_p:.0f}% of steps",
+        print(f"quantisation-aware: {len(aq.grid)} encoder slots, formats {args.qat}, on {100 * args.qat_p:.0f}% of steps",
               file=sys.stderr)
     model.to(dev).train()
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.wd, betas=(0.9, 0.999), eps=1e-8)
