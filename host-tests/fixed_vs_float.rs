@@ -36,11 +36,24 @@ fn model(name: &str) -> PathBuf {
     Path::new(ROOT).join("models").join(name)
 }
 
+/// The model pair measured: the shipped one, or a candidate named by `MUIR_CANDIDATE_MODEL` and
+/// `MUIR_CANDIDATE_BLOB` (both; `scripts/check-candidate.sh`), for which the regression bounds of
+/// the shipped model are reported, not asserted.
+fn models_under_test() -> (PathBuf, PathBuf, bool) {
+    match (std::env::var_os("MUIR_CANDIDATE_MODEL"), std::env::var_os("MUIR_CANDIDATE_BLOB")) {
+        (Some(m), Some(b)) => (PathBuf::from(m), PathBuf::from(b), true),
+        (None, None) => (model("muir-slim.safetensors"), model("muir-slim.muirq"), false),
+        _ => panic!("set both MUIR_CANDIDATE_MODEL and MUIR_CANDIDATE_BLOB, or neither"),
+    }
+}
+
 #[test]
 fn fixed_engine_matches_float_reference_on_real_pairs() {
     let Some(pairs) = pairs() else { return };
-    let float_bytes = std::fs::read(model("muir-slim.safetensors")).expect("shipped float model");
-    let blob = std::fs::read(model("muir-slim.muirq")).expect("shipped quantised model");
+    let (model_path, blob_path, candidate) = models_under_test();
+    println!("float model {}, blob {}", model_path.display(), blob_path.display());
+    let float_bytes = std::fs::read(&model_path).expect("float model");
+    let blob = std::fs::read(&blob_path).expect("quantised model");
     let float = FloatModel::new(FloatWeights::from_safetensors(&float_bytes, None).unwrap());
     let q = QuantModel::parse(&blob).unwrap();
     assert_eq!(q.config(), float.config(), "the blob must be the float model's");
@@ -151,6 +164,11 @@ fn fixed_engine_matches_float_reference_on_real_pairs() {
     // quantisation; the iterations damp the difference (0.25 px after UFI, 0.16 px after 7). These
     // bounds hold the level measured with the shipped model so that a regression fails; tighten
     // them as the engine improves.
+    if candidate {
+        report(&format!("shipped model's regression bound mean <= {MAX_MEAN_DIFF}"), mean_diff <= MAX_MEAN_DIFF);
+        report(&format!("shipped model's regression bound within 1 px >= {MIN_WITHIN_1PX}"), within >= MIN_WITHIN_1PX);
+        return;
+    }
     assert!(mean_diff <= MAX_MEAN_DIFF, "mean |d_fixed - d_float| = {mean_diff:.4} px > {MAX_MEAN_DIFF} (regression)");
     assert!(within >= MIN_WITHIN_1PX, "{:.2}% of pixels within 1 px < {:.1}% (regression)", 100.0 * within, 100.0 * MIN_WITHIN_1PX);
 }
