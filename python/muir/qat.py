@@ -1,15 +1,17 @@
-"""Quantisation-aware training: the integer engine's activation rounding, simulated in the twin.
+"""Quantisation-aware training: the integer engine's encoder rounding, simulated in the twin.
 
 The fixed-point engine stores the encoder's activations in 8 bits (`u8` after a ReLU, the matching
 features `i8`), each slot with a power-of-two scale chosen by calibration (`muir quantize`, whose
-report lists `slot | bits | frac`). That rounding noise, not the weights' (README, "Fixed vs float"),
-is what separates the two engines on ambiguous pixels. `ActQuant` rounds the same tensors to the same
-grids in the forward pass, with a straight-through gradient, so that a model can be fine-tuned to be
-insensitive to it (`python -m muir.train --qat models/muir-slim.calib.md`).
+report lists `slot | bits | frac`), and its weights in int8 per output channel. That noise flips
+near-tied matches and separates the two engines on ambiguous pixels (README, "Accuracy").
+`ActQuant` rounds the same tensors to the same grids in the forward pass, with a straight-through
+gradient, so that a model can be fine-tuned against it (`python -m muir.train --qat dynamic`, see
+docs/training.md; the trials and what they bought: docs/experiments/qat-trial/).
 
 Slots simulated (src/model/graph.rs): the backbone (`c1`, `l*b*m/o`), the context/hidden heads
 (`h08*`, `h16*`, `inp08`, `inp16`) and the matching-feature head (`fmap_raw1`, `fmap_mid`, `fmap_raw2`,
-`fmap_blk`, `fmap`). The update block's slots are 16-bit and are left in float.
+`fmap_blk`, `fmap`). The update block's slots are 16-bit and its weights several-part, and are left
+in float.
 """
 from __future__ import annotations
 
