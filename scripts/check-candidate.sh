@@ -20,16 +20,10 @@ src=$1
 [[ -f "$src" ]] || { echo "error: no model file $src" >&2; exit 1; }
 run=$(basename "$(dirname "$src")")
 out=${2:-runs/check/${run}_$(basename "$src" .safetensors)}
-data=../shared/data
-[[ -d "$data/nogt" ]] || { echo "error: $data/nogt not found (calibration pairs)" >&2; exit 1; }
 mkdir -p "$out"
 
 echo "== 1/3 quantise -> $out/model.muirq" >&2
-cargo build --release --bin muir
-./target/release/muir quantize --model "$src" \
-    --calib "$data/nogt/oakd_desk" --calib "$data/nogt/oakd_living_room" \
-    --calib "$data/nogt/kitti2015_000051_11" --calib "$data/nogt/oakd_stairs" \
-    --max-size 320x240 --out "$out/model.muirq" --report "$out/calib.md"
+bash scripts/quantize-shipped.sh "$src" "$out/model.muirq" "$out/calib.md"
 
 echo "== 2/3 fixed vs float (five crops) -> $out/fixed_vs_float.txt" >&2
 MUIR_CANDIDATE_MODEL="$(realpath "$src")" MUIR_CANDIDATE_BLOB="$(realpath "$out/model.muirq")" \

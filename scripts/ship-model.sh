@@ -32,10 +32,7 @@ cargo build --release --bin muir
 [[ "$(realpath "$src")" == "$(realpath models/muir-slim.safetensors)" ]] || cp "$src" models/muir-slim.safetensors
 
 step "2/5 quantised blob"
-./target/release/muir quantize --model models/muir-slim.safetensors \
-    --calib "$data/nogt/oakd_desk" --calib "$data/nogt/oakd_living_room" \
-    --calib "$data/nogt/kitti2015_000051_11" --calib "$data/nogt/oakd_stairs" \
-    --max-size 320x240 --out models/muir-slim.muirq --report models/muir-slim.calib.md
+bash scripts/quantize-shipped.sh models/muir-slim.safetensors models/muir-slim.muirq models/muir-slim.calib.md
 
 step "3/5 float parity fixture"
 PYTHONPATH=python python -m muir.golden --shipped models/muir-slim.safetensors

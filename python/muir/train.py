@@ -497,16 +497,13 @@ def main(argv=None):
         if aq is not None:
             aq.enabled = random.random() < args.qat_p
             if aq.enabled and args.qat_consistency > 0:
-                # The float network's answer on the same batch, with the same mask-binarisation coins.
-                rng = torch.get_rng_state()
-                rng_cuda = torch.cuda.get_rng_state() if dev.type == "cuda" else None
+                # The float network's answer on the same batch, with the same mask-binarisation coins
+                # (the forked RNG state is restored for the rounded pass).
                 aq.enabled = False
-                with torch.no_grad():
+                cuda_ids = [torch.cuda.current_device()] if dev.type == "cuda" else []
+                with torch.random.fork_rng(devices=cuda_ids), torch.no_grad():
                     ref = model(left, right, iters=iters, train_out=True, binarize_p=args.binarize_p)
                 aq.enabled = True
-                torch.set_rng_state(rng)
-                if rng_cuda is not None:
-                    torch.cuda.set_rng_state(rng_cuda)
         out = model(left, right, iters=iters, train_out=True, binarize_p=args.binarize_p)
         loss, m = sequence_loss(out, gt, valid, cfg, args.gamma)
         if ref is not None:
