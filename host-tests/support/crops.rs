@@ -1,5 +1,6 @@
 //! The five real 320x240 crops (with ground truth) on which the fixed engine is compared with the
-//! float reference: `host-tests/fixed_vs_float.rs` and `examples/quant_drift.rs`.
+//! float reference: `host-tests/fixed_vs_float.rs` and `examples/quant_drift.rs`. The list lives in
+//! `host-tests/fixtures/crops.txt`, which `python/muir/qat.py` reads too.
 
 use std::path::Path;
 
@@ -7,19 +8,29 @@ use muir::io::{OwnedImage, read_ground_truth, read_png};
 
 /// The shared data sets, beside the repository as in CI.
 pub const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data");
-/// Crop width.
+/// Crop width (the `size` line of `crops.txt`; checked when the list is read).
 pub const W: usize = 320;
 /// Crop height.
 pub const H: usize = 240;
 
-/// (scene, crop x, crop y): textured windows of five scenes of different datasets.
-pub const SCENES: [(&str, usize, usize); 5] = [
-    ("middlebury2001/tsukuba", 32, 24),
-    ("middlebury2003/teddy", 100, 80),
-    ("middlebury2005/Art", 120, 100),
-    ("middlebury2006/Aloe", 90, 90),
-    ("eth3d_twoview/playground", 400, 150),
-];
+/// The crop list: `size W H`, then one `scene x y` line per crop (textured windows of five scenes of
+/// different datasets); `#` starts a comment.
+const LIST: &str = include_str!("../fixtures/crops.txt");
+
+/// (scene, crop x, crop y) from [`LIST`]; panics on a malformed list (a test fixture, not user input).
+pub fn scenes() -> Vec<(&'static str, usize, usize)> {
+    let mut out = Vec::new();
+    for line in LIST.lines().map(|l| l.split('#').next().unwrap_or("").trim()).filter(|l| !l.is_empty()) {
+        let f: Vec<&str> = line.split_whitespace().collect();
+        let num = |s: &str| s.parse::<usize>().unwrap_or_else(|_| panic!("crops.txt: bad number in {line:?}"));
+        match f.as_slice() {
+            ["size", w, h] => assert_eq!((num(w), num(h)), (W, H), "crops.txt: size must be {W} {H}"),
+            [scene, x, y] => out.push((*scene, num(x), num(y))),
+            _ => panic!("crops.txt: bad line {line:?}"),
+        }
+    }
+    out
+}
 
 /// One cropped pair and its ground-truth disparity (row-major, `W x H`, non-finite = unknown).
 pub struct Pair {
@@ -36,9 +47,9 @@ pub fn pairs() -> Option<Vec<Pair>> {
         return None;
     }
     Some(
-        SCENES
-            .iter()
-            .map(|&(name, x, y)| {
+        scenes()
+            .into_iter()
+            .map(|(name, x, y)| {
                 let dir = Path::new(DATA).join(name);
                 let l = read_png(dir.join("left.png")).unwrap();
                 let r = read_png(dir.join("right.png")).unwrap();

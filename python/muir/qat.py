@@ -16,6 +16,7 @@ in float.
 from __future__ import annotations
 
 import math
+import os
 import re
 
 import torch
@@ -130,21 +131,32 @@ def attach(model, aq: ActQuant | None):
                 mod.forward = _quantised_conv_forward(mod, aq)
 
 
-# The five real 320x240 crops of host-tests/support/crops.rs (scene, x, y).
-CROPS = [
-    ("middlebury2001/tsukuba", 32, 24),
-    ("middlebury2003/teddy", 100, 80),
-    ("middlebury2005/Art", 120, 100),
-    ("middlebury2006/Aloe", 90, 90),
-    ("eth3d_twoview/playground", 400, 150),
-]
+CROPS_FILE = os.path.join(os.path.dirname(__file__), "..", "..", "host-tests", "fixtures", "crops.txt")
+
+
+def read_crops(path=CROPS_FILE):
+    """The fixed_vs_float crops, as host-tests/support/crops.rs reads them: ((w, h), [(scene, x, y)])."""
+    size, crops = None, []
+    with open(path) as f:
+        for line in f:
+            fields = line.split("#")[0].split()
+            if not fields:
+                continue
+            if fields[0] == "size" and len(fields) == 3:
+                size = (int(fields[1]), int(fields[2]))
+            elif len(fields) == 3:
+                crops.append((fields[0], int(fields[1]), int(fields[2])))
+            else:
+                raise ValueError(f"{path}: bad line {line.strip()!r}")
+    if size is None:
+        raise ValueError(f"{path}: no size line")
+    return size, crops
 
 
 def main(argv=None):
     """Simulated fixed vs float on the fixed_vs_float crops: checks that the simulation tracks the
     engine (compare with `cargo test --release --test fixed_vs_float -- --nocapture`)."""
     import argparse
-    import os
 
     import sys
 
@@ -170,14 +182,16 @@ def main(argv=None):
         return 2
     attach(m, aq)
 
+    (cw, ch), crops = read_crops()
+
     def tensor(path, x, y):
-        a = np.asarray(Image.open(path).convert("RGB"))[y : y + 240, x : x + 320]
+        a = np.asarray(Image.open(path).convert("RGB"))[y : y + ch, x : x + cw]
         return torch.from_numpy(a.copy()).permute(2, 0, 1)[None].float()
 
     diffs = []
     print("| pair | mean |d_rounded - d_float| px | within 1 px % |")
     print("|---|---:|---:|")
-    for name, x, y in CROPS:
+    for name, x, y in crops:
         d = os.path.join(args.data, name)
         left, right = tensor(os.path.join(d, "left.png"), x, y), tensor(os.path.join(d, "right.png"), x, y)
         with torch.no_grad():
