@@ -411,8 +411,16 @@ def main(argv=None):
     print(f"{cfg.name}: {n_params / 1e6:.2f} M parameters, {iters} iterations, device {dev}, "
           f"{torch.get_num_threads()} threads; {args.steps} steps of {args.batch}x{h}x{w}, lr {args.lr}",
           file=sys.stderr)
-    with open(os.path.join(args.out, "args.json"), "w") as f:
-        json.dump({**vars(args), "command": cmdline, "config_json": cfg.to_json()}, f, indent=1)
+    # args.json records the command that started the run; a resume appends its own command (with the
+    # step it resumed from) instead of replacing the record of how the run was set up.
+    args_path = os.path.join(args.out, "args.json")
+    record = {**vars(args), "command": cmdline, "config_json": cfg.to_json()}
+    if state is not None and os.path.exists(args_path):
+        with open(args_path) as f:
+            record = json.load(f)
+        record.setdefault("resumed", []).append({"step": step, "command": cmdline})
+    with open(args_path, "w") as f:
+        json.dump(record, f, indent=1)
 
     def save_ckpt(step_now):
         st = {
