@@ -2,7 +2,8 @@
 # Measures a trained float model against the shipped one's yardsticks without shipping it:
 #   1. quantises it with the shipped calibration command (blob + report in OUT_DIR)
 #   2. fixed engine vs float reference on the five fixed_vs_float crops (issue #4's figures)
-#   3. the Middlebury evaluation of the float model (issue #3's figures), unless --no-eval
+#   3. the Middlebury evaluation of the float model (issue #3's figures) and of the fixed-point engine
+#      on its blob (what the device delivers; ~3 min more), unless --no-eval
 # Nothing under models/ changes; ship with scripts/ship-model.sh.
 #
 # Usage: bash scripts/check-candidate.sh [--no-eval] RUN_DIR/model.safetensors [OUT_DIR]
@@ -31,7 +32,8 @@ MUIR_CANDIDATE_MODEL="$(realpath "$src")" MUIR_CANDIDATE_BLOB="$(realpath "$out/
 grep -E '^\| |^target' "$out/fixed_vs_float.txt"
 
 if [[ $eval_too == 1 ]]; then
-    echo "== 3/3 Middlebury evaluation (float) -> $out/eval" >&2
-    PYTHONPATH=python python -m muir.evaluate --model "$src" --name muir-slim --out "$out/eval" --vis 0 > "$out/eval.stdout"
+    echo "== 3/3 Middlebury evaluation (float and fixed engine) -> $out/eval" >&2
+    PYTHONPATH=python python -m muir.evaluate --model "$src" --name muir-slim --blob "$out/model.muirq" --blob-name muir-slim-fixed \
+        --out "$out/eval" --vis 0 > "$out/eval.stdout"
     sed -n '/### headline/,/^### middlebury2003/p' "$out/eval/results.md" | grep '^|'
 fi

@@ -5,8 +5,9 @@
 #   2. models/muir-slim.muirq + .calib.md (`muir quantize`, the calibration command of models/README.md)
 #   3. host-tests/fixtures/golden/shipped* (float parity fixture, PyTorch twin)
 #   4. boards/qemu-mps2 expected CRCs     (MUIR_UPDATE_EXPECTED=1 cargo test --test firmware)
-#   5. models/muir-slim.eval.{json,md}, models/sgbm.eval.json, docs/results/*_middlebury*.png
-#      (`python -m muir.evaluate --sgbm` on the 28 Middlebury scenes)
+#   5. models/muir-slim.eval.{json,md}, models/muir-slim-fixed.eval.json, models/sgbm.eval.json,
+#      docs/results/*_middlebury*.png (`python -m muir.evaluate --sgbm` on the 28 Middlebury scenes,
+#      the float model and the fixed-point engine on the blob)
 # What it does not touch: the figures quoted in README.md / models/README.md (re-measure them with
 # the commands given there) and the fixed_vs_float regression bounds.
 #
@@ -44,10 +45,12 @@ step "5/5 evaluation"
 out=runs/eval/shipped
 rm -rf "$out"
 PYTHONPATH=python python -m muir.evaluate --model models/muir-slim.safetensors --name muir-slim --sgbm --out "$out" \
+    --blob models/muir-slim.muirq --blob-name muir-slim-fixed \
     --vis middlebury2003/teddy,middlebury2005/Art,middlebury2005/Books
 cp "$out/muir-slim.json" models/muir-slim.eval.json
+cp "$out/muir-slim-fixed.json" models/muir-slim-fixed.eval.json
 cp "$out/sgbm.json" models/sgbm.eval.json
-sed 's|model=[^,]*/models/muir-slim.safetensors|model=models/muir-slim.safetensors|' "$out/results.md" > models/muir-slim.eval.md
+sed 's|model=[^,]*/models/muir-slim\.|model=models/muir-slim.|g' "$out/results.md" > models/muir-slim.eval.md
 for f in docs/results/*_middlebury*.png; do      # docs/results/<method>_<data set>_<scene>.png
     b=$(basename "$f")
     method=${b%%_middlebury*}

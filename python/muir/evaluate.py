@@ -2,6 +2,8 @@
 
     PYTHONPATH=python python -m muir.evaluate --model runs/slim/model.safetensors --sgbm --out runs/eval
     PYTHONPATH=python python -m muir.evaluate --tune-sgbm --out runs/eval      # once: SGBM parameters
+    cargo build --release --bin muir && PYTHONPATH=python python -m muir.evaluate \
+        --blob models/muir-slim.muirq --out runs/eval/fixed               # the device's fixed-point engine
 
 Default scene set: the headline Middlebury 2003/2005/2006 scenes (quarter/third size, not the *_half
 copies); --datasets picks others. Network input: RGB float 0..255 (gray views replicated), padded to a
@@ -30,7 +32,9 @@ import datetime
 import json
 import math
 import os
+import subprocess
 import sys
+import tempfile
 import time
 
 import cv2
@@ -75,6 +79,23 @@ def run_model(model, left: np.ndarray, right: np.ndarray, iters=None, device="cp
         mm = trace["final.mud_m"][0, 0].float().cpu().numpy()
         out["mask"] = np.kron(mm, np.ones((8, 8), np.float32))[:h, :w]  # one value per 8x8 cell
     return out
+
+
+def run_fixed_engine(muir_bin: str, blob: str, scene_dir: str, iters=None):
+    """The Rust fixed-point engine on a scene's left.png/right.png (the files, as a user would run it):
+    (disparity (H,W), dict(u=log-variance from the predicted error exp(u/2) the CLI writes))."""
+    with tempfile.TemporaryDirectory() as tmp:
+        disp, err = os.path.join(tmp, "d.pfm"), os.path.join(tmp, "e.pfm")
+        cmd = [muir_bin, "run", "--engine", "fixed", "--model", blob,
+               "--left", os.path.join(scene_dir, "left.png"), "--right", os.path.join(scene_dir, "right.png"),
+               "--disparity", disp, "--uncertainty", err]
+        if iters:
+            cmd += ["--iters", str(iters)]
+        r = subprocess.run(cmd, capture_output=True, text=True)
+        if r.returncode != 0:
+            raise RuntimeError(f"{' '.join(cmd)} failed ({r.returncode}): {r.stderr.strip()}")
+        d, e = D.read_pfm(disp), D.read_pfm(err)
+    return d, {"disp": d, "u": 2 * np.log(np.maximum(e, 1e-6)), "mask": None}
 
 
 def sgbm_num_disp(dataset: str) -> int:
@@ -421,6 +442,11 @@ def main(argv=None):
     p.add_argument("--model", action="append", default=[], help="model .safetensors (repeatable)")
     p.add_argument("--name", action="append", default=[], help="method name per --model (default: file stem)")
     p.add_argument("--config", default=None, help="config preset for files without config metadata")
+    p.add_argument("--blob", action="append", default=[],
+                   help="quantised model .muirq (repeatable): the Rust fixed-point engine, the one the firmware "
+                        "runs, through `muir run --engine fixed` (build it first: cargo build --release --bin muir)")
+    p.add_argument("--blob-name", action="append", default=[], help="method name per --blob (default: file stem + '-fixed')")
+    p.add_argument("--muir-bin", default="target/release/muir", help="the muir CLI used for --blob")
     p.add_argument("--sgbm", action="store_true", help="also evaluate OpenCV StereoSGBM")
     p.add_argument("--sgbm-params", default=None, help="JSON from --tune-sgbm (default: the built-in tuned values)")
     p.add_argument("--tune-sgbm", action="store_true", help="grid-search SGBM on Middlebury 2001 scenes and exit")
@@ -440,8 +466,10 @@ def main(argv=None):
     if a.tune_sgbm:
         tune_sgbm(a.root, a.out)
         return 0
-    if not a.model and not a.sgbm:
-        p.error("nothing to evaluate: give --model and/or --sgbm")
+    if not a.model and not a.blob and not a.sgbm:
+        p.error("nothing to evaluate: give --model, --blob and/or --sgbm")
+    if a.blob and not os.access(a.muir_bin, os.X_OK):
+        p.error(f"--blob needs the muir CLI at {a.muir_bin} (cargo build --release --bin muir, or --muir-bin)")
     try:
         scenes = D.list_scenes(a.root, [d for d in a.datasets.split(",") if d])
     except FileNotFoundError as e:
@@ -478,6 +506,22 @@ def main(argv=None):
 
         results.append(evaluate_method(name, scenes, a.root, predict, a.out, vis_keys, info))
 
+    for i, path in enumerate(a.blob):
+        if not os.path.exists(path):
+            p.error(f"no blob file {path}")
+        name = a.blob_name[i] if i < len(a.blob_name) else os.path.splitext(os.path.basename(path))[0] + "-fixed"
+        info = {"model": os.path.abspath(path), "engine": "fixed (muir run --engine fixed)",
+                "iters": a.iters or "the blob's config"}
+
+        def predict_fixed(sc, path=path):
+            return run_fixed_engine(a.muir_bin, path, os.path.join(a.root, sc.dataset, sc.name), a.iters)
+
+        try:
+            results.append(evaluate_method(name, scenes, a.root, predict_fixed, a.out, vis_keys, info))
+        except RuntimeError as e:  # the CLI refused the blob or a pair; its message says why
+            print(f"error: {e}", file=sys.stderr)
+            return 1
+
     if a.sgbm:
         params = dict(SGBM_PARAMS)
         if a.sgbm_params:
@@ -499,7 +543,7 @@ def main(argv=None):
         f.write(f"# Evaluation ({a.datasets}; {len(scenes)} scenes at stored resolution)\n\n")
         for r in results:
             f.write(f"* **{r['method']}**: " + ", ".join(f"{k}={v}" for k, v in r.items()
-                                                        if k in ("model", "config", "iters", "train_steps", "params",
+                                                        if k in ("model", "engine", "config", "iters", "train_steps", "params",
                                                                  "num_disparities", "fill")) + "\n")
         f.write("\n" + md)
     print(md)
