@@ -468,6 +468,10 @@ def main(argv=None):
         return 0
     if not a.model and not a.blob and not a.sgbm:
         p.error("nothing to evaluate: give --model, --blob and/or --sgbm")
+    # Every input is checked before the first (minutes-long) evaluation starts.
+    for path in a.model + a.blob:
+        if not os.path.exists(path):
+            p.error(f"no model file {path}")
     if a.blob and not os.access(a.muir_bin, os.X_OK):
         p.error(f"--blob needs the muir CLI at {a.muir_bin} (cargo build --release --bin muir, or --muir-bin)")
     try:
@@ -489,8 +493,6 @@ def main(argv=None):
     from .checkpoint import load_model, read_config
 
     for i, path in enumerate(a.model):
-        if not os.path.exists(path):
-            p.error(f"no model file {path}")
         name = a.name[i] if i < len(a.name) else os.path.splitext(os.path.basename(path))[0]
         model = load_model(path, a.config).to(a.device).eval()
         from safetensors import safe_open
@@ -507,8 +509,6 @@ def main(argv=None):
         results.append(evaluate_method(name, scenes, a.root, predict, a.out, vis_keys, info))
 
     for i, path in enumerate(a.blob):
-        if not os.path.exists(path):
-            p.error(f"no blob file {path}")
         name = a.blob_name[i] if i < len(a.blob_name) else os.path.splitext(os.path.basename(path))[0] + "-fixed"
         info = {"model": os.path.abspath(path), "engine": "fixed (muir run --engine fixed)",
                 "iters": a.iters or "the blob's config"}
