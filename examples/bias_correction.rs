@@ -19,8 +19,8 @@ mod crops;
 
 use std::collections::BTreeMap;
 
-use muir::calib::{CalibOptions, RangeMethod, Records, Rounding, calibrate};
-use muir::float::{FloatModel, FloatWeights, NoTrace, Tensor};
+use muir::calib::{CalibOptions, RangeMethod, Records, Rounding, calibrate, paired};
+use muir::float::{FloatModel, FloatWeights, NoTrace};
 use muir::format::QuantModel;
 use muir::format::writer::{QuantModelData, write};
 use muir::io::{OwnedImage, read_png};
@@ -32,24 +32,6 @@ use muir::reference::Reference;
 const CALIB: [&str; 4] = ["oakd_desk", "oakd_living_room", "kitti2015_000051_11", "oakd_stairs"];
 
 type Error = Box<dyn std::error::Error>;
-
-/// The n-th record of each name in `fixed` beside the n-th of the same name in `float`.
-fn paired<'r>(float: &'r Records, fixed: &'r Records) -> Vec<(&'r str, &'r Tensor, &'r Tensor)> {
-    let mut by: BTreeMap<&str, Vec<&Tensor>> = BTreeMap::new();
-    for (n, t) in &fixed.0 {
-        by.entry(n.as_str()).or_default().push(t);
-    }
-    let mut seen: BTreeMap<&str, usize> = BTreeMap::new();
-    let mut out = Vec::new();
-    for (n, f) in &float.0 {
-        let idx = seen.entry(n.as_str()).or_default();
-        if let Some(q) = by.get(n.as_str()).and_then(|v| v.get(*idx)).filter(|q| q.c == f.c && q.data.len() == f.data.len()) {
-            out.push((n.as_str(), f, *q));
-        }
-        *idx += 1;
-    }
-    out
-}
 
 /// Mean |d_fixed - d_float| and the share within 1 px over the crops.
 fn gap(data: &QuantModelData, pairs: &[crops::Pair], float: &[Vec<f32>]) -> Result<(f64, f64), Error> {

@@ -627,25 +627,32 @@ pub struct Sqnr {
     pub count: usize,
 }
 
-/// SQNR of the fixed-point run `fixed` against the float run `float`, pairing the n-th record of a
-/// name in one with the n-th of the same name in the other. Errors accumulate through the network,
-/// so later layers show the end-to-end effect of all earlier quantisation.
-pub fn sqnr(float: &Records, fixed: &Records) -> Vec<Sqnr> {
+/// The records of two runs side by side: the n-th record of each name in `float` with the n-th of
+/// the same name in `fixed`, where both have the same shape; in `float`'s order.
+pub fn paired<'r>(float: &'r Records, fixed: &'r Records) -> Vec<(&'r str, &'r Tensor, &'r Tensor)> {
     let mut by_name: BTreeMap<&str, Vec<&Tensor>> = BTreeMap::new();
     for (n, t) in &fixed.0 {
         by_name.entry(n.as_str()).or_default().push(t);
     }
     let mut seen: BTreeMap<&str, usize> = BTreeMap::new();
-    let mut acc: BTreeMap<&str, (f64, f64, usize)> = BTreeMap::new();
+    let mut out = Vec::new();
     for (n, f) in &float.0 {
-        let k = seen.entry(n.as_str()).or_default();
-        let idx = *k;
-        *k += 1;
-        let Some(q) = by_name.get(n.as_str()).and_then(|v| v.get(idx)) else { continue };
-        if q.data.len() != f.data.len() {
-            continue;
+        let idx = seen.entry(n.as_str()).or_default();
+        if let Some(q) = by_name.get(n.as_str()).and_then(|v| v.get(*idx)).filter(|q| q.c == f.c && q.data.len() == f.data.len()) {
+            out.push((n.as_str(), f, *q));
         }
-        let e = acc.entry(n.as_str()).or_default();
+        *idx += 1;
+    }
+    out
+}
+
+/// SQNR of the fixed-point run `fixed` against the float run `float`, over the [`paired`] records.
+/// Errors accumulate through the network, so later layers show the end-to-end effect of all
+/// earlier quantisation.
+pub fn sqnr(float: &Records, fixed: &Records) -> Vec<Sqnr> {
+    let mut acc: BTreeMap<&str, (f64, f64, usize)> = BTreeMap::new();
+    for (n, f, q) in paired(float, fixed) {
+        let e = acc.entry(n).or_default();
         for (a, b) in f.data.iter().zip(&q.data) {
             e.0 += (*a as f64).powi(2);
             e.1 += (*a as f64 - *b as f64).powi(2);
