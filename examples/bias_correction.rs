@@ -40,12 +40,10 @@ fn gap(data: &QuantModelData, pairs: &[crops::Pair], float: &[Vec<f32>]) -> Resu
     let (mut sum, mut within, mut n) = (0.0, 0usize, 0usize);
     for (p, f) in pairs.iter().zip(float) {
         let d = Reference::new(&q).predict(&p.left.view(), &p.right.view(), None, &mut NoTrace)?;
-        for (a, b) in f.iter().zip(&d.disparity) {
-            let e = (a - *b as f32 / 32.0).abs() as f64;
-            sum += e;
-            within += (e <= 1.0) as usize;
-            n += 1;
-        }
+        let (s, w) = crops::disparity_gap(f, &d.disparity);
+        sum += s;
+        within += w;
+        n += f.len();
     }
     Ok((sum / n as f64, 100.0 * within as f64 / n as f64))
 }

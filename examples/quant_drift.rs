@@ -25,15 +25,7 @@ use muir::model::graph::{Act, QLayer};
 use muir::model::layers::ConvId;
 use muir::reference::Reference;
 
-use crops::{H, W};
-
-/// Sum of |diff| and count within 1 px.
-fn compare(float: &[f32], fixed: &[i16]) -> (f64, usize) {
-    float.iter().zip(fixed).fold((0.0, 0), |(s, w), (a, b)| {
-        let d = (a - *b as f32 / 32.0).abs();
-        (s + d as f64, w + (d <= 1.0) as usize)
-    })
-}
+use crops::{H, W, disparity_gap};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let stem = std::env::args().nth(1).unwrap_or_else(|| "models/muir-slim".into());
@@ -50,7 +42,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         for (l, r) in &pairs {
             let f = float.predict(&l.view(), &r.view(), Some(iters))?;
             let d = Reference::new(&q).predict(&l.view(), &r.view(), Some(iters), &mut NoTrace)?;
-            let (s, w) = compare(&f.disparity, &d.disparity);
+            let (s, w) = disparity_gap(&f.disparity, &d.disparity);
             sd += s;
             wi += w;
         }
@@ -77,7 +69,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             rec.0.retain(|(name, _)| names.contains(&name.as_str()));
             let d = Reference::with_injected(&q, &rec).predict(&l.view(), &r.view(), None, &mut NoTrace)?;
             let fd: Vec<f32> = (0..H).flat_map(|y| f.disparity.data[y * f.disparity.w..y * f.disparity.w + W].to_vec()).collect();
-            let (s, w) = compare(&fd, &d.disparity);
+            let (s, w) = disparity_gap(&fd, &d.disparity);
             sd += s;
             wi += w;
         }

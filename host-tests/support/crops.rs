@@ -5,6 +5,7 @@
 use std::path::Path;
 
 use muir::io::{OwnedImage, read_ground_truth, read_png};
+use muir::reference::disparity_px;
 
 /// The shared data sets, beside the repository as in CI.
 pub const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data");
@@ -59,4 +60,13 @@ pub fn pairs() -> Option<Vec<Pair>> {
             })
             .collect(),
     )
+}
+
+/// Sum of |d_float - d_fixed| (pixels) and the count within 1 px, `fixed` in the engine's
+/// disparity format ([`disparity_px`]).
+pub fn disparity_gap(float: &[f32], fixed: &[i16]) -> (f64, usize) {
+    float.iter().zip(fixed).fold((0.0, 0), |(s, w), (a, b)| {
+        let d = (a - disparity_px(*b)).abs();
+        (s + d as f64, w + (d <= 1.0) as usize)
+    })
 }
