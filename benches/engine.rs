@@ -77,7 +77,8 @@ struct Model {
 fn model(cfg: Config, calib: &(OwnedImage, OwnedImage)) -> Model {
     let float = FloatModel::new(FloatWeights::from_state_dict(seeded::state_dict(&cfg, 11), &cfg).unwrap());
     let pairs = [(calib.0.view(), calib.1.view())];
-    let opts = CalibOptions { method: RangeMethod::Percentile(0.9999), iters: cfg.iters, rounding: Rounding::Nearest };
+    let opts =
+        CalibOptions { method: RangeMethod::Percentile(0.9999), iters: cfg.iters, rounding: Rounding::Nearest, wide_trunk: false };
     let cal = calibrate(&float, &pairs, opts, &mut |_, _| {}).unwrap();
     Model { cfg, float, blob: muir::format::writer::write(&cal.data) }
 }

@@ -91,7 +91,8 @@ fn main() -> Result<(), Error> {
         images.push((l.crop(0, 0, w, h).ok_or("crop")?, r.crop(0, 0, w, h).ok_or("crop")?));
     }
     let views: Vec<_> = images.iter().map(|(l, r)| (l.view(), r.view())).collect();
-    let opts = CalibOptions { method: RangeMethod::Percentile(0.9999), iters: cfg.iters, rounding: Rounding::Nearest };
+    let opts =
+        CalibOptions { method: RangeMethod::Percentile(0.9999), iters: cfg.iters, rounding: Rounding::Nearest, wide_trunk: false };
     let mut data = calibrate(&model, &views, opts, &mut |_, _| {})?.data;
     if write(&data) != shipped {
         return Err("the calibration does not reproduce models/muir-slim.muirq".into());

@@ -2,9 +2,10 @@
 //! five 320x240 crops:
 //! 1. mean |d_fixed - d_float| and the share within 1 px after 0, 1, 2, 4 and 7 iterations;
 //! 2. the same after 7 iterations when float tensors replace the fixed ones at one point
-//!    (`Reference::with_injected`): the backbone trunk output, the matching features, the context,
-//!    the UFI peaks, or the whole initial state (disparity + hidden state). Each injected tensor is
-//!    quantised to its slot, so what an injection removes is the noise accumulated upstream of it.
+//!    (`Reference::with_injected`): the backbone's conv1, layer1, layer2 or trunk (layer3) output,
+//!    the matching features, the context, the UFI peaks, or the whole initial state (disparity +
+//!    hidden state). Each injected tensor is quantised to its slot, so what an injection removes is
+//!    the noise accumulated upstream of it.
 //! 3. the float network with only its weights rounded (per output channel, symmetric, to +-127 as
 //!    in the blob, or to finer steps) and float activations: how much of the difference the int8
 //!    weights of the encoder (layers reading u8 slots) and of the update block cause on their own
@@ -50,8 +51,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
 
     let iters = float.config().iters;
-    let points: [(&str, &[&str]); 8] = [
+    let points: [(&str, &[&str]); 11] = [
         ("nothing", &[]),
+        ("backbone conv1 output (1/2)", &["backbone.conv1"]),
+        ("backbone layer1 output (1/2)", &["backbone.layer1"]),
+        ("backbone layer2 output (1/4)", &["backbone.layer2"]),
         ("backbone trunk output (1/8, layer3)", &["backbone.layer3"]),
         ("matching features (fmap1/2)", &["fmap1", "fmap2"]),
         ("context (inp08/16)", &["inp08", "inp16"]),

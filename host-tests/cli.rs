@@ -279,6 +279,15 @@ fn quantize_then_run_fixed_with_rejection() {
     assert_ne!(b1, b2);
     let o = muir(&[&"quantize", &"--model", &model, &"--calib", &calib, &"--out", &q2, &"--rounding", &"best"]);
     assert_eq!(o.status.code(), Some(2));
+    // The wide trunk: 16-bit trunk slots in the report, and a blob the fixed engine runs.
+    let (qw, report_w) = (s.path("slim-wide.muirq"), s.path("report-wide.md"));
+    let o = muir(&[&"quantize", &"--model", &model, &"--calib", &calib, &"--out", &qw, &"--report", &report_w, &"--wide-trunk"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let rep = std::fs::read_to_string(&report_w).unwrap();
+    assert!(rep.contains("wide trunk") && rep.contains("| l2b1o | 16 |") && rep.contains("| l3b0o | 8 |"), "{rep}");
+    let disp_w = s.path("d-wide.pfm");
+    let o = muir(&[&"run", &"--engine", &"fixed", &"--model", &qw, &"--left", &left, &"--right", &right, &"--disparity", &disp_w]);
+    assert!(o.status.success(), "{}", stderr(&o));
     let (disp, unc, png) = (s.path("d.pfm"), s.path("u.pfm"), s.path("d.png"));
     let o = muir(&[
         &"run", &"--engine", &"fixed", &"--model", &q, &"--left", &left, &"--right", &right, &"--disparity", &disp,
@@ -316,7 +325,15 @@ fn plan_prints_ram_per_preset() {
         }
     }
     let o = muir(&[&"plan", &"--config", &"muir-slim", &"--size", &"64x48"]);
-    assert!(String::from_utf8_lossy(&o.stdout).contains("| muir-slim | 64x48 |"));
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(out.contains("| muir-slim | 64x48 | u8 |"), "{out}");
+    // The wide trunk's line buffers are wider, so its plan is larger.
+    let ram = |trunk: &str| -> usize {
+        let row = format!("| muir-slim | 64x48 | {trunk}");
+        let l = out.lines().find(|l| l.starts_with(&row)).unwrap_or_else(|| panic!("{trunk}:\n{out}"));
+        l.split('|').nth(4).and_then(|v| v.trim().parse().ok()).unwrap_or_else(|| panic!("{l}"))
+    };
+    assert!(ram("i16") > ram("u8"), "{out}");
     let o = muir(&[&"plan", &"--size", &"10x10"]);
     assert_eq!(o.status.code(), Some(2));
 }

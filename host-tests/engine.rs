@@ -12,6 +12,7 @@ use muir::engine::{Engine, EngineError, Output, Plan, REJECTED, reject, u_thresh
 use muir::float::{FloatModel, FloatWeights, NoTrace, seeded};
 use muir::format::{BlobError, QuantModel, writer};
 use muir::input::{ImageView, PixelFormat};
+use muir::model::graph::Act;
 use muir::reference::Reference;
 
 /// Counts the allocations of the thread that set `COUNTING` (tests run in parallel threads).
@@ -81,7 +82,14 @@ fn blob(cfg: &Config) -> Vec<u8> {
     let model = FloatModel::new(FloatWeights::from_state_dict(seeded::state_dict(cfg, 11), cfg).unwrap());
     let (l, r) = pair(96, 64, 3, false);
     let pairs = [(view(&l, 96, 64, false), view(&r, 96, 64, false))];
-    let cal = calibrate(&model, &pairs, CalibOptions { method: RangeMethod::Percentile(0.9999), iters: 3, rounding: Rounding::Nearest }, &mut |_, _| {}).unwrap();
+    let opts = CalibOptions {
+        method: RangeMethod::Percentile(0.9999),
+        iters: 3,
+        rounding: Rounding::Nearest,
+        wide_trunk: cfg.wide_trunk,
+    };
+    let cal = calibrate(&model, &pairs, opts, &mut |_, _| {}).unwrap();
+    assert_eq!(cal.data.config, *cfg);
     writer::write(&cal.data)
 }
 
@@ -116,6 +124,15 @@ fn check_bit_exact(cfg: &Config, w: usize, h: usize, iters: usize, gray: bool) {
 fn streaming_equals_plain_muir_slim() {
     check_bit_exact(&Config::MUIR_SLIM, 100, 70, 7, false);
     check_bit_exact(&Config::MUIR_SLIM, 64, 48, 2, true);
+}
+
+/// The wide trunk (conv1 .. layer2 in i16, `muir quantize --wide-trunk`).
+#[test]
+fn streaming_equals_plain_wide_trunk() {
+    let wide = Config { wide_trunk: true, ..Config::MUIR_SLIM };
+    check_bit_exact(&wide, 100, 70, 7, false);
+    check_bit_exact(&wide, 64, 48, 2, true);
+    check_bit_exact(&Config { wide_trunk: true, ..Config::MUIR_FAST }, 90, 66, 2, false);
 }
 
 #[test]
@@ -182,10 +199,18 @@ fn malformed_blobs_are_typed_errors() {
     let cal = {
         let model = FloatModel::new(FloatWeights::from_state_dict(seeded::state_dict(&cfg, 11), &cfg).unwrap());
         let (l, r) = pair(64, 48, 3, false);
-        calibrate(&model, &[(view(&l, 64, 48, false), view(&r, 64, 48, false))], CalibOptions { method: RangeMethod::MinMax, iters: 1, rounding: Rounding::Nearest }, &mut |_, _| {})
+        let opts = CalibOptions { method: RangeMethod::MinMax, iters: 1, rounding: Rounding::Nearest, wide_trunk: false };
+        calibrate(&model, &[(view(&l, 64, 48, false), view(&r, 64, 48, false))], opts, &mut |_, _| {})
             .unwrap()
             .data
     };
+    // A wide-trunk config whose trunk slots are stored in 8 bits, and the reverse.
+    let mut d = cal.clone();
+    d.config.wide_trunk = true;
+    assert_eq!(QuantModel::parse(&writer::write(&d)).unwrap_err(), BlobError::Format { act: Act::C1 });
+    let mut d = cal.clone();
+    d.formats[Act::L2b1o.index()] = muir::arith::QFormat::i16(9);
+    assert_eq!(QuantModel::parse(&writer::write(&d)).unwrap_err(), BlobError::Format { act: Act::L2b1o });
     let mut d = cal.clone();
     d.layers.retain(|l| l.id != muir::ConvId::Gru08Q);
     assert_eq!(QuantModel::parse(&writer::write(&d)).unwrap_err(), BlobError::MissingLayer { layer: muir::ConvId::Gru08Q });

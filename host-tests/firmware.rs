@@ -21,14 +21,21 @@ use muir::engine::{Engine, Output, Plan, reject, u_threshold};
 use muir::format::{QuantModel, crc32};
 use muir::input::{ImageView, PixelFormat};
 
-/// Pairs the firmware can run: expected-results file and size. The first one is what CI runs
-/// (`run-tests.sh`); the others are measurement builds (`--features frame-WxH`).
-const FRAMES: [(&str, usize, usize); 2] = [("expected.txt", 64, 48), ("expected-160x120.txt", 160, 120)];
+/// Builds the firmware can run: expected-results file, size and trunk. The 64x48 ones are what CI
+/// runs (`run-tests.sh`, `run-tests.sh --wide-trunk`); the others are measurement builds
+/// (`--features frame-WxH`). The wide-trunk builds embed `models/muir-slim-wide.muirq`.
+const FRAMES: [(&str, usize, usize, bool); 4] = [
+    ("expected.txt", 64, 48, false),
+    ("expected-160x120.txt", 160, 120, false),
+    ("expected-wide.txt", 64, 48, true),
+    ("expected-wide-160x120.txt", 160, 120, true),
+];
 
 const HEADER: &str = "\
 # Results of the firmware in this folder (first line starting with MUIR-RESULT; see README.md).
 # Generated on the host by `MUIR_UPDATE_EXPECTED=1 cargo test --test firmware` from
-# models/muir-slim.muirq and assets/; `run-tests.sh` checks the firmware under QEMU against it.
+# models/muir-slim.muirq (expected-wide*: models/muir-slim-wide.muirq) and assets/;
+# `run-tests.sh` checks the firmware under QEMU against it.
 ";
 
 fn root() -> PathBuf {
@@ -43,9 +50,9 @@ fn read(path: &Path) -> Vec<u8> {
     std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
 }
 
-/// The quantised model the firmware embeds.
-fn model_bytes() -> Vec<u8> {
-    let path = root().join("models/muir-slim.muirq");
+/// The quantised model the firmware embeds (`muir-slim-wide.muirq` with feature `wide-trunk`).
+fn model_bytes_of(name: &str) -> Vec<u8> {
+    let path = root().join("models").join(name);
     if !path.is_file() {
         panic!(
             "{} is missing: the firmware test needs the quantised muir-slim model that boards/qemu-mps2 embeds.\n\
@@ -56,6 +63,12 @@ fn model_bytes() -> Vec<u8> {
         );
     }
     read(&path)
+}
+
+/// The u8-trunk model (the busy-pin test runs it).
+#[cfg(feature = "hal")]
+fn model_bytes() -> Vec<u8> {
+    model_bytes_of("muir-slim.muirq")
 }
 
 /// The board's raw 8-bit pair of a size.
@@ -74,11 +87,12 @@ fn le_bytes(v: &[i16]) -> Vec<u8> {
 
 /// What the firmware prints for a size: its `MUIR-RESULT` line.
 fn result_line(model: &QuantModel<'_>, w: usize, h: usize) -> String {
-    assert_eq!(*model.config(), Config::MUIR_SLIM, "the firmware's memory plan is for muir-slim");
+    let cfg = Config { wide_trunk: model.config().wide_trunk, ..Config::MUIR_SLIM };
+    assert_eq!(*model.config(), cfg, "the firmware's memory plan is for muir-slim");
     let (l, r) = pair(w, h);
     let left = ImageView::new(w, h, PixelFormat::Gray8, &l).unwrap();
     let right = ImageView::new(w, h, PixelFormat::Gray8, &r).unwrap();
-    let plan = Plan::new(&Config::MUIR_SLIM, w, h);
+    let plan = Plan::new(&cfg, w, h);
     let mut arena = vec![0u64; plan.ram_bytes.div_ceil(8)];
     let mut engine = Engine::new(model, bytemuck::cast_slice_mut(&mut arena)).unwrap();
     let (mut d, mut u) = (vec![0i16; w * h], vec![0i16; w * h]);
@@ -98,11 +112,16 @@ fn expected_line(text: &str) -> Option<&str> {
 
 #[test]
 fn host_engine_matches_the_firmware_expected_results() {
-    let bytes = model_bytes();
-    let model = QuantModel::parse(&bytes).unwrap_or_else(|e| panic!("models/muir-slim.muirq: {e}"));
+    let blobs = [false, true].map(|wide| {
+        let name = if wide { "muir-slim-wide.muirq" } else { "muir-slim.muirq" };
+        (name, model_bytes_of(name))
+    });
     let update = std::env::var_os("MUIR_UPDATE_EXPECTED").is_some_and(|v| v == "1");
     let mut mismatches = Vec::new();
-    for (file, w, h) in FRAMES {
+    for (file, w, h, wide) in FRAMES {
+        let (name, bytes) = &blobs[wide as usize];
+        let model = QuantModel::parse(bytes).unwrap_or_else(|e| panic!("models/{name}: {e}"));
+        assert_eq!(model.config().wide_trunk, wide, "models/{name}: trunk width");
         let got = result_line(&model, w, h);
         let path = board().join(file);
         if update {

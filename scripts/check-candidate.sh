@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Measures a trained float model against the shipped one's yardsticks without shipping it:
-#   1. quantises it with the shipped calibration command (blob + report in OUT_DIR)
-#   2. fixed engine vs float reference on the five fixed_vs_float crops (issue #4's figures)
+#   1. quantises it with the shipped calibration command (both blobs + reports in OUT_DIR)
+#   2. fixed engine (u8 and wide trunk) vs float reference on the five fixed_vs_float crops (issue #4's figures)
 #   3. the Middlebury evaluation of the float model (issue #3's figures) and of the fixed-point engine
 #      on its blob (what the device delivers; ~3 min more), unless --no-eval
 # Nothing under models/ changes; ship with scripts/ship-model.sh.
@@ -25,9 +25,11 @@ mkdir -p "$out"
 
 echo "== 1/3 quantise -> $out/model.muirq" >&2
 bash scripts/quantize-shipped.sh "$src" "$out/model.muirq" "$out/calib.md"
+bash scripts/quantize-shipped.sh "$src" "$out/model-wide.muirq" "$out/calib-wide.md" --wide-trunk
 
 echo "== 2/3 fixed vs float (five crops) -> $out/fixed_vs_float.txt" >&2
 MUIR_CANDIDATE_MODEL="$(realpath "$src")" MUIR_CANDIDATE_BLOB="$(realpath "$out/model.muirq")" \
+    MUIR_CANDIDATE_WIDE_BLOB="$(realpath "$out/model-wide.muirq")" \
     cargo test --release --test fixed_vs_float -- --nocapture > "$out/fixed_vs_float.txt" 2>&1
 grep -E '^\| |^target' "$out/fixed_vs_float.txt"
 

@@ -2,12 +2,14 @@
 # Ships a trained float model as the default `muir-slim` and re-makes everything that depends on
 # it, in order:
 #   1. models/muir-slim.safetensors      <- the given model file
-#   2. models/muir-slim.muirq + .calib.md (`muir quantize`, the calibration command of models/README.md)
+#   2. models/muir-slim.muirq + .calib.md and models/muir-slim-wide.muirq + .calib.md (`muir quantize`,
+#      the calibration command of models/README.md; the second with --wide-trunk)
 #   3. host-tests/fixtures/golden/shipped* (float parity fixture, PyTorch twin)
 #   4. boards/qemu-mps2 expected CRCs     (MUIR_UPDATE_EXPECTED=1 cargo test --test firmware)
-#   5. models/muir-slim.eval.{json,md}, models/muir-slim-fixed.eval.json, models/sgbm.eval.json,
-#      docs/results/*_middlebury*.png (`python -m muir.evaluate --sgbm` on the 28 Middlebury scenes,
-#      the float model and the fixed-point engine on the blob)
+#   5. models/muir-slim.eval.{json,md}, models/muir-slim-fixed.eval.json,
+#      models/muir-slim-wide-fixed.eval.json, models/sgbm.eval.json, docs/results/*_middlebury*.png
+#      (`python -m muir.evaluate --sgbm` on the 28 Middlebury scenes, the float model and the
+#      fixed-point engine on both blobs)
 # What it does not touch: the figures quoted in README.md / models/README.md (re-measure them with
 # the commands given there) and the fixed_vs_float regression bounds.
 #
@@ -17,7 +19,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 if [[ $# -ne 1 || "$1" == -h || "$1" == --help ]]; then
-    sed -n '2,14p' "$0" | sed 's/^# \{0,1\}//'
+    sed -n '2,16p' "$0" | sed 's/^# \{0,1\}//'
     [[ $# -eq 1 ]] && exit 0 || exit 2
 fi
 src=$1
@@ -34,6 +36,7 @@ cargo build --release --bin muir
 
 step "2/5 quantised blob"
 bash scripts/quantize-shipped.sh models/muir-slim.safetensors models/muir-slim.muirq models/muir-slim.calib.md
+bash scripts/quantize-shipped.sh models/muir-slim.safetensors models/muir-slim-wide.muirq models/muir-slim-wide.calib.md --wide-trunk
 
 step "3/5 float parity fixture"
 PYTHONPATH=python python -m muir.golden --shipped models/muir-slim.safetensors
@@ -46,9 +49,11 @@ out=runs/eval/shipped
 rm -rf "$out"
 PYTHONPATH=python python -m muir.evaluate --model models/muir-slim.safetensors --name muir-slim --sgbm --out "$out" \
     --blob models/muir-slim.muirq --blob-name muir-slim-fixed \
+    --blob models/muir-slim-wide.muirq --blob-name muir-slim-wide-fixed \
     --vis middlebury2003/teddy,middlebury2005/Art,middlebury2005/Books
 cp "$out/muir-slim.json" models/muir-slim.eval.json
 cp "$out/muir-slim-fixed.json" models/muir-slim-fixed.eval.json
+cp "$out/muir-slim-wide-fixed.json" models/muir-slim-wide-fixed.eval.json
 cp "$out/sgbm.json" models/sgbm.eval.json
 sed 's|model=[^,]*/models/muir-slim\.|model=models/muir-slim.|g' "$out/results.md" > models/muir-slim.eval.md
 for f in docs/results/*_middlebury*.png; do      # docs/results/<method>_<data set>_<scene>.png

@@ -4,7 +4,8 @@
 #   1. host tests (unit, parity with the PyTorch twin's golden files, fixed vs float on real pairs,
 #      streaming vs plain fixed-point engine, model files, CLI), optimised ([profile.test]);
 #   2. the library without std for thumbv7em-none-eabihf (Cortex-M4F/M7);
-#   3. the QEMU firmware in boards/ (bit-exact with the host), when the board crate exists.
+#   3. the QEMU firmware in boards/ (bit-exact with the host), u8 and wide-trunk blobs, when the
+#      board crate exists.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -30,5 +31,6 @@ cargo build --lib --target thumbv7em-none-eabihf --no-default-features
 if [ -x boards/qemu-mps2/run-tests.sh ]; then
     echo "== Cortex-M firmware under QEMU"
     boards/qemu-mps2/run-tests.sh
+    boards/qemu-mps2/run-tests.sh --wide-trunk
 fi
 echo "== all tests passed"

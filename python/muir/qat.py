@@ -34,16 +34,22 @@ ENCODER_SLOTS = {
 
 def read_report(path: str) -> dict[str, int]:
     """Fraction bits per slot from a calibration report (`| slot | bits | frac | ...` rows)."""
-    fracs = {}
+    return {slot: frac for slot, (_, frac) in read_report_formats(path).items()}
+
+
+def read_report_formats(path: str) -> dict[str, tuple[int, int]]:
+    """(bits, fraction bits) per slot from a calibration report; a wide-trunk blob's report
+    (`muir quantize --wide-trunk`) gives 16 bits for conv1 .. layer2."""
+    formats = {}
     with open(path) as f:
         for line in f:
             m = re.match(r"\|\s*([a-z0-9_]+)\s*\|\s*(\d+)\s*\|\s*(-?\d+)\s*\|", line)
             if m:
-                fracs[m.group(1)] = int(m.group(3))
-    missing = sorted(s for s in ENCODER_SLOTS if s not in fracs)
+                formats[m.group(1)] = (int(m.group(2)), int(m.group(3)))
+    missing = sorted(s for s in ENCODER_SLOTS if s not in formats)
     if missing:
         raise ValueError(f"{path}: no format for slot(s) {', '.join(missing)}")
-    return fracs
+    return formats
 
 
 def dynamic_frac(x: torch.Tensor, qmax: int, percentile: float = 99.99) -> int:
@@ -65,10 +71,16 @@ class ActQuant:
     the float steps grow activations past the range, where saturation then breaks the rounded steps).
     """
 
-    def __init__(self, fracs: dict[str, int] | None = None, weights: bool = True):
+    def __init__(self, fracs: dict[str, int] | None = None, weights: bool = True,
+                 bits: dict[str, int] | None = None):
+        """`bits`: storage width per slot from a report (`read_report_formats`); a slot the report
+        widens to 16 bits (a wide trunk, `muir quantize --wide-trunk`) holds i16 codes [0, 32767]."""
         self.grid = {}
-        for slot, (bits, unsigned) in ENCODER_SLOTS.items():
-            lo, hi = (0, 2**bits - 1) if unsigned else (-(2 ** (bits - 1)), 2 ** (bits - 1) - 1)
+        for slot, (width, unsigned) in ENCODER_SLOTS.items():
+            if bits is not None and bits.get(slot, width) == 16 and width == 8 and unsigned:
+                lo, hi = 0, 2**15 - 1
+            else:
+                lo, hi = (0, 2**width - 1) if unsigned else (-(2 ** (width - 1)), 2 ** (width - 1) - 1)
             self.grid[slot] = (None if fracs is None else 2.0 ** fracs[slot], lo, hi)
         self.enabled = False
         self.weights = weights
@@ -167,7 +179,8 @@ def main(argv=None):
 
     ap = argparse.ArgumentParser(prog="python -m muir.qat", description=main.__doc__)
     ap.add_argument("--model", default="models/muir-slim.safetensors")
-    ap.add_argument("--report", default="models/muir-slim.calib.md", help="calibration report (slot formats)")
+    ap.add_argument("--report", default="models/muir-slim.calib.md",
+                    help="calibration report (slot formats; models/muir-slim-wide.calib.md for the wide trunk)")
     ap.add_argument("--data", default="../shared/data")
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     ap.add_argument("--activations-only", action="store_true", help="do not round the encoder's weights")
@@ -176,7 +189,9 @@ def main(argv=None):
         torch.set_num_threads(args.threads)
     try:
         m = load_model(args.model, "muir-slim")
-        aq = ActQuant(read_report(args.report), weights=not args.activations_only)
+        formats = read_report_formats(args.report)
+        aq = ActQuant({k: f for k, (_, f) in formats.items()}, weights=not args.activations_only,
+                      bits={k: b for k, (b, _) in formats.items()})
     except (OSError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -144,6 +144,10 @@ struct QuantizeArgs {
     /// weights not rounded yet, from the calibration inputs' second moments).
     #[arg(long, value_enum, default_value_t = RoundingArg::Nearest)]
     rounding: RoundingArg,
+    /// Store conv1, layer1 and layer2 activations in i16 instead of u8: closer to the float
+    /// model, wider line buffers (`muir plan` lists both RAM figures).
+    #[arg(long)]
+    wide_trunk: bool,
     /// Output: quantised model.
     #[arg(long, value_name = "OUT.muirq")]
     out: PathBuf,
@@ -574,7 +578,7 @@ fn quantize(args: &QuantizeArgs) -> Result<(), String> {
         RoundingArg::Gptq => Rounding::Gptq,
         RoundingArg::Nearest => Rounding::Nearest,
     };
-    let cal = calibrate(&model, &pairs, CalibOptions { method, iters, rounding }, &mut |done, total| {
+    let cal = calibrate(&model, &pairs, CalibOptions { method, iters, rounding, wide_trunk: args.wide_trunk }, &mut |done, total| {
         bar.set_position(done as u64);
         if !std::io::stderr().is_terminal() {
             eprintln!("calibration pair {done}/{total}");
@@ -626,14 +630,17 @@ fn snap(args: &SnapArgs) -> Result<(), String> {
 fn plan(args: &PlanArgs) -> Result<(), String> {
     let configs = if args.configs.is_empty() { Config::PRESETS.to_vec() } else { args.configs.clone() };
     let sizes = if args.sizes.is_empty() { vec![(160, 120), (320, 240), (640, 480)] } else { args.sizes.clone() };
-    println!("| config | input | working RAM (bytes) | KiB | frame zone | encoder rings | refinement rings | outputs (d + u) |");
-    println!("|---|---|---|---|---|---|---|---|");
+    println!(
+        "| config | input | trunk (conv1..layer2) | working RAM (bytes) | KiB | frame zone | encoder rings | refinement rings | outputs (d + u) |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|");
     for c in &configs {
-        for &(w, h) in &sizes {
-            let p = muir::engine::Plan::new(c, w, h);
+        for (&(w, h), wide_trunk) in sizes.iter().flat_map(|s| [(s, false), (s, true)]) {
+            let p = muir::engine::Plan::new(&Config { wide_trunk, ..*c }, w, h);
             println!(
-                "| {} | {w}x{h} | {} | {:.1} | {} | {} | {} | {} |",
+                "| {} | {w}x{h} | {} | {} | {:.1} | {} | {} | {} | {} |",
                 c.name,
+                if wide_trunk { "i16 (`--wide-trunk`)" } else { "u8" },
                 p.ram_bytes,
                 p.ram_bytes as f64 / 1024.0,
                 p.frame_bytes(),

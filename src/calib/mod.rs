@@ -147,7 +147,7 @@ impl CalibTrace {
             for &id in ConvId::ALL {
                 let (Some(ql), Some(s)) = (QLayer::of(id, cfg), id.shape(cfg)) else { continue };
                 if let [Some(p), None, None, None, None, None] = ql.parts {
-                    if p.act.unsigned() && ql.merged.is_none() {
+                    if p.act.storage_in(cfg).unsigned && ql.merged.is_none() {
                         consumers.entry(p.act.name()).or_default().push((id, s.k, s.stride));
                     }
                 }
@@ -233,10 +233,10 @@ pub fn choose_formats(cfg: &Config, stats: &BTreeMap<String, RangeStats>, method
             None => match stats.get(act.name()) {
                 Some(s) if s.count > 0 => {
                     match method {
-                        RangeMethod::MinMax => act.storage().for_range(s.max_abs.max(1e-6)),
-                        RangeMethod::Percentile(p) => act.storage().for_range(s.percentile(p).max(1e-6)),
+                        RangeMethod::MinMax => act.storage_in(cfg).for_range(s.max_abs.max(1e-6)),
+                        RangeMethod::Percentile(p) => act.storage_in(cfg).for_range(s.percentile(p).max(1e-6)),
                         RangeMethod::Mse => {
-                            let widest = act.storage().for_range(s.max_abs.max(1e-6));
+                            let widest = act.storage_in(cfg).for_range(s.max_abs.max(1e-6));
                             (0..=6)
                                 .map(|d| QFormat { frac: widest.frac.saturating_add(d), ..widest })
                                 .min_by(|a, b| s.quant_mse(*a).total_cmp(&s.quant_mse(*b)))
@@ -244,7 +244,7 @@ pub fn choose_formats(cfg: &Config, stats: &BTreeMap<String, RangeStats>, method
                         }
                     }
                 }
-                _ if !slot_used(act, cfg) => act.storage(),
+                _ if !slot_used(act, cfg) => act.storage_in(cfg),
                 _ => return Err(CalibError::Unobserved { act: act.name() }),
             },
         };
@@ -532,6 +532,8 @@ pub struct CalibOptions {
     pub iters: usize,
     /// Weight rounding.
     pub rounding: Rounding,
+    /// Store conv1, layer1 and layer2 activations in i16 ([`Config::wide_trunk`]).
+    pub wide_trunk: bool,
 }
 
 /// Result of [`calibrate`].
@@ -558,9 +560,10 @@ pub fn calibrate(model: &FloatModel, pairs: &[(ImageView<'_>, ImageView<'_>)], o
         model.trace_pair(l, r, opts.iters, &mut trace).map_err(CalibError::Input)?;
         progress(i + 1, pairs.len());
     }
-    let cfg = *model.config();
+    let cfg = Config { wide_trunk: opts.wide_trunk, ..*model.config() };
     let formats = choose_formats(&cfg, &trace.stats, opts.method)?;
-    let data = quantize_with(model.weights(), &formats, &trace.moments)?;
+    let mut data = quantize_with(model.weights(), &formats, &trace.moments)?;
+    data.config.wide_trunk = opts.wide_trunk;
     Ok(Calibration { data, stats: trace.stats, method: opts.method, rounding: opts.rounding })
 }
 
@@ -569,7 +572,8 @@ impl Calibration {
     pub fn report(&self) -> String {
         let mut s = String::new();
         let cfg = &self.data.config;
-        let _ = writeln!(s, "# Calibration of {} ({}, {})\n", cfg.name, self.method, self.rounding);
+        let trunk = if cfg.wide_trunk { ", wide trunk: conv1 .. layer2 in i16" } else { "" };
+        let _ = writeln!(s, "# Calibration of {} ({}, {}{trunk})\n", cfg.name, self.method, self.rounding);
         let _ = writeln!(s, "| slot | bits | frac | range (max) | representable | clipped |");
         let _ = writeln!(s, "|---|---|---|---|---|---|");
         for &act in Act::ALL {

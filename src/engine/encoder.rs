@@ -10,7 +10,7 @@ use crate::arith::sat_u8;
 use crate::format::QuantModel;
 use crate::input::ImageView;
 use crate::kernels::conv::{ConvParams, PartRows, conv_row};
-use crate::kernels::eltwise::{Skip, residual_relu_u8};
+use crate::kernels::eltwise::{Skip, residual_relu};
 use crate::kernels::norm::{ChannelNorm, normalize, stats_from_sums};
 use crate::kernels::{Elem, OutRow};
 use crate::model::config::Config;
@@ -120,19 +120,19 @@ impl Source for ImageRows<'_, '_> {
     }
 }
 
-/// A single conv as a stage.
-pub struct ConvStage<'a, S: Source> {
+/// A single conv as a stage, output rows of `O` (`u8`, or `i16` in a wide trunk).
+pub struct ConvStage<'a, S: Source, O> {
     src: S,
     id: ConvId,
-    out: Ring<'a, u8>,
+    out: Ring<'a, O>,
     w: usize,
 }
 
-impl<'a, S: Source> Source for ConvStage<'a, S>
+impl<'a, S: Source, O: Elem> Source for ConvStage<'a, S, O>
 where
     S::T: Elem + bytemuck::Pod,
 {
-    type T = u8;
+    type T = O;
     fn ensure(&mut self, row: usize, m: &QuantModel<'_>, s: &mut Scratch<'_>) {
         let p = conv(m, self.id);
         while self.out.produced() <= row.min(self.out.rows() - 1) {
@@ -140,13 +140,13 @@ where
             self.src.ensure(last_input_row(y, p.k, p.stride, self.src.rows()), m, s);
             let rows = self.src.part_rows(y, p.k, p.stride);
             let w_in = self.src.width();
-            run_conv(&p, &[rows], w_in, &mut OutRow::U8(self.out.push()), s.patch);
+            run_conv(&p, &[rows], w_in, &mut O::as_out(self.out.push()), s.patch);
         }
     }
-    fn part_rows(&self, y: usize, k: usize, stride: usize) -> PartRows<'_, u8> {
+    fn part_rows(&self, y: usize, k: usize, stride: usize) -> PartRows<'_, O> {
         self.out.part_rows(y, k, stride)
     }
-    fn row(&self, r: usize) -> &[u8] {
+    fn row(&self, r: usize) -> &[O] {
         self.out.row(r)
     }
     fn rows(&self) -> usize {
@@ -158,21 +158,25 @@ where
 }
 
 /// A residual block (BatchNorm folded): `out = relu(skip + relu(c2(relu(c1(x)))))`, skip = x or a
-/// 1x1 downsample conv.
-pub struct Block<'a, S: Source<T = u8>> {
+/// 1x1 downsample conv. Input rows `S::T`, mid and output rows `O` (`u8`, or `i16` in a wide
+/// trunk; a block without downsample has `S::T == O`).
+pub struct Block<'a, S: Source, O> {
     src: S,
     ids: [ConvId; 2],
     ds: Option<ConvId>,
     stride: usize,
     skip_frac: i8,
     out_frac: i8,
-    mid: Ring<'a, u8>,
-    out: Ring<'a, u8>,
+    mid: Ring<'a, O>,
+    out: Ring<'a, O>,
     w: usize,
 }
 
-impl<'a, S: Source<T = u8>> Source for Block<'a, S> {
-    type T = u8;
+impl<'a, S: Source, O: Elem + bytemuck::Pod> Source for Block<'a, S, O>
+where
+    S::T: Elem + bytemuck::Pod,
+{
+    type T = O;
     fn ensure(&mut self, row: usize, m: &QuantModel<'_>, s: &mut Scratch<'_>) {
         let (p1, p2) = (conv(m, self.ids[0]), conv(m, self.ids[1]));
         let w_in = self.src.width();
@@ -183,7 +187,7 @@ impl<'a, S: Source<T = u8>> Source for Block<'a, S> {
                 let r = self.mid.produced();
                 self.src.ensure(last_input_row(r, 3, self.stride, self.src.rows()), m, s);
                 let rows = self.src.part_rows(r, 3, self.stride);
-                run_conv(&p1, &[rows], w_in, &mut OutRow::U8(self.mid.push()), s.patch);
+                run_conv(&p1, &[rows], w_in, &mut O::as_out(self.mid.push()), s.patch);
             }
             let n = self.w * p2.cout;
             run_conv(&p2, &[self.mid.part_rows(y, 3, 1)], self.w, &mut OutRow::I16(&mut s.c2[..n]), s.patch);
@@ -195,13 +199,13 @@ impl<'a, S: Source<T = u8>> Source for Block<'a, S> {
                 }
                 None => Skip::Input { x: self.src.row(y), frac: self.skip_frac },
             };
-            residual_relu_u8(&s.c2[..n], skip, self.out_frac, self.out.push());
+            residual_relu(&s.c2[..n], skip, self.out_frac, self.out.push());
         }
     }
-    fn part_rows(&self, y: usize, k: usize, stride: usize) -> PartRows<'_, u8> {
+    fn part_rows(&self, y: usize, k: usize, stride: usize) -> PartRows<'_, O> {
         self.out.part_rows(y, k, stride)
     }
-    fn row(&self, r: usize) -> &[u8] {
+    fn row(&self, r: usize) -> &[O] {
         self.out.row(r)
     }
     fn rows(&self) -> usize {
@@ -221,16 +225,16 @@ fn in_frac(m: &QuantModel<'_>, id: ConvId) -> i8 {
 }
 
 #[allow(clippy::too_many_arguments)]
-fn block<'a, S: Source<T = u8>>(
+fn block<'a, S: Source, O: Elem>(
     src: S,
     m: &QuantModel<'_>,
     ids: [ConvId; 2],
     ds: Option<ConvId>,
     out_act: Act,
     c: usize,
-    bufs: (&'a mut [u8], &'a mut [u8]),
+    bufs: (&'a mut [O], &'a mut [O]),
     out_cap: usize,
-) -> Block<'a, S> {
+) -> Block<'a, S, O> {
     let stride = if ds.is_some() && ids[0].shape(m.config()).is_some_and(|s| s.stride == 2) { 2 } else { 1 };
     let rows = if stride == 2 { src.rows().div_ceil(2) } else { src.rows() };
     let w = if stride == 2 { src.width().div_ceil(2) } else { src.width() };
@@ -271,15 +275,17 @@ impl TrunkLayout {
     /// Layout for `cfg` on grid `g`.
     pub const fn new(cfg: &Config, g: &Grid) -> Self {
         let [d1, d2, d3] = cfg.backbone_dims;
+        // Bytes per element of conv1, layer1 and layer2 (2 in a wide trunk).
+        let e = if cfg.wide_trunk { 2 } else { 1 };
         let mut b = Bump::new(0);
         let image = b.take(7 * g.w * 3 * 2);
-        let c1 = b.take(3 * g.w2 * d1);
-        let dims = [(g.w2, d1), (g.w2, d1), (g.w4, d2), (g.w4, d2), (g.w8, d3), (g.w8, d3)];
+        let c1 = b.take(3 * g.w2 * d1 * e);
+        let dims = [(g.w2, d1, e), (g.w2, d1, e), (g.w4, d2, e), (g.w4, d2, e), (g.w8, d3, 1), (g.w8, d3, 1)];
         let mut blocks = [(Buf { at: 0, len: 0 }, Buf { at: 0, len: 0 }); 6];
         let mut i = 0;
         while i < 6 {
-            let (w, c) = dims[i];
-            blocks[i] = (b.take(3 * w * c), b.take(TRUNK_OUT_CAP[i] * w * c));
+            let (w, c, e) = dims[i];
+            blocks[i] = (b.take(3 * w * c * e), b.take(TRUNK_OUT_CAP[i] * w * c * e));
             i += 1;
         }
         let row = {
@@ -297,22 +303,40 @@ impl TrunkLayout {
 
 /// Streams one image through conv1 .. layer3 into `l3` (HWC u8, `h8 x w8 x d3`).
 pub fn trunk(m: &QuantModel<'_>, img: &ImageView<'_>, g: &Grid, rings: &mut [u8], patch: &mut [u8], l3: &mut [u8]) {
+    if m.config().wide_trunk {
+        trunk_as::<i16>(m, img, g, rings, patch, l3)
+    } else {
+        trunk_as::<u8>(m, img, g, rings, patch, l3)
+    }
+}
+
+/// [`trunk`] with conv1, layer1 and layer2 stored as `T`.
+fn trunk_as<T: Elem + bytemuck::Pod>(
+    m: &QuantModel<'_>,
+    img: &ImageView<'_>,
+    g: &Grid,
+    rings: &mut [u8],
+    patch: &mut [u8],
+    l3: &mut [u8],
+) {
     let cfg = *m.config();
     let [d1, d2, d3] = cfg.backbone_dims;
     let lay = TrunkLayout::new(&cfg, g);
     let mut cv = Carver::new(rings);
     let image = ImageRows { img, ring: Ring::new(cv.i16(lay.image), 7, g.w * 3, g.h), w: g.w };
-    let c1 = ConvStage { src: image, id: Conv1, out: Ring::new(cv.u8(lay.c1), 3, g.w2 * d1, g.h2), w: g.w2 };
-    let mut take = |i: usize| -> (&mut [u8], &mut [u8]) {
+    let c1 = ConvStage { src: image, id: Conv1, out: Ring::<T>::new(cv.typed(lay.c1), 3, g.w2 * d1, g.h2), w: g.w2 };
+    let mut take = |i: usize| -> (&mut [T], &mut [T]) {
         let (a, b) = lay.blocks[i];
-        (cv.u8(a), cv.u8(b))
+        (cv.typed(a), cv.typed(b))
     };
     let b0 = take(0);
     let b1 = take(1);
     let b2 = take(2);
     let b3 = take(3);
-    let b4 = take(4);
-    let b5 = take(5);
+    let (a, b) = lay.blocks[4];
+    let b4 = (cv.u8(a), cv.u8(b));
+    let (a, b) = lay.blocks[5];
+    let b5 = (cv.u8(a), cv.u8(b));
     let c2 = cv.i16(lay.c2);
     let ds = cv.i16(lay.ds);
     use Act as A;
@@ -469,7 +493,7 @@ fn features(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &HeadLayout, rings: &m
             for (i, v) in ybuf[..row].iter_mut().enumerate() {
                 *v = crate::arith::sat_i16(normalize(*v, stat(stats2, i % d3), f_blk).max(0));
             }
-            residual_relu_u8(&ybuf[..row], Skip::Input { x: &l3[r * row..(r + 1) * row], frac: f_l3 }, f_blk, blk.push());
+            residual_relu(&ybuf[..row], Skip::Input { x: &l3[r * row..(r + 1) * row], frac: f_l3 }, f_blk, blk.push());
         }
         run_conv(&p3, &[blk.part_rows(y, 3, 1)], w, &mut OutRow::I8(&mut f[y * fo..(y + 1) * fo]), patch);
     }

@@ -41,6 +41,10 @@ impl<'a> Carver<'a> {
     pub fn i16(&mut self, b: Buf) -> &'a mut [i16] {
         bytemuck::cast_slice_mut(self.bytes(b))
     }
+    /// A byte buffer viewed as `T` (`u8` or `i16`: the trunk's storage).
+    pub fn typed<T: bytemuck::Pod>(&mut self, b: Buf) -> &'a mut [T] {
+        bytemuck::cast_slice_mut(self.bytes(b))
+    }
     /// A byte buffer viewed as `i32`.
     pub fn i32(&mut self, b: Buf) -> &'a mut [i32] {
         bytemuck::cast_slice_mut(self.bytes(b))

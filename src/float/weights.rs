@@ -248,6 +248,7 @@ pub fn config_from_json(json: &str) -> Result<Config, WeightError> {
         eps_min: j.eps_min,
         eps_max: j.eps_max,
         checkpoint_extras: j.checkpoint_extras,
+        wide_trunk: false,
     };
     c.validate()?;
     Ok(c)

@@ -6,7 +6,7 @@
 //! | offset | size | content |
 //! |---|---|---|
 //! | 0 | 4 | magic `MUIQ` |
-//! | 4 | 2 | format version ([`VERSION`]; 2: backbone and context activations are u8) |
+//! | 4 | 2 | format version ([`VERSION`]; 2: backbone and context activations are u8; 3: config flag 5, a wide trunk ([`Config::wide_trunk`]); version 2 is still read) |
 //! | 6 | 2 | 0 |
 //! | 8 | 4 | total length in bytes |
 //! | 12 | 4 | CRC-32 (IEEE) of bytes `16..total` |
@@ -42,7 +42,7 @@ use crate::model::layers::ConvId;
 /// Magic bytes.
 pub const MAGIC: [u8; 4] = *b"MUIQ";
 /// Format version written and read by this crate.
-pub const VERSION: u16 = 2;
+pub const VERSION: u16 = 3;
 /// Size of the fixed header.
 pub const HEADER_LEN: usize = 16;
 /// Size of the config record.
@@ -208,7 +208,7 @@ impl Sections {
 }
 
 /// Config record (128 bytes): name (32 bytes, zero padded), name length (u8), flags (u8: bit 0
-/// post_pool, 1 mud, 2 ufi, 3 mga, 4 checkpoint_extras), 2 zero bytes, then u16 fields in this
+/// post_pool, 1 mud, 2 ufi, 3 mga, 4 checkpoint_extras, 5 wide_trunk), 2 zero bytes, then u16 fields in this
 /// order: backbone_dims x3, hidden, context, fmap, corr_levels, corr_radius, motion_corr_dims x2,
 /// motion_flow_dims x2, motion_dim, flow_head_dim, mask_head_dim, flow_channels, iters, mud_dim,
 /// ufi_corr_dim, ufi_flow_dim, ufi_dim, ufi_head_dim, ufi_peak_separation, mga_qk_dim (25 values,
@@ -218,7 +218,12 @@ pub fn config_record(c: &Config) -> [u8; CONFIG_LEN] {
     let (name, len) = c.name.raw();
     r[..32].copy_from_slice(name);
     r[32] = len;
-    r[33] = c.post_pool as u8 | (c.mud as u8) << 1 | (c.ufi as u8) << 2 | (c.mga as u8) << 3 | (c.checkpoint_extras as u8) << 4;
+    r[33] = c.post_pool as u8
+        | (c.mud as u8) << 1
+        | (c.ufi as u8) << 2
+        | (c.mga as u8) << 3
+        | (c.checkpoint_extras as u8) << 4
+        | (c.wide_trunk as u8) << 5;
     let v = config_u16s(c);
     for (i, x) in v.iter().enumerate() {
         r[36 + 2 * i..38 + 2 * i].copy_from_slice(&(*x as u16).to_le_bytes());
@@ -295,6 +300,7 @@ fn parse_config(r: &[u8]) -> Result<Config, BlobError> {
         ufi: flags & 4 != 0,
         mga: flags & 8 != 0,
         checkpoint_extras: flags & 16 != 0,
+        wide_trunk: flags & 32 != 0,
         mga_rope_base: f32_at(r, 88),
         eps_min: f32_at(r, 92),
         eps_max: f32_at(r, 96),
@@ -355,7 +361,7 @@ impl<'a> QuantModel<'a> {
             return Err(BlobError::BadMagic);
         }
         let version = u16_at(blob, 4);
-        if version != VERSION {
+        if version != VERSION && version != 2 {
             return Err(BlobError::UnsupportedVersion { found: version });
         }
         let total = u32_at(blob, 8) as usize;
@@ -379,9 +385,10 @@ impl<'a> QuantModel<'a> {
         for &act in Act::ALL {
             let o = FORMATS_AT + 2 * act.index();
             // Signedness is the slot's (the arithmetic spec's), not the blob's.
-            let f = QFormat { bits: blob[o], frac: blob[o + 1] as i8, unsigned: act.unsigned() };
+            let storage = act.storage_in(&config);
+            let f = QFormat { bits: blob[o], frac: blob[o + 1] as i8, unsigned: storage.unsigned };
             let fixed_ok = act.fixed_format().is_none_or(|x| x == f);
-            if f.bits != act.bits() || !fixed_ok || !(-24..=40).contains(&f.frac) {
+            if f.bits != storage.bits || !fixed_ok || !(-24..=40).contains(&f.frac) {
                 return Err(BlobError::Format { act });
             }
             formats[act.index()] = f;

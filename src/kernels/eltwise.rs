@@ -1,28 +1,30 @@
 //! Element-wise integer operations: residual add, GRU blend, Q0.15 products, format changes.
 
-use crate::arith::{rescale, rshift_round, sat_i16, sat_u8};
+use crate::arith::{rescale, rshift_round, sat_i16};
+use crate::kernels::Elem;
 
-/// `out = relu(y + rescale(skip))`: residual-block output (u8, so the ReLU is the saturation).
-/// `y` is the block's second conv, requantised to the output format (`out_frac`) but kept in i16
-/// so the sum saturates only once; `skip` is the block input in `skip_frac` (u8) or the
-/// downsample conv output in `out_frac`.
-pub fn residual_relu_u8(y: &[i16], skip: Skip<'_>, out_frac: i8, out: &mut [u8]) {
+/// `out = relu(y + rescale(skip))`: residual-block output. `y` is the block's second conv,
+/// requantised to the output format (`out_frac`) but kept in i16 so the sum saturates only once;
+/// `skip` is the block input in its own format (`frac`) or the downsample conv output in
+/// `out_frac`. The output is `u8` (the ReLU is the saturation) or, in a wide trunk
+/// ([`crate::model::config::Config::wide_trunk`]), `i16` clamped to `[0, 32767]`.
+pub fn residual_relu<X: Elem, O: Elem>(y: &[i16], skip: Skip<'_, X>, out_frac: i8, out: &mut [O]) {
     for (i, o) in out.iter_mut().enumerate() {
         let s = match skip {
-            Skip::Input { x, frac } => rescale(x[i] as i64, frac, out_frac),
+            Skip::Input { x, frac } => rescale(x[i].to_i32() as i64, frac, out_frac),
             Skip::Projected(p) => p[i] as i64,
         };
-        *o = sat_u8(y[i] as i64 + s);
+        *o = O::from_i64_sat((y[i] as i64 + s).max(0));
     }
 }
 
-/// Skip connection of a residual block.
+/// Skip connection of a residual block (input elements `X`: `u8`, or `i16` in a wide trunk).
 #[derive(Clone, Copy)]
-pub enum Skip<'a> {
+pub enum Skip<'a, X> {
     /// The block input itself, with its fraction bits.
     Input {
         /// Values.
-        x: &'a [u8],
+        x: &'a [X],
         /// Fraction bits of `x`.
         frac: i8,
     },
@@ -86,7 +88,13 @@ mod tests {
         mul_q15(&[1000, -1000], &[16384, 16384], &mut o);
         assert_eq!(o, [500, -500]);
         let mut o8 = [0u8; 4];
-        residual_relu_u8(&[10, -50, 120, 250], Skip::Input { x: &[8, 8, 40, 40], frac: 2 }, 1, &mut o8);
+        residual_relu(&[10, -50, 120, 250], Skip::Input { x: &[8u8, 8, 40, 40], frac: 2 }, 1, &mut o8);
         assert_eq!(o8, [14, 0, 140, 255]);
+        // Wide trunk: i16 in and out, the same sums clamped to [0, 32767] instead of [0, 255].
+        let mut o16 = [0i16; 5];
+        residual_relu(&[10, -50, 120, 250, 32000], Skip::Input { x: &[8i16, 8, 40, 40, 4000], frac: 2 }, 1, &mut o16);
+        assert_eq!(o16, [14, 0, 140, 270, 32767]);
+        residual_relu::<i16, i16>(&[-3, 7], Skip::Projected(&[1, 1]), 1, &mut o16[..2]);
+        assert_eq!(o16[..2], [0, 8]);
     }
 }

@@ -130,6 +130,11 @@ pub struct Config {
     /// The public realtime checkpoint's unused modules (layer5, outputs32, gru32) are expected in
     /// float model files (checked, then ignored).
     pub checkpoint_extras: bool,
+    /// Fixed-point engine only: conv1, layer1 and layer2 activations stored in `i16` instead of
+    /// `u8` (the float network is the same). Lowers the engine's difference from the float
+    /// reference at the cost of wider line buffers (`muir plan` lists both); set by
+    /// `muir quantize --wide-trunk`, never by a float model file.
+    pub wide_trunk: bool,
 }
 
 /// Why a config is rejected.
@@ -207,6 +212,7 @@ impl Config {
         eps_min: 0.25,
         eps_max: 32.0,
         checkpoint_extras: true,
+        wide_trunk: false,
     };
 
     /// MUIR fast: realtime widths plus MUD, UFI, MGA and post-pooling lookup.

@@ -33,6 +33,11 @@ macro_rules! acts {
             pub const fn storage(self) -> QFormat {
                 match self { $(Act::$id => QFormat::$ty(0),)* }
             }
+            /// Storage type in a model of `cfg`: [`Act::storage`], or `i16` for the trunk slots
+            /// [`Config::wide_trunk`] widens.
+            pub const fn storage_in(self, cfg: &Config) -> QFormat {
+                if cfg.wide_trunk && self.in_wide_trunk() { QFormat::i16(0) } else { self.storage() }
+            }
             /// Storage width (8 or 16 bits).
             pub const fn bits(self) -> u8 {
                 self.storage().bits
@@ -88,6 +93,16 @@ acts! {
     Mud1 = "mud1" i16, Mud2 = "mud2" i16,
     UfiC = "ufi_c" i16, UfiF = "ufi_f" i16, UfiFeat = "ufi_feat" i16, UfiHead = "ufi_head" i16,
     MgaQ = "mga_q" i16, MgaK = "mga_k" i16, MgaV = "mga_v" i16, Glb = "glb" i16,
+}
+
+impl Act {
+    /// conv1, layer1 and layer2 outputs (block inputs, mids and outputs at 1/2 and 1/4
+    /// resolution): the slots [`Config::wide_trunk`] stores in `i16`. Their 8-bit noise is most of
+    /// what reaches the matching features (README, "Accuracy"); layer3 and later stay `u8`.
+    pub const fn in_wide_trunk(self) -> bool {
+        use Act::*;
+        matches!(self, C1 | L1b0m | L1b0o | L1b1m | L1b1o | L2b0m | L2b0o | L2b1m | L2b1o)
+    }
 }
 
 /// What follows the requantisation of a conv output.
@@ -315,7 +330,7 @@ mod tests {
 
     /// A u8 slot has no negative codes: every conv that writes it must end in a ReLU, except the
     /// residual blocks' 1x1 downsample convs, whose i16 output is added to the block's conv and
-    /// clamped at 0 by the residual ReLU (`eltwise::residual_relu_u8`).
+    /// clamped at 0 by the residual ReLU (`eltwise::residual_relu`).
     #[test]
     fn unsigned_slots_follow_a_relu() {
         for cfg in Config::PRESETS {

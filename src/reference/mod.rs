@@ -10,7 +10,7 @@ use crate::input::{ImageView, InputError, check_pair};
 use crate::kernels::attention::{attention_plain, rope_pixel};
 use crate::kernels::conv::conv_plain;
 use crate::kernels::corr::{LookupParams, lookup_pixel_plain, peaks_pixel_plain};
-use crate::kernels::eltwise::{Skip, blend_q15, mud_mask, mul_plane_q15, mul_q15, proposal_flow, residual_relu_u8};
+use crate::kernels::eltwise::{Skip, blend_q15, mud_mask, mul_plane_q15, mul_q15, proposal_flow, residual_relu};
 use crate::kernels::norm::{channel_stats, normalize};
 use crate::kernels::resample::{interp_row, pool2x_row};
 use crate::kernels::upsample::upsample_pixel;
@@ -98,10 +98,11 @@ impl<'m, 'a> Reference<'m, 'a> {
         Self { m, inject: None }
     }
 
-    /// Diagnostic: replaces the tensors named `backbone.layer3`, `fmap1`, `fmap2`, `inp08`,
-    /// `inp16`, `ufi.peaks`, `init.flow` and `init.net08` (after UFI) by the given float records,
-    /// quantised to their slots, so that the effect of quantising one part of the network can be
-    /// measured on its own (`examples/quant_drift.rs`).
+    /// Diagnostic: replaces the tensors named `backbone.conv1`, `backbone.layer1`, `backbone.layer2`,
+    /// `backbone.layer3`, `fmap1`, `fmap2`, `inp08`, `inp16`, `ufi.peaks`, `init.flow` and
+    /// `init.net08` (after UFI) by the given float records, quantised to their slots, so that the
+    /// effect of quantising one part of the network can be measured on its own
+    /// (`examples/quant_drift.rs`).
     #[doc(hidden)]
     pub fn with_injected(m: &'m QuantModel<'a>, float_records: &'m crate::calib::Records) -> Self {
         Self { m, inject: Some(float_records) }
@@ -150,20 +151,28 @@ impl<'m, 'a> Reference<'m, 'a> {
         }
     }
 
-    fn block(&self, x: &QT<u8>, ids: [ConvId; 2], ds: Option<ConvId>, acts: [Act; 2], tr: &mut dyn Trace) -> QT<u8> {
-        let mid: QT<u8> = self.conv(ids[0], &[x]);
+    /// A residual block on input `X`, mid and output `O` (`u8`, or `i16` in a wide trunk).
+    fn block<X: Elem, O: Elem>(
+        &self,
+        x: &QT<X>,
+        ids: [ConvId; 2],
+        ds: Option<ConvId>,
+        acts: [Act; 2],
+        tr: &mut dyn Trace,
+    ) -> QT<O> {
+        let mid: QT<O> = self.conv(ids[0], &[x]);
         self.record(tr, &format!("q.{}", acts[0].name()), &mid, self.frac(acts[0]));
         let y: QT<i16> = self.conv(ids[1], &[&mid]);
         let f_out = self.frac(acts[1]);
-        let mut out = QT::<u8>::zeros(y.h, y.w, y.c);
+        let mut out = QT::<O>::zeros(y.h, y.w, y.c);
         match ds {
             Some(d) => {
                 let p: QT<i16> = self.conv(d, &[x]);
-                residual_relu_u8(&y.d, Skip::Projected(&p.d), f_out, &mut out.d);
+                residual_relu(&y.d, Skip::<X>::Projected(&p.d), f_out, &mut out.d);
             }
             None => {
                 let f_in = self.in_frac(ids[0]);
-                residual_relu_u8(&y.d, Skip::Input { x: &x.d, frac: f_in }, f_out, &mut out.d)
+                residual_relu(&y.d, Skip::Input { x: &x.d, frac: f_in }, f_out, &mut out.d)
             }
         }
         self.record(tr, &format!("q.{}", acts[1].name()), &out, f_out);
@@ -188,15 +197,32 @@ impl<'m, 'a> Reference<'m, 'a> {
         t
     }
 
-    fn trunk(&self, img: &QT<i16>, tr: &mut dyn Trace) -> QT<u8> {
-        let c1: QT<u8> = self.conv(Conv1, &[img]);
+    /// Float trunk tensor `name` of one image (`side` 0 left, 1 right; the float trace holds both
+    /// concatenated along channels) quantised to `act`'s slot, or `x` when nothing is injected.
+    fn inject_side<T: Elem>(&self, name: &str, side: usize, act: Act, x: QT<T>) -> QT<T> {
+        match self.injected(name) {
+            Some(t) => self.quantize_like(&t.channels(side * t.c / 2, t.c / 2), self.frac(act)),
+            None => x,
+        }
+    }
+
+    fn trunk(&self, img: &QT<i16>, side: usize, tr: &mut dyn Trace) -> QT<u8> {
+        if self.cfg().wide_trunk { self.trunk_as::<i16>(img, side, tr) } else { self.trunk_as::<u8>(img, side, tr) }
+    }
+
+    /// [`Self::trunk`] with conv1, layer1 and layer2 stored as `T`.
+    fn trunk_as<T: Elem>(&self, img: &QT<i16>, side: usize, tr: &mut dyn Trace) -> QT<u8> {
+        let c1: QT<T> = self.conv(Conv1, &[img]);
+        let c1 = self.inject_side("backbone.conv1", side, Act::C1, c1);
         self.record(tr, "q.c1", &c1, self.frac(Act::C1));
         use Act as A;
-        let x = self.block(&c1, [L1b0c1, L1b0c2], None, [A::L1b0m, A::L1b0o], tr);
-        let x = self.block(&x, [L1b1c1, L1b1c2], None, [A::L1b1m, A::L1b1o], tr);
-        let x = self.block(&x, [L2b0c1, L2b0c2], Some(L2b0ds), [A::L2b0m, A::L2b0o], tr);
-        let x = self.block(&x, [L2b1c1, L2b1c2], None, [A::L2b1m, A::L2b1o], tr);
-        let x = self.block(&x, [L3b0c1, L3b0c2], Some(L3b0ds), [A::L3b0m, A::L3b0o], tr);
+        let x: QT<T> = self.block(&c1, [L1b0c1, L1b0c2], None, [A::L1b0m, A::L1b0o], tr);
+        let x: QT<T> = self.block(&x, [L1b1c1, L1b1c2], None, [A::L1b1m, A::L1b1o], tr);
+        let x = self.inject_side("backbone.layer1", side, A::L1b1o, x);
+        let x: QT<T> = self.block(&x, [L2b0c1, L2b0c2], Some(L2b0ds), [A::L2b0m, A::L2b0o], tr);
+        let x: QT<T> = self.block(&x, [L2b1c1, L2b1c2], None, [A::L2b1m, A::L2b1o], tr);
+        let x = self.inject_side("backbone.layer2", side, A::L2b1o, x);
+        let x: QT<u8> = self.block(&x, [L3b0c1, L3b0c2], Some(L3b0ds), [A::L3b0m, A::L3b0o], tr);
         self.block(&x, [L3b1c1, L3b1c2], None, [A::L3b1m, A::L3b1o], tr)
     }
 
@@ -223,7 +249,7 @@ impl<'m, 'a> Reference<'m, 'a> {
         let f_blk = self.frac(Act::FmapBlk);
         let y = self.instance_norm_relu(&raw2, self.frac(Act::FmapRaw2), f_blk);
         let mut blk = QT::<u8>::zeros(y.h, y.w, y.c);
-        residual_relu_u8(&y.d, Skip::Input { x: &l3.d, frac: self.frac(Act::L3b1o) }, f_blk, &mut blk.d);
+        residual_relu(&y.d, Skip::Input { x: &l3.d, frac: self.frac(Act::L3b1o) }, f_blk, &mut blk.d);
         self.record(tr, "q.fmap_blk", &blk, f_blk);
         let f: QT<i8> = self.conv(FmapOut, &[&blk]);
         self.record(tr, "q.fmap", &f, self.frac(Act::Fmap));
@@ -233,7 +259,7 @@ impl<'m, 'a> Reference<'m, 'a> {
     /// The encoder on padded integer images.
     pub fn encode(&self, left: &QT<i16>, right: &QT<i16>, tr: &mut dyn Trace) -> Ctx {
         use Act as A;
-        let (mut xl, mut xr) = (self.trunk(left, tr), self.trunk(right, tr));
+        let (mut xl, mut xr) = (self.trunk(left, 0, tr), self.trunk(right, 1, tr));
         if let Some(t) = self.injected("backbone.layer3") {
             // The float trace holds left and right concatenated along channels.
             let c = t.c / 2;
@@ -245,17 +271,17 @@ impl<'m, 'a> Reference<'m, 'a> {
         self.record(tr, "fmap1", &f1, self.frac(A::Fmap));
         self.record(tr, "fmap2", &f2, self.frac(A::Fmap));
         let head = |x: &QT<u8>, ids: [ConvId; 3], acts: [Act; 2], tr: &mut dyn Trace| -> QT<i16> {
-            let b = self.block(x, [ids[0], ids[1]], None, acts, tr);
+            let b: QT<u8> = self.block(x, [ids[0], ids[1]], None, acts, tr);
             self.conv(ids[2], &[&b])
         };
         let head8 = |x: &QT<u8>, ids: [ConvId; 3], acts: [Act; 2], tr: &mut dyn Trace| -> QT<i16> {
-            let b = self.block(x, [ids[0], ids[1]], None, acts, tr);
+            let b: QT<u8> = self.block(x, [ids[0], ids[1]], None, acts, tr);
             widen(&self.conv::<u8, u8>(ids[2], &[&b]))
         };
         let net08 = head(&xl, [H08nC1, H08nC2, H08nOut], [A::H08nm, A::H08no], tr);
         let inp08 = head8(&xl, [H08cC1, H08cC2, H08cOut], [A::H08cm, A::H08co], tr);
-        let x = self.block(&xl, [L4b0c1, L4b0c2], Some(L4b0ds), [A::L4b0m, A::L4b0o], tr);
-        let y = self.block(&x, [L4b1c1, L4b1c2], None, [A::L4b1m, A::L4b1o], tr);
+        let x: QT<u8> = self.block(&xl, [L4b0c1, L4b0c2], Some(L4b0ds), [A::L4b0m, A::L4b0o], tr);
+        let y: QT<u8> = self.block(&x, [L4b1c1, L4b1c2], None, [A::L4b1m, A::L4b1o], tr);
         let net16 = head(&y, [H16nC1, H16nC2, H16nOut], [A::H16nm, A::H16no], tr);
         let inp16 = head8(&y, [H16cC1, H16cC2, H16cOut], [A::H16cm, A::H16co], tr);
         self.record(tr, "net08.init", &net08, UNIT_FRAC as i8);

@@ -42,8 +42,12 @@ mod frame {
 }
 use frame::{H, LEFT, RIGHT, W};
 
-/// The memory plan of this image size, evaluated at compile time.
-const PLAN: Plan = Plan::new(&Config::MUIR_SLIM, W, H);
+/// The config the embedded model must have: muir-slim, with the i16 trunk under feature
+/// `wide-trunk` (`muir quantize --wide-trunk`, models/muir-slim-wide.muirq).
+const CONFIG: Config = Config { wide_trunk: cfg!(feature = "wide-trunk"), ..Config::MUIR_SLIM };
+
+/// The memory plan of this model and image size, evaluated at compile time.
+const PLAN: Plan = Plan::new(&CONFIG, W, H);
 
 /// A `static` that `main` borrows mutably, once (zero-initialised ones land in `.bss`: no flash).
 struct Static<T>(UnsafeCell<T>);
@@ -73,8 +77,12 @@ static KEPT: Static<[i16; W * H]> = Static::new([0; W * H]);
 /// The `.muirq` blob in flash, 8-byte aligned like the sections inside it.
 #[repr(C, align(8))]
 struct Aligned<B: ?Sized>(B);
+#[cfg(not(feature = "wide-trunk"))]
 static MODEL: &Aligned<[u8]> =
     &Aligned(*include_bytes!(concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/muir-slim.muirq")));
+#[cfg(feature = "wide-trunk")]
+static MODEL: &Aligned<[u8]> =
+    &Aligned(*include_bytes!(concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/muir-slim-wide.muirq")));
 
 /// Start of the measured region (the QEMU plugin counts instructions from here to `bench_end`).
 /// The two markers have different bodies so that the compiler cannot fold them into one address.
@@ -178,8 +186,8 @@ fn main() -> ! {
     let (arena, disparity, uncertainty, kept) = unsafe { (ARENA.take(), DISPARITY.take(), UNCERTAINTY.take(), KEPT.take()) };
 
     let model = QuantModel::parse(&MODEL.0).unwrap_or_else(|e| fail("model", e));
-    if *model.config() != Config::MUIR_SLIM {
-        fail("model", "the embedded model is not muir-slim, the config this firmware's memory plan is for");
+    if *model.config() != CONFIG {
+        fail("model", "the embedded model's config (muir-slim, trunk width) is not the one of this firmware's memory plan");
     }
     let left = ImageView::new(W, H, PixelFormat::Gray8, LEFT).unwrap_or_else(|e| fail("left image", e));
     let right = ImageView::new(W, H, PixelFormat::Gray8, RIGHT).unwrap_or_else(|e| fail("right image", e));
@@ -209,9 +217,10 @@ fn main() -> ! {
     // SAFETY: read-only system register.
     let part = (unsafe { (*cortex_m::peripheral::CPUID::PTR).base.read() } >> 4) & 0xFFF;
     println!(
-        "muir-slim {W}x{H} on CPU part 0x{part:03x} (0xc27: Cortex-M7): disparity {}..{} px, mean {} px; \
+        "muir-slim{} {W}x{H} on CPU part 0x{part:03x} (0xc27: Cortex-M7): disparity {}..{} px, mean {} px; \
          {kept_1px} of {} pixels with predicted error <= 1 px; working RAM {} bytes (one static arena, no heap); \
          model {} bytes read in place from flash; busy LED edges {}",
+        if CONFIG.wide_trunk { " (wide trunk)" } else { "" },
         px(min.into()),
         px(max.into()),
         px(sum / (W * H) as i64),
