@@ -133,6 +133,18 @@ fn streaming_equals_plain_wide_trunk() {
     check_bit_exact(&wide, 100, 70, 7, false);
     check_bit_exact(&wide, 64, 48, 2, true);
     check_bit_exact(&Config { wide_trunk: true, ..Config::MUIR_FAST }, 90, 66, 2, false);
+    // A wide-trunk blob in an arena planned for the u8 trunk is refused, not overrun.
+    let blob = blob(&wide);
+    let qm = QuantModel::parse(&blob).unwrap();
+    let (w, h) = (64, 48);
+    let (narrow, wide_plan) = (Plan::new(&Config::MUIR_SLIM, w, h), Plan::new(&wide, w, h));
+    assert!(wide_plan.ram_bytes > narrow.ram_bytes);
+    let mut mem = arena(&narrow);
+    let mut e = Engine::new(&qm, bytemuck::cast_slice_mut(&mut mem)).unwrap();
+    let (l, r) = pair(w, h, 7, true);
+    let mut d = vec![0i16; w * h];
+    let res = e.run(&view(&l, w, h, true), &view(&r, w, h, true), &mut Output { disparity: &mut d, uncertainty: None });
+    assert!(matches!(res, Err(EngineError::ArenaTooSmall { needed, .. }) if needed == wide_plan.ram_bytes), "{res:?}");
 }
 
 #[test]
