@@ -189,11 +189,15 @@ fn measure(wide: bool) -> Option<(Figures, bool)> {
     Some((Figures { mean_diff, within, epe_f, epe_q, agree }, candidate))
 }
 
-/// The wide-trunk blob meets all four targets.
+/// The wide-trunk blob meets all four targets (asserted for the shipped model; a candidate's are
+/// reported, as `scripts/check-candidate.sh` compares before shipping).
 #[test]
 fn wide_trunk_engine_meets_issue_4_targets() {
-    let Some((f, _)) = measure(true) else { return };
+    let Some((f, candidate)) = measure(true) else { return };
     f.report();
+    if candidate {
+        return;
+    }
     assert!(f.mean_diff <= 0.1, "mean |d_fixed - d_float| = {:.4} px > 0.1", f.mean_diff);
     assert!(f.within >= 0.99, "{:.2}% of pixels within 1 px < 99%", 100.0 * f.within);
     assert!(f.epe_q <= 1.05 * f.epe_f, "fixed EPE {:.3} > 1.05 x float EPE {:.3}", f.epe_q, f.epe_f);

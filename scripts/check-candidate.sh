@@ -30,8 +30,8 @@ bash scripts/quantize-shipped.sh "$src" "$out/model-wide.muirq" "$out/calib-wide
 echo "== 2/3 fixed vs float (five crops) -> $out/fixed_vs_float.txt" >&2
 MUIR_CANDIDATE_MODEL="$(realpath "$src")" MUIR_CANDIDATE_BLOB="$(realpath "$out/model.muirq")" \
     MUIR_CANDIDATE_WIDE_BLOB="$(realpath "$out/model-wide.muirq")" \
-    cargo test --release --test fixed_vs_float -- --nocapture > "$out/fixed_vs_float.txt" 2>&1
-grep -E '^\| |^target' "$out/fixed_vs_float.txt"
+    cargo test --release --test fixed_vs_float -- --nocapture --test-threads 1 > "$out/fixed_vs_float.txt" 2>&1
+grep -E '^float model|^\| |^target' "$out/fixed_vs_float.txt"
 
 if [[ $eval_too == 1 ]]; then
     echo "== 3/3 Middlebury evaluation (float and fixed engine) -> $out/eval" >&2
