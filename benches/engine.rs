@@ -74,11 +74,23 @@ struct Model {
     blob: Vec<u8>,
 }
 
+impl Model {
+    /// Benchmark name: the config, `-wide` for a wide-trunk blob.
+    fn name(&self) -> String {
+        format!("{}{}", self.cfg.name.as_str(), if self.cfg.wide_trunk { "-wide" } else { "" })
+    }
+}
+
 fn model(cfg: Config, calib: &(OwnedImage, OwnedImage)) -> Model {
-    let float = FloatModel::new(FloatWeights::from_state_dict(seeded::state_dict(&cfg, 11), &cfg).unwrap());
+    let narrow = Config { wide_trunk: false, ..cfg };
+    let float = FloatModel::new(FloatWeights::from_state_dict(seeded::state_dict(&narrow, 11), &narrow).unwrap());
     let pairs = [(calib.0.view(), calib.1.view())];
-    let opts =
-        CalibOptions { method: RangeMethod::Percentile(0.9999), iters: cfg.iters, rounding: Rounding::Nearest, wide_trunk: false };
+    let opts = CalibOptions {
+        method: RangeMethod::Percentile(0.9999),
+        iters: cfg.iters,
+        rounding: Rounding::Nearest,
+        wide_trunk: cfg.wide_trunk,
+    };
     let cal = calibrate(&float, &pairs, opts, &mut |_, _| {}).unwrap();
     Model { cfg, float, blob: muir::format::writer::write(&cal.data) }
 }
@@ -113,7 +125,7 @@ fn frames(c: &mut Criterion, models: &[Model], pair: &(OwnedImage, OwnedImage)) 
     let mut g = c.benchmark_group(group);
     g.sampling_mode(SamplingMode::Flat).sample_size(10).warm_up_time(Duration::from_millis(1)).measurement_time(Duration::from_secs(5));
     for (i, md) in models.iter().enumerate() {
-        let name = md.cfg.name.as_str();
+        let name = &md.name();
         let m = Macs::new(&md.cfg, W, H, md.cfg.iters);
         println!(
             "MACs per frame, {name} 320x240, {} iterations: fixed engine {:.3} G (network {:.3} G + recompute {:.3} G), float reference {:.3} G",
@@ -146,7 +158,7 @@ fn frames(c: &mut Criterion, models: &[Model], pair: &(OwnedImage, OwnedImage)) 
     }
     g.finish();
     for (i, md) in models.iter().enumerate() {
-        let name = md.cfg.name.as_str();
+        let name = &md.name();
         if ran.borrow()[i] != [true, true] {
             continue;
         }
@@ -185,7 +197,7 @@ struct Attention {
 fn stages(c: &mut Criterion, models: &[Model], pair: &(OwnedImage, OwnedImage)) -> Option<Attention> {
     let (lv, rv) = (pair.0.view(), pair.1.view());
     let mut attention = None;
-    for md in models {
+    for md in models.iter().filter(|m| !m.cfg.wide_trunk) {
         let cfg = md.cfg;
         let name = cfg.name.as_str();
         let qm = QuantModel::parse(&md.blob).unwrap();
@@ -370,7 +382,10 @@ fn kernels(c: &mut Criterion, fast: &Model, att: Option<&Attention>) {
 fn all(c: &mut Criterion) {
     let (pair, calib, source) = images();
     println!("pair: {source}; models: seeded weights, calibrated on another crop");
-    let models: Vec<Model> = [Config::MUIR_SLIM, Config::MUIR_FAST].into_iter().map(|cfg| model(cfg, &calib)).collect();
+    // The wide-trunk slim blob last: models[1] is muir-fast (kernels), stages skip it.
+    let wide = Config { wide_trunk: true, ..Config::MUIR_SLIM };
+    let models: Vec<Model> =
+        [Config::MUIR_SLIM, Config::MUIR_FAST, wide].into_iter().map(|cfg| model(cfg, &calib)).collect();
     frames(c, &models, &pair);
     let att = stages(c, &models, &pair);
     kernels(c, &models[1], att.as_ref());
