@@ -75,7 +75,6 @@ impl Figures {
     }
 }
 
-
 fn report(what: &str, met: bool) {
     println!("target {what}: {}", if met { "met" } else { "NOT MET" });
 }
