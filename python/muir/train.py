@@ -45,16 +45,26 @@ MAX_GT = 512.0
 # Data
 # ------------------------------------------------------------------------------------------------
 class SynthDataset(torch.utils.data.Dataset):
-    """Item i is synthetic sample i of stream `seed` (deterministic), as float tensors."""
+    """Item i is synthetic sample i of stream `seed` (deterministic), as float tensors; with
+    proxy_frac > 0 a seeded share of the items are real crops with proxy labels instead."""
 
-    def __init__(self, seed: int, h: int, w: int, length: int):
+    def __init__(self, seed: int, h: int, w: int, length: int, proxy_frac: float = 0.0):
         self.seed, self.h, self.w, self.length = seed, h, w, length
+        self.proxy_frac = proxy_frac
 
     def __len__(self):
         return self.length
 
     def __getitem__(self, i):
-        s = synth.sample(self.seed, int(i), self.h, self.w)
+        # With --proxy-frac, item i is a real crop with SGBM proxy labels (muir.proxy) when its own coin
+        # says so; the coin and the crop are functions of (seed, i), so a resume sees the same data.
+        rng = np.random.default_rng([int(self.seed) & 0xFFFFFFFF, int(i), 0x9E37])
+        if self.proxy_frac > 0 and rng.random() < self.proxy_frac:
+            from . import proxy
+
+            s = proxy.pool().sample(rng, self.h, self.w)
+        else:
+            s = synth.sample(self.seed, int(i), self.h, self.w)
         left = torch.from_numpy(s["left"]).permute(2, 0, 1).float()
         right = torch.from_numpy(s["right"]).permute(2, 0, 1).float()
         disp = torch.from_numpy(s["disp"])[None]
@@ -282,7 +292,8 @@ def fmt_time(s: float) -> str:
 # ------------------------------------------------------------------------------------------------
 # Main
 # ------------------------------------------------------------------------------------------------
-SCHEDULE_KEYS = ("config", "steps", "batch", "crop", "lr", "wd", "pct_start", "seed", "gamma", "binarize_p", "iters")
+SCHEDULE_KEYS = ("config", "steps", "batch", "crop", "lr", "wd", "pct_start", "seed", "gamma", "binarize_p", "iters",
+                 "proxy_frac")
 
 
 def build_parser():
@@ -300,6 +311,8 @@ def build_parser():
     p.add_argument("--iters", type=int, default=None, help="refinement iterations (default: the config's)")
     p.add_argument("--clip", type=float, default=1.0, help="gradient-norm clip")
     p.add_argument("--seed", type=int, default=1234, help="seed of the synthetic stream and of torch")
+    p.add_argument("--proxy-frac", type=float, default=0.0,
+                   help="fraction of samples that are real nogt crops with filtered SGBM labels (muir.proxy)")
     p.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto")
     p.add_argument("--workers", type=int, default=1, help="data-loader processes (0: in the main process)")
     p.add_argument("--threads", default="0",
@@ -469,7 +482,7 @@ def main(argv=None):
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
 
-    ds = SynthDataset(args.seed, h, w, length=args.steps * args.batch)
+    ds = SynthDataset(args.seed, h, w, length=args.steps * args.batch, proxy_frac=args.proxy_frac)
     loader = torch.utils.data.DataLoader(
         ds, batch_size=args.batch, sampler=RangeSampler(step * args.batch, args.steps * args.batch),
         num_workers=args.workers, worker_init_fn=_worker_init if args.workers > 0 else None,
@@ -478,6 +491,18 @@ def main(argv=None):
     )
     if args.workers == 0:
         synth.photo_pool()
+    if args.proxy_frac > 0:
+        # Build the label cache in a child process: OpenCV's thread pool used here before the data
+        # workers fork would deadlock them. This process then only reads the cached arrays.
+        pkg_root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+        env = {**os.environ, "PYTHONPATH": pkg_root + os.pathsep + os.environ.get("PYTHONPATH", "")}
+        if subprocess.run([sys.executable, "-m", "muir.proxy", "build"], env=env, stdout=subprocess.DEVNULL).returncode:
+            print("error: --proxy-frac: building the proxy labels failed", file=sys.stderr)
+            return 2
+        from . import proxy
+
+        n_src = len(proxy.pool().items)
+        print(f"proxy labels: {n_src} real sources, {100 * args.proxy_frac:.0f}% of samples", file=sys.stderr)
 
     csv_path = os.path.join(args.out, "log.csv")
     kept_rows = []
