@@ -80,7 +80,8 @@ def main():
         if step == a.steps:
             break
         idx = [(step * 4 + k) % a.n for k in range(4)]
-        l = torch.cat([to_t(fit[i])[0] for i in idx]); r = torch.cat([to_t(fit[i])[1] for i in idx])
+        pairs = [to_t(fit[i]) for i in idx]
+        l = torch.cat([p_[0] for p_ in pairs]); r = torch.cat([p_[1] for p_ in pairs])
         gt = torch.stack([torch.from_numpy(fit[i]["disp"])[None] for i in idx])
         valid = torch.isfinite(gt) & (gt >= 0) & (gt < MAX_GT)
         for g_ in opt.param_groups:  # 50-step linear warm-up, then constant
