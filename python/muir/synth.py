@@ -37,7 +37,10 @@ import time
 import cv2
 import numpy as np
 
-DEFAULT_NOGT_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "../../../shared/data/nogt"))
+# MUIR_NOGT_DIR points elsewhere where ../shared is not beside the checkout (a leased GPU machine gets
+# a copy of the left views: scripts/device-train.sh).
+DEFAULT_NOGT_DIR = os.environ.get("MUIR_NOGT_DIR") or os.path.normpath(
+    os.path.join(os.path.dirname(os.path.abspath(__file__)), "../../../shared/data/nogt"))
 # scikit-image data photographs used as textures (motorcycle_* is a Middlebury stereo pair: not used).
 SKIMAGE_IMAGES = (
     "astronaut.png", "brick.png", "camera.png", "cell.png", "chelsea.png", "coffee.png", "coins.png",
@@ -49,22 +52,28 @@ SKIMAGE_IMAGES = (
 # ------------------------------------------------------------------------------------------------
 # Texture sources
 # ------------------------------------------------------------------------------------------------
+def photo_paths(nogt_dir: str | None = DEFAULT_NOGT_DIR, use_skimage: bool = True) -> list[str]:
+    """The texture photographs' files, in the pool's (deterministic) order."""
+    paths = []
+    if nogt_dir and os.path.isdir(nogt_dir):
+        # Left views only: right views and scenes with GT never feed training.
+        paths += sorted(glob.glob(os.path.join(nogt_dir, "*", "left.png")))
+    if use_skimage:
+        try:
+            import skimage  # noqa: F401  (only to locate its data dir)
+
+            d = os.path.join(os.path.dirname(skimage.__file__), "data")
+            paths += [os.path.join(d, n) for n in SKIMAGE_IMAGES if os.path.exists(os.path.join(d, n))]
+        except ImportError:
+            pass
+    return paths
+
+
 class PhotoPool:
     """Photographs as float32 RGB in [0, 1], loaded once per process (sorted, so deterministic)."""
 
     def __init__(self, nogt_dir: str | None = DEFAULT_NOGT_DIR, use_skimage: bool = True, max_side: int = 800):
-        paths = []
-        if nogt_dir and os.path.isdir(nogt_dir):
-            # Left views only: right views and scenes with GT never feed training.
-            paths += sorted(glob.glob(os.path.join(nogt_dir, "*", "left.png")))
-        if use_skimage:
-            try:
-                import skimage  # noqa: F401  (only to locate its data dir)
-
-                d = os.path.join(os.path.dirname(skimage.__file__), "data")
-                paths += [os.path.join(d, n) for n in SKIMAGE_IMAGES if os.path.exists(os.path.join(d, n))]
-            except ImportError:
-                pass
+        paths = photo_paths(nogt_dir, use_skimage)
         self.paths = paths
         self.images = []
         for p in paths:

@@ -28,6 +28,7 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
 
 import numpy as np
 import torch
@@ -318,6 +319,13 @@ def build_parser():
     p.add_argument("--threads", default="0",
                    help="torch intra-op threads: N, 0 (torch default) or auto (switch between the default "
                         "and 1 by measured step time; for machines shared with other jobs)")
+    p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+                   help="fit the run into this much wall-clock time (a leased GPU, a session): after "
+                        "--budget-probe steps the step count is cut to what the measured rate fits (--steps "
+                        "is the upper bound) and the one-cycle schedule is rebuilt for it")
+    p.add_argument("--budget-probe", type=int, default=30,
+                   help="with --time-budget: steps timed before the step count is fitted (the first 5 are "
+                        "not counted: allocator and cuDNN warm-up)")
     p.add_argument("--ckpt-every", type=int, default=500, help="steps between checkpoints/snapshots")
     p.add_argument("--log-every", type=int, default=10, help="steps between progress lines / CSV rows")
     p.add_argument("--resume", nargs="?", const="auto", default=None,
@@ -367,6 +375,10 @@ def main(argv=None):
             torch.set_num_threads(int(args.threads))
     else:
         print(f"error: --threads must be a number or auto, got {args.threads}", file=sys.stderr)
+        return 2
+    if args.time_budget is not None and (args.time_budget <= 0 or args.budget_probe < 10 or state is not None):
+        print("error: --time-budget needs a positive budget, --budget-probe >= 10 and a fresh run (not --resume)",
+              file=sys.stderr)
         return 2
     if args.device == "auto":
         args.device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -490,7 +502,11 @@ def main(argv=None):
         prefetch_factor=4 if args.workers > 0 else None,
     )
     if args.workers == 0:
-        synth.photo_pool()
+        synth.photo_pool()  # not before forking workers: OpenCV's thread pool would deadlock them
+    # The synthetic stream depends on the texture photographs: say which ones this machine has.
+    n_nogt = len(synth.photo_paths(use_skimage=False))
+    print(f"textures: {len(synth.photo_paths())} photographs, {n_nogt} of them from {synth.DEFAULT_NOGT_DIR}",
+          file=sys.stderr)
     if args.proxy_frac > 0:
         # Build the label cache in a child process: OpenCV's thread pool used here before the data
         # workers fork would deadlock them. This process then only reads the cached arrays.
@@ -514,12 +530,37 @@ def main(argv=None):
     writer.writeheader()
     writer.writerows(kept_rows)
 
+    def fit_to_budget(step_now, s_per_step, elapsed):
+        """Cut --steps to what the budget fits at the measured rate, rebuild the schedule for it."""
+        nonlocal sched
+        reserve = max(10.0, 0.05 * args.time_budget)  # snapshot/final exports, the last log line
+        fits = step_now + int((args.time_budget - elapsed - reserve) / s_per_step)
+        new_steps = max(step_now + 1, min(args.steps, fits))
+        print(f"time budget {args.time_budget:.0f}s: {s_per_step:.3f}s/step measured, {elapsed:.0f}s spent -> "
+              f"{new_steps} steps (upper bound {args.steps})", file=sys.stderr)
+        args.steps = new_steps
+        meta_base["total_steps"] = str(new_steps)
+        sched = torch.optim.lr_scheduler.OneCycleLR(
+            opt, max_lr=args.lr, total_steps=args.steps, pct_start=args.pct_start,
+            cycle_momentum=False, anneal_strategy="linear",
+        )
+        with warnings.catch_warnings():  # "scheduler stepped before optimizer": intended here
+            warnings.simplefilter("ignore")
+            for _ in range(step_now):  # the probe's steps are part of the new schedule's warm-up
+                sched.step()
+        record["steps"] = new_steps
+        record["time_budget_fit"] = {"probe_steps": step_now, "s_per_step": round(s_per_step, 4),
+                                     "elapsed_s": round(elapsed, 1), "steps": new_steps}
+        with open(args_path, "w") as f:
+            json.dump(record, f, indent=1)
+
     acc, n_acc, t_acc, d_acc = {}, 0, 0.0, 0.0
     qat_acc = [0.0, 0]  # sum and count of mean |d_rounded - d_float| (final) over rounded steps
     bad_steps = 0
     last = {}
     t_start = time.time()
     steps_at_start = step
+    t_probe0 = None  # wall clock at the end of the budget probe's warm-up steps
     t_data0 = time.time()
     for left, right, gt in loader:
         t_data = time.time() - t_data0
@@ -564,6 +605,11 @@ def main(argv=None):
         t_step = time.time() - t0
         if tuner is not None:
             tuner.record(t_step)
+        if args.time_budget is not None:
+            if step == 5:
+                t_probe0 = time.time()
+            elif step == args.budget_probe and t_probe0 is not None:
+                fit_to_budget(step, (time.time() - t_probe0) / (step - 5), time.time() - t_start)
         m["loss"] = loss.item()
         for k, v in m.items():
             acc[k] = acc.get(k, 0.0) + v
@@ -604,12 +650,25 @@ def main(argv=None):
             print(f"stopped at step {step}; continue with --resume", file=sys.stderr)
             csv_f.close()
             return 130
+        if step >= args.steps:
+            break  # a budget-fitted run ends before the loader's upper bound
+        if args.time_budget is not None and time.time() - t_start > args.time_budget:
+            # Slower than the probe measured: keep what was trained (lr not annealed to zero).
+            print(f"time budget spent at step {step} of {args.steps}: writing the model as it is", file=sys.stderr)
+            save_ckpt(step)
+            args.steps = step
+            meta_base["total_steps"] = f"{step} (budget ran out; schedule planned {record['steps']})"
+            break
         t_data0 = time.time()
 
     csv_f.close()
     if step >= args.steps:
         final = os.path.join(args.out, "model.safetensors")
         export(final, step, last)
+        try:
+            plot_curves(csv_path, os.path.join(args.out, "loss.png"))
+        except Exception as e:  # plotting must never kill a run
+            print(f"warning: loss plot failed: {e}", file=sys.stderr)
         print(f"done: {step} steps in {fmt_time(time.time() - t_start)}; wrote {final}", file=sys.stderr)
     return 0
 
