@@ -73,10 +73,9 @@ class PhotoPool:
     """Photographs as float32 RGB in [0, 1], loaded once per process (sorted, so deterministic)."""
 
     def __init__(self, nogt_dir: str | None = DEFAULT_NOGT_DIR, use_skimage: bool = True, max_side: int = 800):
-        paths = photo_paths(nogt_dir, use_skimage)
-        self.paths = paths
+        self.paths = photo_paths(nogt_dir, use_skimage)
         self.images = []
-        for p in paths:
+        for p in self.paths:
             im = cv2.imread(p, cv2.IMREAD_COLOR)  # gray files come back as 3 equal channels
             if im is None:
                 continue
