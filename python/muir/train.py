@@ -412,10 +412,14 @@ def main(argv=None):
               file=sys.stderr)
     model.to(dev).train()
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.wd, betas=(0.9, 0.999), eps=1e-8)
-    sched = torch.optim.lr_scheduler.OneCycleLR(
-        opt, max_lr=args.lr, total_steps=args.steps, pct_start=args.pct_start,
-        cycle_momentum=False, anneal_strategy="linear",
-    )
+
+    def one_cycle():  # the schedule over args.steps (rebuilt when --time-budget fits the step count)
+        return torch.optim.lr_scheduler.OneCycleLR(
+            opt, max_lr=args.lr, total_steps=args.steps, pct_start=args.pct_start,
+            cycle_momentum=False, anneal_strategy="linear",
+        )
+
+    sched = one_cycle()
     step = 0
     if state is not None:
         model.load_state_dict(state["model"])
@@ -540,10 +544,7 @@ def main(argv=None):
               f"{new_steps} steps (upper bound {args.steps})", file=sys.stderr)
         args.steps = new_steps
         meta_base["total_steps"] = str(new_steps)
-        sched = torch.optim.lr_scheduler.OneCycleLR(
-            opt, max_lr=args.lr, total_steps=args.steps, pct_start=args.pct_start,
-            cycle_momentum=False, anneal_strategy="linear",
-        )
+        sched = one_cycle()
         with warnings.catch_warnings():  # "scheduler stepped before optimizer": intended here
             warnings.simplefilter("ignore")
             for _ in range(step_now):  # the probe's steps are part of the new schedule's warm-up
