@@ -57,7 +57,7 @@ fn model_bytes_of(name: &str) -> Vec<u8> {
         panic!(
             "{} is missing: the firmware test needs the quantised muir-slim model that boards/qemu-mps2 embeds.\n\
              Produce it with `cargo run --release --bin muir -- quantize --model <muir-slim.safetensors> \
-             --calib <pair folder> [--calib ...] --max-size 320x240 --out models/muir-slim.muirq`, then \
+             --calib <pair folder> [--calib ...] --out models/muir-slim.muirq` (or `bash scripts/quantize-shipped.sh`), then \
              regenerate the expected results with `MUIR_UPDATE_EXPECTED=1 cargo test --test firmware`.",
             path.display()
         );

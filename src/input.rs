@@ -68,15 +68,16 @@ pub enum InputError {
         /// Smallest side accepted.
         min: usize,
     },
-    /// The pair is larger than the engine's memory plan was made for.
+    /// An image side is larger than the engines accept ([`Config::MAX_IMAGE_WIDTH`],
+    /// [`Config::MAX_IMAGE_HEIGHT`]).
     TooLarge {
         /// Image width.
         width: usize,
         /// Image height.
         height: usize,
-        /// Largest width the plan holds.
+        /// Largest width accepted.
         max_width: usize,
-        /// Largest height the plan holds.
+        /// Largest height accepted.
         max_height: usize,
     },
 }
@@ -97,7 +98,7 @@ impl fmt::Display for InputError {
             }
             Self::TooLarge { width, height, max_width, max_height } => write!(
                 f,
-                "image {width}x{height} exceeds the memory plan ({max_width}x{max_height} at most)"
+                "image {width}x{height} is too large: at most {max_width}x{max_height} px"
             ),
         }
     }
@@ -109,6 +110,7 @@ impl std::error::Error for InputError {}
 impl<'a> ImageView<'a> {
     /// Wraps a buffer, checking its length.
     pub fn new(width: usize, height: usize, format: PixelFormat, data: &'a [u8]) -> Result<Self, InputError> {
+        check_size(width, height)?;
         let expected = width * height * format.channels();
         if data.len() != expected {
             return Err(InputError::DataLength { expected, found: data.len() });
@@ -128,9 +130,20 @@ impl<'a> ImageView<'a> {
     }
 }
 
+/// Rejects a size beyond [`Config::MAX_IMAGE_WIDTH`] x [`Config::MAX_IMAGE_HEIGHT`] (before any
+/// size product is formed, so no product can overflow).
+pub const fn check_size(width: usize, height: usize) -> Result<(), InputError> {
+    if width > Config::MAX_IMAGE_WIDTH || height > Config::MAX_IMAGE_HEIGHT {
+        return Err(InputError::TooLarge { width, height, max_width: Config::MAX_IMAGE_WIDTH, max_height: Config::MAX_IMAGE_HEIGHT });
+    }
+    Ok(())
+}
+
 /// Checks a stereo pair and returns the padded network input size `(width, height)`.
 pub fn check_pair(left: &ImageView<'_>, right: &ImageView<'_>) -> Result<(usize, usize), InputError> {
     for im in [left, right] {
+        // The fields are public: a view built without `new` is checked here too.
+        check_size(im.width, im.height)?;
         let expected = im.width * im.height * im.format.channels();
         if im.data.len() != expected {
             return Err(InputError::DataLength { expected, found: im.data.len() });
@@ -167,5 +180,13 @@ mod tests {
         assert!(matches!(check_pair(&small, &small), Err(InputError::TooSmall { .. })));
         let other = ImageView::new(33, 40, PixelFormat::Gray8, &b).unwrap();
         assert!(matches!(check_pair(&r, &other), Err(InputError::SizeMismatch { .. })));
+        // Too large: rejected before any size product (usize::MAX would wrap).
+        assert!(matches!(ImageView::new(usize::MAX, usize::MAX, PixelFormat::Rgb8, &b), Err(InputError::TooLarge { .. })));
+        assert!(matches!(ImageView::new(Config::MAX_IMAGE_WIDTH + 1, 1, PixelFormat::Gray8, &b), Err(InputError::TooLarge { .. })));
+        let forged = ImageView { width: Config::MAX_IMAGE_WIDTH + 16, height: 40, format: PixelFormat::Gray8, data: &b };
+        assert!(matches!(check_pair(&forged, &forged), Err(InputError::TooLarge { .. })));
+        let widest = vec![0u8; Config::MAX_IMAGE_WIDTH * 32];
+        let v = ImageView::new(Config::MAX_IMAGE_WIDTH, 32, PixelFormat::Gray8, &widest).unwrap();
+        assert_eq!(check_pair(&v, &v), Ok((Config::MAX_IMAGE_WIDTH, 32)));
     }
 }

@@ -300,15 +300,21 @@ def lookup(vol, flow, cfg: Config):
     return c.view(b, h, w1, -1).permute(0, 3, 1, 2).contiguous()
 
 
+# Largest proposal disparity on the 1/8 grid (Rust: arith::MAX_PROPOSAL_D8): the largest whole
+# disparity the engine's Q7.8 flow state holds (i16::MAX >> 8 = 127, 1016 px at full resolution).
+# Only inputs wider than 1024 px reach it.
+MAX_PROPOSAL_D8 = 127
+
+
 def correlation_peaks(vol, separation: int):
-    """UFI proposals: per left pixel, the two highest correlations over d in [0, x] (d integer, 1/8
+    """UFI proposals: per left pixel, the two highest correlations over d in [0, min(x, 127)] (d integer, 1/8
     grid), the second at least `separation` away from the first (the first again if none is).
     Ties go to the smaller d. Returns disparities (B, 2, H, W) as float."""
     b, h, w1, w2 = vol.shape
     x = torch.arange(w1, device=vol.device).view(w1, 1)
     d = torch.arange(w2, device=vol.device).view(1, w2)
     x2 = x - d  # (w1, w2): column index for disparity d
-    valid = x2 >= 0
+    valid = (x2 >= 0) & (d <= MAX_PROPOSAL_D8)
     idx = x2.clamp(min=0).view(1, 1, w1, w2).expand(b, h, w1, w2)
     cd = torch.gather(vol, 3, idx)
     neg = torch.finfo(vol.dtype).min

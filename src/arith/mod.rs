@@ -30,6 +30,11 @@ pub const UNIT_FRAC: u8 = 15;
 /// Fraction bits of the 1/8-grid disparity state ("flow" = -disparity/8): Q7.8, so the full
 /// resolution disparity has 1/32 px steps and a range of +-1024 px.
 pub const FLOW_FRAC: u8 = 8;
+/// Largest UFI proposal disparity on the 1/8 grid: the largest whole disparity whose flow and its
+/// negation both fit the Q7.8 flow state (127, i.e. 1016 px at full resolution). The proposal search of every engine (and
+/// of the PyTorch twin) stops there, so a proposal never saturates the flow format; it only
+/// matters for inputs wider than 1024 px.
+pub const MAX_PROPOSAL_D8: usize = (i16::MAX as usize) >> FLOW_FRAC;
 /// Fraction bits of the full-resolution disparity output (1/32 px).
 pub const DISP_FRAC: u8 = 5;
 /// Fraction bits of uncertainty `u = log(beta^2)` and of its logit: Q4.11, range [-16, 16).

@@ -194,7 +194,7 @@ struct PlanArgs {
     /// Configs (default: all presets).
     #[arg(long = "config", value_name = "NAME", value_parser = parse_preset)]
     configs: Vec<Config>,
-    /// Input sizes (default: 160x120 320x240 640x480).
+    /// Input sizes (default: 160x120 320x240 640x480 1242x375 1280x720 and the largest, 1920x1088).
     #[arg(long = "size", value_name = "WxH", value_parser = parse_size)]
     sizes: Vec<(usize, usize)>,
 }
@@ -232,8 +232,13 @@ fn parse_tau(s: &str) -> Result<f32, String> {
 fn parse_size(s: &str) -> Result<(usize, usize), String> {
     let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("'{s}' is not WxH"))?;
     match (w.parse::<usize>(), h.parse::<usize>()) {
-        (Ok(w), Ok(h)) if w >= Config::MIN_SIDE && h >= Config::MIN_SIDE => Ok((w, h)),
-        _ => Err(format!("'{s}' is not WxH with both sides >= {}", Config::MIN_SIDE)),
+        (Ok(w), Ok(h)) if w >= Config::MIN_SIDE && h >= Config::MIN_SIDE && muir::input::check_size(w, h).is_ok() => Ok((w, h)),
+        _ => Err(format!(
+            "'{s}' is not WxH with sides from {} to {}x{}",
+            Config::MIN_SIDE,
+            Config::MAX_IMAGE_WIDTH,
+            Config::MAX_IMAGE_HEIGHT
+        )),
     }
 }
 
@@ -629,7 +634,11 @@ fn snap(args: &SnapArgs) -> Result<(), String> {
 
 fn plan(args: &PlanArgs) -> Result<(), String> {
     let configs = if args.configs.is_empty() { Config::PRESETS.to_vec() } else { args.configs.clone() };
-    let sizes = if args.sizes.is_empty() { vec![(160, 120), (320, 240), (640, 480)] } else { args.sizes.clone() };
+    let sizes = if args.sizes.is_empty() {
+        vec![(160, 120), (320, 240), (640, 480), (1242, 375), (1280, 720), (Config::MAX_IMAGE_WIDTH, Config::MAX_IMAGE_HEIGHT)]
+    } else {
+        args.sizes.clone()
+    };
     println!(
         "| config | input | trunk (conv1..layer2) | working RAM (bytes) | KiB | frame zone | encoder rings | refinement rings | outputs (d + u) |"
     );

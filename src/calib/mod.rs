@@ -168,7 +168,8 @@ impl Trace for CalibTrace {
     }
 }
 
-/// How a slot's range is chosen from its statistics.
+/// How an 8-bit slot's range is chosen from its statistics (16-bit slots always hold the largest
+/// magnitude seen, see [`choose_formats`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum RangeMethod {
     /// The largest magnitude seen.
@@ -184,8 +185,8 @@ impl fmt::Display for RangeMethod {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Self::MinMax => write!(f, "minmax"),
-            Self::Percentile(p) => write!(f, "percentile {:.4}%", p * 100.0),
-            Self::Mse => write!(f, "least squared error"),
+            Self::Percentile(p) => write!(f, "percentile {:.4}% for 8-bit slots, maximum for 16-bit ones", p * 100.0),
+            Self::Mse => write!(f, "least squared error for 8-bit slots, maximum for 16-bit ones"),
         }
     }
 }
@@ -224,13 +225,20 @@ impl fmt::Display for CalibError {
 
 impl std::error::Error for CalibError {}
 
-/// The slot's format: fixed by the spec, or from its statistics.
+/// The slot's format: fixed by the spec, or from its statistics (8-bit slots by `method`, 16-bit
+/// slots by their largest magnitude).
 pub fn choose_formats(cfg: &Config, stats: &BTreeMap<String, RangeStats>, method: RangeMethod) -> Result<[QFormat; Act::COUNT], CalibError> {
     let mut out = [QFormat::i8(0); Act::COUNT];
     for &act in Act::ALL {
         out[act.index()] = match act.fixed_format() {
             Some(f) => f,
             None => match stats.get(act.name()) {
+                // 16-bit slots hold every observed value whatever the method: their resolution is
+                // never the bottleneck (>= 11 bits below the maximum), while a clipped value can
+                // be: the disparity-driven slots (ufi_f, mot_f1, ...) see their largest values at
+                // large disparities and far UFI proposals, exactly the rare pixels a percentile
+                // clips (issue #19: the engine invented disparities on wide images).
+                Some(s) if s.count > 0 && act.storage_in(cfg).bits == 16 => act.storage_in(cfg).for_range(s.max_abs.max(1e-6)),
                 Some(s) if s.count > 0 => {
                     match method {
                         RangeMethod::MinMax => act.storage_in(cfg).for_range(s.max_abs.max(1e-6)),
@@ -687,6 +695,28 @@ mod tests {
         let p = s.percentile(0.5);
         assert!((4.9..5.2).contains(&p), "{p}");
         assert!((s.fraction_above(5.0) - 0.5).abs() < 0.02);
+    }
+
+    /// 16-bit slots hold every observed value (a disparity-driven slot's largest values are its
+    /// rarest), 8-bit ones clip at the percentile.
+    #[test]
+    fn sixteen_bit_slots_are_never_clipped() {
+        let cfg = Config::MUIR_SLIM;
+        let mut v: Vec<f32> = (0..100_000).map(|i| (i % 1000) as f32 * 0.01).collect(); // 0 .. 9.99
+        v.push(140.0);
+        let mut map = BTreeMap::new();
+        for act in Act::ALL.iter().filter(|a| a.fixed_format().is_none()) {
+            map.insert(act.name().to_string(), stats(&v));
+        }
+        let f = choose_formats(&cfg, &map, RangeMethod::Percentile(0.9999)).unwrap();
+        let ufi_f = f[Act::UfiF.index()];
+        assert_eq!(ufi_f.bits, 16);
+        assert!(ufi_f.to_f32(ufi_f.qmax()) >= 140.0, "{ufi_f:?}");
+        assert!(ufi_f.to_f32(ufi_f.qmax()) < 280.0, "one bit of range, no more: {ufi_f:?}");
+        let c1 = f[Act::C1.index()];
+        assert_eq!(c1.bits, 8);
+        assert!(c1.to_f32(c1.qmax()) < 140.0, "8-bit slots clip the outlier: {c1:?}");
+        assert!(c1.to_f32(c1.qmax()) >= 9.0, "{c1:?}");
     }
 
     #[test]

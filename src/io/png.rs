@@ -13,7 +13,9 @@ use crate::input::PixelFormat;
 ///
 /// Gray and gray+alpha give [`PixelFormat::Gray8`]; RGB, RGBA and palette images (expanded through
 /// the palette) give [`PixelFormat::Rgb8`]. Alpha is dropped and 16-bit samples keep their high
-/// byte. Interlaced files are accepted; for animated PNGs the first frame is read.
+/// byte. Interlaced files are accepted; for animated PNGs the first frame is read. Files larger
+/// than the engines accept (`Config::MAX_IMAGE_WIDTH` x `MAX_IMAGE_HEIGHT`) are rejected from
+/// their header, before their pixels are allocated.
 pub fn read_png(path: impl AsRef<Path>) -> Result<OwnedImage, IoError> {
     let path = path.as_ref();
     let file = File::open(path).map_err(|e| IoError::io(path, &e))?;
@@ -27,6 +29,11 @@ pub fn read_png(path: impl AsRef<Path>) -> Result<OwnedImage, IoError> {
     let mut decoder = Decoder::new(BufReader::new(file));
     decoder.set_transformations(Transformations::EXPAND | Transformations::STRIP_16);
     let mut reader = decoder.read_info().map_err(png_err)?;
+    // The header's size is checked before anything is allocated: a small file may claim any size.
+    let (hw, hh) = (reader.info().width as usize, reader.info().height as usize);
+    if let Err(e) = crate::input::check_size(hw, hh) {
+        return Err(IoError::Unsupported { path: path.to_path_buf(), what: e.to_string() });
+    }
     let size = reader.output_buffer_size().ok_or_else(|| IoError::Unsupported {
         path: path.to_path_buf(),
         what: "the image is too large to hold in memory".into(),

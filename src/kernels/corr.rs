@@ -15,7 +15,7 @@
 //!
 //! Each numerator is requantised with the level's multiplier (blob) into the `Corr` format.
 
-use crate::arith::{Multiplier, requantize, sat_i16};
+use crate::arith::{MAX_PROPOSAL_D8, Multiplier, requantize, sat_i16};
 
 /// Parameters of a lookup.
 #[derive(Clone, Copy, Debug)]
@@ -156,16 +156,17 @@ pub fn lookup_pixel_plain(p: &LookupParams<'_>, f1: &[i8], f2: &[i8], w: usize, 
 }
 
 /// UFI proposals for left pixel `x`: integer disparities `(d1, d2)` of the highest correlations
-/// over `d in [0, x]`, `d2` at least `separation` from `d1` (`d1` again if none is); ties go to the
+/// over `d in [0, min(x, MAX_PROPOSAL_D8)]`, `d2` at least `separation` from `d1` (`d1` again if none is); ties go to the
 /// smaller d. `row` is scratch of at least `x + 1` values.
 pub fn peaks_pixel(f1: &[i8], f2: &[i8], x: usize, separation: usize, row: &mut [i32]) -> (u16, u16) {
     let c = f1.len();
-    for d in 0..=x {
+    let dmax = x.min(MAX_PROPOSAL_D8);
+    for d in 0..=dmax {
         row[d] = dot_i8(f1, &f2[(x - d) * c..(x - d + 1) * c]);
     }
     let best = |skip: Option<usize>| {
         let mut arg: Option<usize> = None;
-        for d in 0..=x {
+        for d in 0..=dmax {
             if skip.is_some_and(|d1| d.abs_diff(d1) < separation) {
                 continue;
             }
@@ -184,14 +185,15 @@ pub fn peaks_pixel(f1: &[i8], f2: &[i8], x: usize, separation: usize, row: &mut 
 pub fn peaks_pixel_plain(f1: &[i8], f2: &[i8], x: usize, separation: usize) -> (u16, u16) {
     let c = f1.len();
     let corr = |d: usize| dot_i8(f1, &f2[(x - d) * c..(x - d + 1) * c]);
+    let dmax = x.min(MAX_PROPOSAL_D8);
     let mut d1 = 0;
-    for d in 1..=x {
+    for d in 1..=dmax {
         if corr(d) > corr(d1) {
             d1 = d;
         }
     }
     let mut d2: Option<usize> = None;
-    for d in 0..=x {
+    for d in 0..=dmax {
         if d.abs_diff(d1) >= separation && d2.is_none_or(|b| corr(d) > corr(b)) {
             d2 = Some(d);
         }
@@ -242,5 +244,26 @@ mod tests {
                 assert_eq!(a, b, "x {x}");
             }
         }
+    }
+
+    /// The proposal search stops at the flow format's largest whole disparity: on a row wider than
+    /// that, the best match beyond it is not proposed, and the largest proposal the search can
+    /// give converts to a flow without saturating (Q7.8: -127 * 256 = -32512 >= i16::MIN).
+    #[test]
+    fn proposals_stay_inside_the_flow_format() {
+        use crate::kernels::eltwise::proposal_flow;
+        let (w, c) = (240, 4);
+        let x = w - 1;
+        // f2 matches f1 best at disparity 200 (beyond the limit), second best at MAX_PROPOSAL_D8.
+        let f1 = [100i8; 4];
+        let mut f2 = vec![0i8; w * c];
+        f2[(x - 200) * c..(x - 199) * c].fill(100);
+        f2[(x - MAX_PROPOSAL_D8) * c..(x - MAX_PROPOSAL_D8 + 1) * c].fill(90);
+        let mut row = vec![0i32; w];
+        let (d1, _) = peaks_pixel(&f1, &f2, x, 2, &mut row);
+        assert_eq!(d1 as usize, MAX_PROPOSAL_D8);
+        assert_eq!(peaks_pixel_plain(&f1, &f2, x, 2).0 as usize, MAX_PROPOSAL_D8);
+        assert_eq!(proposal_flow(d1), -(MAX_PROPOSAL_D8 as i16) * 256);
+        assert_eq!(proposal_flow(MAX_PROPOSAL_D8 as u16 + 2), i16::MIN, "beyond the format: saturated");
     }
 }

@@ -347,6 +347,15 @@ impl Config {
     /// Smallest image side the network accepts after padding (two 1/16 cells).
     pub const MIN_SIDE: usize = 32;
 
+    /// Largest image width any engine accepts (1080p; KITTI's 1242 px and 720p fit). The integer
+    /// formats allow more (disparities up to 1016 px, see `arith::MAX_PROPOSAL_D8`); the limit
+    /// is what the tests cover (`host-tests/fixed_vs_float.rs` runs strips up to this width) and
+    /// keeps every size product of the plan far from overflow.
+    pub const MAX_IMAGE_WIDTH: usize = 1920;
+
+    /// Largest image height any engine accepts.
+    pub const MAX_IMAGE_HEIGHT: usize = 1088;
+
     /// Upsampling factor between the 1/8 grid and the image.
     pub const FACTOR: usize = 8;
 }
