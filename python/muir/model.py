@@ -472,12 +472,14 @@ class MUIR(nn.Module):
         return torch.softmax(logits, dim=-1), q, k
 
     # -- forward -------------------------------------------------------------------------------------
-    def forward(self, left, right, iters=None, trace=None, train_out=False, binarize_p=0.0):
+    def forward(self, left, right, iters=None, trace=None, train_out=False, binarize_p=0.0, binarize_coins=None):
         """left/right: (B,3,H,W) float in [0, 255], H and W multiples of 16.
 
         Inference (train_out=False): returns (disparity (B,1,H,W) px, uncertainty u (B,1,H,W) or None).
         Training (train_out=True): returns a dict with per-iteration full-resolution predictions.
         binarize_p: probability, per sample and iteration, of rounding the mask (Eq. 3; training only).
+        binarize_coins: (B, iters) tensor of 0/1 drawn by the caller instead (training only), so that
+            the coins are a function of the data, not of the process (data-parallel runs).
         """
         cfg = self.cfg
         iters = cfg.iters if iters is None else iters
@@ -521,7 +523,10 @@ class MUIR(nn.Module):
                 _rec(trace, f"iter{itr}.mud_u", u)
                 if train_out and (itr > 0 or cfg.ufi):
                     us.append(u)
-                if binarize_p > 0 and self.training:
+                if binarize_coins is not None and self.training:
+                    coin = binarize_coins[:, itr].view(b, 1, 1, 1).to(device=m.device, dtype=m.dtype)
+                    m = coin * torch.round(m) + (1 - coin) * m
+                elif binarize_p > 0 and self.training:
                     coin = (torch.rand(b, 1, 1, 1, device=m.device) < binarize_p).to(m.dtype)
                     m = coin * torch.round(m) + (1 - coin) * m
                 corr_in = torch.cat([corr, corr * m, m], dim=1)

@@ -49,9 +49,10 @@ class SynthDataset(torch.utils.data.Dataset):
     """Item i is synthetic sample i of stream `seed` (deterministic), as float tensors; with
     proxy_frac > 0 a seeded share of the items are real crops with proxy labels instead."""
 
-    def __init__(self, seed: int, h: int, w: int, length: int, proxy_frac: float = 0.0):
+    def __init__(self, seed: int, h: int, w: int, length: int, proxy_frac: float = 0.0, real_frac: float = 0.0):
         self.seed, self.h, self.w, self.length = seed, h, w, length
         self.proxy_frac = proxy_frac
+        self.real_frac = real_frac
 
     def __len__(self):
         return self.length
@@ -60,7 +61,13 @@ class SynthDataset(torch.utils.data.Dataset):
         # With --proxy-frac, item i is a real crop with SGBM proxy labels (muir.proxy) when its own coin
         # says so; the coin and the crop are functions of (seed, i), so a resume sees the same data.
         rng = np.random.default_rng([int(self.seed) & 0xFFFFFFFF, int(i), 0x9E37])
-        if self.proxy_frac > 0 and rng.random() < self.proxy_frac:
+        coin = rng.random()
+        if self.real_frac > 0 and coin < self.real_frac:
+            # --real-frac: a crop of a training-side GT scene (muir.split, muir.realgt).
+            from . import realgt
+
+            s = realgt.pool().sample(rng, self.h, self.w)
+        elif self.proxy_frac > 0 and coin - self.real_frac < self.proxy_frac:
             from . import proxy
 
             s = proxy.pool().sample(rng, self.h, self.w)
@@ -86,6 +93,32 @@ class RangeSampler(torch.utils.data.Sampler):
         return self.end - self.start
 
 
+class StepSampler(torch.utils.data.Sampler):
+    """This process's share of the global batches of steps start .. end-1: step k uses samples
+    k*B .. k*B+B-1 whatever the number of processes, rank r of W taking the r-th slice of B/W. With
+    W = 1 it is [`RangeSampler`]'s order; a data-parallel run sees the same samples per step as a
+    single process."""
+
+    def __init__(self, start_step: int, end_step: int, batch: int, world: int = 1, rank: int = 0):
+        self.start, self.end, self.batch, self.world, self.rank = start_step, end_step, batch, world, rank
+        self.per = batch // world
+
+    def __iter__(self):
+        for k in range(self.start, self.end):
+            base = k * self.batch + self.rank * self.per
+            yield from range(base, base + self.per)
+
+    def __len__(self):
+        return (self.end - self.start) * self.per
+
+
+def binarize_coins(seed: int, step: int, batch: int, iters: int, p: float) -> torch.Tensor:
+    """Mask-binarisation coins (Eq. 3) of one step's global batch, (batch, iters) in {0, 1}: a
+    function of (seed, step), so every process of a data-parallel run draws the same coins."""
+    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, int(step), 0xB1A5])
+    return torch.from_numpy((rng.random((batch, iters)) < p).astype(np.float32))
+
+
 def _worker_init(_):
     torch.set_num_threads(1)
     import cv2
@@ -106,12 +139,16 @@ def pixel_loss(d, u, gt, cfg: Config):
     return err + u / 2 + torch.exp(-u / 2) * e
 
 
-def sequence_loss(out, gt, valid, cfg: Config, gamma: float = 0.9):
-    """Returns (loss, metrics dict). out: forward(train_out=True); gt, valid: (B,1,H,W)."""
+def sequence_loss(out, gt, valid, cfg: Config, gamma: float = 0.9, denom=None):
+    """Returns (loss, metrics dict). out: forward(train_out=True); gt, valid: (B,1,H,W).
+
+    denom: the number of valid pixels to average over (default: those of this batch). A
+    data-parallel process passes the count over the whole global batch, so that its loss and
+    metrics are its share of the single-process figures and their sum over processes is them."""
     preds, us = out["disp"], out["u"]
     n = len(preds)
     vf = valid.float()
-    denom = vf.sum().clamp(min=1.0)
+    denom = vf.sum().clamp(min=1.0) if denom is None else denom
     gt0 = torch.where(valid, gt, torch.zeros_like(gt))  # keep inf/nan out of the graph
 
     def masked_mean(x):
@@ -294,7 +331,7 @@ def fmt_time(s: float) -> str:
 # Main
 # ------------------------------------------------------------------------------------------------
 SCHEDULE_KEYS = ("config", "steps", "batch", "crop", "lr", "wd", "pct_start", "seed", "gamma", "binarize_p", "iters",
-                 "proxy_frac")
+                 "proxy_frac", "real_frac")
 
 
 def build_parser():
@@ -314,6 +351,8 @@ def build_parser():
     p.add_argument("--seed", type=int, default=1234, help="seed of the synthetic stream and of torch")
     p.add_argument("--proxy-frac", type=float, default=0.0,
                    help="fraction of samples that are real nogt crops with filtered SGBM labels (muir.proxy)")
+    p.add_argument("--real-frac", type=float, default=0.0,
+                   help="fraction of samples that are crops of the training-side GT scenes (muir.split, muir.realgt)")
     p.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto")
     p.add_argument("--workers", type=int, default=1, help="data-loader processes (0: in the main process)")
     p.add_argument("--threads", default="0",
@@ -344,9 +383,35 @@ def build_parser():
     return p
 
 
+def ddp_env():
+    """(world size, rank, local rank) from torchrun's environment; (1, 0, 0) without it."""
+    return int(os.environ.get("WORLD_SIZE", "1")), int(os.environ.get("RANK", "0")), int(os.environ.get("LOCAL_RANK", "0"))
+
+
 def main(argv=None):
     args = build_parser().parse_args(argv)
     cmdline = "python -m muir.train " + " ".join(sys.argv[1:] if argv is None else argv)
+    world, rank, local_rank = ddp_env()
+    is_main = rank == 0
+    if world > 1:
+        # Data-parallel (torchrun): every process runs the same command on its slice of each global
+        # batch; gradients are averaged by DistributedDataParallel, the loss is normalised by the
+        # global batch's valid pixels, so a step equals the single-process step on the same batch.
+        import torch.distributed as dist
+
+        if args.batch % world:
+            print(f"error: --batch {args.batch} must be a multiple of the {world} processes", file=sys.stderr)
+            return 2
+        if args.qat or args.time_budget is not None or args.threads == "auto":
+            print("error: --qat, --time-budget and --threads auto are single-process options", file=sys.stderr)
+            return 2
+        use_cuda = args.device.startswith("cuda") or (args.device == "auto" and torch.cuda.is_available())
+        if use_cuda:
+            torch.cuda.set_device(local_rank)
+            args.device = f"cuda:{local_rank}"
+        dist.init_process_group("nccl" if use_cuda else "gloo")
+    if not is_main:
+        sys.stderr = open(os.devnull, "w")  # one progress stream: rank 0's
     os.makedirs(args.out, exist_ok=True)
     ckpt_path = os.path.join(args.out, "ckpt_last.pt")
 
@@ -411,6 +476,9 @@ def main(argv=None):
         print(f"quantisation-aware: {len(aq.grid)} encoder slots, formats {args.qat}, on {100 * args.qat_p:.0f}% of steps",
               file=sys.stderr)
     model.to(dev).train()
+    net = model
+    if world > 1:
+        net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[dev.index] if dev.type == "cuda" else None)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.wd, betas=(0.9, 0.999), eps=1e-8)
 
     def one_cycle():  # the schedule over args.steps (rebuilt when --time-budget fits the step count)
@@ -438,8 +506,8 @@ def main(argv=None):
     h, w = args.crop
     n_params = sum(p.numel() for p in model.parameters())
     print(f"{cfg.name}: {n_params / 1e6:.2f} M parameters, {iters} iterations, device {dev}, "
-          f"{torch.get_num_threads()} threads; {args.steps} steps of {args.batch}x{h}x{w}, lr {args.lr}",
-          file=sys.stderr)
+          f"{torch.get_num_threads()} threads{f' x {world} processes' if world > 1 else ''}; "
+          f"{args.steps} steps of {args.batch}x{h}x{w}, lr {args.lr}", file=sys.stderr)
     # args.json records the command that started the run; a resume appends its own command (with the
     # step it resumed from) instead of replacing the record of how the run was set up.
     args_path = os.path.join(args.out, "args.json")
@@ -448,10 +516,13 @@ def main(argv=None):
         with open(args_path) as f:
             record = json.load(f)
         record.setdefault("resumed", []).append({"step": step, "command": cmdline})
-    with open(args_path, "w") as f:
-        json.dump(record, f, indent=1)
+    if is_main:
+        with open(args_path, "w") as f:
+            json.dump(record, f, indent=1)
 
     def save_ckpt(step_now):
+        if not is_main:
+            return
         st = {
             "model": model.state_dict(),
             "optimizer": opt.state_dict(),
@@ -481,6 +552,8 @@ def main(argv=None):
     }
 
     def export(path, step_now, last=None):
+        if not is_main:
+            return
         meta = dict(meta_base, steps=str(step_now), date=datetime.datetime.now().astimezone().isoformat(timespec="seconds"))
         if last:
             meta["train_metrics"] = json.dumps(last)
@@ -498,9 +571,23 @@ def main(argv=None):
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
 
-    ds = SynthDataset(args.seed, h, w, length=args.steps * args.batch, proxy_frac=args.proxy_frac)
+    if not (0.0 <= args.real_frac <= 1.0 and 0.0 <= args.proxy_frac <= 1.0 - args.real_frac):
+        print("error: --real-frac and --proxy-frac must be in [0, 1] and sum to at most 1", file=sys.stderr)
+        return 2
+    if args.real_frac > 0:
+        from . import split
+
+        try:
+            tr, _ = split.check()
+        except (OSError, ValueError) as e:
+            print(f"error: --real-frac: {e}", file=sys.stderr)
+            return 2
+        print(f"real GT crops: {len(tr)} training scene directories (muir.split), {100 * args.real_frac:.0f}% of samples",
+              file=sys.stderr)
+    ds = SynthDataset(args.seed, h, w, length=args.steps * args.batch, proxy_frac=args.proxy_frac,
+                      real_frac=args.real_frac)
     loader = torch.utils.data.DataLoader(
-        ds, batch_size=args.batch, sampler=RangeSampler(step * args.batch, args.steps * args.batch),
+        ds, batch_size=args.batch // world, sampler=StepSampler(step, args.steps, args.batch, world, rank),
         num_workers=args.workers, worker_init_fn=_worker_init if args.workers > 0 else None,
         pin_memory=dev.type == "cuda", drop_last=True, persistent_workers=False,
         prefetch_factor=4 if args.workers > 0 else None,
@@ -529,7 +616,7 @@ def main(argv=None):
     if state is not None and os.path.exists(csv_path):
         # Rows logged after the checkpoint we resume from will be logged again: drop them.
         kept_rows = [r for r in csv.DictReader(open(csv_path)) if int(r["step"]) <= step]
-    csv_f = open(csv_path, "w", newline="")
+    csv_f = open(csv_path if is_main else os.devnull, "w", newline="")
     writer = csv.DictWriter(csv_f, fieldnames=CSV_FIELDS, extrasaction="ignore")
     writer.writeheader()
     writer.writerows(kept_rows)
@@ -568,6 +655,14 @@ def main(argv=None):
         t0 = time.time()
         left, right, gt = (x.to(dev, non_blocking=True) for x in (left, right, gt))
         valid = torch.isfinite(gt) & (gt >= 0) & (gt < MAX_GT)
+        # This process's slice of the step's coins (all of them in a single process).
+        per = args.batch // world
+        coins = binarize_coins(args.seed, step, args.batch, iters, args.binarize_p)[rank * per : (rank + 1) * per]
+        denom = None
+        if world > 1:
+            denom = valid.float().sum()
+            dist.all_reduce(denom)
+            denom = denom.clamp(min=1.0)
         ref = None
         if aq is not None:
             aq.enabled = random.random() < args.qat_p
@@ -577,10 +672,10 @@ def main(argv=None):
                 aq.enabled = False
                 cuda_ids = [torch.cuda.current_device()] if dev.type == "cuda" else []
                 with torch.random.fork_rng(devices=cuda_ids), torch.no_grad():
-                    ref = model(left, right, iters=iters, train_out=True, binarize_p=args.binarize_p)
+                    ref = model(left, right, iters=iters, train_out=True, binarize_coins=coins)
                 aq.enabled = True
-        out = model(left, right, iters=iters, train_out=True, binarize_p=args.binarize_p)
-        loss, m = sequence_loss(out, gt, valid, cfg, args.gamma)
+        out = net(left, right, iters=iters, train_out=True, binarize_coins=coins)
+        loss, m = sequence_loss(out, gt, valid, cfg, args.gamma, denom=denom)
         if ref is not None:
             cons = consistency_loss(out, ref, args.gamma)
             loss = loss + args.qat_consistency * cons
@@ -589,6 +684,17 @@ def main(argv=None):
             qat_acc[0] += qd
             qat_acc[1] += 1
         opt.zero_grad(set_to_none=True)
+        loss_local = loss
+        if world > 1:
+            # Each process holds its share of the global loss and metrics: their sums are the
+            # single-process figures. DistributedDataParallel averages gradients over processes,
+            # hence the factor `world` on the backward pass.
+            keys = sorted(m)
+            t = torch.tensor([loss.item(), float(stop["flag"])] + [m[k] for k in keys], dtype=torch.float64)
+            dist.all_reduce(t)
+            loss = torch.tensor(t[0].item())
+            stop["flag"] = stop["flag"] or t[1].item() > 0  # every process stops after the same step
+            m = {k: t[2 + i].item() for i, k in enumerate(keys)}
         if not torch.isfinite(loss):
             bad_steps += 1
             print(f"step {step}: non-finite loss, skipped ({bad_steps} so far)", file=sys.stderr)
@@ -597,7 +703,7 @@ def main(argv=None):
                 save_ckpt(step)
                 return 3
         else:
-            loss.backward()
+            (loss_local * world).backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), args.clip)
             opt.step()
         lr_used = opt.param_groups[0]["lr"]
@@ -644,7 +750,8 @@ def main(argv=None):
             if step % args.ckpt_every == 0:
                 export(os.path.join(args.out, f"snapshot_{step:06d}.safetensors"), step, last)
             try:
-                plot_curves(csv_path, os.path.join(args.out, "loss.png"))
+                if is_main:
+                    plot_curves(csv_path, os.path.join(args.out, "loss.png"))
             except Exception as e:  # plotting must never kill a run
                 print(f"warning: loss plot failed: {e}", file=sys.stderr)
         if stop["flag"]:
@@ -663,11 +770,14 @@ def main(argv=None):
         t_data0 = time.time()
 
     csv_f.close()
+    if world > 1:
+        dist.barrier()
     if step >= args.steps:
         final = os.path.join(args.out, "model.safetensors")
         export(final, step, last)
         try:
-            plot_curves(csv_path, os.path.join(args.out, "loss.png"))
+            if is_main:
+                plot_curves(csv_path, os.path.join(args.out, "loss.png"))
         except Exception as e:  # plotting must never kill a run
             print(f"warning: loss plot failed: {e}", file=sys.stderr)
         print(f"done: {step} steps in {fmt_time(time.time() - t_start)}; wrote {final}", file=sys.stderr)
