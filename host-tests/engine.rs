@@ -102,7 +102,9 @@ fn check_bit_exact(cfg: &Config, w: usize, h: usize, iters: usize, gray: bool) {
     let qm = QuantModel::parse(&blob).unwrap();
     let (l, r) = pair(w, h, 99 + w as u64, gray);
     let (lv, rv) = (view(&l, w, h, gray), view(&r, w, h, gray));
-    let want = Reference::new(&qm).predict(&lv, &rv, Some(iters), &mut NoTrace).unwrap();
+    let mut want = Reference::new(&qm).predict(&lv, &rv, Some(iters), &mut NoTrace).unwrap();
+    // The engine ends with the full-resolution refinement; the plain twin of it on the reference.
+    muir::kernels::fullres::refine_image_plain(&lv, &rv, &mut want.disparity, want.uncertainty.as_deref());
     let plan = Plan::new(cfg, w, h);
     let mut mem = arena(&plan);
     let mut engine = Engine::new(&qm, bytemuck::cast_slice_mut(&mut mem)).unwrap();

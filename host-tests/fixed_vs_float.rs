@@ -107,7 +107,9 @@ fn measure(wide: bool) -> Option<(Figures, bool)> {
     println!("| pair | mean abs diff (px) | within 1 px | EPE float | EPE fixed | reject agree (tau 1 px) |");
     println!("|---|---|---|---|---|---|");
     for p in &pairs {
-        let fp = float.predict(&p.left.view(), &p.right.view(), None).unwrap();
+        // Both engines end with the full-resolution refinement (the fixed engine by default).
+        let mut fp = float.predict(&p.left.view(), &p.right.view(), None).unwrap();
+        fp.refine_full_res(&p.left.view(), &p.right.view());
         let mut d = vec![0i16; W * H];
         let mut u = vec![0i16; W * H];
         engine.run(&p.left.view(), &p.right.view(), &mut Output { disparity: &mut d, uncertainty: Some(&mut u) }).unwrap();

@@ -124,3 +124,35 @@ fn shipped_model_matches_twin_on_a_real_pair() {
         assert!(worst_u <= 1e-3, "uncertainty differs by {worst_u}");
     }
 }
+
+/// The full-resolution refinement: the Rust integer stage (`kernels::fullres`, what both engines
+/// and the firmware run) gives the same integers as the twin's evaluation (`python/muir/fullres.py`)
+/// on a real crop, with the twin network's disparity and uncertainty as input (fixture written by
+/// `python -m muir.golden --fullres models/muir-slim.safetensors`).
+#[test]
+fn full_res_refinement_matches_twin_bit_for_bit() {
+    use muir::kernels::fullres::{CENSUS_RADIUS, WINDOW_ROWS, refine_image};
+    let file = parse_safetensors(&fixture("fullres-teddy")).expect("fixture parses");
+    let get = |name: &str| match &file.tensors[name].data {
+        ParamData::F32(v) => (file.tensors[name].shape.clone(), v.iter().map(|x| *x as i16).collect::<Vec<i16>>()),
+        ParamData::I64(_) => panic!("{name}: not f32"),
+    };
+    let (shape, d0) = get("fullres.d0");
+    let (_, u) = get("fullres.u");
+    let (_, want) = get("fullres.out");
+    let (h, w) = (shape[0], shape[1]);
+    // The crop of python/muir/golden.py FULLRES_CROP.
+    let (y0, x0) = (150, 180);
+    let root = env!("CARGO_MANIFEST_DIR");
+    let crop = |v: &str| muir::io::read_png(format!("{root}/assets/teddy/{v}.png")).unwrap().crop(x0, y0, w, h).unwrap();
+    let (l, r) = (crop("left"), crop("right"));
+    let mut d = d0.clone();
+    let mut ring = vec![0u64; 2 * WINDOW_ROWS * w];
+    let mut grey = vec![0u8; (2 * CENSUS_RADIUS + 1) * w];
+    let n = refine_image(&l.view(), &r.view(), &mut d, Some(&u), &mut ring, &mut grey);
+    let differ = d.iter().zip(&want).filter(|(a, b)| a != b).count();
+    eprintln!("full-resolution refinement: {n} of {} pixels refined, {differ} differ from the twin", w * h);
+    assert!(n > w * h / 2, "most pixels of a textured crop are refined");
+    assert_eq!(differ, 0, "Rust and twin refinement differ on {differ} pixels");
+    assert!(d.iter().zip(&d0).any(|(a, b)| a != b));
+}

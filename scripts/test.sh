@@ -4,7 +4,9 @@
 #   1. host tests (unit, parity with the PyTorch twin's golden files, fixed vs float on real pairs,
 #      streaming vs plain fixed-point engine, model files, CLI), optimised ([profile.test]);
 #   2. the library without std for thumbv7em-none-eabihf (Cortex-M4F/M7);
-#   3. the QEMU firmware in boards/ (bit-exact with the host), u8 and wide-trunk blobs, when the
+#   3. the PyTorch twin's own tests (python/tests: the split, the refinement's integer helpers, a
+#      data-parallel training step under torchrun against the single-process step);
+#   4. the QEMU firmware in boards/ (bit-exact with the host), u8 and wide-trunk blobs, when the
 #      board crate exists.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -21,12 +23,19 @@ if [ -d boards/qemu-mps2 ] && ! command -v qemu-system-arm >/dev/null 2>&1; then
     need_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq qemu-system-arm >/dev/null
 fi
 
+echo "== Python packages of the twin (torch CPU, numpy, OpenCV, ...; python/pyproject.toml)"
+python3 -m pip install -q --disable-pip-version-check "torch>=2.2" "numpy>=1.24" "opencv-python-headless>=4.8" \
+    "pillow>=10.0" "matplotlib>=3.7" "safetensors>=0.4" "pytest>=7.4"
+
 echo "== host tests"
 cargo test --all-targets --no-fail-fast 2>&1 | tee /tmp/muir-test.log
 cargo test --doc
 
 echo "== no_std build for thumbv7em-none-eabihf"
 cargo build --lib --target thumbv7em-none-eabihf --no-default-features
+
+echo "== Python twin tests (split, refinement helpers, one DDP step = one single-process step)"
+(cd python && PYTHONPATH=. python3 -m pytest -q)
 
 if [ -x boards/qemu-mps2/run-tests.sh ]; then
     echo "== Cortex-M firmware under QEMU"

@@ -5,8 +5,8 @@
     cargo build --release --bin muir && PYTHONPATH=python python -m muir.evaluate \
         --blob models/muir-slim.muirq --out runs/eval/fixed               # the device's fixed-point engine
 
-Default scene set: the headline Middlebury 2003/2005/2006 scenes (quarter/third size, not the *_half
-copies); --datasets picks others. Network input: RGB float 0..255 (gray views replicated), padded to a
+Default scene set: the 11 held-out scenes of muir.split (Middlebury 2003 and 2005 at quarter/third
+size, ETH3D, KITTI 2015), never trained on; --set train / middlebury28 and --datasets pick others. Network input: RGB float 0..255 (gray views replicated), padded to a
 multiple of 16 by edge replication on the right/bottom, output cropped back.
 
 Metrics per scene over all valid GT pixels ("all"), and where a non-occlusion mask exists (tsukuba's
@@ -43,6 +43,7 @@ import torch
 import torch.nn.functional as F
 
 from . import data as D
+from . import fullres
 
 # Tuned once on middlebury2001 {barn1, sawtooth, venus} with --tune-sgbm (512 settings, objective: mean
 # EPE over all GT pixels after filling; see docs/training.md). P1/P2 are multiplied by 3 * blockSize^2
@@ -81,7 +82,7 @@ def run_model(model, left: np.ndarray, right: np.ndarray, iters=None, device="cp
     return out
 
 
-def run_fixed_engine(muir_bin: str, blob: str, scene_dir: str, iters=None):
+def run_fixed_engine(muir_bin: str, blob: str, scene_dir: str, iters=None, refine=True):
     """The Rust fixed-point engine on a scene's left.png/right.png (the files, as a user would run it):
     (disparity (H,W), dict(u=log-variance from the predicted error exp(u/2) the CLI writes))."""
     with tempfile.TemporaryDirectory() as tmp:
@@ -91,6 +92,8 @@ def run_fixed_engine(muir_bin: str, blob: str, scene_dir: str, iters=None):
                "--disparity", disp, "--uncertainty", err]
         if iters:
             cmd += ["--iters", str(iters)]
+        if not refine:
+            cmd += ["--no-refine"]
         r = subprocess.run(cmd, capture_output=True, text=True)
         if r.returncode != 0:
             raise RuntimeError(f"{' '.join(cmd)} failed ({r.returncode}): {r.stderr.strip()}")
@@ -190,7 +193,41 @@ def uncertainty_metrics(pred, gt, u, region):
         k = sigma <= t
         out[f"kept_s{t}"] = float(k.mean() * 100)
         out[f"epe_s{t}"] = float(err[k].mean()) if k.any() else float("nan")
+    # EPE of the kept pixels after removing FRACTIONS of them by sigma (not normalised): read at
+    # another method's density (StereoSGBM's after its checks) by `at_density`.
+    out["epe_curve"] = [float(v) for v in model * err.mean()]
     return out, (model, oracle)
+
+
+def at_density(curve, density_pct: float) -> float:
+    """EPE of the pixels a model keeps by its uncertainty at `density_pct` % kept (from epe_curve)."""
+    i = int(round(100.0 - density_pct))
+    return float(curve[min(max(i, 0), len(curve) - 1)])
+
+
+def add_sgbm_density_comparison(results):
+    """For every method with an uncertainty: mean over scenes of the EPE of its pixels kept at the
+    density StereoSGBM keeps on that scene (raw, after its uniqueness/left-right/speckle checks),
+    beside SGBM's EPE on those pixels (`sgbm.epe_raw_valid`)."""
+    sg = next((r for r in results if r["method"] == "sgbm"), None)
+    if sg is None:
+        return
+    for r in results:
+        if r is sg:
+            continue
+        vals = []
+        for k, sc in r["scenes"].items():
+            dens = sg["scenes"].get(k, {}).get("sgbm", {}).get("density")
+            curve = sc.get("unc", {}).get("epe_curve")
+            if dens is not None and curve:
+                sc["unc"]["epe_at_sgbm_density"] = at_density(curve, dens)
+                vals.append(sc["unc"]["epe_at_sgbm_density"])
+        if vals:
+            for g, summ in r["mean"].items():
+                keys = [k for k in r["scenes"] if g in ("all", "headline") or k.startswith(g + "/")]
+                v = [r["scenes"][k]["unc"]["epe_at_sgbm_density"] for k in keys if "epe_at_sgbm_density" in r["scenes"][k].get("unc", {})]
+                if v:
+                    summ["unc.epe_at_sgbm_density"] = float(np.mean(v))
 
 
 def scene_metrics(pred, sc: D.Scene):
@@ -364,8 +401,9 @@ def markdown(results, groups=None):
     for g in gnames:
         lines.append(f"### {g} (mean over {results[0]['mean'][g]['scenes']} scenes)\n")
         lines.append("| method | EPE all | EPE noc | EPE occ | A50 | Bad1.0 % | Bad2.0 % | D1 % | Bad1.0 occ % | "
-                     "AUSE (random) | EPE / kept % at sigma<=1 | at sigma<=3 | SGBM density % / EPE on raw-valid |")
-        lines.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+                     "AUSE (random) | EPE / kept % at sigma<=1 | at sigma<=3 | SGBM density % / EPE on raw-valid | "
+                     "EPE kept by sigma at SGBM's density |")
+        lines.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
         for r in results:
             s = r["mean"].get(g, {})
             unc = (f"{fmt(s.get('unc.ause'), 3)} ({fmt(s.get('unc.ause_random'), 3)})" if "unc.ause" in s else "–")
@@ -374,7 +412,8 @@ def markdown(results, groups=None):
             sg = (f"{fmt(s.get('sgbm.density'), 1)} / {fmt(s.get('sgbm.epe_raw_valid'))}" if "sgbm.density" in s else "–")
             lines.append(f"| {r['method']} | {fmt(s.get('all.epe'))} | {fmt(s.get('noc.epe'))} | {fmt(s.get('occ.epe'))} | "
                          f"{fmt(s.get('all.a50'))} | {fmt(s.get('all.bad1'), 1)} | {fmt(s.get('all.bad2'), 1)} | "
-                         f"{fmt(s.get('all.d1'), 1)} | {fmt(s.get('occ.bad1'), 1)} | {unc} | {k1} | {k3} | {sg} |")
+                         f"{fmt(s.get('all.d1'), 1)} | {fmt(s.get('occ.bad1'), 1)} | {unc} | {k1} | {k3} | {sg} | "
+                         f"{fmt(s.get('unc.epe_at_sgbm_density'))} |")
         lines.append("")
     lines.append("### per scene: EPE all / Bad2.0 % / D1 %\n")
     keys = list(results[0]["scenes"].keys())
@@ -451,9 +490,14 @@ def main(argv=None):
     p.add_argument("--sgbm-params", default=None, help="JSON from --tune-sgbm (default: the built-in tuned values)")
     p.add_argument("--tune-sgbm", action="store_true", help="grid-search SGBM on Middlebury 2001 scenes and exit")
     p.add_argument("--root", default=D.DEFAULT_ROOT)
-    p.add_argument("--datasets", default=",".join(D.HEADLINE), help="comma list (default: the headline set)")
+    p.add_argument("--set", default="heldout", choices=("heldout", "train", "middlebury28"),
+                   help="scene set: the 11 held-out headline scenes of muir.split (default), the training side, "
+                        "or the 28 Middlebury 2003/2005/2006 scenes reported before the split existed")
+    p.add_argument("--datasets", default=None, help="comma list of data sets (overrides --set)")
     p.add_argument("--scenes", default=None, help="comma list of dataset/scene or scene names to keep")
     p.add_argument("--iters", type=int, default=None, help="refinement iterations (default: the config's)")
+    p.add_argument("--no-refine", action="store_true",
+                   help="the network's disparity without the full-resolution refinement (muir.fullres)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
     p.add_argument("--vis", default="4", help="number of scenes to draw (first N) or comma list of scene keys")
@@ -474,10 +518,22 @@ def main(argv=None):
             p.error(f"no model file {path}")
     if a.blob and not os.access(a.muir_bin, os.X_OK):
         p.error(f"--blob needs the muir CLI at {a.muir_bin} (cargo build --release --bin muir, or --muir-bin)")
+    from . import split
+
     try:
-        scenes = D.list_scenes(a.root, [d for d in a.datasets.split(",") if d])
-    except FileNotFoundError as e:
+        if a.datasets:
+            scenes = D.list_scenes(a.root, [d for d in a.datasets.split(",") if d])
+        elif a.set == "heldout":
+            split.check(a.root)
+            scenes = [tuple(k.split("/", 1)) for k in split.HELDOUT_HEADLINE]
+        elif a.set == "train":
+            scenes = split.train_scenes(a.root)
+        else:
+            scenes = D.list_scenes(a.root, D.HEADLINE)
+    except (FileNotFoundError, ValueError) as e:
         p.error(str(e))
+    a.datasets = a.datasets or {"heldout": "held-out scenes of muir.split", "train": "training scenes of muir.split",
+                                "middlebury28": ",".join(D.HEADLINE)}[a.set]
     if a.scenes:
         keep = set(a.scenes.split(","))
         scenes = [(ds, s) for ds, s in scenes if f"{ds}/{s}" in keep or s in keep]
@@ -500,10 +556,13 @@ def main(argv=None):
         with safe_open(path, framework="pt") as f:
             meta = f.metadata() or {}
         info = {"model": os.path.abspath(path), "config": model.cfg.name, "iters": a.iters or model.cfg.iters,
+                "full_res_refinement": not a.no_refine,
                 "train_steps": meta.get("steps"), "train_command": meta.get("command")}
 
         def predict(sc, model=model):
             o = run_model(model, sc.left, sc.right, a.iters, a.device)
+            if not a.no_refine:
+                o["disp"], _ = fullres.refine(sc.left, sc.right, o["disp"], o["u"])
             return o["disp"], o
 
         results.append(evaluate_method(name, scenes, a.root, predict, a.out, vis_keys, info))
@@ -511,10 +570,10 @@ def main(argv=None):
     for i, path in enumerate(a.blob):
         name = a.blob_name[i] if i < len(a.blob_name) else os.path.splitext(os.path.basename(path))[0] + "-fixed"
         info = {"model": os.path.abspath(path), "engine": "fixed (muir run --engine fixed)",
-                "iters": a.iters or "the blob's config"}
+                "iters": a.iters or "the blob's config", "full_res_refinement": not a.no_refine}
 
         def predict_fixed(sc, path=path):
-            return run_fixed_engine(a.muir_bin, path, os.path.join(a.root, sc.dataset, sc.name), a.iters)
+            return run_fixed_engine(a.muir_bin, path, os.path.join(a.root, sc.dataset, sc.name), a.iters, not a.no_refine)
 
         try:
             results.append(evaluate_method(name, scenes, a.root, predict_fixed, a.out, vis_keys, info))
@@ -538,12 +597,16 @@ def main(argv=None):
 
         results.append(evaluate_method("sgbm", scenes, a.root, predict_sgbm, a.out, vis_keys, info))
 
+    add_sgbm_density_comparison(results)
+    for r in results:  # rewrite the JSON with the density comparison
+        with open(os.path.join(a.out, f"{r['method']}.json"), "w") as f:
+            json.dump(r, f, indent=1)
     md = markdown(results)
     with open(os.path.join(a.out, "results.md"), "w") as f:
         f.write(f"# Evaluation ({a.datasets}; {len(scenes)} scenes at stored resolution)\n\n")
         for r in results:
             f.write(f"* **{r['method']}**: " + ", ".join(f"{k}={v}" for k, v in r.items()
-                                                        if k in ("model", "engine", "config", "iters", "train_steps", "params",
+                                                        if k in ("model", "engine", "config", "iters", "full_res_refinement", "train_steps", "params",
                                                                  "num_disparities", "fill")) + "\n")
         f.write("\n" + md)
     print(md)

@@ -92,6 +92,39 @@ def make_shipped(model_path, data_root, out_dir):
     print(f"{path}: {os.path.getsize(path) / 1e6:.2f} MB", file=sys.stderr)
 
 
+# The full-resolution refinement's integer stage on a real crop (host-tests/float_parity.rs checks
+# that the Rust stage gives the same integers as python/muir/fullres.py).
+FULLRES_CROP = ("assets/teddy", 128, 192, 150, 180)  # repository folder, crop h, crop w, y0, x0
+
+
+def make_fullres(model_path, out_dir):
+    from . import fullres
+    from .checkpoint import load_model
+
+    repo = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "../.."))
+    folder, h, w, y0, x0 = FULLRES_CROP
+    left, right = load_crop_scene(repo, folder, h, w, y0, x0)
+    model = load_model(model_path)
+    with torch.no_grad():
+        disp, u = model(left[None], right[None])
+    lu8 = left.permute(1, 2, 0).numpy().astype(np.uint8)
+    ru8 = right.permute(1, 2, 0).numpy().astype(np.uint8)
+    dq = fullres.quantize_disp(disp[0, 0].numpy())
+    uq = fullres.quantize_u(u[0, 0].numpy())
+    out, ok = fullres.refine_q(lu8, ru8, dq, uq)
+    f = lambda a: torch.from_numpy(a.astype(np.float32))  # i16 values, exact in f32
+    tensors = {"fullres.d0": f(dq), "fullres.u": f(uq), "fullres.out": f(out)}
+    meta = {
+        "source": f"{folder} crop y={y0} x={x0} {h}x{w}",
+        "model": os.path.basename(model_path),
+        "refined": str(int(ok.sum())),
+        "generator": "python -m muir.golden --fullres " + os.path.basename(model_path),
+    }
+    path = os.path.join(out_dir, "fullres-teddy.safetensors")
+    save_file(tensors, path, metadata=meta)
+    print(f"{path}: {os.path.getsize(path) / 1e6:.2f} MB, {int(ok.sum())} of {h * w} pixels refined", file=sys.stderr)
+
+
 def load_crop_scene(data_root, scene, h, w, y0, x0):
     def rd(name):
         im = np.asarray(Image.open(os.path.join(data_root, scene, name)).convert("RGB"), dtype=np.float32)
@@ -105,11 +138,15 @@ def main(argv=None):
     p.add_argument("--data", default=os.path.join(os.path.dirname(__file__), "../../../shared/data"))
     p.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "../../host-tests/fixtures/golden"))
     p.add_argument("--shipped", metavar="MODEL", help="only write the shipped model's fixture (models/*.safetensors)")
+    p.add_argument("--fullres", metavar="MODEL", help="only write the full-resolution refinement's fixture")
     a = p.parse_args(argv)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     os.makedirs(a.out, exist_ok=True)
     if a.shipped:
         make_shipped(a.shipped, a.data, a.out)
+        return 0
+    if a.fullres:
+        make_fullres(a.fullres, a.out)
         return 0
     for f in FIXTURES:
         make(*f, a.data, a.out)

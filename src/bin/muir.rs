@@ -95,6 +95,10 @@ struct RunArgs {
     /// Engine computing the network.
     #[arg(long, value_enum, default_value_t = Engine::Float)]
     engine: Engine,
+    /// Skips the full-resolution refinement (integer narrow-band matching around the network's
+    /// disparity, on by default in both engines): the network's upsampled disparity as it is.
+    #[arg(long)]
+    no_refine: bool,
     /// Output: left-view disparity in pixels, full resolution, PFM.
     #[arg(long, value_name = "OUT.pfm")]
     disparity: PathBuf,
@@ -374,7 +378,7 @@ fn run(args: &RunArgs) -> Result<(), String> {
     };
     let spinner = spinner(&format!("{} {}x{}, {iters} iterations, {label} engine", config.name, left.width, left.height));
     let start = Instant::now();
-    let pred = engine.predict(&left.view(), &right.view(), iters, args.reject_above);
+    let pred = engine.predict(&left.view(), &right.view(), iters, args.reject_above, !args.no_refine);
     let network = start.elapsed();
     spinner.finish_and_clear();
     let pred = pred.map_err(|e| pair_err(&e))?;
@@ -444,10 +448,13 @@ enum Loaded {
 }
 
 impl Loaded {
-    fn predict(&self, left: &ImageView<'_>, right: &ImageView<'_>, iters: usize, tau: Option<f32>) -> Result<Prediction, String> {
+    fn predict(&self, left: &ImageView<'_>, right: &ImageView<'_>, iters: usize, tau: Option<f32>, refine: bool) -> Result<Prediction, String> {
         match self {
             Loaded::Float(model) => {
-                let p = model.predict(left, right, Some(iters)).map_err(|e| e.to_string())?;
+                let mut p = model.predict(left, right, Some(iters)).map_err(|e| e.to_string())?;
+                if refine {
+                    p.refine_full_res(left, right);
+                }
                 let error_px: Option<Vec<f32>> = p.uncertainty.as_ref().map(|u| u.iter().map(|u| (0.5 * u).exp()).collect());
                 let raw_disparity = p.disparity.clone();
                 let mut disparity = p.disparity;
@@ -463,6 +470,7 @@ impl Loaded {
                 let plan = muir::engine::Plan::new(model.config(), w, h);
                 let mut arena = vec![0u64; plan.ram_bytes.div_ceil(8)];
                 let mut engine = muir::engine::Engine::new(&model, bytemuck::cast_slice_mut(&mut arena)).map_err(|e| e.to_string())?;
+                engine.set_full_res_refinement(refine);
                 let mut d = vec![0i16; w * h];
                 let mut u = vec![0i16; w * h];
                 let unc = if model.config().mud { Some(&mut u[..]) } else { None };

@@ -110,6 +110,7 @@ pub struct Output<'o> {
 pub struct Engine<'m, 'a, 'w> {
     model: &'m QuantModel<'a>,
     arena: &'w mut [u8],
+    full_res: bool,
 }
 
 impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
@@ -119,7 +120,15 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
         if arena.as_ptr() as usize % 8 != 0 {
             return Err(EngineError::ArenaAlignment);
         }
-        Ok(Self { model, arena })
+        Ok(Self { model, arena, full_res: true })
+    }
+
+    /// Turns the full-resolution refinement ([`crate::kernels::fullres`]) on (the default) or off
+    /// (the network's upsampled disparity as it is). It runs after the network in memory the
+    /// network no longer needs, so it adds no RAM beyond the plan; its cost is about (2R + 2) x 81
+    /// census comparisons per pixel, with a band radius R of 3 to 12 px.
+    pub fn set_full_res_refinement(&mut self, on: bool) {
+        self.full_res = on;
     }
 
     /// The memory plan for a `width x height` pair with this model.
@@ -127,7 +136,8 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
         Plan::new(self.model.config(), width, height)
     }
 
-    /// Runs the network on a rectified pair.
+    /// Runs the network on a rectified pair, then the full-resolution refinement (unless turned
+    /// off with [`Engine::set_full_res_refinement`]).
     ///
     /// # Errors
     /// Invalid images, an arena smaller than the plan, output buffers of the wrong size, or
@@ -183,6 +193,11 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
             refine::mud_pass(&mut c);
         }
         refine::upsample(&mut c, width, height, out.disparity, out.uncertainty.as_deref_mut());
+        if self.full_res {
+            let mut cv = Carver::new(&mut self.arena[..plan.ram_bytes]);
+            let (ring, grey) = (cv.u64(plan.fullres.ring), cv.u8(plan.fullres.grey));
+            crate::kernels::fullres::refine_image(left, right, out.disparity, out.uncertainty.as_deref(), ring, grey);
+        }
         Ok(())
     }
 }

@@ -156,6 +156,15 @@ pub struct RefineBufs {
     pub rings: Buf,
 }
 
+/// Full-resolution refinement scratch (after the network: the whole arena is free again).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct FullResBufs {
+    /// Census rings of both images, u64 `2 x 9 x width`.
+    pub ring: Buf,
+    /// Grey rows of one census row, u8 `7 x width`.
+    pub grey: Buf,
+}
+
 /// Per-pixel scratch shared by all phases (patch gather, lookup window, attention accumulators).
 #[derive(Clone, Copy, Debug, Default)]
 pub struct PixelBufs {
@@ -192,6 +201,8 @@ pub struct Plan {
     pub encoder: EncoderBufs,
     /// Refinement zone.
     pub refine: RefineBufs,
+    /// Full-resolution refinement zone (from offset 0: it runs after the network).
+    pub fullres: FullResBufs,
     /// Bytes of the encoder's line buffers.
     pub encoder_rings: usize,
     /// Bytes of the refinement phases' line buffers.
@@ -262,8 +273,13 @@ impl Plan {
             values: r.take(if cfg.mga { 2 * n8 * h } else { 0 }),
             rings: r.take(refine_rings),
         };
-        let ram_bytes = max(e.at, r.at);
-        Plan { config: *cfg, width, height, grid: g, frame, pixel, encoder, refine, encoder_rings, refine_rings, ram_bytes }
+        let mut f = Bump::new(0);
+        let fullres = FullResBufs {
+            ring: f.take(2 * crate::kernels::fullres::WINDOW_ROWS * width * 8),
+            grey: f.take((2 * crate::kernels::fullres::CENSUS_RADIUS + 1) * width),
+        };
+        let ram_bytes = max(max(e.at, r.at), f.at);
+        Plan { config: *cfg, width, height, grid: g, frame, pixel, encoder, refine, fullres, encoder_rings, refine_rings, ram_bytes }
     }
 
     /// Bytes of the frame zone.

@@ -33,6 +33,10 @@ impl<'a> Carver<'a> {
     pub fn i8(&mut self, b: Buf) -> &'a mut [i8] {
         bytemuck::cast_slice_mut(self.bytes(b))
     }
+    /// A byte buffer viewed as `u64`.
+    pub fn u64(&mut self, b: Buf) -> &'a mut [u64] {
+        bytemuck::cast_slice_mut(self.bytes(b))
+    }
     /// A byte buffer as `u8` values.
     pub fn u8(&mut self, b: Buf) -> &'a mut [u8] {
         self.bytes(b)

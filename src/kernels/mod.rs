@@ -12,6 +12,7 @@ pub mod corr;
 #[cfg(all(target_arch = "arm", feature = "dsp"))]
 pub mod dsp;
 pub mod eltwise;
+pub mod fullres;
 pub mod norm;
 pub mod resample;
 pub mod upsample;
