@@ -7,6 +7,7 @@ safetensors requires).
 from __future__ import annotations
 
 import json
+import os
 
 import torch
 from safetensors.torch import load_file, save_file
@@ -40,12 +41,31 @@ def read_config(path: str) -> Config | None:
     return Config.from_json(meta[CONFIG_KEY]) if CONFIG_KEY in meta else None
 
 
+class ModelFileError(ValueError):
+    """A model file that cannot be used; the message names the file and says why (one line)."""
+
+
 def load_model(path: str, config: str | None = None) -> MUIR:
-    cfg = read_config(path)
+    """The model in a safetensors file. Raises ModelFileError (naming the file) for a missing,
+    unreadable or truncated file, one whose tensors do not fit the config, or NaN/inf weights."""
+    if not os.path.isfile(path):
+        raise ModelFileError(f"{path}: no such model file")
+    try:
+        cfg = read_config(path)
+        tensors = load_file(path)
+    except Exception as e:  # safetensors raises its own error types for corrupted headers
+        raise ModelFileError(f"{path}: not a readable safetensors model ({type(e).__name__}: {e})") from None
     if cfg is None:
         if config is None:
-            raise ValueError(f"{path} carries no config metadata: name one (--config)")
+            raise ModelFileError(f"{path} carries no config metadata: name one (--config)")
         cfg = preset(config)
+    bad = [k for k, v in tensors.items() if v.is_floating_point() and not torch.isfinite(v).all()]
+    if bad:
+        raise ModelFileError(f"{path}: NaN or infinite weights in {len(bad)} tensor(s), e.g. {bad[0]}")
     model = MUIR(cfg)
-    model.load_state_dict(strip_module_prefix(load_file(path)), strict=True)
+    try:
+        model.load_state_dict(strip_module_prefix(tensors), strict=True)
+    except RuntimeError as e:
+        first = str(e).strip().splitlines()
+        raise ModelFileError(f"{path}: tensors do not match config {cfg.name} ({' '.join(first[:2])[:300]})") from None
     return model.eval()

@@ -112,13 +112,33 @@ def lr_check_nonocc(dl: np.ndarray, dr: np.ndarray, thresh: float = 1.0) -> np.n
 
 
 def load_scene(root: str, dataset: str, name: str) -> Scene:
+    """The scene's views and GT; OSError / ValueError with a one-line message naming the file for a
+    missing or unreadable file, or GT / views of different sizes."""
     d = os.path.join(root, dataset, name)
-    left, gray_l = read_image_rgb(os.path.join(d, "left.png"))
-    right, gray_r = read_image_rgb(os.path.join(d, "right.png"))
+    views = []
+    for v in ("left.png", "right.png"):
+        path = os.path.join(d, v)
+        if not os.path.isfile(path):
+            raise FileNotFoundError(f"{path}: missing")
+        try:
+            views.append(read_image_rgb(path))
+        except Exception as e:  # PIL's decoder errors
+            raise ValueError(f"{path}: not a readable image ({type(e).__name__}: {e})") from None
+    (left, gray_l), (right, gray_r) = views
+    if left.shape != right.shape:
+        raise ValueError(f"{d}: left view is {left.shape[1]}x{left.shape[0]}, right view {right.shape[1]}x{right.shape[0]}")
     gt_name = next((g for g in LEFT_GT if os.path.exists(os.path.join(d, g))), None)
     if gt_name is None:
-        raise FileNotFoundError(f"{d}: no GT file")
-    disp = decode_gt(os.path.join(d, gt_name), dataset)
+        raise FileNotFoundError(f"{d}: no GT file (one of {', '.join(LEFT_GT)})")
+    try:
+        disp = decode_gt(os.path.join(d, gt_name), dataset)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{os.path.join(d, gt_name)}: unreadable GT ({e})") from None
+    if disp.shape != left.shape[:2]:
+        raise ValueError(f"{os.path.join(d, gt_name)}: GT is {disp.shape[1]}x{disp.shape[0]}, the views "
+                         f"{left.shape[1]}x{left.shape[0]}")
+    # Only plausible disparities count as known (a -1e30 or 1e30 sentinel is not a measurement).
+    disp[(disp < 0) | (disp > 10000)] = np.nan
     sc = Scene(dataset, name, left, right, disp, gray=gray_l and gray_r)
     if os.path.exists(os.path.join(d, "nonocc.png")):  # tsukuba: official masks (palette index != 0)
         idx = np.asarray(Image.open(os.path.join(d, "nonocc.png")))

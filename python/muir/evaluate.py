@@ -352,7 +352,10 @@ def evaluate_method(name, scenes, root, predict, out_dir, vis_keys, info):
     per_scene = {}
     t_all = time.time()
     for i, (ds, s) in enumerate(scenes):
-        sc = D.load_scene(root, ds, s)
+        try:
+            sc = D.load_scene(root, ds, s)
+        except (OSError, ValueError) as e:
+            raise SceneError(str(e)) from None
         t0 = time.time()
         pred, extra = predict(sc)
         dt = time.time() - t0
@@ -387,6 +390,10 @@ def evaluate_method(name, scenes, root, predict, out_dir, vis_keys, info):
     with open(os.path.join(out_dir, f"{name}.json"), "w") as f:
         json.dump(result, f, indent=1)
     return result
+
+
+class SceneError(RuntimeError):
+    """A scene that cannot be read (missing file, GT of another size): the message names it."""
 
 
 def fmt(v, nd=2):
@@ -476,6 +483,14 @@ def tune_sgbm(root, out_dir):
 
 
 def main(argv=None):
+    try:
+        return _main(argv)
+    except SceneError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+
+
+def _main(argv=None):
     p = argparse.ArgumentParser(prog="python -m muir.evaluate", description=__doc__.splitlines()[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--model", action="append", default=[], help="model .safetensors (repeatable)")
@@ -550,7 +565,10 @@ def main(argv=None):
 
     for i, path in enumerate(a.model):
         name = a.name[i] if i < len(a.name) else os.path.splitext(os.path.basename(path))[0]
-        model = load_model(path, a.config).to(a.device).eval()
+        try:
+            model = load_model(path, a.config).to(a.device).eval()
+        except ValueError as e:  # ModelFileError: names the file and the reason
+            p.error(str(e))
         from safetensors import safe_open
 
         with safe_open(path, framework="pt") as f:

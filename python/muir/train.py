@@ -421,7 +421,13 @@ def main(argv=None):
         if not os.path.exists(path):
             print(f"error: --resume: no checkpoint at {path}", file=sys.stderr)
             return 2
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        try:
+            state = torch.load(path, map_location="cpu", weights_only=False)
+            if not isinstance(state, dict) or "model" not in state or "step" not in state:
+                raise ValueError("not a muir.train checkpoint")
+        except Exception as e:  # pickle/zip errors of a truncated or foreign file
+            print(f"error: --resume: {path}: unreadable checkpoint ({type(e).__name__}: {str(e)[:200]})", file=sys.stderr)
+            return 2
         # The schedule is part of the run: keep the stored values, say so if the command differs.
         stored = state["args"]
         for k in SCHEDULE_KEYS:
@@ -457,12 +463,21 @@ def main(argv=None):
     model = MUIR(cfg)
     init_weights(model)
     if args.init and state is None:
-        if args.init.endswith(".safetensors"):
-            from safetensors.torch import load_file
+        try:
+            if args.init.endswith(".safetensors"):
+                from .checkpoint import load_model
 
-            model.load_state_dict(load_file(args.init), strict=True)
-        else:
-            model.load_state_dict(torch.load(args.init, map_location="cpu", weights_only=False)["model"], strict=True)
+                model.load_state_dict(load_model(args.init, args.config).state_dict(), strict=True)
+            else:
+                model.load_state_dict(torch.load(args.init, map_location="cpu", weights_only=False)["model"], strict=True)
+        except Exception as e:  # ModelFileError names the file; a .pt gets the same one line
+            msg = str(e) if args.init in str(e) else f"{args.init}: {type(e).__name__}: {str(e)[:200]}"
+            print(f"error: --init: {msg}", file=sys.stderr)
+            return 2
+        bad = [k for k, v in model.state_dict().items() if v.is_floating_point() and not torch.isfinite(v).all()]
+        if bad:
+            print(f"error: --init: {args.init}: NaN or infinite weights in {bad[0]}", file=sys.stderr)
+            return 2
     aq = None
     if args.qat:
         from . import qat
