@@ -244,8 +244,14 @@ fn wrong_input_fails_with_a_message() {
         let o = run(&model, &left, &right, extra);
         assert_eq!(o.status.code(), Some(2), "{extra:?}: {}", stderr(&o));
     }
-    let o = muir(&[&"run", &"--model", &model]);
+    // --left without --right (and the reverse) is a usage error; neither runs the shipped demo pair.
+    let o = muir(&[&"run", &"--model", &model, &"--left", &left]);
     assert_eq!(o.status.code(), Some(2));
+    let o = muir(&[&"run", &"--model", &model, &"--right", &right]);
+    assert_eq!(o.status.code(), Some(2));
+    // An output that is an input or a folder is refused before the network runs.
+    let o = run(&model, &left, &right, &["--png", left.to_str().unwrap()]);
+    assert_fails(&o, &["would overwrite the input"]);
 }
 
 #[test]
@@ -387,4 +393,18 @@ fn snap_writes_a_model_on_the_int8_grid() {
     assert!(rms(&first) > 1e-4, "{}", stderr(&first));
     assert!(rms(&o) < 1e-6, "{}", stderr(&o));
     assert_fails(&muir(&[&"snap", &"--model", &s.path("missing.safetensors"), &"--out", &again]), &["missing.safetensors"]);
+}
+
+/// The README's main job: `muir run` with no arguments, from a folder outside the repository,
+/// runs the shipped model on the shipped pair, scores it against the pair's ground truth and
+/// writes its outputs under ./muir-out.
+#[test]
+fn main_job_runs_from_any_directory() {
+    let s = Scratch::new("demo");
+    let o = Command::new(env!("CARGO_BIN_EXE_muir")).arg("run").current_dir(&s.0).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("vs ground truth"), "{}", stderr(&o));
+    for f in ["disparity.pfm", "disparity.png", "error.pfm", "error.png"] {
+        assert!(s.path("muir-out").join(f).is_file(), "muir-out/{f} missing");
+    }
 }

@@ -58,14 +58,28 @@ struct ModelArgs {
     config: Option<Config>,
 }
 
+/// A file shipped in the repository, found from any working directory (the crate's folder at
+/// build time).
+fn shipped(rel: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(rel)
+}
+
 impl ModelArgs {
     /// The model file named on the command line, else the shipped muir-slim model for `engine`.
     fn path(&self, engine: Engine) -> PathBuf {
         self.model.clone().unwrap_or_else(|| {
-            PathBuf::from(match engine {
+            shipped(match engine {
                 Engine::Float => "models/muir-slim.safetensors",
                 Engine::Fixed => "models/muir-slim.muirq",
             })
+        })
+    }
+
+    /// The engine asked for, else the one the model file is for (`.muirq`: fixed), else float.
+    fn engine(&self, asked: Option<Engine>) -> Engine {
+        asked.unwrap_or(match &self.model {
+            Some(p) if p.extension().is_some_and(|e| e == "muirq") => Engine::Fixed,
+            _ => Engine::Float,
         })
     }
 }
@@ -83,25 +97,30 @@ enum Engine {
 struct RunArgs {
     #[command(flatten)]
     model: ModelArgs,
-    /// Left (reference) image, PNG (8/16-bit gray, RGB, RGBA or palette).
-    #[arg(long, value_name = "L.png")]
-    left: PathBuf,
+    /// Left (reference) image, PNG (8/16-bit gray, RGB, RGBA or palette). Without --left and
+    /// --right: the shipped demo pair (Middlebury 2003 Teddy, scored against its ground truth).
+    #[arg(long, value_name = "L.png", requires = "right")]
+    left: Option<PathBuf>,
     /// Right image, PNG, same size as the left one.
-    #[arg(long, value_name = "R.png")]
-    right: PathBuf,
+    #[arg(long, value_name = "R.png", requires = "left")]
+    right: Option<PathBuf>,
     /// Update iterations (default: the config's).
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1000))]
     iters: Option<u32>,
-    /// Engine computing the network.
-    #[arg(long, value_enum, default_value_t = Engine::Float)]
-    engine: Engine,
+    /// Engine computing the network (default: from the model file, fixed for .muirq, else float).
+    #[arg(long, value_enum)]
+    engine: Option<Engine>,
     /// Skips the full-resolution refinement (integer narrow-band matching around the network's
     /// disparity, on by default in both engines): the network's upsampled disparity as it is.
     #[arg(long)]
     no_refine: bool,
-    /// Output: left-view disparity in pixels, full resolution, PFM.
+    /// Output: left-view disparity in pixels, full resolution, PFM. Without it the outputs go to
+    /// --out-dir: disparity.pfm, disparity.png and, with MUD, error.pfm and error.png.
     #[arg(long, value_name = "OUT.pfm")]
-    disparity: PathBuf,
+    disparity: Option<PathBuf>,
+    /// Folder for the default outputs when --disparity is not given (created if missing).
+    #[arg(long, value_name = "DIR", default_value = "muir-out")]
+    out_dir: PathBuf,
     /// Output: predicted error exp(u/2) in pixels, PFM (models with MUD only).
     #[arg(long, value_name = "OUT.pfm")]
     uncertainty: Option<PathBuf>,
@@ -320,12 +339,41 @@ struct Prediction {
 }
 
 fn run(args: &RunArgs) -> Result<(), String> {
-    let outputs = [Some(&args.disparity), args.uncertainty.as_ref(), args.png.as_ref(), args.uncertainty_png.as_ref()];
+    let engine_kind = args.model.engine(args.engine);
+    // Without --left/--right: the shipped demo pair, scored against its ground truth.
+    let demo = args.left.is_none();
+    let (left_path, right_path) = match (&args.left, &args.right) {
+        (Some(l), Some(r)) => (l.clone(), r.clone()),
+        _ => (shipped("assets/teddy/left.png"), shipped("assets/teddy/right.png")),
+    };
+    let (gt_path, gt_scale) = match &args.gt {
+        Some(g) => (Some(g.clone()), args.gt_scale),
+        None if demo => (Some(shipped("assets/teddy/disp2.png")), 4.0),
+        None => (None, args.gt_scale),
+    };
+    // Without --disparity: every output into --out-dir.
+    let default_out = args.disparity.is_none();
+    let in_dir = |name: &str| default_out.then(|| args.out_dir.join(name));
+    let disparity = args.disparity.clone().unwrap_or_else(|| args.out_dir.join("disparity.pfm"));
+    let png = args.png.clone().or_else(|| in_dir("disparity.png"));
+    let uncertainty = args.uncertainty.clone().or_else(|| in_dir("error.pfm"));
+    let uncertainty_png = args.uncertainty_png.clone().or_else(|| in_dir("error.png"));
+    if default_out {
+        std::fs::create_dir_all(&args.out_dir).map_err(|e| format!("{}: {e}", args.out_dir.display()))?;
+    }
+    let inputs: Vec<PathBuf> = [Some(left_path.clone()), Some(right_path.clone()), gt_path.clone(), Some(args.model.path(engine_kind))]
+        .into_iter()
+        .flatten()
+        .collect();
+    let outputs = [Some(&disparity), uncertainty.as_ref(), png.as_ref(), uncertainty_png.as_ref()];
     for path in outputs.into_iter().flatten() {
         check_output(path)?;
+        if let Some(clash) = inputs.iter().find(|i| same_file(i, path)) {
+            return Err(format!("{}: the output would overwrite the input {}", path.display(), clash.display()));
+        }
     }
-    let path = &args.model.path(args.engine);
-    let (config, engine) = match args.engine {
+    let path = &args.model.path(engine_kind);
+    let (config, engine) = match engine_kind {
         Engine::Float => {
             let loaded = load_model(&args.model)?;
             (loaded.weights.config, Loaded::Float(Box::new(FloatModel::new(loaded.weights))))
@@ -341,7 +389,9 @@ fn run(args: &RunArgs) -> Result<(), String> {
             (config, Loaded::Fixed(bytes))
         }
     };
+    // Only what was asked for explicitly needs MUD; the default outputs skip the error maps.
     let wants_uncertainty = args.uncertainty.is_some() || args.uncertainty_png.is_some() || args.reject_above.is_some();
+    let (uncertainty, uncertainty_png) = if config.mud { (uncertainty, uncertainty_png) } else { (None, None) };
     if wants_uncertainty && !config.mud {
         return Err(format!(
             "{}: model '{}' has no MUD head, so it predicts no uncertainty (drop --uncertainty/--uncertainty-png/--reject-above)",
@@ -349,11 +399,11 @@ fn run(args: &RunArgs) -> Result<(), String> {
             config.name
         ));
     }
-    let left = read_png(&args.left).map_err(|e| e.to_string())?;
-    let right = read_png(&args.right).map_err(|e| e.to_string())?;
-    let gt = match &args.gt {
+    let left = read_png(&left_path).map_err(|e| e.to_string())?;
+    let right = read_png(&right_path).map_err(|e| e.to_string())?;
+    let gt = match &gt_path {
         Some(path) => {
-            let gt = read_disparity_file(path, args.gt_scale).map_err(|e| e.to_string())?;
+            let gt = read_disparity_file(path, gt_scale).map_err(|e| e.to_string())?;
             if (gt.width, gt.height) != (left.width, left.height) {
                 return Err(format!(
                     "{}: ground truth is {}x{}, the images {}x{}",
@@ -368,11 +418,11 @@ fn run(args: &RunArgs) -> Result<(), String> {
         }
         None => None,
     };
-    let pair_err = |e: &dyn std::fmt::Display| format!("{} / {}: {e}", args.left.display(), args.right.display());
+    let pair_err = |e: &dyn std::fmt::Display| format!("{} / {}: {e}", left_path.display(), right_path.display());
     check_pair(&left.view(), &right.view()).map_err(|e| pair_err(&e))?;
 
     let iters = args.iters.map_or(config.iters, |n| n as usize);
-    let label = match args.engine {
+    let label = match engine_kind {
         Engine::Float => "float",
         Engine::Fixed => "fixed",
     };
@@ -384,15 +434,15 @@ fn run(args: &RunArgs) -> Result<(), String> {
     let pred = pred.map_err(|e| pair_err(&e))?;
     let (w, h) = (pred.width, pred.height);
 
-    write_pfm(&args.disparity, w, h, &pred.disparity).map_err(|e| e.to_string())?;
-    if let Some(path) = &args.png {
+    write_pfm(&disparity, w, h, &pred.disparity).map_err(|e| e.to_string())?;
+    if let Some(path) = &png {
         write_png(path, &colourise_disparity(&pred.disparity, w, h, None)).map_err(|e| e.to_string())?;
     }
     if let Some(err_px) = &pred.error_px {
-        if let Some(path) = &args.uncertainty {
+        if let Some(path) = &uncertainty {
             write_pfm(path, w, h, err_px).map_err(|e| e.to_string())?;
         }
-        if let Some(path) = &args.uncertainty_png {
+        if let Some(path) = &uncertainty_png {
             write_png(path, &colourise_uncertainty(err_px, w, h, None)).map_err(|e| e.to_string())?;
         }
     }
@@ -707,7 +757,18 @@ fn macs(args: &MacsArgs) -> Result<(), String> {
 }
 
 /// Fails early (before the network runs) when an output's folder does not exist.
+/// True when `a` and `b` name the same existing file.
+fn same_file(a: &Path, b: &Path) -> bool {
+    match (std::fs::canonicalize(a), std::fs::canonicalize(b)) {
+        (Ok(x), Ok(y)) => x == y,
+        _ => false,
+    }
+}
+
 fn check_output(path: &Path) -> Result<(), String> {
+    if path.is_dir() {
+        return Err(format!("{}: is a folder, not a file name", path.display()));
+    }
     match path.parent() {
         Some(dir) if !dir.as_os_str().is_empty() && !dir.is_dir() => {
             Err(format!("{}: the folder {} does not exist", path.display(), dir.display()))
