@@ -4,12 +4,12 @@
 #   1. models/muir-slim.safetensors      <- the given model file
 #   2. models/muir-slim.muirq + .calib.md and models/muir-slim-wide.muirq + .calib.md (`muir quantize`,
 #      the calibration command of models/README.md; the second with --wide-trunk)
-#   3. host-tests/fixtures/golden/shipped* (float parity fixture, PyTorch twin)
+#   3. host-tests/fixtures/golden/shipped* and fullres-teddy* (float and refinement parity fixtures)
 #   4. boards/qemu-mps2 expected CRCs     (MUIR_UPDATE_EXPECTED=1 cargo test --test firmware)
 #   5. models/muir-slim.eval.{json,md}, models/muir-slim-fixed.eval.json,
 #      models/muir-slim-wide-fixed.eval.json, models/sgbm.eval.json, docs/results/*_middlebury*.png
-#      (`python -m muir.evaluate --sgbm` on the 28 Middlebury scenes, the float model and the
-#      fixed-point engine on both blobs)
+#      (`python -m muir.evaluate --sgbm` on the 11 held-out scenes of muir.split, the float model
+#      and the fixed-point engine on both blobs, all with the full-resolution refinement)
 # What it does not touch: the figures quoted in README.md / models/README.md (re-measure them with
 # the commands given there) and the fixed_vs_float regression bounds.
 #
@@ -40,6 +40,7 @@ bash scripts/quantize-shipped.sh models/muir-slim.safetensors models/muir-slim-w
 
 step "3/5 float parity fixture"
 PYTHONPATH=python python -m muir.golden --shipped models/muir-slim.safetensors
+PYTHONPATH=python python -m muir.golden --fullres models/muir-slim.safetensors
 
 step "4/5 firmware CRCs"
 MUIR_UPDATE_EXPECTED=1 cargo test --release --test firmware

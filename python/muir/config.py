@@ -5,6 +5,8 @@ A config is a flat JSON object. The same field names, the same presets and the s
 """
 from __future__ import annotations
 
+import math
+
 import dataclasses
 import json
 from dataclasses import dataclass, field
@@ -70,6 +72,16 @@ class Config:
             problems.append("corr_levels, corr_radius and iters must be >= 1")
         if len(self.backbone_dims) != 3:
             problems.append("backbone_dims has three entries")
+        # The Rust crate's further limits (src/model/config.rs validate), so a model the twin
+        # accepts is one the engines accept.
+        if self.iters > 64:
+            problems.append("iters exceeds the supported maximum (64)")
+        if not math.isfinite(self.eps_max):
+            problems.append("need 0 < eps_min < eps_max")
+        if self.mga and not (math.isfinite(self.mga_rope_base) and self.mga_rope_base > 1):
+            problems.append("mga_rope_base must be a finite number > 1")
+        if self.ufi and not (1 <= self.ufi_peak_separation <= 127):
+            problems.append("ufi_peak_separation must be in 1..=127")
         if problems:
             raise ValueError(f"invalid config '{self.name}': " + "; ".join(problems))
 

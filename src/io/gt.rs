@@ -55,9 +55,12 @@ pub fn read_ground_truth(scene: impl AsRef<Path>) -> Result<FloatImage, IoError>
     Err(IoError::Unsupported { path: dir.to_path_buf(), what: "no known ground-truth file".into() })
 }
 
+/// Largest disparity a ground-truth file may state (px); larger values are sentinels.
+const MAX_PLAUSIBLE: f32 = 10_000.0;
+
 /// Reads one disparity file in pixels; invalid pixels are NaN.
 ///
-/// PFM values are taken as they are (non-finite = invalid); 8/16-bit PNG and 8-bit PGM values are
+/// PFM values in 0 ..= 10,000 px are taken as they are (others = invalid); 8/16-bit PNG and 8-bit PGM values are
 /// divided by `scale` (e.g. 4 for Middlebury 2003 quarter size, 256 for KITTI), 0 = invalid.
 pub fn read_disparity_file(path: impl AsRef<Path>, scale: f32) -> Result<FloatImage, IoError> {
     let path = path.as_ref();
@@ -65,7 +68,9 @@ pub fn read_disparity_file(path: impl AsRef<Path>, scale: f32) -> Result<FloatIm
     let raw = match ext.as_str() {
         "pfm" => {
             let mut f = read_pfm(path)?;
-            f.data.iter_mut().filter(|v| !v.is_finite()).for_each(|v| *v = f32::NAN);
+            // Only a plausible disparity is a measurement: non-finite, negative and huge values
+            // (-1e30 / 1e30 sentinels) are unknown.
+            f.data.iter_mut().filter(|v| !(v.is_finite() && **v >= 0.0 && **v <= MAX_PLAUSIBLE)).for_each(|v| *v = f32::NAN);
             return Ok(f);
         }
         "pgm" => read_pgm(path)?,

@@ -153,6 +153,13 @@ pub enum ConfigError {
     EpsRange,
     /// A width, level count, radius or iteration count is zero.
     Zero,
+    /// More refinement iterations than [`MAX_ITERS`].
+    Iterations,
+    /// `mga_rope_base` is not a finite number above 1.
+    RopeBase,
+    /// `ufi_peak_separation` is 0 (the two proposals could coincide) or larger than
+    /// [`crate::arith::MAX_PROPOSAL_D8`].
+    PeakSeparation,
     /// A width is larger than the engine supports ([`MAX_WIDTH`]).
     TooWide,
     /// Unknown preset name.
@@ -170,12 +177,18 @@ impl fmt::Display for ConfigError {
             Self::QkDim => "mga_qk_dim must be a multiple of 4",
             Self::EpsRange => "need 0 < eps_min < eps_max",
             Self::Zero => "widths, corr_levels, corr_radius and iters must be >= 1",
+            Self::Iterations => "iters exceeds the supported maximum (64)",
+            Self::RopeBase => "mga_rope_base must be a finite number > 1",
+            Self::PeakSeparation => "ufi_peak_separation must be in 1..=127",
             Self::TooWide => "a channel width exceeds the supported maximum",
             Self::UnknownPreset => "unknown config name (raft-stereo-realtime, muir-fast, muir-slim)",
             Self::Version => "unsupported config_version",
         })
     }
 }
+
+/// Most refinement iterations a config may ask for.
+pub const MAX_ITERS: usize = 64;
 
 /// Largest channel count of any tensor the crate accepts (bounds the engine's per-pixel scratch).
 pub const MAX_WIDTH: usize = 1024;
@@ -270,7 +283,7 @@ impl Config {
         if self.mga && self.mga_qk_dim % 4 != 0 {
             return Err(ConfigError::QkDim);
         }
-        if !(self.eps_min > 0.0 && self.eps_min < self.eps_max) {
+        if !(self.eps_min > 0.0 && self.eps_min < self.eps_max && self.eps_max.is_finite()) {
             return Err(ConfigError::EpsRange);
         }
         let widths = [
@@ -310,8 +323,17 @@ impl Config {
         if self.motion_dim <= self.flow_channels || self.ufi_dim <= self.flow_channels {
             return Err(ConfigError::Zero);
         }
-        if self.corr_levels > 6 || self.corr_radius > 16 || self.iters > 64 {
+        if self.corr_levels > 6 || self.corr_radius > 16 {
             return Err(ConfigError::TooWide);
+        }
+        if self.iters > MAX_ITERS {
+            return Err(ConfigError::Iterations);
+        }
+        if self.mga && !(self.mga_rope_base.is_finite() && self.mga_rope_base > 1.0) {
+            return Err(ConfigError::RopeBase);
+        }
+        if self.ufi && (self.ufi_peak_separation == 0 || self.ufi_peak_separation > crate::arith::MAX_PROPOSAL_D8) {
+            return Err(ConfigError::PeakSeparation);
         }
         Ok(())
     }
@@ -402,6 +424,25 @@ mod tests {
         let mut c = Config::MUIR_SLIM;
         c.hidden_dim = 0;
         assert_eq!(c.validate(), Err(ConfigError::Zero));
+        // Hostile numbers that used to parse and run into garbage, or got the wrong message.
+        for (f, want) in [
+            ((|c: &mut Config| c.iters = 1000) as fn(&mut Config), ConfigError::Iterations),
+            (|c| c.iters = MAX_ITERS + 1, ConfigError::Iterations),
+            (|c| c.mga_rope_base = f32::NAN, ConfigError::RopeBase),
+            (|c| c.mga_rope_base = 1.0, ConfigError::RopeBase),
+            (|c| c.mga_rope_base = f32::INFINITY, ConfigError::RopeBase),
+            (|c| c.ufi_peak_separation = 0, ConfigError::PeakSeparation),
+            (|c| c.ufi_peak_separation = 500, ConfigError::PeakSeparation),
+            (|c| c.eps_max = f32::INFINITY, ConfigError::EpsRange),
+            (|c| c.eps_min = f32::NAN, ConfigError::EpsRange),
+        ] {
+            let mut c = Config::MUIR_SLIM;
+            f(&mut c);
+            assert_eq!(c.validate(), Err(want), "{c:?}");
+        }
+        let mut c = Config::MUIR_SLIM;
+        c.iters = MAX_ITERS;
+        assert_eq!(c.validate(), Ok(()));
     }
 
     #[test]
