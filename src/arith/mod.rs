@@ -425,4 +425,36 @@ mod tests {
         assert_eq!(u.quantize(-1.0), 0);
         assert_eq!(u.quantize(100.0), 255);
     }
+
+    /// Every format at the edges of its range (issue #19): a value just inside quantises without
+    /// wrapping, one beyond saturates, and `for_range` always holds the range it was asked for,
+    /// whatever the bit width and magnitude (wide frames: disparity-driven slots reach hundreds).
+    #[test]
+    fn formats_at_the_edges_of_their_range() {
+        let fixed = [
+            ("gate Q3.12", QFormat::i16(GATE_FRAC as i8), 8.0f32),
+            ("unit Q0.15", QFormat::i16(UNIT_FRAC as i8), 1.0),
+            ("flow Q7.8", QFormat::i16(FLOW_FRAC as i8), 128.0),
+            ("disparity Q10.5", QFormat::i16(DISP_FRAC as i8), 1024.0),
+            ("log Q4.11", QFormat::i16(LOG_FRAC as i8), 16.0),
+        ];
+        for (name, f, limit) in fixed {
+            let step = 2f32.powi(-(f.frac as i32));
+            assert_eq!(f.quantize(limit - step), f.qmax(), "{name}: largest code");
+            assert_eq!(f.quantize(-limit), f.qmin(), "{name}: most negative code");
+            assert_eq!(f.quantize(10.0 * limit), f.qmax(), "{name}: saturates above");
+            assert_eq!(f.quantize(-10.0 * limit), f.qmin(), "{name}: saturates below");
+            assert_eq!(f.sat(i64::MAX), f.qmax(), "{name}");
+            assert_eq!(f.sat(i64::MIN), f.qmin(), "{name}");
+        }
+        // The largest proposal's flow fits, and so does its negation.
+        assert!(((MAX_PROPOSAL_D8 as i64) << FLOW_FRAC) <= i16::MAX as i64);
+        for storage in [QFormat::i8(0), QFormat::u8(0), QFormat::i16(0)] {
+            for max in [1e-3f32, 0.37, 1.0, 7.9, 8.0, 39.4, 141.5, 600.0, 1.0e4] {
+                let f = storage.for_range(max);
+                assert!(f.to_f32(f.qmax()) >= max * 0.999, "{f:?} for {max}");
+                assert!(f.to_f32(f.qmax()) < 2.0 * max + 1e-6, "{f:?} for {max}: more than one bit of headroom");
+            }
+        }
+    }
 }
