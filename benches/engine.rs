@@ -179,7 +179,7 @@ fn iteration(c: &mut refine::Ctx<'_, '_, '_>, cfg: &Config) {
     refine::gru16(c);
     refine::gru16(c);
     refine::gru08(c);
-    refine::flow_head(c);
+    refine::flow_head(c, 0);
 }
 
 /// MGA state of a real frame after one iteration: keys, masked values, and the last pixel's

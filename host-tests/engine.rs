@@ -305,3 +305,32 @@ fn plan_ram_is_reported_per_preset() {
         assert!(b > 3 * a, "{}: {a} -> {b}", cfg.name);
     }
 }
+
+/// Adaptive iterations: a criterion every frame meets stops at `min_iters` with exactly the
+/// output of that many iterations; one no frame meets runs them all; the count is reported.
+#[test]
+fn early_stop_is_the_same_as_fewer_iterations() {
+    use muir::engine::EarlyStop;
+    let cfg = Config::MUIR_SLIM;
+    let (w, h) = (64, 48);
+    let blob = blob(&cfg);
+    let qm = QuantModel::parse(&blob).unwrap();
+    let (l, r) = pair(w, h, 5, false);
+    let (lv, rv) = (view(&l, w, h, false), view(&r, w, h, false));
+    let plan = Plan::new(&cfg, w, h);
+    let mut mem = arena(&plan);
+    let mut e = Engine::new(&qm, bytemuck::cast_slice_mut(&mut mem)).unwrap();
+    let mut run = |e: &mut Engine<'_, '_, '_>, iters: usize| {
+        let (mut d, mut u) = (vec![0i16; w * h], vec![0i16; w * h]);
+        e.run_iters(&lv, &rv, iters, &mut Output { disparity: &mut d, uncertainty: Some(&mut u) }).unwrap();
+        (d, u, e.last_iterations())
+    };
+    let (d3, u3, n3) = run(&mut e, 3);
+    assert_eq!(n3, 3);
+    e.set_early_stop(Some(EarlyStop { min_iters: 3, settled: u16::MAX, max_moving_per_mille: 0 }));
+    let (d, u, n) = run(&mut e, 7);
+    assert_eq!((n, &d, &u), (3, &d3, &u3), "everything settled: stop after min_iters");
+    e.set_early_stop(Some(EarlyStop { min_iters: 1, settled: 0, max_moving_per_mille: 0 }));
+    let (_, _, n) = run(&mut e, 5);
+    assert_eq!(n, 5, "nothing settles: every iteration runs");
+}

@@ -82,7 +82,7 @@ def run_model(model, left: np.ndarray, right: np.ndarray, iters=None, device="cp
     return out
 
 
-def run_fixed_engine(muir_bin: str, blob: str, scene_dir: str, iters=None, refine=True):
+def run_fixed_engine(muir_bin: str, blob: str, scene_dir: str, iters=None, refine=True, early_stop=None):
     """The Rust fixed-point engine on a scene's left.png/right.png (the files, as a user would run it):
     (disparity (H,W), dict(u=log-variance from the predicted error exp(u/2) the CLI writes))."""
     with tempfile.TemporaryDirectory() as tmp:
@@ -94,11 +94,17 @@ def run_fixed_engine(muir_bin: str, blob: str, scene_dir: str, iters=None, refin
             cmd += ["--iters", str(iters)]
         if not refine:
             cmd += ["--no-refine"]
+        if early_stop is not None:
+            cmd += ["--early-stop", str(early_stop[0]), "--settled", str(early_stop[1])]
         r = subprocess.run(cmd, capture_output=True, text=True)
         if r.returncode != 0:
             raise RuntimeError(f"{' '.join(cmd)} failed ({r.returncode}): {r.stderr.strip()}")
         d, e = D.read_pfm(disp), D.read_pfm(err)
-    return d, {"disp": d, "u": 2 * np.log(np.maximum(e, 1e-6)), "mask": None}
+    import re
+
+    m = re.search(r"(\d+)(?: of (\d+))? iters", r.stderr)
+    used = int(m.group(1)) if m else None
+    return d, {"disp": d, "u": 2 * np.log(np.maximum(e, 1e-6)), "mask": None, "iters_used": used}
 
 
 def sgbm_num_disp(dataset: str) -> int:
@@ -276,6 +282,9 @@ def summarise(per_scene: dict):
                 s[f"sgbm.{m}"] = v
         v, n = mean_over(sub, ("time_s",))
         s["time_s"] = v
+        v, n = mean_over(sub, ("iters_used",))
+        if n:
+            s["iters_used"] = v
         summ[g] = s
     return summ
 
@@ -361,6 +370,8 @@ def evaluate_method(name, scenes, root, predict, out_dir, vis_keys, info):
         dt = time.time() - t0
         r = scene_metrics(pred, sc)
         r["time_s"] = dt
+        if extra.get("iters_used") is not None:
+            r["iters_used"] = extra["iters_used"]
         r["size"] = f"{sc.left.shape[1]}x{sc.left.shape[0]}"
         r["mask_source"] = sc.mask_source
         curves = None
@@ -511,6 +522,10 @@ def _main(argv=None):
     p.add_argument("--datasets", default=None, help="comma list of data sets (overrides --set)")
     p.add_argument("--scenes", default=None, help="comma list of dataset/scene or scene names to keep")
     p.add_argument("--iters", type=int, default=None, help="refinement iterations (default: the config's)")
+    p.add_argument("--early-stop", type=int, default=None, metavar="PER_MILLE",
+                   help="--blob runs: adaptive iterations (muir run --early-stop), stop when at most this many "
+                        "per mille of the 1/8-grid pixels move by more than --settled px")
+    p.add_argument("--settled", type=float, default=0.25, help="with --early-stop: px at full resolution")
     p.add_argument("--no-refine", action="store_true",
                    help="the network's disparity without the full-resolution refinement (muir.fullres)")
     p.add_argument("--device", default="cpu")
@@ -591,7 +606,8 @@ def _main(argv=None):
                 "iters": a.iters or "the blob's config", "full_res_refinement": not a.no_refine}
 
         def predict_fixed(sc, path=path):
-            return run_fixed_engine(a.muir_bin, path, os.path.join(a.root, sc.dataset, sc.name), a.iters, not a.no_refine)
+            es = None if a.early_stop is None else (a.early_stop, a.settled)
+            return run_fixed_engine(a.muir_bin, path, os.path.join(a.root, sc.dataset, sc.name), a.iters, not a.no_refine, es)
 
         try:
             results.append(evaluate_method(name, scenes, a.root, predict_fixed, a.out, vis_keys, info))

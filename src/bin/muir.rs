@@ -114,6 +114,18 @@ struct RunArgs {
     /// disparity, on by default in both engines): the network's upsampled disparity as it is.
     #[arg(long)]
     no_refine: bool,
+    /// Fixed engine: adaptive iterations, stop once at most P per mille of the 1/8-grid pixels
+    /// still move by more than --settled px (full resolution) per iteration; --iters stays the
+    /// maximum.
+    #[arg(long, value_name = "P")]
+    early_stop: Option<u16>,
+    /// With --early-stop: the largest update (px at full resolution, rounded to 1/32 px) of a
+    /// settled pixel.
+    #[arg(long, value_name = "PX", default_value_t = 0.25, requires = "early_stop", value_parser = parse_tau)]
+    settled: f32,
+    /// With --early-stop: iterations always run.
+    #[arg(long, value_name = "N", default_value_t = 2, requires = "early_stop")]
+    min_iters: usize,
     /// Output: left-view disparity in pixels, full resolution, PFM. Without it the outputs go to
     /// --out-dir: disparity.pfm, disparity.png and, with MUD, error.pfm and error.png.
     #[arg(long, value_name = "OUT.pfm")]
@@ -336,6 +348,8 @@ struct Prediction {
     raw_disparity: Vec<f32>,
     /// Pixels rejected by --reject-above.
     rejected: Option<usize>,
+    /// Refinement iterations run.
+    iters_used: usize,
 }
 
 fn run(args: &RunArgs) -> Result<(), String> {
@@ -428,7 +442,16 @@ fn run(args: &RunArgs) -> Result<(), String> {
     };
     let spinner = spinner(&format!("{} {}x{}, {iters} iterations, {label} engine", config.name, left.width, left.height));
     let start = Instant::now();
-    let pred = engine.predict(&left.view(), &right.view(), iters, args.reject_above, !args.no_refine);
+    if args.early_stop.is_some() && engine_kind != Engine::Fixed {
+        return Err("--early-stop needs the fixed engine (--engine fixed or a .muirq model)".into());
+    }
+    let early = args.early_stop.map(|p| muir::engine::EarlyStop {
+        min_iters: args.min_iters,
+        // full-resolution px -> Q7.8 at 1/8: x 256 / 8 = x 32
+        settled: (args.settled * 32.0).round().clamp(0.0, u16::MAX as f32) as u16,
+        max_moving_per_mille: p.min(1000),
+    });
+    let pred = engine.predict(&left.view(), &right.view(), iters, args.reject_above, !args.no_refine, early);
     let network = start.elapsed();
     spinner.finish_and_clear();
     let pred = pred.map_err(|e| pair_err(&e))?;
@@ -498,7 +521,7 @@ enum Loaded {
 }
 
 impl Loaded {
-    fn predict(&self, left: &ImageView<'_>, right: &ImageView<'_>, iters: usize, tau: Option<f32>, refine: bool) -> Result<Prediction, String> {
+    fn predict(&self, left: &ImageView<'_>, right: &ImageView<'_>, iters: usize, tau: Option<f32>, refine: bool, early: Option<muir::engine::EarlyStop>) -> Result<Prediction, String> {
         match self {
             Loaded::Float(model) => {
                 let mut p = model.predict(left, right, Some(iters)).map_err(|e| e.to_string())?;
@@ -512,7 +535,7 @@ impl Loaded {
                     (Some(t), Some(e)) => Some(reject_float(&mut disparity, e, t)),
                     _ => None,
                 };
-                Ok(Prediction { width: p.width, height: p.height, disparity, error_px, raw_disparity, rejected })
+                Ok(Prediction { width: p.width, height: p.height, disparity, error_px, raw_disparity, rejected, iters_used: iters })
             }
             Loaded::Fixed(bytes) => {
                 let model = QuantModel::parse(bytes).map_err(|e| e.to_string())?;
@@ -521,10 +544,12 @@ impl Loaded {
                 let mut arena = vec![0u64; plan.ram_bytes.div_ceil(8)];
                 let mut engine = muir::engine::Engine::new(&model, bytemuck::cast_slice_mut(&mut arena)).map_err(|e| e.to_string())?;
                 engine.set_full_res_refinement(refine);
+                engine.set_early_stop(early);
                 let mut d = vec![0i16; w * h];
                 let mut u = vec![0i16; w * h];
                 let unc = if model.config().mud { Some(&mut u[..]) } else { None };
                 engine.run_iters(left, right, iters, &mut Output { disparity: &mut d, uncertainty: unc }).map_err(|e| e.to_string())?;
+                let used = engine.last_iterations();
                 let scale = 1.0 / (1u32 << muir::arith::DISP_FRAC) as f32;
                 let raw_disparity = d.iter().map(|v| *v as f32 * scale).collect();
                 let rejected = match tau {
@@ -536,7 +561,7 @@ impl Loaded {
                     let us = 1.0 / (1u32 << muir::arith::LOG_FRAC) as f32;
                     u.iter().map(|v| (0.5 * *v as f32 * us).exp()).collect()
                 });
-                Ok(Prediction { width: w, height: h, disparity, error_px, raw_disparity, rejected })
+                Ok(Prediction { width: w, height: h, disparity, error_px, raw_disparity, rejected, iters_used: used })
             }
         }
     }
@@ -570,8 +595,9 @@ fn summary(config: &Config, engine: &str, w: usize, h: usize, iters: usize, netw
         None => String::new(),
     };
     format!(
-        "muir: {} {w}x{h}, {iters} iters, {engine} engine: network {:.3} s; disparity min/median/max {stats}{bad}",
+        "muir: {} {w}x{h}, {} iters, {engine} engine: {:.3} s; disparity min/median/max {stats}{bad}",
         config.name,
+        if pred.iters_used == iters { format!("{iters}") } else { format!("{} of {iters}", pred.iters_used) },
         network.as_secs_f64()
     )
 }

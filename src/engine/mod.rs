@@ -106,11 +106,32 @@ pub struct Output<'o> {
     pub uncertainty: Option<&'o mut [i16]>,
 }
 
+/// Adaptive iterations: stop refining a frame once its disparity has settled.
+///
+/// After each iteration (from `min_iters` on) the engine counts the 1/8-grid pixels whose
+/// disparity moved by more than `settled` (Q7.8 at 1/8 resolution: 1/256 px there, 1/32 px at
+/// full resolution) and stops when they are at most `max_moving_per_mille` of the grid: an integer
+/// test, so host and target stop at the same iteration. A share rather than a mean, because a few
+/// pixels (occlusions, textureless patches) keep wandering after the rest has settled. The
+/// config's iteration count (or `run_iters`'s) stays the maximum.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct EarlyStop {
+    /// Iterations always run.
+    pub min_iters: usize,
+    /// Largest update (Q7.8 at 1/8 resolution) of a settled pixel.
+    pub settled: u16,
+    /// Largest share of unsettled pixels, per mille of the 1/8 grid.
+    pub max_moving_per_mille: u16,
+}
+
 /// The engine: a parsed model and working memory.
 pub struct Engine<'m, 'a, 'w> {
     model: &'m QuantModel<'a>,
     arena: &'w mut [u8],
     full_res: bool,
+    early_stop: Option<EarlyStop>,
+    last_iters: usize,
 }
 
 impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
@@ -120,7 +141,17 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
         if arena.as_ptr() as usize % 8 != 0 {
             return Err(EngineError::ArenaAlignment);
         }
-        Ok(Self { model, arena, full_res: true })
+        Ok(Self { model, arena, full_res: true, early_stop: None, last_iters: 0 })
+    }
+
+    /// Turns adaptive iterations on ([`EarlyStop`]) or off (`None`, the default: every iteration).
+    pub fn set_early_stop(&mut self, stop: Option<EarlyStop>) {
+        self.early_stop = stop;
+    }
+
+    /// Refinement iterations the last successful run used.
+    pub fn last_iterations(&self) -> usize {
+        self.last_iters
     }
 
     /// Turns the full-resolution refinement ([`crate::kernels::fullres`]) on (the default) or off
@@ -177,7 +208,9 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
         if cfg.mga {
             refine::mga_setup(&mut c);
         }
-        for _ in 0..iters {
+        let n8 = plan.grid.n8() as u64;
+        let mut used = 0;
+        for it in 0..iters {
             if cfg.mud {
                 refine::mud_pass(&mut c);
             }
@@ -187,8 +220,15 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
             refine::gru16(&mut c);
             refine::gru16(&mut c);
             refine::gru08(&mut c);
-            refine::flow_head(&mut c);
+            let moved = refine::flow_head(&mut c, self.early_stop.map_or(0, |s| s.settled));
+            used = it + 1;
+            if let Some(stop) = self.early_stop {
+                if used >= stop.min_iters && 1000 * moved as u64 <= stop.max_moving_per_mille as u64 * n8 {
+                    break;
+                }
+            }
         }
+        self.last_iters = used;
         if cfg.mud {
             refine::mud_pass(&mut c);
         }

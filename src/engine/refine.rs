@@ -722,7 +722,9 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
 }
 
 /// Disparity head: `flow += conv2(relu(conv1(net08)))`, row by row.
-pub fn flow_head(c: &mut Ctx<'_, '_, '_>) {
+/// Disparity head: adds its update to the disparity state. Returns how many 1/8-grid pixels moved
+/// by more than `settled` (Q7.8), the measure of [`super::EarlyStop`].
+pub fn flow_head(c: &mut Ctx<'_, '_, '_>, settled: u16) -> usize {
     let m = c.m;
     let cfg = *m.config();
     let g = c.g;
@@ -732,6 +734,7 @@ pub fn flow_head(c: &mut Ctx<'_, '_, '_>) {
     let mut rh = Ring::new(cv.i16(lay.head), 3, w * cfg.flow_head_dim, h8);
     let out = cv.i16(lay.head_out);
     let (p1, p2) = (conv(m, Flow1), conv(m, Flow2));
+    let mut moved = 0usize;
     for s in 0..h8 + 1 {
         if s < h8 {
             conv16(&p1, &[full(c.frame.net08, h8, w * hd, s, 3)], w, rh.push(), c.px.patch);
@@ -741,10 +744,13 @@ pub fn flow_head(c: &mut Ctx<'_, '_, '_>) {
             conv16(&p2, &[rows(&rh, r, 3)], w, &mut out[..w * fc], c.px.patch);
             for x in 0..w {
                 let i = (r * w + x) * fc;
-                c.st.flow[i] = sat_i16(c.st.flow[i] as i64 + out[x * fc] as i64);
+                let before = c.st.flow[i];
+                c.st.flow[i] = sat_i16(before as i64 + out[x * fc] as i64);
+                moved += ((c.st.flow[i] as i64 - before as i64).unsigned_abs() > settled as u64) as usize;
             }
         }
     }
+    moved
 }
 
 /// Upsampling: mask head and convex upsampling of disparity (Q10.5 px) and uncertainty (Q4.11)
