@@ -290,7 +290,19 @@ fn blob_realtime_small() -> Vec<u8> {
 fn rejection_threshold() {
     // exp(u/2) > tau  <=>  u > 2 ln tau;  tau = 1 px -> u > 0
     assert_eq!(u_threshold(1.0), 0);
-    assert_eq!(u_threshold(3.0), (2.0f64 * 3f64.ln() * 2048.0).round() as i16);
+    // The deterministic ln (the same code on host and target) matches exact math, every tau.
+    for i in 1..400 {
+        let tau = i as f32 * 0.05;
+        let exact = (2.0f64 * (tau as f64).ln() * 2048.0).round() as i32;
+        assert_eq!(u_threshold(tau) as i32, exact, "tau {tau}");
+    }
+    assert_eq!(u_threshold(f32::NAN), u_threshold(1e-6));
+    for u in (-20000i16..20000).step_by(997) {
+        let exact = (u as f64 / 4096.0).exp();
+        let got = muir::engine::predicted_error_px(u) as f64;
+        assert!((got / exact - 1.0).abs() < 5e-3, "u {u}: {got} vs {exact}");
+    }
+    assert_eq!(u_threshold(1e30), 32767);
     let mut d = vec![10i16, 20, 30];
     let kept = reject(&mut d, &[-5, 0, 7], 0);
     assert_eq!(kept, 2);

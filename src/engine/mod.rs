@@ -304,18 +304,58 @@ pub fn refine_ctx<'f, 'm, 'a>(m: &'m QuantModel<'a>, plan: &Plan, arena: &'f mut
 
 /// Rejection threshold for a predicted-error limit `tau` pixels: a pixel is rejected when its
 /// `u` (Q4.11) exceeds the returned value (`exp(u/2) > tau` <=> `u > 2 ln tau`). Setup-time
-/// conversion with `micromath` (not used inside the engine).
+/// conversion (not used inside the engine), the same integer on every target.
 pub fn u_threshold(tau_px: f32) -> i16 {
-    #[allow(unused_imports)]
-    use micromath::F32Ext;
-    let v = 2.0 * tau_px.max(1e-6).ln() * (1 << crate::arith::LOG_FRAC) as f32;
+    // The threshold must be the same integer on host and target: std's `ln` exists only on the
+    // host and micromath's is off by up to ~4 % (hundreds of LSB at tau = 0.05), so `ln_exact`
+    // uses only IEEE-exact operations. Rounding by hand for the same reason.
+    let tau = if tau_px.is_nan() || tau_px < 1e-6 { 1e-6 } else { tau_px };
+    let v = 2.0 * ln_exact(tau as f64) * (1 << crate::arith::LOG_FRAC) as f64;
     if v >= 32767.0 {
         32767
     } else if v <= -32768.0 {
         -32768
+    } else if v >= 0.0 {
+        (v + 0.5) as i16
     } else {
-        v.round() as i16
+        (v - 0.5) as i16
     }
+}
+
+/// Predicted error `exp(u / 2)` in pixels of an uncertainty value (Q4.11), for display and
+/// logging on a device without `std` (micromath's `exp`, within 0.5 % of the true value; the
+/// engine's decisions never use it: rejection compares integers, see [`u_threshold`]).
+pub fn predicted_error_px(u: i16) -> f32 {
+    micromath::F32Ext::exp(u as f32 / (2u32 << crate::arith::LOG_FRAC) as f32)
+}
+
+/// Natural logarithm of a positive, finite `x` from IEEE-exact operations only (exponent split,
+/// then `ln m = 2 atanh((m - 1) / (m + 1))` by its series for `m` in [1, 2)): the same bits on
+/// every target, within 1e-15 of the true value.
+fn ln_exact(x: f64) -> f64 {
+    if !(x > 0.0) || !x.is_finite() {
+        return if x == f64::INFINITY { f64::MAX } else { -745.0 };
+    }
+    let bits = x.to_bits();
+    let mut e = ((bits >> 52) & 0x7ff) as i64 - 1023;
+    let mut m = f64::from_bits((bits & 0x000f_ffff_ffff_ffff) | 0x3ff0_0000_0000_0000);
+    if e == -1023 {
+        // subnormal: renormalise
+        let y = x * (1u64 << 60) as f64;
+        let b = y.to_bits();
+        e = ((b >> 52) & 0x7ff) as i64 - 1023 - 60;
+        m = f64::from_bits((b & 0x000f_ffff_ffff_ffff) | 0x3ff0_0000_0000_0000);
+    }
+    let z = (m - 1.0) / (m + 1.0); // 0 <= z < 1/3
+    let z2 = z * z;
+    let (mut term, mut sum) = (z, 0.0);
+    let mut k = 1.0;
+    while k < 60.0 {
+        sum += term / k;
+        term *= z2;
+        k += 2.0;
+    }
+    e as f64 * core::f64::consts::LN_2 + 2.0 * sum
 }
 
 /// Marks rejected pixels: every disparity whose uncertainty exceeds `u_max` becomes

@@ -21,7 +21,7 @@ use cortex_m_rt::entry;
 use embedded_hal::digital::{ErrorKind, ErrorType, OutputPin};
 use muir::Config;
 use muir::engine::hal::run_with_busy_pin;
-use muir::engine::{Arena, Engine, Output, Plan, reject, u_threshold};
+use muir::engine::{Arena, Engine, Output, Plan, predicted_error_px, reject, u_threshold};
 use muir::format::{QuantModel, crc32};
 use muir::input::{ImageView, PixelFormat};
 use semihosting::{eprintln, println, process};
@@ -213,18 +213,21 @@ fn main() -> ! {
     );
 
     let (min, max) = disparity.iter().fold((i16::MAX, i16::MIN), |(a, b), &d| (a.min(d), b.max(d)));
+    // For the log only (micromath's exp; the result line above is integers).
+    let mean_err = uncertainty.iter().map(|&u| predicted_error_px(u)).sum::<f32>() / (W * H) as f32;
     let sum: i64 = disparity.iter().map(|&d| i64::from(d)).sum();
     // SAFETY: read-only system register.
     let part = (unsafe { (*cortex_m::peripheral::CPUID::PTR).base.read() } >> 4) & 0xFFF;
     println!(
         "muir-slim{} {W}x{H} on CPU part 0x{part:03x} (0xc27: Cortex-M7): disparity {}..{} px, mean {} px; \
-         {kept_1px} of {} pixels with predicted error <= 1 px; working RAM {} bytes (one static arena, no heap); \
+         {kept_1px} of {} pixels with predicted error <= 1 px (mean predicted error {:.2} px); working RAM {} bytes (one static arena, no heap); \
          model {} bytes read in place from flash; busy LED edges {}",
         if CONFIG.wide_trunk { " (wide trunk)" } else { "" },
         px(min.into()),
         px(max.into()),
         px(sum / (W * H) as i64),
         W * H,
+        mean_err,
         PLAN.ram_bytes,
         MODEL.0.len(),
         led.edges,
