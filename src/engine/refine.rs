@@ -481,8 +481,10 @@ fn qk_pixel(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, x: usize, y: usize, w:
     rope_pixel(out, x, y, phases);
 }
 
-fn rope_phases(m: &QuantModel<'_>) -> [u32; 512] {
-    let mut ph = [0u32; 512];
+/// One RoPE phase step per query/key channel pair: `mga_qk_dim / 2` of them, and a config's widths
+/// are at most `MAX_WIDTH` (checked when the config is validated).
+fn rope_phases(m: &QuantModel<'_>) -> [u32; crate::model::config::MAX_WIDTH / 2] {
+    let mut ph = [0u32; crate::model::config::MAX_WIDTH / 2];
     for (i, v) in ph.iter_mut().enumerate().take(m.config().mga_qk_dim / 2) {
         *v = m.rope_phase(i);
     }
