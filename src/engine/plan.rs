@@ -168,7 +168,7 @@ pub struct FullResBufs {
 /// Per-pixel scratch shared by all phases (patch gather, lookup window, attention accumulators).
 #[derive(Clone, Copy, Debug, Default)]
 pub struct PixelBufs {
-    /// Conv patch, i16 `max patch`.
+    /// Conv patches, i16 `2 x max patch` (two output pixels at a time).
     pub patch: Buf,
     /// Lookup window (i32) and prefix sums (i64).
     pub window: Buf,
@@ -246,7 +246,8 @@ impl Plan {
         };
         let qk = if cfg.mga { cfg.mga_qk_dim } else { 0 };
         let pixel = PixelBufs {
-            patch: b.take(2 * max_patch(cfg)),
+            // two i16 patches: convolutions run on pairs of output pixels (kernels::conv)
+            patch: b.take(4 * max_patch(cfg)),
             window: b.take(4 * window_len(cfg.corr_levels, cfg.corr_radius)),
             prefix: b.take(8 * (window_len(cfg.corr_levels, cfg.corr_radius) + 1)),
             peaks_row: b.take(4 * g.w8),

@@ -140,61 +140,114 @@ impl<'a, T> PartRows<'a, T> {
     }
 }
 
-/// Computes one output row (`out_width * cout` values) from the parts' input rows. `patch` is
-/// scratch of at least [`ConvParams::patch_len`] elements.
-pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, out: &mut OutRow<'_>, patch: &mut [T]) {
+/// Gathers the patch of output column `ox`: `[part][ky][kx][c]`, zeros outside the input.
+#[inline]
+fn gather<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, ox: usize, patch: &mut [T]) {
     let k = p.k;
     let pad = (k / 2) as isize;
-    let kl = p.patch_len();
-    let patch = &mut patch[..kl];
-    let w_out = p.out_width(w_in);
-    for ox in 0..w_out {
-        // Gather the patch: [part][ky][kx][c], zeros outside the input.
-        let mut o = 0;
-        for (part, &ch) in inputs.iter().zip(p.parts) {
-            for ky in 0..k {
-                let row = part.rows[ky];
-                for kx in 0..k {
-                    let ix = (ox * p.stride + kx) as isize - pad;
-                    let dst = &mut patch[o..o + ch];
-                    match row {
-                        Some(r) if ix >= 0 && (ix as usize) < w_in => {
-                            dst.copy_from_slice(&r[ix as usize * ch..(ix as usize + 1) * ch])
-                        }
-                        _ => dst.fill(T::default()),
-                    }
-                    o += ch;
+    let mut o = 0;
+    for (part, &ch) in inputs.iter().zip(p.parts) {
+        for ky in 0..k {
+            let row = part.rows[ky];
+            for kx in 0..k {
+                let ix = (ox * p.stride + kx) as isize - pad;
+                let dst = &mut patch[o..o + ch];
+                match row {
+                    Some(r) if ix >= 0 && (ix as usize) < w_in => dst.copy_from_slice(&r[ix as usize * ch..(ix as usize + 1) * ch]),
+                    _ => dst.fill(T::default()),
                 }
+                o += ch;
             }
         }
-        // Output channels in pairs: `dot2` loads each activation once for two weight rows.
+    }
+}
+
+/// Output channel `c` (and `c + 1` when `pair`) at one pixel from its gathered patch.
+#[inline]
+fn channels_at<T: Elem>(p: &ConvParams<'_>, patch: &[T], c: usize, pair: bool, out: &mut OutRow<'_>, at: usize) {
+    let (k, kl) = (p.k, p.patch_len());
+    if pair {
+        let (w0, w1) = (&p.weights[c * kl..(c + 1) * kl], &p.weights[(c + 1) * kl..(c + 2) * kl]);
+        let (mut s0, mut s1) = (0i64, 0i64);
+        let mut o = 0;
+        for (part, &ch) in p.parts.iter().enumerate() {
+            let n = ch * k * k;
+            let (d0, d1) = T::dot2(&w0[o..o + n], &w1[o..o + n], &patch[o..o + n]);
+            s0 = s0.saturating_add(part_sum(p, c, part, d0));
+            s1 = s1.saturating_add(part_sum(p, c + 1, part, d1));
+            o += n;
+        }
+        out.set(at + c, finish(p, c, s0));
+        out.set(at + c + 1, finish(p, c + 1, s1));
+    } else {
+        let w = &p.weights[c * kl..(c + 1) * kl];
+        let mut sum = 0i64;
+        let mut o = 0;
+        for (part, &ch) in p.parts.iter().enumerate() {
+            let n = ch * k * k;
+            sum = sum.saturating_add(part_sum(p, c, part, T::dot(&w[o..o + n], &patch[o..o + n])));
+            o += n;
+        }
+        out.set(at + c, finish(p, c, sum));
+    }
+}
+
+/// Computes one output row (`out_width * cout` values) from the parts' input rows. `patch` is
+/// scratch of at least [`ConvParams::patch_len`] elements; with room for two patches the row is
+/// computed two output pixels at a time, two output channels each ([`Elem::dot2x2`]: every
+/// weight and activation loaded and widened once for two products), else one pixel at a time.
+/// Same integers either way.
+pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, out: &mut OutRow<'_>, patch: &mut [T]) {
+    let k = p.k;
+    let kl = p.patch_len();
+    let w_out = p.out_width(w_in);
+    let mut ox = 0;
+    if patch.len() >= 2 * kl {
+        let (pa, rest) = patch.split_at_mut(kl);
+        let pb = &mut rest[..kl];
+        while ox + 2 <= w_out {
+            gather(p, inputs, w_in, ox, pa);
+            gather(p, inputs, w_in, ox + 1, pb);
+            let (at_a, at_b) = (ox * p.cout, (ox + 1) * p.cout);
+            let mut c = 0;
+            while c + 2 <= p.cout {
+                let (w0, w1) = (&p.weights[c * kl..(c + 1) * kl], &p.weights[(c + 1) * kl..(c + 2) * kl]);
+                let mut s = [0i64; 4];
+                let mut o = 0;
+                for (part, &ch) in p.parts.iter().enumerate() {
+                    let n = ch * k * k;
+                    let d = T::dot2x2(&w0[o..o + n], &w1[o..o + n], &pa[o..o + n], &pb[o..o + n]);
+                    s[0] = s[0].saturating_add(part_sum(p, c, part, d[0]));
+                    s[1] = s[1].saturating_add(part_sum(p, c + 1, part, d[1]));
+                    s[2] = s[2].saturating_add(part_sum(p, c, part, d[2]));
+                    s[3] = s[3].saturating_add(part_sum(p, c + 1, part, d[3]));
+                    o += n;
+                }
+                out.set(at_a + c, finish(p, c, s[0]));
+                out.set(at_a + c + 1, finish(p, c + 1, s[1]));
+                out.set(at_b + c, finish(p, c, s[2]));
+                out.set(at_b + c + 1, finish(p, c + 1, s[3]));
+                c += 2;
+            }
+            if c < p.cout {
+                channels_at(p, pa, c, false, out, at_a);
+                channels_at(p, pb, c, false, out, at_b);
+            }
+            ox += 2;
+        }
+    }
+    let patch = &mut patch[..kl];
+    while ox < w_out {
+        gather(p, inputs, w_in, ox, patch);
         let mut c = 0;
         while c + 2 <= p.cout {
-            let (w0, w1) = (&p.weights[c * kl..(c + 1) * kl], &p.weights[(c + 1) * kl..(c + 2) * kl]);
-            let (mut s0, mut s1) = (0i64, 0i64);
-            let mut o = 0;
-            for (part, &ch) in p.parts.iter().enumerate() {
-                let n = ch * k * k;
-                let (d0, d1) = T::dot2(&w0[o..o + n], &w1[o..o + n], &patch[o..o + n]);
-                s0 = s0.saturating_add(part_sum(p, c, part, d0));
-                s1 = s1.saturating_add(part_sum(p, c + 1, part, d1));
-                o += n;
-            }
-            out.set(ox * p.cout + c, finish(p, c, s0));
-            out.set(ox * p.cout + c + 1, finish(p, c + 1, s1));
+            channels_at(p, patch, c, true, out, ox * p.cout);
             c += 2;
         }
         if c < p.cout {
-            let w = &p.weights[c * kl..(c + 1) * kl];
-            let mut sum = 0i64;
-            let mut o = 0;
-            for (part, &ch) in p.parts.iter().enumerate() {
-                let n = ch * k * k;
-                sum = sum.saturating_add(part_sum(p, c, part, T::dot(&w[o..o + n], &patch[o..o + n])));
-                o += n;
-            }
-            out.set(ox * p.cout + c, finish(p, c, sum));
+            channels_at(p, patch, c, false, out, ox * p.cout);
         }
+        ox += 1;
     }
 }
 
@@ -267,9 +320,6 @@ mod tests {
         let mut a16 = vec![0i16; ho * wo * cout];
         let mut a8 = vec![0i8; ho * wo * cout];
         let mut au = vec![0u8; ho * wo * cout];
-        let mut b16 = a16.clone();
-        let mut b8 = a8.clone();
-        let mut bu = au.clone();
         {
             let mut o = match out {
                 Out::I16 => OutRow::I16(&mut a16),
@@ -278,7 +328,12 @@ mod tests {
             };
             conv_plain(&p, &refs, h, w, &mut o);
         }
-        let mut patch = vec![T::default(); p.patch_len()];
+        // One patch (pixel by pixel) and two (pixel pairs) must give the plain twin's integers.
+        for npatch in [1, 2] {
+        let mut b16 = vec![0i16; ho * wo * cout];
+        let mut b8 = vec![0i8; ho * wo * cout];
+        let mut bu = vec![0u8; ho * wo * cout];
+        let mut patch = vec![T::default(); npatch * p.patch_len()];
         for oy in 0..ho {
             let rows: Vec<PartRows<T>> =
                 tensors.iter().zip(parts).map(|(t, &c)| PartRows::of_tensor(t, h, w * c, oy, k, stride)).collect();
@@ -290,9 +345,10 @@ mod tests {
             };
             conv_row(&p, &rows, w, &mut o, &mut patch);
         }
-        assert_eq!(a16, b16);
-        assert_eq!(a8, b8);
-        assert_eq!(au, bu);
+        assert_eq!(a16, b16, "{npatch} patches");
+        assert_eq!(a8, b8, "{npatch} patches");
+        assert_eq!(au, bu, "{npatch} patches");
+        }
         let nonzero = a16.iter().any(|v| *v != 0) || a8.iter().any(|v| *v != 0) || au.iter().any(|v| *v != 0);
         assert!(nonzero, "all zero: k {k} s {stride} {parts:?} {post:?}");
     }

@@ -35,6 +35,15 @@ pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + 'static {
     fn dot2(w0: &[i8], w1: &[i8], x: &[Self]) -> (i64, i64) {
         (Self::dot(w0, x), Self::dot(w1, x))
     }
+    /// Two output channels at two output pixels (`[w0 . xa, w1 . xa, w0 . xb, w1 . xb]`): on
+    /// Cortex-M each weight and each activation is loaded and widened once for two products.
+    /// Same integers as four [`Elem::dot`]s.
+    #[inline]
+    fn dot2x2(w0: &[i8], w1: &[i8], xa: &[Self], xb: &[Self]) -> [i64; 4] {
+        let (a0, a1) = Self::dot2(w0, w1, xa);
+        let (b0, b1) = Self::dot2(w0, w1, xb);
+        [a0, a1, b0, b1]
+    }
     /// The slice as a conv output row.
     fn as_out(d: &mut [Self]) -> OutRow<'_>;
 }
@@ -97,6 +106,11 @@ impl Elem for u8 {
         let (a, b) = dsp::dot2(w0, w1, x);
         (a as i64, b as i64)
     }
+    #[cfg(all(target_arch = "arm", feature = "dsp"))]
+    #[inline]
+    fn dot2x2(w0: &[i8], w1: &[i8], xa: &[u8], xb: &[u8]) -> [i64; 4] {
+        dsp::dot2x2(w0, w1, xa, xb).map(|v| v as i64)
+    }
     fn as_out(d: &mut [u8]) -> OutRow<'_> {
         OutRow::U8(d)
     }
@@ -144,6 +158,19 @@ impl Elem for i16 {
             b += s1 as i64;
         }
         (a, b)
+    }
+    #[cfg(all(target_arch = "arm", feature = "dsp"))]
+    #[inline]
+    fn dot2x2(w0: &[i8], w1: &[i8], xa: &[i16], xb: &[i16]) -> [i64; 4] {
+        // Same 256-term chunks as `dot`, so every partial sum stays exact in i32.
+        let mut acc = [0i64; 4];
+        let chunks = w0.chunks(256).zip(w1.chunks(256)).zip(xa.chunks(256).zip(xb.chunks(256)));
+        for ((c0, c1), (ca, cb)) in chunks {
+            for (a, s) in acc.iter_mut().zip(dsp::dot2x2(c0, c1, ca, cb)) {
+                *a += s as i64;
+            }
+        }
+        acc
     }
     fn as_out(d: &mut [i16]) -> OutRow<'_> {
         OutRow::I16(d)
