@@ -11,7 +11,7 @@
 //! bits; the parts' results and the bias (same units) are summed, then rounded:
 //! `y = post(rshift_round(bias[c] + sum_p requantize(sum(w * x)_p, mult[c][p]), EXTRA_BITS))`.
 
-use super::{Elem, OutRow, dot_plain};
+use super::{Elem, OutRow, dot_plain, pair_index};
 use crate::arith::{Multiplier, lut, requantize};
 use crate::model::graph::PostOp;
 
@@ -162,6 +162,50 @@ fn gather<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, 
     }
 }
 
+/// Gathers the patches of output columns `ox` and `ox + 1` in the pair layout
+/// ([`super::pair_index`]), part by part (each part's `n` values form their own pair block of
+/// `2n`), so that [`Elem::dot2x2`] reads both with one pointer.
+#[inline]
+fn gather2<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, ox: usize, pair: &mut [T]) {
+    let k = p.k;
+    let pad = (k / 2) as isize;
+    let mut base = 0;
+    for (part, &ch) in inputs.iter().zip(p.parts) {
+        let n = ch * k * k;
+        let dst = &mut pair[2 * base..2 * (base + n)];
+        for (second, x) in [(false, ox), (true, ox + 1)] {
+            let mut j = 0;
+            for ky in 0..k {
+                let row = part.rows[ky];
+                for kx in 0..k {
+                    let ix = (x * p.stride + kx) as isize - pad;
+                    let src = match row {
+                        Some(r) if ix >= 0 && (ix as usize) < w_in => Some(&r[ix as usize * ch..(ix as usize + 1) * ch]),
+                        _ => None,
+                    };
+                    let mut e = 0;
+                    // Whole groups of four go as blocks; the rest value by value.
+                    while e < ch {
+                        let at = pair_index(n, j + e, second);
+                        if (j + e) % 4 == 0 && e + 4 <= ch && j + e + 4 <= n / 4 * 4 {
+                            match src {
+                                Some(s) => dst[at..at + 4].copy_from_slice(&s[e..e + 4]),
+                                None => dst[at..at + 4].fill(T::default()),
+                            }
+                            e += 4;
+                        } else {
+                            dst[at] = src.map_or(T::default(), |s| s[e]);
+                            e += 1;
+                        }
+                    }
+                    j += ch;
+                }
+            }
+        }
+        base += n;
+    }
+}
+
 /// Output channel `c` (and `c + 1` when `pair`) at one pixel from its gathered patch.
 #[inline]
 fn channels_at<T: Elem>(p: &ConvParams<'_>, patch: &[T], c: usize, pair: bool, out: &mut OutRow<'_>, at: usize) {
@@ -203,11 +247,9 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
     let w_out = p.out_width(w_in);
     let mut ox = 0;
     if patch.len() >= 2 * kl {
-        let (pa, rest) = patch.split_at_mut(kl);
-        let pb = &mut rest[..kl];
+        let pair = &mut patch[..2 * kl];
         while ox + 2 <= w_out {
-            gather(p, inputs, w_in, ox, pa);
-            gather(p, inputs, w_in, ox + 1, pb);
+            gather2(p, inputs, w_in, ox, pair);
             let (at_a, at_b) = (ox * p.cout, (ox + 1) * p.cout);
             let mut c = 0;
             while c + 2 <= p.cout {
@@ -216,7 +258,7 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
                 let mut o = 0;
                 for (part, &ch) in p.parts.iter().enumerate() {
                     let n = ch * k * k;
-                    let d = T::dot2x2(&w0[o..o + n], &w1[o..o + n], &pa[o..o + n], &pb[o..o + n]);
+                    let d = T::dot2x2(&w0[o..o + n], &w1[o..o + n], &pair[2 * o..2 * (o + n)]);
                     s[0] = s[0].saturating_add(part_sum(p, c, part, d[0]));
                     s[1] = s[1].saturating_add(part_sum(p, c + 1, part, d[1]));
                     s[2] = s[2].saturating_add(part_sum(p, c, part, d[2]));
@@ -230,8 +272,12 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
                 c += 2;
             }
             if c < p.cout {
-                channels_at(p, pa, c, false, out, at_a);
-                channels_at(p, pb, c, false, out, at_b);
+                // An odd last channel: the two pixels one at a time (their own patches again).
+                for (x, at) in [(ox, at_a), (ox + 1, at_b)] {
+                    let single = &mut pair[..kl];
+                    gather(p, inputs, w_in, x, single);
+                    channels_at(p, single, c, false, out, at);
+                }
             }
             ox += 2;
         }

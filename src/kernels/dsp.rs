@@ -180,34 +180,36 @@ pub fn dot2<T: Quad>(w0: &[i8], w1: &[i8], x: &[T]) -> (i32, i32) {
     (a0, a1)
 }
 
-/// Four dot products, two output channels at two output pixels (`w0 . xa`, `w1 . xa`, `w0 . xb`,
-/// `w1 . xb`): each weight quad and each activation quad is loaded and widened once for two
-/// products (2x2 register blocking, as CMSIS-NN's matrix kernels). Same chunking rule as [`dot`].
+/// Four dot products, two output channels at two output pixels: `[w0 . a, w1 . a, w0 . b,
+/// w1 . b]` with the two patches in `x` in the pair layout (`kernels::pair_index`). Each weight
+/// quad and each activation quad is loaded and widened once for two products (2x2 register
+/// blocking, as CMSIS-NN's matrix kernels), and one pointer reads both patches, so the four
+/// accumulators, three pointers and the widened operands fit the registers. Same chunking rule
+/// as [`dot`].
 #[inline]
-pub fn dot2x2<T: Quad>(w0: &[i8], w1: &[i8], xa: &[T], xb: &[T]) -> [i32; 4] {
-    let n = w0.len().min(w1.len()).min(xa.len()).min(xb.len());
+pub fn dot2x2<T: Quad>(w0: &[i8], w1: &[i8], x: &[T]) -> [i32; 4] {
+    let n = w0.len().min(w1.len()).min(x.len() / 2);
+    let q = n / 4;
     let (b0, b1) = (bytes_of_i8(w0), bytes_of_i8(w1));
     let (mut a0, mut a1, mut a2, mut a3) = (0i32, 0i32, 0i32, 0i32);
-    let mut i = 0;
-    while i + 4 <= n {
-        let (qa, qb) = (T::quad(xa, i), T::quad(xb, i));
-        let v0 = word(b0, i);
+    for g in 0..q {
+        let (qa, qb) = (T::quad(x, 8 * g), T::quad(x, 8 * g + 4));
+        let v0 = word(b0, 4 * g);
         let (w0l, w0h) = (sxtb16(v0), sxtb16_ror8(v0));
         a0 = smlad(w0h, qa.1, smlad(w0l, qa.0, a0));
         a2 = smlad(w0h, qb.1, smlad(w0l, qb.0, a2));
-        let v1 = word(b1, i);
+        let v1 = word(b1, 4 * g);
         let (w1l, w1h) = (sxtb16(v1), sxtb16_ror8(v1));
         a1 = smlad(w1h, qa.1, smlad(w1l, qa.0, a1));
         a3 = smlad(w1h, qb.1, smlad(w1l, qb.0, a3));
-        i += 4;
     }
-    while i < n {
-        let (xa_i, xb_i): (i32, i32) = (xa[i].into(), xb[i].into());
-        a0 += w0[i] as i32 * xa_i;
-        a1 += w1[i] as i32 * xa_i;
-        a2 += w0[i] as i32 * xb_i;
-        a3 += w1[i] as i32 * xb_i;
-        i += 1;
+    let (q4, r) = (4 * q, n - 4 * q);
+    for j in 0..r {
+        let (xa, xb): (i32, i32) = (x[2 * q4 + j].into(), x[2 * q4 + r + j].into());
+        a0 += w0[q4 + j] as i32 * xa;
+        a1 += w1[q4 + j] as i32 * xa;
+        a2 += w0[q4 + j] as i32 * xb;
+        a3 += w1[q4 + j] as i32 * xb;
     }
     [a0, a1, a2, a3]
 }

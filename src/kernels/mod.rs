@@ -35,14 +35,32 @@ pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + 'static {
     fn dot2(w0: &[i8], w1: &[i8], x: &[Self]) -> (i64, i64) {
         (Self::dot(w0, x), Self::dot(w1, x))
     }
-    /// Two output channels at two output pixels (`[w0 . xa, w1 . xa, w0 . xb, w1 . xb]`): on
-    /// Cortex-M each weight and each activation is loaded and widened once for two products.
-    /// Same integers as four [`Elem::dot`]s.
+    /// Two output channels at two output pixels: `[w0 . a, w1 . a, w0 . b, w1 . b]` where `a` and
+    /// `b` are two patches of `n = w0.len()` values stored in the [`pair_index`] layout in `x`
+    /// (`2n` values). On Cortex-M one pointer reads both patches and each weight and activation
+    /// is loaded and widened once for two products. Same integers as four [`Elem::dot`]s.
     #[inline]
-    fn dot2x2(w0: &[i8], w1: &[i8], xa: &[Self], xb: &[Self]) -> [i64; 4] {
-        let (a0, a1) = Self::dot2(w0, w1, xa);
-        let (b0, b1) = Self::dot2(w0, w1, xb);
-        [a0, a1, b0, b1]
+    fn dot2x2(w0: &[i8], w1: &[i8], x: &[Self]) -> [i64; 4] {
+        let n = w0.len().min(w1.len()).min(x.len() / 2);
+        let q4 = n / 4 * 4;
+        let mut acc = [0i64; 4];
+        let mut mac = |u: i8, v: i8, a: Self, b: Self| {
+            let (u, v, a, b) = (u as i64, v as i64, a.to_i32() as i64, b.to_i32() as i64);
+            acc[0] += u * a;
+            acc[1] += v * a;
+            acc[2] += u * b;
+            acc[3] += v * b;
+        };
+        for ((g0, g1), gx) in w0[..q4].chunks_exact(4).zip(w1[..q4].chunks_exact(4)).zip(x[..2 * q4].chunks_exact(8)) {
+            for t in 0..4 {
+                mac(g0[t], g1[t], gx[t], gx[4 + t]);
+            }
+        }
+        let r = n - q4;
+        for t in 0..r {
+            mac(w0[q4 + t], w1[q4 + t], x[2 * q4 + t], x[2 * q4 + r + t]);
+        }
+        acc
     }
     /// The slice as a conv output row.
     fn as_out(d: &mut [Self]) -> OutRow<'_>;
@@ -108,8 +126,8 @@ impl Elem for u8 {
     }
     #[cfg(all(target_arch = "arm", feature = "dsp"))]
     #[inline]
-    fn dot2x2(w0: &[i8], w1: &[i8], xa: &[u8], xb: &[u8]) -> [i64; 4] {
-        dsp::dot2x2(w0, w1, xa, xb).map(|v| v as i64)
+    fn dot2x2(w0: &[i8], w1: &[i8], x: &[u8]) -> [i64; 4] {
+        dsp::dot2x2(w0, w1, x).map(|v| v as i64)
     }
     fn as_out(d: &mut [u8]) -> OutRow<'_> {
         OutRow::U8(d)
@@ -161,12 +179,12 @@ impl Elem for i16 {
     }
     #[cfg(all(target_arch = "arm", feature = "dsp"))]
     #[inline]
-    fn dot2x2(w0: &[i8], w1: &[i8], xa: &[i16], xb: &[i16]) -> [i64; 4] {
-        // Same 256-term chunks as `dot`, so every partial sum stays exact in i32.
+    fn dot2x2(w0: &[i8], w1: &[i8], x: &[i16]) -> [i64; 4] {
+        // Same 256-term chunks as `dot` (a multiple of 4: each chunk of the pair layout is itself
+        // in the pair layout), so every partial sum stays exact in i32.
         let mut acc = [0i64; 4];
-        let chunks = w0.chunks(256).zip(w1.chunks(256)).zip(xa.chunks(256).zip(xb.chunks(256)));
-        for ((c0, c1), (ca, cb)) in chunks {
-            for (a, s) in acc.iter_mut().zip(dsp::dot2x2(c0, c1, ca, cb)) {
+        for ((c0, c1), xc) in w0.chunks(256).zip(w1.chunks(256)).zip(x.chunks(512)) {
+            for (a, s) in acc.iter_mut().zip(dsp::dot2x2(c0, c1, xc)) {
                 *a += s as i64;
             }
         }
@@ -174,6 +192,19 @@ impl Elem for i16 {
     }
     fn as_out(d: &mut [i16]) -> OutRow<'_> {
         OutRow::I16(d)
+    }
+}
+
+/// Where value `j` of the first (`second == false`) or second of two `n`-value patches sits in
+/// their pair layout: groups of four, `a[4g..4g+4]` then `b[4g..4g+4]`, then the `n % 4` last
+/// values of `a`, then those of `b`. One pointer walks both patches four values at a time.
+#[inline(always)]
+pub const fn pair_index(n: usize, j: usize, second: bool) -> usize {
+    let q = n / 4 * 4;
+    if j < q {
+        8 * (j / 4) + j % 4 + if second { 4 } else { 0 }
+    } else {
+        2 * q + (j - q) + if second { n - q } else { 0 }
     }
 }
 
