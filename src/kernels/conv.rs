@@ -186,11 +186,18 @@ fn gather2<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize,
                     let mut e = 0;
                     // Whole groups of four go as blocks; the rest value by value.
                     while e < ch {
-                        let at = pair_index(n, j + e, second);
+                        let at = pair_index(n, j + e, second, T::PAIR_SWAP);
                         if (j + e) % 4 == 0 && e + 4 <= ch && j + e + 4 <= n / 4 * 4 {
+                            let g = &mut dst[at..at + 4];
                             match src {
-                                Some(s) => dst[at..at + 4].copy_from_slice(&s[e..e + 4]),
-                                None => dst[at..at + 4].fill(T::default()),
+                                Some(s) if T::PAIR_SWAP => {
+                                    g[0] = s[e];
+                                    g[1] = s[e + 2];
+                                    g[2] = s[e + 1];
+                                    g[3] = s[e + 3];
+                                }
+                                Some(s) => g.copy_from_slice(&s[e..e + 4]),
+                                None => g.fill(T::default()),
                             }
                             e += 4;
                         } else {

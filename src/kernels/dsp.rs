@@ -101,6 +101,12 @@ fn smlad(a: u32, b: u32, acc: i32) -> i32 {
 pub trait Quad: Copy + Into<i32> {
     /// Values `i..i + 4` as (0 and 2, 1 and 3); the caller guarantees `i + 4 <= x.len()`.
     fn quad(x: &[Self], i: usize) -> (u32, u32);
+    /// The same from a group of the pair layout (`kernels::pair_index`), which stores 16-bit
+    /// values already as 0, 2, 1, 3.
+    #[inline(always)]
+    fn quad_paired(x: &[Self], i: usize) -> (u32, u32) {
+        Self::quad(x, i)
+    }
 }
 
 impl Quad for u8 {
@@ -124,6 +130,10 @@ impl Quad for i16 {
     fn quad(x: &[i16], i: usize) -> (u32, u32) {
         let (x01, x23) = (pair(x, i), pair(x, i + 2));
         (pkhbt(x01, x23), pkhtb(x01, x23))
+    }
+    #[inline(always)]
+    fn quad_paired(x: &[i16], i: usize) -> (u32, u32) {
+        (pair(x, i), pair(x, i + 2))
     }
 }
 
@@ -193,7 +203,7 @@ pub fn dot2x2<T: Quad>(w0: &[i8], w1: &[i8], x: &[T]) -> [i32; 4] {
     let (b0, b1) = (bytes_of_i8(w0), bytes_of_i8(w1));
     let (mut a0, mut a1, mut a2, mut a3) = (0i32, 0i32, 0i32, 0i32);
     for g in 0..q {
-        let (qa, qb) = (T::quad(x, 8 * g), T::quad(x, 8 * g + 4));
+        let (qa, qb) = (T::quad_paired(x, 8 * g), T::quad_paired(x, 8 * g + 4));
         let v0 = word(b0, 4 * g);
         let (w0l, w0h) = (sxtb16(v0), sxtb16_ror8(v0));
         a0 = smlad(w0h, qa.1, smlad(w0l, qa.0, a0));

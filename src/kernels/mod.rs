@@ -35,6 +35,8 @@ pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + 'static {
     fn dot2(w0: &[i8], w1: &[i8], x: &[Self]) -> (i64, i64) {
         (Self::dot(w0, x), Self::dot(w1, x))
     }
+    /// Whether the pair layout stores groups as values 0, 2, 1, 3 ([`pair_index`]).
+    const PAIR_SWAP: bool = false;
     /// Two output channels at two output pixels: `[w0 . a, w1 . a, w0 . b, w1 . b]` where `a` and
     /// `b` are two patches of `n = w0.len()` values stored in the [`pair_index`] layout in `x`
     /// (`2n` values). On Cortex-M one pointer reads both patches and each weight and activation
@@ -53,7 +55,8 @@ pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + 'static {
         };
         for ((g0, g1), gx) in w0[..q4].chunks_exact(4).zip(w1[..q4].chunks_exact(4)).zip(x[..2 * q4].chunks_exact(8)) {
             for t in 0..4 {
-                mac(g0[t], g1[t], gx[t], gx[4 + t]);
+                let s = if Self::PAIR_SWAP && (t == 1 || t == 2) { 3 - t } else { t };
+                mac(g0[t], g1[t], gx[s], gx[4 + s]);
             }
         }
         let r = n - q4;
@@ -136,6 +139,7 @@ impl Elem for u8 {
 
 impl Elem for i16 {
     const BITS: u8 = 16;
+    const PAIR_SWAP: bool = true;
     const STORAGE: crate::arith::QFormat = crate::arith::QFormat::i16(0);
     #[inline(always)]
     fn to_i32(self) -> i32 {
@@ -197,12 +201,16 @@ impl Elem for i16 {
 
 /// Where value `j` of the first (`second == false`) or second of two `n`-value patches sits in
 /// their pair layout: groups of four, `a[4g..4g+4]` then `b[4g..4g+4]`, then the `n % 4` last
-/// values of `a`, then those of `b`. One pointer walks both patches four values at a time.
+/// values of `a`, then those of `b`. One pointer walks both patches four values at a time. With
+/// `swap` (16-bit activations) each group is stored as values 0, 2, 1, 3: the halfword pairs
+/// `SMLAD` takes against `SXTB16`-widened weights, loaded as words without re-packing.
 #[inline(always)]
-pub const fn pair_index(n: usize, j: usize, second: bool) -> usize {
+pub const fn pair_index(n: usize, j: usize, second: bool, swap: bool) -> usize {
     let q = n / 4 * 4;
     if j < q {
-        8 * (j / 4) + j % 4 + if second { 4 } else { 0 }
+        let t = j % 4;
+        let t = if swap && (t == 1 || t == 2) { 3 - t } else { t };
+        8 * (j / 4) + t + if second { 4 } else { 0 }
     } else {
         2 * q + (j - q) + if second { n - q } else { 0 }
     }
