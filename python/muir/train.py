@@ -365,8 +365,10 @@ def build_parser():
     p.add_argument("--budget-probe", type=int, default=30,
                    help="with --time-budget: steps timed before the step count is fitted (the first 5 are "
                         "not counted: allocator and cuDNN warm-up)")
-    p.add_argument("--ckpt-every", type=int, default=500, help="steps between checkpoints/snapshots")
-    p.add_argument("--log-every", type=int, default=10, help="steps between progress lines / CSV rows")
+    p.add_argument("--ckpt-every", type=int, default=None,
+                   help="steps between checkpoints/snapshots (default 500; --resume keeps the run's)")
+    p.add_argument("--log-every", type=int, default=None,
+                   help="steps between progress lines / CSV rows (default 10; --resume keeps the run's)")
     p.add_argument("--resume", nargs="?", const="auto", default=None,
                    help="continue from OUT/ckpt_last.pt (or the given checkpoint)")
     p.add_argument("--init", default=None, help="start from these weights (.safetensors or ckpt .pt)")
@@ -437,6 +439,15 @@ def main(argv=None):
             if getattr(args, k) != v:
                 print(f"note: --resume keeps {k}={v} (command said {getattr(args, k)})", file=sys.stderr)
             setattr(args, k, v)
+
+    # Cadences: given on the command line, else the run's (a resume keeps its snapshot grid), else defaults.
+    stored_cadence = state.get("cadence", {}) if state is not None else {}
+    for k, default in (("ckpt_every", 500), ("log_every", 10)):
+        if getattr(args, k) is None:
+            setattr(args, k, int(stored_cadence.get(k, default)))
+        if getattr(args, k) < 1:
+            print(f"error: --{k.replace('_', '-')} must be at least 1", file=sys.stderr)
+            return 2
 
     tuner = None
     if args.threads == "auto":
@@ -544,6 +555,7 @@ def main(argv=None):
             "scheduler": sched.state_dict(),
             "step": step_now,
             "args": {k: getattr(args, k) for k in SCHEDULE_KEYS},
+            "cadence": {"ckpt_every": args.ckpt_every, "log_every": args.log_every},
             "config_json": cfg.to_json(),
             "rng": {
                 "torch": torch.get_rng_state(),
@@ -559,7 +571,9 @@ def main(argv=None):
     meta_base = {
         "command": cmdline,
         "git_commit": git_commit(),
-        "train_data": "muir.synth (synthetic layered scenes), seed %d" % args.seed,
+        "train_data": ("muir.synth (synthetic layered scenes), seed %d" % args.seed)
+        + (f"; {100 * args.real_frac:.0f}% of samples real GT crops of the training scenes of muir.split"
+           if args.real_frac > 0 else ""),
         "crop": f"{h}x{w}",
         "batch": str(args.batch),
         "lr": str(args.lr),
