@@ -4,7 +4,7 @@
 #   1. host tests (unit, parity with the PyTorch twin's golden files, fixed vs float on real pairs,
 #      streaming vs plain fixed-point engine, model files, CLI), optimised ([profile.test]);
 #   2. the library without std for thumbv7em-none-eabihf (Cortex-M4F/M7);
-#   3. the PyTorch twin's own tests (python/tests: the split, the refinement's integer helpers, a
+#   3. the PyTorch twin's own tests (python/tests: the split, the refinement's integer helpers, ONNX export vs the twin, a
 #      data-parallel training step under torchrun against the single-process step);
 #   4. the QEMU firmware in boards/ (bit-exact with the host), u8 and wide-trunk blobs, when the
 #      board crate exists.
@@ -25,7 +25,8 @@ fi
 
 echo "== Python packages of the twin (torch CPU, numpy, OpenCV, ...; python/pyproject.toml)"
 python3 -m pip install -q --disable-pip-version-check "torch>=2.2" "numpy>=1.24" "opencv-python-headless>=4.8" \
-    "pillow>=10.0" "matplotlib>=3.7" "safetensors>=0.4" "pytest>=7.4"
+    "pillow>=10.0" "matplotlib>=3.7" "safetensors>=0.4" "pytest>=7.4" \
+    "onnx>=1.15" "onnxruntime>=1.17"
 
 echo "== host tests"
 cargo test --all-targets --no-fail-fast 2>&1 | tee /tmp/muir-test.log
