@@ -42,6 +42,10 @@ pub fn weight(l: i64, max: i64, m: Multiplier) -> i32 {
 
 /// Softmax statistics of query `q` over all keys (`keys`: `n x c` HWC): `(max, sum of weights)`.
 pub fn query_stats(q: &[i16], keys: &[i16], m: Multiplier) -> (i64, i64) {
+    #[cfg(all(target_arch = "x86_64", feature = "std"))]
+    if let Some(s) = super::x86::query_stats(q, keys, m) {
+        return s;
+    }
     let c = q.len();
     let max = keys.chunks_exact(c).map(|k| logit(q, k)).max().unwrap_or(0);
     let sum = keys.chunks_exact(c).map(|k| weight(logit(q, k), max, m) as i64).sum();
@@ -55,13 +59,19 @@ pub fn aggregate_query(q: &[i16], keys: &[i16], values: &[i16], cv: usize, stats
     let c = q.len();
     let acc = &mut acc[..cv];
     acc.fill(0);
-    for (k, v) in keys.chunks_exact(c).zip(values.chunks_exact(cv)) {
-        let e = weight(logit(q, k), stats.0, m) as i64;
-        if e == 0 {
-            continue;
-        }
-        for (a, v) in acc.iter_mut().zip(v) {
-            *a += e * *v as i64;
+    #[cfg(all(target_arch = "x86_64", feature = "std"))]
+    let done = super::x86::aggregate(q, keys, values, cv, stats.0, m, acc);
+    #[cfg(not(all(target_arch = "x86_64", feature = "std")))]
+    let done = false;
+    if !done {
+        for (k, v) in keys.chunks_exact(c).zip(values.chunks_exact(cv)) {
+            let e = weight(logit(q, k), stats.0, m) as i64;
+            if e == 0 {
+                continue;
+            }
+            for (a, v) in acc.iter_mut().zip(v) {
+                *a += e * *v as i64;
+            }
         }
     }
     for (o, a) in out.iter_mut().zip(acc.iter()) {

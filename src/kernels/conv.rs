@@ -183,6 +183,23 @@ fn gather2<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize,
                         Some(r) if ix >= 0 && (ix as usize) < w_in => Some(&r[ix as usize * ch..(ix as usize + 1) * ch]),
                         _ => None,
                     };
+                    if ch % 4 == 0 {
+                        // Every group whole (`j` and `n` are multiples of 4): group `g` of these
+                        // values goes to `2 j + 8 g` (plus 4 for the second patch).
+                        let d = dst[2 * j..2 * (j + ch)].chunks_exact_mut(8).map(|d| &mut d[if second { 4 } else { 0 }..][..4]);
+                        match src {
+                            Some(s) if T::PAIR_SWAP => d.zip(s.chunks_exact(4)).for_each(|(g, s)| {
+                                g[0] = s[0];
+                                g[1] = s[2];
+                                g[2] = s[1];
+                                g[3] = s[3];
+                            }),
+                            Some(s) => d.zip(s.chunks_exact(4)).for_each(|(g, s)| g.copy_from_slice(s)),
+                            None => d.for_each(|g| g.fill(T::default())),
+                        }
+                        j += ch;
+                        continue;
+                    }
                     let mut e = 0;
                     // Whole groups of four go as blocks; the rest value by value.
                     while e < ch {
@@ -421,6 +438,10 @@ mod tests {
             check(|r| r.i8() as u8, 3, 2, &[6], 5, post, Out::I16);
             check(|r| r.i8() as u8, 1, 2, &[4], 3, post, Out::U8);
             check(|r| r.i16(), 7, 2, &[3], 4, post, Out::U8);
+            // Parts of whole groups of four (and mixed), as in the shipped models.
+            check(|r| r.i16(), 3, 1, &[8, 1, 16], 5, post, Out::I16);
+            check(|r| r.i8() as u8, 3, 1, &[32, 12], 4, post, Out::U8);
+            check(|r| r.i8(), 3, 2, &[4, 20], 3, post, Out::I8);
         }
     }
 }

@@ -13,9 +13,13 @@ pub mod corr;
 pub mod dsp;
 pub mod eltwise;
 pub mod fullres;
+#[cfg(all(target_arch = "arm", feature = "mve"))]
+pub mod mve;
 pub mod norm;
 pub mod resample;
 pub mod upsample;
+#[cfg(all(target_arch = "x86_64", feature = "std"))]
+pub mod x86;
 
 /// Activation storage type: `i8`, `u8` or `i16`.
 pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + 'static {
@@ -33,6 +37,10 @@ pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + 'static {
     /// activations are loaded and widened once for both. Same integers as two [`Elem::dot`]s.
     #[inline]
     fn dot2(w0: &[i8], w1: &[i8], x: &[Self]) -> (i64, i64) {
+        #[cfg(all(target_arch = "x86_64", feature = "std"))]
+        if let Some(d) = x86::dot2(w0, w1, x) {
+            return d;
+        }
         (Self::dot(w0, x), Self::dot(w1, x))
     }
     /// Whether the pair layout stores groups as values 0, 2, 1, 3 ([`pair_index`]).
@@ -43,6 +51,10 @@ pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + 'static {
     /// is loaded and widened once for two products. Same integers as four [`Elem::dot`]s.
     #[inline]
     fn dot2x2(w0: &[i8], w1: &[i8], x: &[Self]) -> [i64; 4] {
+        #[cfg(all(target_arch = "x86_64", feature = "std"))]
+        if let Some(d) = x86::dot2x2(w0, w1, x) {
+            return d;
+        }
         let n = w0.len().min(w1.len()).min(x.len() / 2);
         let q4 = n / 4 * 4;
         let mut acc = [0i64; 4];
@@ -82,8 +94,14 @@ impl Elem for i8 {
     }
     #[inline]
     fn dot(w: &[i8], x: &[i8]) -> i64 {
-        #[cfg(all(target_arch = "arm", feature = "dsp"))]
+        #[cfg(all(target_arch = "arm", feature = "mve"))]
+        return mve::dot(w, x) as i64;
+        #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
         return dsp::dot(w, x) as i64;
+        #[cfg(all(target_arch = "x86_64", feature = "std"))]
+        if let Some(s) = x86::dot(w, x) {
+            return s;
+        }
         // |w*x| <= 2^14, so an i32 sum is exact for up to 2^17 terms (every layer has fewer).
         #[allow(unreachable_code)]
         let mut acc = 0i32;
@@ -110,8 +128,14 @@ impl Elem for u8 {
     }
     #[inline]
     fn dot(w: &[i8], x: &[u8]) -> i64 {
-        #[cfg(all(target_arch = "arm", feature = "dsp"))]
+        #[cfg(all(target_arch = "arm", feature = "mve"))]
+        return mve::dot(w, x) as i64;
+        #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
         return dsp::dot(w, x) as i64;
+        #[cfg(all(target_arch = "x86_64", feature = "std"))]
+        if let Some(s) = x86::dot(w, x) {
+            return s;
+        }
         // |w*x| <= 128 * 255 < 2^15, so an i32 sum is exact for up to 2^16 terms (every layer
         // has fewer).
         #[allow(unreachable_code)]
@@ -127,10 +151,15 @@ impl Elem for u8 {
         let (a, b) = dsp::dot2(w0, w1, x);
         (a as i64, b as i64)
     }
-    #[cfg(all(target_arch = "arm", feature = "dsp"))]
+    #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
     #[inline]
     fn dot2x2(w0: &[i8], w1: &[i8], x: &[u8]) -> [i64; 4] {
         dsp::dot2x2(w0, w1, x).map(|v| v as i64)
+    }
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    #[inline]
+    fn dot2x2(w0: &[i8], w1: &[i8], x: &[u8]) -> [i64; 4] {
+        mve::dot2x2(w0, w1, x).map(|v| v as i64)
     }
     fn as_out(d: &mut [u8]) -> OutRow<'_> {
         OutRow::U8(d)
@@ -151,13 +180,19 @@ impl Elem for i16 {
     }
     #[inline]
     fn dot(w: &[i8], x: &[i16]) -> i64 {
+        #[cfg(all(target_arch = "x86_64", feature = "std"))]
+        if let Some(s) = x86::dot(w, x) {
+            return s;
+        }
         // |w*x| <= 2^22: chunks of 256 terms sum exactly in i32; chunk sums add in i64. Integer
         // addition is exact, so the result equals the plain i64 sum.
         let mut acc = 0i64;
         for (wc, xc) in w.chunks(256).zip(x.chunks(256)) {
-            #[cfg(all(target_arch = "arm", feature = "dsp"))]
+            #[cfg(all(target_arch = "arm", feature = "mve"))]
+            let s = mve::dot(wc, xc);
+            #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
             let s = dsp::dot(wc, xc);
-            #[cfg(not(all(target_arch = "arm", feature = "dsp")))]
+            #[cfg(not(all(target_arch = "arm", any(feature = "dsp", feature = "mve"))))]
             let s = {
                 let mut s = 0i32;
                 for (a, b) in wc.iter().zip(xc) {
@@ -181,14 +216,18 @@ impl Elem for i16 {
         }
         (a, b)
     }
-    #[cfg(all(target_arch = "arm", feature = "dsp"))]
+    #[cfg(all(target_arch = "arm", any(feature = "dsp", feature = "mve")))]
     #[inline]
     fn dot2x2(w0: &[i8], w1: &[i8], x: &[i16]) -> [i64; 4] {
         // Same 256-term chunks as `dot` (a multiple of 4: each chunk of the pair layout is itself
         // in the pair layout), so every partial sum stays exact in i32.
         let mut acc = [0i64; 4];
         for ((c0, c1), xc) in w0.chunks(256).zip(w1.chunks(256)).zip(x.chunks(512)) {
-            for (a, s) in acc.iter_mut().zip(dsp::dot2x2(c0, c1, xc)) {
+            #[cfg(feature = "mve")]
+            let d = mve::dot2x2(c0, c1, xc);
+            #[cfg(not(feature = "mve"))]
+            let d = dsp::dot2x2(c0, c1, xc);
+            for (a, s) in acc.iter_mut().zip(d) {
                 *a += s as i64;
             }
         }

@@ -1,0 +1,253 @@
+//! Dot products with int8 weights on Helium, the M-profile Vector Extension of Armv8.1-M
+//! (Cortex-M55/M85), feature `mve` (build with `-C target-cpu=cortex-m55`).
+//!
+//! A Q register holds eight 16-bit lanes. `VLDRB.S16` loads eight int8 weights and widens them
+//! to 16 bits, `VLDRB.U16` / `VLDRB.S16` eight u8 / i8 activations; `VMLADAVA.S16` (written
+//! `vmlava.s16`) multiplies the eight lane pairs and adds all eight products to a 32-bit general
+//! register: eight MACs per instruction. Loops are low-overhead tail-predicated loops
+//! (`DLSTP`/`LETP`): the last iteration runs with only the remaining lanes enabled (disabled lanes
+//! are neither loaded nor added), so no scalar tail is needed for whole groups, and `LETP` resets
+//! `FPSCR.LTPSIZE` to 4 on exit (no predication leaks into compiler-generated vector code).
+//!
+//! [`dot2x2`] reads the two patches of the pair layout (`kernels::pair_index`: groups of four of
+//! patch `a`, then of patch `b`, alternating; 16-bit activations store each group as values 0, 2,
+//! 1, 3) with gather loads (`VLDRB.U16 Qd, [Rn, Qm]`, `VLDRH.U16 Qd, [Rn, Qm]`): the offset
+//! vectors pick two groups of `a` (and of `b`) into lanes 0..8 in natural order, undoing the
+//! 16-bit swap, so the weights are plain contiguous loads. Per 32 MACs: two gathers, two weight
+//! loads, four `VMLADAVA`, one pointer add and `LETP` (10 instructions; the `dsp` loop
+//! needs 56 for u8 activations). The `n % 4` values after the last whole group: plain Rust.
+//!
+//! The results are the same integers as the portable loops in `kernels`: every product is exact
+//! in 32 bits and the accumulators are 32-bit, with the same bounds as there and in `dsp` (u8 and
+//! i8 activations: `|w x| < 2^15`, fewer than 2^16 terms; i16 activations: chunks of at most 256
+//! terms, `|w x| <= 2^22`, which the caller in `kernels` makes), so no partial sum overflows and
+//! the summation order does not matter. The QEMU firmware `boards/qemu-mps3-m55` checks the whole
+//! frame against the host engine, and these functions against the portable ones on the target
+//! (`boards/qemu-mps3-m55/src/bin/kernels.rs`): the host cannot run them.
+//!
+//! Register constraints of the encodings: the widening loads take a low base register (r0-r7),
+//! `VMLADAVA` an even destination register, hence the fixed registers below.
+
+use core::arch::asm;
+
+/// Gather offsets (bytes) of one iteration of [`dot2x2`] over u8 activations: lanes 0..8 take
+/// groups `g` and `g + 1` of patch `a`, the second eight those of patch `b`.
+static PAIR_GATHER_U8: [u16; 16] = [0, 1, 2, 3, 8, 9, 10, 11, 4, 5, 6, 7, 12, 13, 14, 15];
+
+/// The same for i16 activations (bytes; each group is stored as values 0, 2, 1, 3, and the
+/// offsets put them back in order 0, 1, 2, 3).
+static PAIR_GATHER_I16: [u16; 16] = [0, 4, 2, 6, 16, 20, 18, 22, 8, 12, 10, 14, 24, 28, 26, 30];
+
+/// An activation type with a Helium kernel.
+pub trait Lanes: Copy + Into<i32> {
+    /// `sum w[i] * x[i]` over `i < n`, `n >= 1`, `n <= w.len()`, `n <= x.len()`.
+    ///
+    /// # Safety
+    /// The bounds above.
+    unsafe fn dot_n(w: &[i8], x: &[Self], n: usize) -> i32;
+}
+
+/// An activation type with a Helium [`dot2x2`] (the types of convolution inputs).
+pub trait PairLanes: Lanes {
+    /// The four products of [`dot2x2`] over the `q4 >= 4` (a multiple of 4) values of each patch
+    /// that sit in whole groups.
+    ///
+    /// # Safety
+    /// `q4 <= w0.len()`, `q4 <= w1.len()`, `2 * q4 <= x.len()`, `q4 % 4 == 0`, `q4 > 0`.
+    unsafe fn dot2x2_groups(w0: &[i8], w1: &[i8], x: &[Self], q4: usize) -> [i32; 4];
+}
+
+impl Lanes for u8 {
+    #[inline(always)]
+    unsafe fn dot_n(w: &[i8], x: &[u8], n: usize) -> i32 {
+        let mut acc = 0i32;
+        // SAFETY: the loop reads `n` bytes of each slice (tail-predicated); registers as listed.
+        unsafe {
+            asm!(
+                "dlstp.16 lr, {n}",
+                "2:",
+                "vldrb.u16 q0, [r1], #8",
+                "vldrb.s16 q1, [r3], #8",
+                "vmlava.s16 r0, q0, q1",
+                "letp lr, 2b",
+                n = in(reg) n,
+                inout("r0") acc,
+                inout("r1") x.as_ptr() => _,
+                inout("r3") w.as_ptr() => _,
+                out("lr") _,
+                out("d0") _, out("d1") _, out("d2") _, out("d3") _,
+                options(nostack, readonly),
+            );
+        }
+        acc
+    }
+}
+
+impl PairLanes for u8 {
+    #[inline(always)]
+    unsafe fn dot2x2_groups(w0: &[i8], w1: &[i8], x: &[u8], q4: usize) -> [i32; 4] {
+        let [mut a0, mut a1, mut a2, mut a3] = [0i32; 4];
+        // SAFETY: `q4` lanes (tail-predicated) of each weight row and the gathered groups of both
+        // patches, all inside the slices by the caller's bounds.
+        unsafe {
+            asm!(
+                "vldrh.u16 q3, [{offs}]",
+                "vldrh.u16 q4, [{offs}, #16]",
+                "dlstp.16 lr, {n}",
+                "2:",
+                "vldrb.u16 q0, [{x}, q3]",
+                "vldrb.u16 q1, [{x}, q4]",
+                "vldrb.s16 q2, [r1], #8",
+                "vmlava.s16 r0, q0, q2",
+                "vmlava.s16 r4, q1, q2",
+                "vldrb.s16 q2, [r3], #8",
+                "vmlava.s16 r2, q0, q2",
+                "vmlava.s16 r8, q1, q2",
+                "adds {x}, #16",
+                "letp lr, 2b",
+                offs = in(reg) PAIR_GATHER_U8.as_ptr(),
+                n = in(reg) q4,
+                x = inout(reg) x.as_ptr() => _,
+                inout("r1") w0.as_ptr() => _,
+                inout("r3") w1.as_ptr() => _,
+                inout("r0") a0,
+                inout("r2") a1,
+                inout("r4") a2,
+                inout("r8") a3,
+                out("lr") _,
+                out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _,
+                out("d6") _, out("d7") _, out("d8") _, out("d9") _,
+                options(nostack, readonly),
+            );
+        }
+        [a0, a1, a2, a3]
+    }
+}
+
+impl Lanes for i8 {
+    #[inline(always)]
+    unsafe fn dot_n(w: &[i8], x: &[i8], n: usize) -> i32 {
+        let mut acc = 0i32;
+        // SAFETY: as for u8; sixteen i8 x i8 products per `VMLADAVA.S8`.
+        unsafe {
+            asm!(
+                "dlstp.8 lr, {n}",
+                "2:",
+                "vldrb.u8 q0, [{x}], #16",
+                "vldrb.u8 q1, [{w}], #16",
+                "vmlava.s8 r0, q0, q1",
+                "letp lr, 2b",
+                n = in(reg) n,
+                inout("r0") acc,
+                x = inout(reg) x.as_ptr() => _,
+                w = inout(reg) w.as_ptr() => _,
+                out("lr") _,
+                out("d0") _, out("d1") _, out("d2") _, out("d3") _,
+                options(nostack, readonly),
+            );
+        }
+        acc
+    }
+}
+
+impl Lanes for i16 {
+    #[inline(always)]
+    unsafe fn dot_n(w: &[i8], x: &[i16], n: usize) -> i32 {
+        let mut acc = 0i32;
+        // SAFETY: as for u8.
+        unsafe {
+            asm!(
+                "dlstp.16 lr, {n}",
+                "2:",
+                "vldrh.u16 q0, [{x}], #16",
+                "vldrb.s16 q1, [r3], #8",
+                "vmlava.s16 r0, q0, q1",
+                "letp lr, 2b",
+                n = in(reg) n,
+                inout("r0") acc,
+                x = inout(reg) x.as_ptr() => _,
+                inout("r3") w.as_ptr() => _,
+                out("lr") _,
+                out("d0") _, out("d1") _, out("d2") _, out("d3") _,
+                options(nostack, readonly),
+            );
+        }
+        acc
+    }
+}
+
+impl PairLanes for i16 {
+    #[inline(always)]
+    unsafe fn dot2x2_groups(w0: &[i8], w1: &[i8], x: &[i16], q4: usize) -> [i32; 4] {
+        let [mut a0, mut a1, mut a2, mut a3] = [0i32; 4];
+        // SAFETY: as for u8 (halfword gathers at even byte offsets inside the slice).
+        unsafe {
+            asm!(
+                "vldrh.u16 q3, [{offs}]",
+                "vldrh.u16 q4, [{offs}, #16]",
+                "dlstp.16 lr, {n}",
+                "2:",
+                "vldrh.u16 q0, [{x}, q3]",
+                "vldrh.u16 q1, [{x}, q4]",
+                "vldrb.s16 q2, [r1], #8",
+                "vmlava.s16 r0, q0, q2",
+                "vmlava.s16 r4, q1, q2",
+                "vldrb.s16 q2, [r3], #8",
+                "vmlava.s16 r2, q0, q2",
+                "vmlava.s16 r8, q1, q2",
+                "adds {x}, #32",
+                "letp lr, 2b",
+                offs = in(reg) PAIR_GATHER_I16.as_ptr(),
+                n = in(reg) q4,
+                x = inout(reg) x.as_ptr() => _,
+                inout("r1") w0.as_ptr() => _,
+                inout("r3") w1.as_ptr() => _,
+                inout("r0") a0,
+                inout("r2") a1,
+                inout("r4") a2,
+                inout("r8") a3,
+                out("lr") _,
+                out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _,
+                out("d6") _, out("d7") _, out("d8") _, out("d9") _,
+                options(nostack, readonly),
+            );
+        }
+        [a0, a1, a2, a3]
+    }
+}
+
+/// `sum w[i] * x[i]` (int8 weights; u8, i8 or i16 activations). For i16 activations at most 256
+/// terms (the caller chunks, see the module doc).
+#[inline]
+pub fn dot<T: Lanes>(w: &[i8], x: &[T]) -> i32 {
+    let n = w.len().min(x.len());
+    if n == 0 {
+        return 0;
+    }
+    // SAFETY: 1 <= n <= both lengths.
+    unsafe { T::dot_n(w, x, n) }
+}
+
+/// Four dot products, two output channels at two output pixels: `[w0 . a, w1 . a, w0 . b,
+/// w1 . b]` with the two patches in `x` in the pair layout (`kernels::pair_index`). Same
+/// chunking rule as [`dot`].
+#[inline]
+pub fn dot2x2<T: PairLanes>(w0: &[i8], w1: &[i8], x: &[T]) -> [i32; 4] {
+    let n = w0.len().min(w1.len()).min(x.len() / 2);
+    let q4 = n / 4 * 4;
+    let [mut a0, mut a1, mut a2, mut a3] = if q4 > 0 {
+        // SAFETY: q4 <= n <= the weight lengths, 2 q4 <= x.len(), a positive multiple of 4.
+        unsafe { T::dot2x2_groups(w0, w1, x, q4) }
+    } else {
+        [0; 4]
+    };
+    let r = n - q4;
+    for j in 0..r {
+        let (xa, xb): (i32, i32) = (x[2 * q4 + j].into(), x[2 * q4 + r + j].into());
+        a0 += w0[q4 + j] as i32 * xa;
+        a1 += w1[q4 + j] as i32 * xa;
+        a2 += w0[q4 + j] as i32 * xb;
+        a3 += w1[q4 + j] as i32 * xb;
+    }
+    [a0, a1, a2, a3]
+}
