@@ -1,13 +1,14 @@
 #!/usr/bin/env bash
-# The project's test command (README "Tests", and .ci/run): installs what it needs on a fresh
+# The project's test command (README "Two commands", and .ci/run): installs what it needs on a fresh
 # machine, then runs every test.
 #   1. host tests (unit, parity with the PyTorch twin's golden files, fixed vs float on real pairs,
 #      streaming vs plain fixed-point engine, model files, CLI), optimised ([profile.test]);
 #   2. the library without std for thumbv7em-none-eabihf (Cortex-M4F/M7);
 #   3. the PyTorch twin's own tests (python/tests: the split, the refinement's integer helpers, ONNX export vs the twin, a
 #      data-parallel training step under torchrun against the single-process step);
-#   4. the QEMU firmware in boards/ (bit-exact with the host), u8 and wide-trunk blobs, when the
-#      board crate exists.
+#   4. the QEMU firmware in boards/ (bit-exact with the host), u8 and wide-trunk blobs: Cortex-M7
+#      (qemu-mps2, DSP kernels) and Cortex-M55 (qemu-mps3-m55, Helium kernels, checked on the target
+#      against the plain loops first).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -16,6 +17,10 @@ need_root() { if [ "$(id -u)" -eq 0 ]; then "$@"; else sudo "$@"; fi; }
 if ! rustup target list --installed | grep -q '^thumbv7em-none-eabihf$'; then
     echo "== installing rust target thumbv7em-none-eabihf"
     rustup target add thumbv7em-none-eabihf
+fi
+if [ -d boards/qemu-mps3-m55 ] && ! rustup target list --installed | grep -q '^thumbv8m.main-none-eabihf$'; then
+    echo "== installing rust target thumbv8m.main-none-eabihf"
+    rustup target add thumbv8m.main-none-eabihf
 fi
 if [ -d boards/qemu-mps2 ] && ! command -v qemu-system-arm >/dev/null 2>&1; then
     echo "== installing qemu-system-arm"
@@ -42,5 +47,10 @@ if [ -x boards/qemu-mps2/run-tests.sh ]; then
     echo "== Cortex-M firmware under QEMU"
     boards/qemu-mps2/run-tests.sh
     boards/qemu-mps2/run-tests.sh --wide-trunk
+fi
+if [ -x boards/qemu-mps3-m55/run-tests.sh ]; then
+    echo "== Cortex-M55 (Helium) firmware under QEMU"
+    boards/qemu-mps3-m55/run-tests.sh
+    boards/qemu-mps3-m55/run-tests.sh --wide-trunk
 fi
 echo "== all tests passed"

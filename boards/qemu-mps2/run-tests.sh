@@ -91,6 +91,9 @@ if [ "$got" != "$want" ]; then
     die "the firmware's results differ from $(basename "$expected") (the host test checks the host engine against the same file)"
 fi
 say "MUIR-RESULT matches $(basename "$expected") (bit-exact with the host engine via cargo test --test firmware)"
+stack=$(grep -m1 '^MUIR-STACK ' "$tmp/qemu.log" | tr -d '\r' || true)
+[ -n "$stack" ] || die "the firmware printed no MUIR-STACK line (painted-stack high-water mark)"
+say "RAM: ${stack#MUIR-STACK } (bytes: stack high-water mark of the frame, painted; static arena from the plan)"
 
 if [ ${#plugin_args[@]} -gt 0 ]; then
     # Region 0 is empty (the markers' own cost), region 1 the frame.

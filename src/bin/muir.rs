@@ -724,18 +724,19 @@ fn plan(args: &PlanArgs) -> Result<(), String> {
         args.sizes.clone()
     };
     println!(
-        "| config | input | trunk (conv1..layer2) | working RAM (bytes) | KiB | frame zone | encoder rings | refinement rings | outputs (d + u) |"
+        "| config | input | trunk (conv1..layer2) | working RAM (bytes) | KiB | + stack budget (KiB) | frame zone | encoder rings | refinement rings | outputs (d + u) |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
     for c in &configs {
         for (&(w, h), wide_trunk) in sizes.iter().flat_map(|s| [(s, false), (s, true)]) {
             let p = muir::engine::Plan::new(&Config { wide_trunk, ..*c }, w, h);
             println!(
-                "| {} | {w}x{h} | {} | {} | {:.1} | {} | {} | {} | {} |",
+                "| {} | {w}x{h} | {} | {} | {:.1} | {:.1} | {} | {} | {} | {} |",
                 c.name,
                 if wide_trunk { "i16 (`--wide-trunk`)" } else { "u8" },
                 p.ram_bytes,
                 p.ram_bytes as f64 / 1024.0,
+                (p.ram_bytes + muir::engine::STACK_BUDGET) as f64 / 1024.0,
                 p.frame_bytes(),
                 p.encoder_rings,
                 p.refine_rings,
@@ -743,6 +744,12 @@ fn plan(args: &PlanArgs) -> Result<(), String> {
             );
         }
     }
+    println!(
+        "\nWorking RAM = the static arena (`Plan::ram_bytes`, all of the engine's buffers); reserve {} KiB of stack \
+         beside it (`engine::STACK_BUDGET`: the QEMU firmware measures 19.1 KiB on Cortex-M7 and M55, any image size). \
+         The model stays in flash; the caller's images are not included.",
+        muir::engine::STACK_BUDGET / 1024
+    );
     Ok(())
 }
 

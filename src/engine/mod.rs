@@ -23,7 +23,7 @@ pub mod ring;
 
 use core::fmt;
 
-pub use plan::{Grid, Plan, ram_bytes};
+pub use plan::{Grid, Plan, STACK_BUDGET, ram_bytes};
 
 use crate::format::QuantModel;
 use crate::input::{ImageView, InputError, check_pair};

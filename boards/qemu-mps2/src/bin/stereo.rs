@@ -1,4 +1,6 @@
-//! One stereo frame of the muir fixed-point engine on a Cortex-M7 (QEMU `mps2-an500`).
+//! One stereo frame of the muir fixed-point engine on a Cortex-M7 (QEMU `mps2-an500`) or, built
+//! by `boards/qemu-mps3-m55`, on a Cortex-M55 (QEMU `mps3-an547`): the board's `build.rs` emits the
+//! `muir_board` cfg (`"an500"`, `"an547"`) that picks the few board constants in [`board`].
 //!
 //! The quantised `muir-slim` model is read in place from flash, the working memory is one
 //! `static` arena sized at compile time by the engine's memory plan (no heap), and the frame is
@@ -78,11 +80,22 @@ static KEPT: Static<[i16; W * H]> = Static::new([0; W * H]);
 #[repr(C, align(8))]
 struct Aligned<B: ?Sized>(B);
 #[cfg(not(feature = "wide-trunk"))]
-static MODEL: &Aligned<[u8]> =
-    &Aligned(*include_bytes!(concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/muir-slim.muirq")));
+macro_rules! model_file {
+    () => {
+        concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/muir-slim.muirq")
+    };
+}
 #[cfg(feature = "wide-trunk")]
-static MODEL: &Aligned<[u8]> =
-    &Aligned(*include_bytes!(concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/muir-slim-wide.muirq")));
+macro_rules! model_file {
+    () => {
+        concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/muir-slim-wide.muirq")
+    };
+}
+/// The blob itself; on AN547 in its own section, which `memory.x` places in the QSPI flash (it
+/// does not fit the 512 KiB ITCM that holds the code).
+#[cfg_attr(muir_board = "an547", unsafe(link_section = ".muir_model"))]
+static MODEL_BLOB: Aligned<[u8; include_bytes!(model_file!()).len()]> = Aligned(*include_bytes!(model_file!()));
+static MODEL: &Aligned<[u8]> = &MODEL_BLOB;
 
 /// Start of the measured region (the QEMU plugin counts instructions from here to `bench_end`).
 /// The two markers have different bodies so that the compiler cannot fold them into one address.
@@ -102,9 +115,76 @@ pub extern "C" fn bench_end() {
 /// 1 inside a measured region, 2 after it (visible to a debugger).
 static BENCH_PHASE: Static<u32> = Static::new(0);
 
-/// MPS2 FPGA IO block: `FPGAIO->LED0` at offset 0 drives the user LEDs (bit n = USERLEDn). QEMU maps
-/// `mps2-fpgaio` at 0x4002_8000 on mps2-an385/an386/an500/an511 (`info mtree`) with two LEDs.
-const FPGAIO_LED0: *mut u32 = 0x4002_8000 as *mut u32;
+/// The board constants, chosen by the `muir_board` cfg of the crate's `build.rs`.
+#[cfg(muir_board = "an500")]
+mod board {
+    /// MPS2 FPGA IO block: `FPGAIO->LED0` at offset 0 drives the user LEDs (bit n = USERLEDn). QEMU
+    /// maps `mps2-fpgaio` at 0x4002_8000 on mps2-an385/an386/an500/an511 (`info mtree`) with two LEDs.
+    pub const FPGAIO_LED0: usize = 0x4002_8000;
+    /// The CPUID part number this board has, and its name.
+    pub const CPU: &str = "0xc27: Cortex-M7";
+}
+#[cfg(muir_board = "an547")]
+mod board {
+    /// MPS3 AN547 FPGA IO block (same `mps2-fpgaio` registers, ten LEDs), behind peripheral
+    /// protection controller `apb_ppcexp2` port 2 at 0x4930_2000; the core runs Secure, so its
+    /// Secure alias 0x5930_2000 (QEMU hw/arm/mps2-tz.c, `info mtree` of mps3-an547).
+    pub const FPGAIO_LED0: usize = 0x5930_2000;
+    /// The CPUID part number this board has, and its name.
+    pub const CPU: &str = "0xd22: Cortex-M55";
+}
+#[cfg(not(any(muir_board = "an500", muir_board = "an547")))]
+compile_error!("build with a board crate (boards/qemu-mps2 or boards/qemu-mps3-m55): its build.rs sets `muir_board`");
+
+/// `FPGAIO->LED0` of the board.
+const FPGAIO_LED0: *mut u32 = board::FPGAIO_LED0 as *mut u32;
+
+/// The stack's high-water mark, by painting: before the frame every word between the end of the
+/// statics (`_stack_end`, cortex-m-rt) and a margin below the current stack pointer is set to
+/// [`PAINT`]; after the frame the first word from the bottom that changed marks the deepest the
+/// stack went. Reported with the arena so that a user sizing RAM sees both (the engine's working
+/// memory is all in the arena; the stack holds only locals and call frames).
+mod stack {
+    use core::ptr::{read_volatile, write_volatile};
+
+    const PAINT: u32 = 0x5354_4b21; // "STK!"
+    /// Words below the stack pointer left alone while painting (this function's own frame).
+    const MARGIN_WORDS: usize = 64;
+
+    unsafe extern "C" {
+        static mut _stack_end: u32; // lowest address the stack may reach (end of .bss/.uninit)
+        static mut _stack_start: u32; // initial stack pointer (top of RAM)
+    }
+
+    fn sp() -> usize {
+        let sp: usize;
+        // SAFETY: reads the stack pointer register, no side effects.
+        unsafe { core::arch::asm!("mov {}, sp", out(reg) sp, options(nomem, nostack, preserves_flags)) };
+        sp
+    }
+
+    /// Paints the free stack below the caller. Returns the number of words painted.
+    #[inline(never)]
+    pub fn paint() -> usize {
+        let bottom = core::ptr::addr_of_mut!(_stack_end);
+        let limit = (sp() & !3) - 4 * MARGIN_WORDS;
+        let n = limit.saturating_sub(bottom as usize) / 4;
+        for i in 0..n {
+            // SAFETY: [_stack_end, sp - margin) is RAM no static and no live frame uses.
+            unsafe { write_volatile(bottom.add(i), PAINT) };
+        }
+        n
+    }
+
+    /// Bytes of stack used since [`paint`] (from the top of the stack to the deepest changed word).
+    pub fn high_water(painted: usize) -> usize {
+        let bottom = core::ptr::addr_of_mut!(_stack_end);
+        let top = core::ptr::addr_of_mut!(_stack_start) as usize;
+        // SAFETY: reads the words `paint` wrote.
+        let untouched = (0..painted).take_while(|&i| unsafe { read_volatile(bottom.add(i)) } == PAINT).count();
+        top - (bottom as usize + 4 * untouched)
+    }
+}
 
 /// A user LED of the MPS2 FPGA IO block as an `embedded-hal` output pin. Each write is read back:
 /// a register that does not hold the value (another board, no FPGA IO block) is a pin error.
@@ -195,6 +275,7 @@ fn main() -> ! {
     let mut led = FpgaLed { bit: 0, edges: 0 };
     let mut out = Output { disparity: &mut disparity[..], uncertainty: Some(&mut uncertainty[..]) };
 
+    let painted = stack::paint();
     // An empty region first: the plugin's count for it is the markers' own cost.
     bench_start();
     bench_end();
@@ -202,6 +283,10 @@ fn main() -> ! {
     let result = run_with_busy_pin(&mut engine, &left, &right, &mut out, &mut led);
     bench_end();
     result.unwrap_or_else(|e| fail("frame", e));
+    let stack_bytes = stack::high_water(painted);
+    if stack_bytes > muir::engine::STACK_BUDGET {
+        fail("stack", format_args!("the frame used {stack_bytes} bytes of stack, over engine::STACK_BUDGET ({})", muir::engine::STACK_BUDGET));
+    }
 
     let d_crc = crc_i16(disparity);
     let u_crc = crc_i16(uncertainty);
@@ -211,6 +296,8 @@ fn main() -> ! {
         "MUIR-RESULT width={W} height={H} ram={} disparity_crc=0x{d_crc:08x} uncertainty_crc=0x{u_crc:08x} kept_1px={kept_1px}",
         PLAN.ram_bytes
     );
+    // Not part of MUIR-RESULT: the host cannot compute it (it depends on the target's code).
+    println!("MUIR-STACK bytes={stack_bytes} arena={} total={}", PLAN.ram_bytes, PLAN.ram_bytes + stack_bytes);
 
     let (min, max) = disparity.iter().fold((i16::MAX, i16::MIN), |(a, b), &d| (a.min(d), b.max(d)));
     // For the log only (micromath's exp; the result line above is integers).
@@ -219,10 +306,11 @@ fn main() -> ! {
     // SAFETY: read-only system register.
     let part = (unsafe { (*cortex_m::peripheral::CPUID::PTR).base.read() } >> 4) & 0xFFF;
     println!(
-        "muir-slim{} {W}x{H} on CPU part 0x{part:03x} (0xc27: Cortex-M7): disparity {}..{} px, mean {} px; \
+        "muir-slim{} {W}x{H} on CPU part 0x{part:03x} ({}): disparity {}..{} px, mean {} px; \
          {kept_1px} of {} pixels with predicted error <= 1 px (mean predicted error {:.2} px); working RAM {} bytes (one static arena, no heap); \
          model {} bytes read in place from flash; busy LED edges {}",
         if CONFIG.wide_trunk { " (wide trunk)" } else { "" },
+        board::CPU,
         px(min.into()),
         px(max.into()),
         px(sum / (W * H) as i64),
