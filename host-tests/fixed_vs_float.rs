@@ -9,8 +9,9 @@
 //! - `models/muir-slim-wide.muirq` (conv1 .. layer2 in i16, `--wide-trunk`; 1,025,464 B of RAM at
 //!   320x240): all four targets asserted;
 //! - `models/muir-slim.muirq` (u8 trunk, the blob that fits 320 KiB at 160x120): EPE and rejection
-//!   agreement asserted, the other two held at the measured level (`MAX_MEAN_DIFF`,
-//!   `MIN_WITHIN_1PX`), which the 8-bit trunk does not reach.
+//!   agreement asserted, the other two held at regression bounds (`MAX_MEAN_DIFF`,
+//!   `MIN_WITHIN_1PX`); the shipped model meets the targets themselves (0.074 px, 99.02 %), with
+//!   too little margin to assert the 99 % for every future model.
 
 #[path = "support/crops.rs"]
 mod crops;
@@ -27,15 +28,16 @@ use muir::model::config::Config;
 use muir::reference::{Reference, disparity_px};
 
 const ROOT: &str = env!("CARGO_MANIFEST_DIR");
-/// Regression bounds of the u8-trunk blob, which does not meet the first two targets. Measured with
-/// the shipped model (phase 7,
-/// 2026-12-02): mean |d_fixed - d_float| 0.1168 px, 98.60 % within 1 px; phase 6 0.1191 px,
+/// Regression bounds of the u8-trunk blob. Measured with the shipped model (phase 8, 2026-12-04,
+/// full-resolution refinement on): mean |d_fixed - d_float| 0.0740 px, 99.02 % within 1 px (both
+/// targets met, by a margin too thin to assert the 99 %); phase 7 (2026-12-02, no refinement)
+/// 0.1168 px, 98.60 % within 1 px; phase 6 0.1191 px,
 /// 98.68 %; phase 4 0.1373 px,
 /// 98.22 %; phase 3 0.1572 px, 97.76 %; with the phase-2 model and
 /// u8 backbone activations (2026-12-01) 0.1582 px, 98.04 %; with i8 backbone activations
 /// (2026-11-22) 0.2593 px, 96.08 %.
-const MAX_MEAN_DIFF: f64 = 0.14;
-const MIN_WITHIN_1PX: f64 = 0.982;
+const MAX_MEAN_DIFF: f64 = 0.10;
+const MIN_WITHIN_1PX: f64 = 0.985;
 
 fn model(name: &str) -> PathBuf {
     Path::new(ROOT).join("models").join(name)
