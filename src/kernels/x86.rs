@@ -920,7 +920,7 @@ mod tests {
             return;
         }
         let mut r = Rng(13);
-        let mut mults = vec![Multiplier { m: 1 << 30, shift: 46 }, Multiplier { m: i32::MAX, shift: 1 }, Multiplier { m: i32::MAX, shift: 62 }, Multiplier { m: 1 << 30, shift: 63 }, Multiplier { m: 1 << 30, shift: 0 }, Multiplier::ZERO];
+        let mut mults = vec![Multiplier { m: 1 << 30, shift: 46 }, Multiplier { m: i32::MAX, shift: 1 }, Multiplier { m: i32::MAX, shift: 62 }, Multiplier { m: 1 << 30, shift: 63 }, Multiplier::ZERO]; // shift is [1, 126] (arith::Multiplier)
         for _ in 0..40 {
             mults.push(Multiplier { m: (1 << 30) + r.below(1 << 30) as i32, shift: 1 + r.below(62) as u8 });
         }
