@@ -53,4 +53,10 @@ if [ -x boards/qemu-mps3-m55/run-tests.sh ]; then
     boards/qemu-mps3-m55/run-tests.sh
     boards/qemu-mps3-m55/run-tests.sh --wide-trunk
 fi
+if [ -f boards/qemu-mps2/panic-sites.py ]; then
+    echo "== branches into panic paths in the firmware (measured, not a gate; issue #22)"
+    python3 boards/qemu-mps2/panic-sites.py
+    [ -d boards/qemu-mps3-m55 ] && python3 boards/qemu-mps2/panic-sites.py \
+        boards/qemu-mps3-m55/target/thumbv8m.main-none-eabihf/release/stereo
+fi
 echo "== all tests passed"

@@ -1,0 +1,82 @@
+#!/usr/bin/env python3
+"""Counts the branches into panic paths in a firmware ELF (issue #22 item 3): every `bl`/`b`
+whose target is a `core::panicking` / slice-index / unwrap-failure function, grouped by the kind of
+panic and by the function that contains the branch (muir's inference path, the firmware's own code,
+or core/other crates). A measurement, not a gate: a panic on a camera module is a reset loop, and
+this shows how many are still reachable in the shipped code.
+
+    python3 boards/qemu-mps2/panic-sites.py [ELF]   # default: the qemu-mps2 release build
+
+Needs llvm-objdump (Debian `llvm`); prints a note and exits 0 without it.
+"""
+from __future__ import annotations
+
+import collections
+import os
+import re
+import shutil
+import subprocess
+import sys
+
+BOARD = os.path.dirname(os.path.abspath(__file__))
+BRANCH = re.compile(r"^\s*[0-9a-f]+:\s+(?:bl|b|b\.w|blx)\s+0x[0-9a-f]+ <(?P<target>[^>]+)>")
+FUNC = re.compile(r"^[0-9a-f]+ <(?P<name>[^>]+)>:$")
+KINDS = [
+    ("bounds check", ("panic_bounds_check", "slice_start_index", "slice_end_index", "slice_index_order", "slice_index_fail",
+                      "str_index_overflow", "copy_from_slice::len_mismatch", "len_mismatch_fail")),
+    ("division by zero / overflow", ("panic_const_div", "panic_const_rem", "panic_const_add", "panic_const_sub",
+                                     "panic_const_mul", "panic_const_neg", "panic_const_shl", "panic_const_shr")),
+    ("unwrap / expect", ("unwrap_failed", "expect_failed", "option::unwrap", "unwrap_none")),
+    ("panic_fmt / panic!", ("panic_fmt", "panicking::panic", "panic_display", "panic_nounwind", "assert_failed")),
+]
+
+
+def kind_of(target: str):
+    for name, keys in KINDS:
+        if any(k in target for k in keys):
+            return name
+    return None
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    elf = argv[0] if argv else os.path.join(BOARD, "target", "thumbv7em-none-eabihf", "release", "stereo")
+    tool = shutil.which("llvm-objdump")
+    if tool is None:
+        print("panic-sites: llvm-objdump not found (apt-get install llvm); not counted")
+        return 0
+    if not os.path.exists(elf):
+        print(f"panic-sites: {elf} not found (build the firmware first: run-tests.sh)", file=sys.stderr)
+        return 2
+    out = subprocess.run([tool, "-d", "--no-show-raw-insn", "-C", elf], capture_output=True, text=True, check=True).stdout
+    by_kind = collections.Counter()
+    by_owner = collections.Counter()
+    func = "?"
+    for line in out.splitlines():
+        m = FUNC.match(line)
+        if m:
+            if not m.group("name").startswith("$"):  # $t/$d/$a: Arm mapping symbols, not functions
+                func = m.group("name")
+            continue
+        m = BRANCH.match(line)
+        if not m:
+            continue
+        k = kind_of(m.group("target"))
+        if k is None or kind_of(func) is not None:  # branches between panic helpers are not sites
+            continue
+        owner = "muir (engine, kernels, format)" if "muir::" in func or "muir.." in func else (
+            "firmware (stereo.rs, with what it inlines)" if func.startswith(("stereo::", "main", "__cortex_m_rt_main"))
+            else "core / compiler_builtins / other crates")
+        by_kind[k] += 1
+        by_owner[owner] += 1
+    total = sum(by_kind.values())
+    print(f"panic-sites: {total} branches into panic paths in {os.path.relpath(elf)}")
+    for k, n in by_kind.most_common():
+        print(f"  by kind: {k}: {n}")
+    for o, n in by_owner.most_common():
+        print(f"  by containing function: {o}: {n}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
