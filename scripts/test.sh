@@ -8,7 +8,7 @@
 #      data-parallel training step under torchrun against the single-process step);
 #   4. the QEMU firmware in boards/ (bit-exact with the host), u8 and wide-trunk blobs: Cortex-M7
 #      (qemu-mps2, DSP kernels) and Cortex-M55 (qemu-mps3-m55, Helium kernels, checked on the target
-#      against the plain loops first).
+#      against the plain loops first); the real-board crates (STM32H743, RP2350) are built and sized.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -18,7 +18,7 @@ if ! rustup target list --installed | grep -q '^thumbv7em-none-eabihf$'; then
     echo "== installing rust target thumbv7em-none-eabihf"
     rustup target add thumbv7em-none-eabihf
 fi
-if [ -d boards/qemu-mps3-m55 ] && ! rustup target list --installed | grep -q '^thumbv8m.main-none-eabihf$'; then
+if { [ -d boards/qemu-mps3-m55 ] || [ -d boards/rp2350 ]; } && ! rustup target list --installed | grep -q '^thumbv8m.main-none-eabihf$'; then
     echo "== installing rust target thumbv8m.main-none-eabihf"
     rustup target add thumbv8m.main-none-eabihf
 fi
@@ -52,6 +52,10 @@ if [ -x boards/qemu-mps3-m55/run-tests.sh ]; then
     echo "== Cortex-M55 (Helium) firmware under QEMU"
     boards/qemu-mps3-m55/run-tests.sh
     boards/qemu-mps3-m55/run-tests.sh --wide-trunk
+fi
+if [ -x boards/build-check.sh ]; then
+    echo "== real-board firmware (STM32H743, RP2350): release build + section sizes (build check only, no hardware)"
+    boards/build-check.sh
 fi
 if [ -f boards/qemu-mps2/panic-sites.py ]; then
     echo "== branches into panic paths in the firmware (measured, not a gate; issue #22)"
