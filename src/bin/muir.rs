@@ -658,7 +658,7 @@ fn quantize(args: &QuantizeArgs) -> Result<(), String> {
         Method::Percentile => return Err(format!("--percentile {} is not in [50, 100]", args.percentile)),
     };
     let bar = if std::io::stderr().is_terminal() { ProgressBar::new(pairs.len() as u64) } else { ProgressBar::hidden() };
-    if let Ok(style) = ProgressStyle::with_template("calibrating {bar:30} {pos}/{len} pairs {elapsed}") {
+    if let Ok(style) = ProgressStyle::with_template("calibrating {bar:30} {pos}/{len} pairs ({percent}%) {elapsed} elapsed, ETA {eta}") {
         bar.set_style(style);
     }
     let start = Instant::now();
@@ -670,7 +670,10 @@ fn quantize(args: &QuantizeArgs) -> Result<(), String> {
     let cal = calibrate(&model, &pairs, CalibOptions { method, iters, rounding, wide_trunk: args.wide_trunk }, &mut |done, total| {
         bar.set_position(done as u64);
         if !std::io::stderr().is_terminal() {
-            eprintln!("calibration pair {done}/{total}");
+            // Plain lines for logs: share done, time so far, time left at the rate so far.
+            let t = start.elapsed().as_secs_f64();
+            let left = if done > 0 { t / done as f64 * total.saturating_sub(done) as f64 } else { f64::NAN };
+            eprintln!("calibration pair {done}/{total} ({:.0}%), {t:.0} s elapsed, ETA {left:.0} s", 100.0 * done as f64 / total.max(1) as f64);
         }
     })
     .map_err(|e| e.to_string())?;
