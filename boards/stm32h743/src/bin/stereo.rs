@@ -118,71 +118,9 @@ static MODEL: &Aligned<[u8]> = &MODEL_BLOB;
 // Camera
 // ---------------------------------------------------------------------------------------------
 
-/// A rectified stereo camera delivering 8-bit grey frames of `W` x `H` pixels (row-major, no row
-/// padding). A real driver (e.g. two sensors on the DCMI, or one side-by-side sensor) implements
-/// this: `capture` returns once both frames are in the buffers.
-pub trait Camera {
-    type Error: defmt::Format;
-    /// Fills `left` and `right` (each `W * H` bytes) with the next pair.
-    fn capture(&mut self, left: &mut [u8], right: &mut [u8]) -> Result<(), Self::Error>;
-}
-
-/// A synthetic pair: a random 2x2-block texture, the right view shifted by [`TestPattern::BG_PX`]
-/// pixels of disparity in the background and [`TestPattern::FG_PX`] in a centred rectangle. The
-/// texture changes every frame.
-pub struct TestPattern {
-    frame: u32,
-}
-
-#[derive(defmt::Format)]
-pub enum PatternError {
-    /// A buffer is not `W * H` bytes.
-    WrongSize,
-}
-
-impl TestPattern {
-    pub const BG_PX: i32 = 4;
-    pub const FG_PX: i32 = 12;
-
-    fn hash(x: u32, y: u32, seed: u32) -> u32 {
-        let mut h = x.wrapping_mul(0x9E37_79B1) ^ y.wrapping_mul(0x85EB_CA77) ^ seed.wrapping_mul(0xC2B2_AE3D);
-        h ^= h >> 15;
-        h = h.wrapping_mul(0x2C1B_3C6D);
-        h ^= h >> 12;
-        h = h.wrapping_mul(0x297A_2D39);
-        h ^ (h >> 15)
-    }
-
-    /// The scene's texture at column `u` (may be outside the frame), row `y`.
-    fn texture(u: i32, y: i32, seed: u32) -> u8 {
-        (32 + (Self::hash((u >> 1) as u32, (y >> 1) as u32, seed) >> 25)) as u8 * 3 / 2
-    }
-
-    /// Disparity of the scene at (x, y), in pixels.
-    fn disparity(x: usize, y: usize) -> i32 {
-        if (W / 4..3 * W / 4).contains(&x) && (H / 4..3 * H / 4).contains(&y) { Self::FG_PX } else { Self::BG_PX }
-    }
-}
-
-impl Camera for TestPattern {
-    type Error = PatternError;
-
-    fn capture(&mut self, left: &mut [u8], right: &mut [u8]) -> Result<(), PatternError> {
-        if left.len() != W * H || right.len() != W * H {
-            return Err(PatternError::WrongSize);
-        }
-        let seed = self.frame;
-        self.frame = self.frame.wrapping_add(1);
-        for y in 0..H {
-            for x in 0..W {
-                // left(x) = scene(x); right(x) = left(x + d): a left pixel x matches right x - d.
-                left[y * W + x] = Self::texture(x as i32, y as i32, seed);
-                right[y * W + x] = Self::texture(x as i32 + Self::disparity(x, y), y as i32, seed);
-            }
-        }
-        Ok(())
-    }
-}
+#[path = "../../../common/camera.rs"]
+mod camera;
+use camera::{Camera, TestPattern};
 
 // ---------------------------------------------------------------------------------------------
 // Board support
@@ -332,7 +270,7 @@ fn main() -> ! {
         Err(e) => defmt::panic!("engine: {}", Display2Format(&e)),
     };
     let u_1px = u_threshold(1.0);
-    let mut camera = TestPattern { frame: 0 };
+    let mut camera = TestPattern::new();
     info!(
         "muir-slim {=usize}x{=usize} on STM32H743 at {=u32} MHz: arena {=usize} B in AXI SRAM, model {=usize} B in QSPI flash; test pattern disparity {=i32} / {=i32} px",
         W,
