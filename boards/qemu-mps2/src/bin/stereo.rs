@@ -15,7 +15,6 @@
 #![no_std]
 #![no_main]
 
-use core::cell::UnsafeCell;
 use core::fmt;
 use core::ptr::{read_volatile, write_volatile};
 
@@ -51,23 +50,9 @@ const CONFIG: Config = Config { wide_trunk: cfg!(feature = "wide-trunk"), ..Conf
 /// The memory plan of this model and image size, evaluated at compile time.
 const PLAN: Plan = Plan::new(&CONFIG, W, H);
 
-/// A `static` that `main` borrows mutably, once (zero-initialised ones land in `.bss`: no flash).
-struct Static<T>(UnsafeCell<T>);
-
-// SAFETY: single core, no interrupt handler touches these; `take` hands out one borrow.
-unsafe impl<T> Sync for Static<T> {}
-
-impl<T> Static<T> {
-    const fn new(value: T) -> Self {
-        Self(UnsafeCell::new(value))
-    }
-    /// # Safety
-    /// At most once per static, and nothing else may access it afterwards.
-    #[allow(clippy::mut_from_ref)]
-    unsafe fn take(&'static self) -> &'static mut T {
-        unsafe { &mut *self.0.get() }
-    }
-}
+#[path = "../../../common/once_static.rs"]
+mod once_static;
+use once_static::Static;
 
 /// All of the engine's working memory.
 static ARENA: Static<Arena<{ PLAN.ram_bytes }>> = Static::new(Arena::new());
@@ -102,14 +87,14 @@ static MODEL: &Aligned<[u8]> = &MODEL_BLOB;
 #[unsafe(no_mangle)]
 #[inline(never)]
 pub extern "C" fn bench_start() {
-    unsafe { write_volatile(BENCH_PHASE.0.get(), 1) };
+    unsafe { write_volatile(BENCH_PHASE.as_ptr(), 1) };
 }
 
 /// End of the measured region.
 #[unsafe(no_mangle)]
 #[inline(never)]
 pub extern "C" fn bench_end() {
-    unsafe { write_volatile(BENCH_PHASE.0.get(), 2) };
+    unsafe { write_volatile(BENCH_PHASE.as_ptr(), 2) };
 }
 
 /// 1 inside a measured region, 2 after it (visible to a debugger).

@@ -14,7 +14,6 @@
 #![no_std]
 #![no_main]
 
-use core::cell::UnsafeCell;
 
 use defmt::{Display2Format, info, unwrap};
 use defmt_rtt as _;
@@ -68,23 +67,9 @@ const _: () = assert!(
 // Statics
 // ---------------------------------------------------------------------------------------------
 
-/// A `static` that `main` borrows mutably, once.
-struct Static<T>(UnsafeCell<T>);
-
-// SAFETY: single core; no interrupt handler touches these; `take` hands out one borrow.
-unsafe impl<T> Sync for Static<T> {}
-
-impl<T> Static<T> {
-    const fn new(value: T) -> Self {
-        Self(UnsafeCell::new(value))
-    }
-    /// # Safety
-    /// At most once per static, and nothing else may access it afterwards.
-    #[allow(clippy::mut_from_ref)]
-    unsafe fn take(&'static self) -> &'static mut T {
-        unsafe { &mut *self.0.get() }
-    }
-}
+#[path = "../../../common/once_static.rs"]
+mod once_static;
+use once_static::Static;
 
 /// All of the engine's working memory (`.bss`).
 static ARENA: Static<Arena<{ PLAN.ram_bytes }>> = Static::new(Arena::new());

@@ -15,7 +15,6 @@
 #![no_std]
 #![no_main]
 
-use core::cell::UnsafeCell;
 use core::convert::Infallible;
 use core::sync::atomic::{AtomicU32, Ordering};
 
@@ -69,23 +68,9 @@ const SYSCLK_MHZ: u32 = 400;
 // Statics
 // ---------------------------------------------------------------------------------------------
 
-/// A `static` that `main` borrows mutably, once.
-struct Static<T>(UnsafeCell<T>);
-
-// SAFETY: single core; no interrupt handler touches these; `take` hands out one borrow.
-unsafe impl<T> Sync for Static<T> {}
-
-impl<T> Static<T> {
-    const fn new(value: T) -> Self {
-        Self(UnsafeCell::new(value))
-    }
-    /// # Safety
-    /// At most once per static, and nothing else may access it afterwards.
-    #[allow(clippy::mut_from_ref)]
-    unsafe fn take(&'static self) -> &'static mut T {
-        unsafe { &mut *self.0.get() }
-    }
-}
+#[path = "../../../common/once_static.rs"]
+mod once_static;
+use once_static::Static;
 
 /// All of the engine's working memory, in the AXI SRAM (NOLOAD: not zeroed at boot).
 #[unsafe(link_section = ".axisram")]
