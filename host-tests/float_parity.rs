@@ -131,7 +131,7 @@ fn shipped_model_matches_twin_on_a_real_pair() {
 /// `python -m muir.golden --fullres models/muir-slim.safetensors`).
 #[test]
 fn full_res_refinement_matches_twin_bit_for_bit() {
-    use muir::kernels::fullres::{CENSUS_RADIUS, WINDOW_ROWS, refine_image};
+    use muir::kernels::fullres::{ScratchVec, refine_image};
     let file = parse_safetensors(&fixture("fullres-teddy")).expect("fixture parses");
     let get = |name: &str| match &file.tensors[name].data {
         ParamData::F32(v) => (file.tensors[name].shape.clone(), v.iter().map(|x| *x as i16).collect::<Vec<i16>>()),
@@ -147,9 +147,8 @@ fn full_res_refinement_matches_twin_bit_for_bit() {
     let crop = |v: &str| muir::io::read_png(format!("{root}/assets/teddy/{v}.png")).unwrap().crop(x0, y0, w, h).unwrap();
     let (l, r) = (crop("left"), crop("right"));
     let mut d = d0.clone();
-    let mut ring = vec![0u64; 2 * WINDOW_ROWS * w];
-    let mut grey = vec![0u8; (2 * CENSUS_RADIUS + 1) * w];
-    let n = refine_image(&l.view(), &r.view(), &mut d, Some(&u), &mut ring, &mut grey);
+    let mut scratch = ScratchVec::new(w);
+    let n = refine_image(&l.view(), &r.view(), &mut d, Some(&u), scratch.view());
     let differ = d.iter().zip(&want).filter(|(a, b)| a != b).count();
     eprintln!("full-resolution refinement: {n} of {} pixels refined, {differ} differ from the twin", w * h);
     assert!(n > w * h / 2, "most pixels of a textured crop are refined");

@@ -2,9 +2,10 @@
 (`src/kernels/fullres.rs`, where the algorithm and its constants are specified).
 
 The network's disparity is quantised to the engine's output format (Q10.5, 1/32 px) and its
-uncertainty to Q4.11; every pixel is re-matched in a band around it with a 7x7 census cost summed
-over a 9x9 window, and keeps the network's value where the cost cannot decide. Vectorised over
-the image (one cost plane per absolute disparity), integer throughout.
+uncertainty to Q4.11; every pixel is re-matched in a band around it: 7x7 census costs summed over
+a 3x3 window, aggregated along five semi-global paths (left, right, top, top-left, top-right) with
+penalties that shrink across image edges, winner by least summed cost with a parabola fit, then a
+3x3 median. Vectorised over the image (one cost plane per absolute disparity), integer throughout.
 
     from muir.fullres import refine
     d_ref, refined_mask = refine(left_rgb_uint8, right_rgb_uint8, disp_float_px, u_float_or_None)
@@ -14,12 +15,13 @@ from __future__ import annotations
 import numpy as np
 
 CENSUS_RADIUS = 3
-WINDOW_RADIUS = 4
+WINDOW_RADIUS = 1
 MIN_BAND = 3
 MAX_BAND = 12
-MIN_CURVATURE = 2 * (2 * WINDOW_RADIUS + 1) ** 2
 BAND_U_THRESHOLDS = np.array([0, 1178, 2092, 2839, 3470, 4017, 4499, 4931, 5321], np.int32)
-UNIQUENESS = 10  # percent (UNIQUENESS_PERCENT)
+P1 = 256  # penalty of a 1 px step along a path
+P2 = 2048  # penalty of a larger jump, on a flat image
+EDGE_SCALE = 8  # P2 is divided by 1 + |grey step| / EDGE_SCALE (jumps are cheaper across edges)
 DISP_FRAC = 5
 LOG_FRAC = 11
 _POP8 = np.array([bin(i).count("1") for i in range(256)], np.int32)
@@ -56,14 +58,15 @@ def popcount(x: np.ndarray) -> np.ndarray:
 
 
 def box_sum(c: np.ndarray) -> np.ndarray:
-    """9x9 sums with replicated borders (exact integers)."""
+    """(2 WINDOW_RADIUS + 1)^2 sums over the last two axes, replicated borders (exact integers)."""
     r = WINDOW_RADIUS
-    p = np.pad(c, r, mode="edge").astype(np.int64)
-    s = np.zeros((p.shape[0] + 1, p.shape[1] + 1), np.int64)
-    s[1:, 1:] = p.cumsum(0).cumsum(1)
+    pad = [(0, 0)] * (c.ndim - 2) + [(r, r), (r, r)]
+    p = np.pad(c, pad, mode="edge").astype(np.int64)
+    s = np.zeros(p.shape[:-2] + (p.shape[-2] + 1, p.shape[-1] + 1), np.int64)
+    s[..., 1:, 1:] = p.cumsum(-2).cumsum(-1)
     k = 2 * r + 1
-    h, w = c.shape
-    return (s[k : k + h, k : k + w] - s[:h, k : k + w] - s[k : k + h, :w] + s[:h, :w]).astype(np.int32)
+    h, w = c.shape[-2:]
+    return (s[..., k : k + h, k : k + w] - s[..., :h, k : k + w] - s[..., k : k + h, :w] + s[..., :h, :w]).astype(np.int32)
 
 
 def band_radius(uq: np.ndarray) -> np.ndarray:
@@ -76,48 +79,89 @@ def div_round(n: np.ndarray, d: np.ndarray) -> np.ndarray:
     return np.where(n < 0, -q, q)
 
 
+_INF = np.int32(1 << 24)  # outside a pixel's band; far above any path cost (< 2^12)
+
+
+def penalty2(ga: np.ndarray, gb: np.ndarray) -> np.ndarray:
+    """The large-jump penalty between neighbours of grey levels ga, gb (int32 arrays)."""
+    return np.maximum(P1 + 1, (P2 * EDGE_SCALE) // (EDGE_SCALE + np.abs(ga - gb)))
+
+
+def _step(prev: np.ndarray, c: np.ndarray, p2: np.ndarray) -> np.ndarray:
+    """One path step: prev, c (D, ...) int32 with _INF outside the band; p2 broadcast (...)."""
+    m = prev.min(0)
+    inf = np.full_like(prev[:1], _INF)
+    nb = np.minimum(np.concatenate([prev[1:], inf], 0), np.concatenate([inf, prev[:-1]], 0)) + P1
+    best = np.minimum(np.minimum(prev, nb), (m + p2)[None])
+    return np.minimum(c + best - m[None], _INF)
+
+
+def aggregate(C: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """Sum of the five path costs of C (D, H, W) int32, grey g (H, W) int32."""
+    D, h, w = C.shape
+    S = np.zeros_like(C)
+    # left to right, right to left
+    for xs in (range(w), range(w - 1, -1, -1)):
+        xs = list(xs)
+        L = C[:, :, xs[0]].copy()
+        S[:, :, xs[0]] += L
+        for a, b in zip(xs, xs[1:]):
+            L = _step(L, C[:, :, b], penalty2(g[:, b], g[:, a]))
+            S[:, :, b] += L
+    # top, top-left (predecessor x - 1, clamped), top-right (x + 1, clamped)
+    cols = np.arange(w)
+    for px in (cols, np.maximum(cols - 1, 0), np.minimum(cols + 1, w - 1)):
+        L = C[:, 0].copy()
+        S[:, 0] += L
+        for y in range(1, h):
+            L = _step(L[:, px], C[:, y], penalty2(g[y], g[y - 1, px]))
+            S[:, y] += L
+    return S
+
+
+def median3(d: np.ndarray) -> np.ndarray:
+    """3x3 median, replicated borders (exact on integers)."""
+    h, w = d.shape
+    p = np.pad(d, 1, mode="edge")
+    stack = np.stack([p[dy : dy + h, dx : dx + w] for dy in range(3) for dx in range(3)])
+    return np.sort(stack, axis=0)[4]
+
+
 def refine_q(left: np.ndarray, right: np.ndarray, dq: np.ndarray, uq: np.ndarray | None):
-    """Integer core: dq (H, W) int Q10.5, uq int Q4.11 or None -> (refined Q10.5 int32, mask)."""
+    """Integer core: dq (H, W) int Q10.5, uq int Q4.11 or None -> (refined Q10.5 int32, mask of
+    the pixels the matching decided, before the median)."""
     h, w = dq.shape
-    cl, cr = census(grey(left)), census(grey(right))
+    g = grey(left)
+    cl, cr = census(g), census(grey(right))
     dq = dq.astype(np.int32)
     base = dq >> DISP_FRAC
     rad = band_radius(uq.astype(np.int32)) if uq is not None else np.full((h, w), MIN_BAND, np.int32)
-    n_off = 2 * MAX_BAND + 2
-    big = np.iinfo(np.int32).max
-    A = np.full((n_off, h, w), big, np.int32)  # offset o = d - base + MAX_BAND
-    lo = base - rad
+    lo = np.maximum(base - rad, 0)
     hi = base + rad + 1
+    d0 = int(lo.min())
+    d1 = max(int(hi.max()), d0)
+    D = d1 - d0 + 1
     xs = np.arange(w)
-    for d in range(max(0, int(lo.min())), int(hi.max()) + 1):
-        sel = (lo <= d) & (d <= hi)
-        if not sel.any():
-            continue
-        src = np.maximum(xs - d, 0)
-        a = box_sum(popcount(cl ^ cr[:, src]))
-        o = d - base + MAX_BAND
-        ys, xs_ = np.nonzero(sel)
-        A[o[ys, xs_], ys, xs_] = a[ys, xs_]
-    i = np.argmin(A, axis=0)  # first minimum: the smallest d on ties
-    a1 = np.take_along_axis(A, i[None], 0)[0]
-    im, ip = np.clip(i - 1, 0, n_off - 1), np.clip(i + 1, 0, n_off - 1)
-    a0 = np.where(i > 0, np.take_along_axis(A, im[None], 0)[0], big)
-    a2 = np.where(i < n_off - 1, np.take_along_axis(A, ip[None], 0)[0], big)
-    ok = (a1 < big) & (a0 < big) & (a2 < big)
-    a0_, a1_, a2_ = a0.astype(np.int64), a1.astype(np.int64), a2.astype(np.int64)
-    curv = np.where(ok, a0_ + a2_ - 2 * a1_, 0)
-    ok &= curv >= MIN_CURVATURE
-    if UNIQUENESS:
-        # every candidate outside the winner's +-1 neighbourhood must cost UNIQUENESS % more
-        o = np.arange(n_off)[:, None, None]
-        far = np.abs(o - i[None]) > 1
-        a_far = np.where(far, A, big).min(axis=0).astype(np.int64)
-        ok &= (a_far == big) | (a_far * 100 >= a1_ * (100 + UNIQUENESS))
-    dstar = base + i - MAX_BAND
-    off = div_round(16 * (a0_ - a2_), np.maximum(curv, 1))
-    refined = np.clip((dstar.astype(np.int64) << DISP_FRAC) + off, -32768, 32767)
+    C = np.empty((D, h, w), np.int32)
+    for k in range(D):
+        src = np.maximum(xs - (d0 + k), 0)
+        C[k] = popcount(cl ^ cr[:, src])
+    C = box_sum(C)
+    dd = (np.arange(D, dtype=np.int32) + d0)[:, None, None]
+    C = np.where((dd >= lo[None]) & (dd <= hi[None]), C, _INF).astype(np.int32)
+    S = aggregate(C, g)
+    del C
+    i = np.argmin(S, axis=0)  # first minimum: the smallest d on ties
+    take = lambda j: np.take_along_axis(S, np.clip(j, 0, D - 1)[None], 0)[0].astype(np.int64)
+    a0, a1, a2 = take(i - 1), take(i), take(i + 1)
+    # S sums five paths of costs < _INF / 8: a value >= _INF means outside the band
+    ok = (i > 0) & (i < D - 1) & (a0 < _INF) & (a1 < _INF) & (a2 < _INF)
+    curv = a0 + a2 - 2 * a1
+    ok &= curv > 0
+    off = div_round(16 * (a0 - a2), np.maximum(curv, 1))
+    refined = np.clip(((i + d0).astype(np.int64) << DISP_FRAC) + off, -32768, 32767)
     out = np.where(ok, refined, dq).astype(np.int32)
-    return out, ok
+    return median3(out), ok
 
 
 def quantize_disp(d: np.ndarray) -> np.ndarray:
@@ -133,12 +177,13 @@ def quantize_u(u: np.ndarray) -> np.ndarray:
 
 
 def refine(left: np.ndarray, right: np.ndarray, disp: np.ndarray, u: np.ndarray | None = None):
-    """Float disparity (px) -> refined float disparity: refined pixels take the integer result /32,
-    the others keep their float value. Returns (disparity, mask of the pixels the stage decided)."""
+    """Float disparity (px) -> refined float disparity: pixels the stage changed take the integer
+    result / 32, the others keep their float value. Returns (disparity, mask of the pixels the
+    matching decided)."""
     dq = quantize_disp(disp)
     uq = quantize_u(u) if u is not None else None
     out, ok = refine_q(left, right, dq, uq)
-    # As the Rust float engine (Prediction::refine_full_res): a pixel whose refined value equals
-    # its rounded input keeps its float value.
-    changed = ok & (out != dq)
+    # As the Rust float engine (Prediction::refine_full_res): a pixel whose result equals its
+    # rounded input keeps its float value.
+    changed = out != dq
     return np.where(changed, out.astype(np.float32) / (1 << DISP_FRAC), disp).astype(np.float32), ok

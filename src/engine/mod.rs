@@ -156,8 +156,9 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
 
     /// Turns the full-resolution refinement ([`crate::kernels::fullres`]) on (the default) or off
     /// (the network's upsampled disparity as it is). It runs after the network in memory the
-    /// network no longer needs, so it adds no RAM beyond the plan; its cost is about (2R + 2) x 81
-    /// census comparisons per pixel, with a band radius R of 3 to 12 px.
+    /// network no longer needs, so it adds no RAM beyond the plan (about 490 bytes per image column,
+    /// less than the network's own peak); per pixel it costs 9 census comparisons and five path
+    /// updates per candidate, (2R + 2) candidates with a band radius R of 3 to 12 px.
     pub fn set_full_res_refinement(&mut self, on: bool) {
         self.full_res = on;
     }
@@ -235,8 +236,9 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
         refine::upsample(&mut c, width, height, out.disparity, out.uncertainty.as_deref_mut());
         if self.full_res {
             let mut cv = Carver::new(&mut self.arena[..plan.ram_bytes]);
-            let (ring, grey) = (cv.u64(plan.fullres.ring), cv.u8(plan.fullres.grey));
-            crate::kernels::fullres::refine_image(left, right, out.disparity, out.uncertainty.as_deref(), ring, grey);
+            let b = plan.fullres;
+            let scratch = crate::kernels::fullres::Scratch { census: cv.u64(b.census), paths: cv.u16(b.paths), rows: cv.i16(b.rows), grey: cv.u8(b.grey) };
+            crate::kernels::fullres::refine_image(left, right, out.disparity, out.uncertainty.as_deref(), scratch);
         }
         Ok(())
     }

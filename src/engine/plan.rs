@@ -159,9 +159,13 @@ pub struct RefineBufs {
 /// Full-resolution refinement scratch (after the network: the whole arena is free again).
 #[derive(Clone, Copy, Debug, Default)]
 pub struct FullResBufs {
-    /// Census rings of both images, u64 `2 x 9 x width`.
-    pub ring: Buf,
-    /// Grey rows of one census row, u8 `7 x width`.
+    /// Census rings of both images (u64).
+    pub census: Buf,
+    /// Path costs (u16).
+    pub paths: Buf,
+    /// Band and decision rows (i16).
+    pub rows: Buf,
+    /// Grey rows (u8).
     pub grey: Buf,
 }
 
@@ -282,10 +286,8 @@ impl Plan {
             rings: r.take(refine_rings),
         };
         let mut f = Bump::new(0);
-        let fullres = FullResBufs {
-            ring: f.take(2 * crate::kernels::fullres::WINDOW_ROWS * width * 8),
-            grey: f.take((2 * crate::kernels::fullres::CENSUS_RADIUS + 1) * width),
-        };
+        let n = crate::kernels::fullres::ScratchLen::new(width);
+        let fullres = FullResBufs { census: f.take(8 * n.census), paths: f.take(2 * n.paths), rows: f.take(2 * n.rows), grey: f.take(n.grey) };
         let ram_bytes = max(max(e.at, r.at), f.at);
         Plan { config: *cfg, width, height, grid: g, frame, pixel, encoder, refine, fullres, encoder_rings, refine_rings, ram_bytes }
     }

@@ -41,6 +41,10 @@ impl<'a> Carver<'a> {
     pub fn u8(&mut self, b: Buf) -> &'a mut [u8] {
         self.bytes(b)
     }
+    /// A byte buffer viewed as `u16`.
+    pub fn u16(&mut self, b: Buf) -> &'a mut [u16] {
+        bytemuck::cast_slice_mut(self.bytes(b))
+    }
     /// A byte buffer viewed as `i16`.
     pub fn i16(&mut self, b: Buf) -> &'a mut [i16] {
         bytemuck::cast_slice_mut(self.bytes(b))
