@@ -44,16 +44,14 @@ def diag(C, dy, dx, P1, P2, G=None, t=0):
             L[:, y] = C[:, y]; first = False; continue
         prev = L[:, y-dy]
         # shift along x: pixel x takes prev at x-dx
-        if dx > 0:
-            prev = np.concatenate([np.full_like(prev[:, :1], INF), prev[:, :-1]], 1); prev[:, 0] = L[:, y-dy, 0]
-        else:
-            prev = np.concatenate([prev[:, 1:], np.full_like(prev[:, :1], INF)], 1); prev[:, -1] = L[:, y-dy, -1]
+        W_ = prev.shape[1]
+        idx = np.clip(np.arange(W_) - dx, 0, W_ - 1)
+        prev = prev[:, idx]
         m = prev.min(0, keepdims=True)
         up = np.concatenate([prev[1:], np.full_like(prev[:1], INF)], 0)
         dn = np.concatenate([np.full_like(prev[:1], INF), prev[:-1]], 0)
         if G is not None and t:
-            gp = G[y-dy]
-            gp = np.concatenate([gp[:1], gp[:-1]]) if dx > 0 else np.concatenate([gp[1:], gp[-1:]])
+            gp = G[y-dy][np.clip(np.arange(G.shape[1]) - dx, 0, G.shape[1] - 1)]
             p2 = np.maximum(P1 + 1, P2 * t / (t + np.abs(G[y] - gp)))[None]
         else: p2 = P2
         best = np.minimum(np.minimum(prev, np.minimum(up, dn) + P1), m + p2)
@@ -76,7 +74,9 @@ def refine(left, right, disp, u, P):
         d = d0 + k
         src = np.maximum(xs - d, 0)
         C[k] = F.popcount(cl ^ cr[:, src])
-    C = box(C, P.get('win', 1))
+    C0 = C
+    C = box(C0, P.get('win', 1))
+    Csub = box(C0, P['subwin']) if 'subwin' in P else C
     dd = (np.arange(Dn) + d0)[:, None, None]
     inband = (dd >= lo[None]) & (dd <= hi[None])
     C = np.where(inband, C, INF).astype(np.float32)
@@ -88,10 +88,13 @@ def refine(left, right, disp, u, P):
     S += path(C, 2, True, P1, P2, G, t)
     S += path(C, 1, False, P1, P2, G, t)
     if dirs in (4, 8): S += path(C, 1, True, P1, P2, G, t)
-    if dirs in (5, 8):
+    if dirs in (5, 8) and dirs != 7:
         S += diag(C, 1, 1, P1, P2, G, t); S += diag(C, 1, -1, P1, P2, G, t)
     if dirs == 8:
         S += diag(C, -1, 1, P1, P2, G, t); S += diag(C, -1, -1, P1, P2, G, t)
+    if dirs == 7:
+        S += diag(C, 1, 1, P1, P2, G, t); S += diag(C, 1, -1, P1, P2, G, t)
+        S += diag(C, 1, 2, P1, P2, G, t); S += diag(C, 1, -2, P1, P2, G, t)
     S = np.where(inband, S, np.float32(1e9))
     i = S.argmin(0)
     a1 = np.take_along_axis(S, i[None], 0)[0]
@@ -105,8 +108,17 @@ def refine(left, right, disp, u, P):
         far = np.abs(o - i[None]) > 1
         af = np.where(far, S, 1e9).min(0)
         ok &= (af >= 1e8) | (af * 100 >= a1 * (100 + P['uniq']))
-    off = np.where(ok, (a0 - a2) / np.maximum(2*curv, 1e-6), 0)
-    off = np.clip(off, -1, 1)
+    if P.get('sub') == 'C':
+        b0 = np.take_along_axis(Csub, np.clip(i-1, 0, Dn-1)[None], 0)[0]; b1 = np.take_along_axis(Csub, i[None], 0)[0]; b2 = np.take_along_axis(Csub, np.clip(i+1, 0, Dn-1)[None], 0)[0]
+        cc = b0 + b2 - 2*b1
+        good = ok & (cc > 0) & (b0 < 1e5) & (b2 < 1e5)
+        offS = np.where(ok, (a0 - a2) / np.maximum(2*curv, 1e-6), 0)
+        offC = np.clip((b0 - b2) / np.maximum(2*cc, 1e-6), -0.5, 0.5)
+        if P.get('mix') == 'avg': offC = (offC + offS) / 2
+        off = np.where(good, offC, offS)
+    else:
+        off = np.where(ok, (a0 - a2) / np.maximum(2*curv, 1e-6), 0)
+    off = np.clip(off, -P.get('clampoff', 1), P.get('clampoff', 1))
     r = (i + d0 + off).astype(np.float32)
     r = np.where(ok, r, disp).astype(np.float32)
     if P.get('med'):
