@@ -174,6 +174,45 @@ fn info_prints_config_and_counts() {
     assert_fails(&muir(&[&"info", &"--model", &bare, &"--config", &"muir-fast"]), &["bare.safetensors", "shape"]);
 }
 
+/// `muir info` on a quantised blob (recognised by its magic, whatever the file is called): its
+/// config and slot formats, as text and as JSON; the committed `models/*.formats.json` (the table
+/// the twin's QAT reads, python/muir/qat.py) are exactly what the shipped blobs say.
+#[test]
+fn info_reads_blobs_and_the_committed_formats_match() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    for name in ["muir-slim", "muir-slim-wide"] {
+        let blob = root.join(format!("models/{name}.muirq"));
+        let o = muir(&[&"info", &"--model", &blob]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let out = String::from_utf8_lossy(&o.stdout);
+        assert!(out.contains("quantised, format version") && out.contains("| c1 | ") && out.contains("| fmap | i8 |"), "{out}");
+        let o = muir(&[&"info", &"--model", &blob, &"--json"]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let got: serde_json::Value = serde_json::from_slice(&o.stdout).expect("info --json prints JSON");
+        let committed: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(root.join(format!("models/{name}.formats.json"))).unwrap()).unwrap();
+        // (the path differs with the working directory; everything else must be equal)
+        let strip = |mut v: serde_json::Value| {
+            v.as_object_mut().unwrap().remove("model");
+            v
+        };
+        assert_eq!(strip(got.clone()), strip(committed), "models/{name}.formats.json is stale: regenerate with `muir info --model models/{name}.muirq --json`");
+        let c1 = got["slots"].as_array().unwrap().iter().find(|s| s["name"] == "c1").unwrap();
+        assert_eq!(c1["bits"], if name.ends_with("wide") { 16 } else { 8 });
+    }
+    // Another name, same bytes: still a blob. A corrupted one: a typed error naming the file.
+    let s = Scratch::new("info-blob");
+    let bytes = std::fs::read(root.join("models/muir-slim.muirq")).unwrap();
+    let renamed = s.path("model.bin");
+    std::fs::write(&renamed, &bytes).unwrap();
+    assert!(muir(&[&"info", &"--model", &renamed]).status.success());
+    let mut bad = bytes.clone();
+    let mid = bad.len() / 2;
+    bad[mid] ^= 0x55;
+    let corrupt = s.path("corrupt.muirq");
+    std::fs::write(&corrupt, &bad).unwrap();
+    assert_fails(&muir(&[&"info", &"--model", &corrupt]), &["corrupt.muirq"]);
+}
+
 #[test]
 fn help_for_every_subcommand() {
     for (args, needle) in

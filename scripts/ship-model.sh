@@ -3,7 +3,8 @@
 # it, in order:
 #   1. models/muir-slim.safetensors      <- the given model file
 #   2. models/muir-slim.muirq + .calib.md and models/muir-slim-wide.muirq + .calib.md (`muir quantize`,
-#      the calibration command of models/README.md; the second with --wide-trunk)
+#      the calibration command of models/README.md; the second with --wide-trunk), and their
+#      .formats.json (`muir info --json`: the slot formats python/muir/qat.py reads)
 #   3. host-tests/fixtures/golden/shipped* and fullres-teddy* (float and refinement parity fixtures)
 #   4. boards/qemu-mps2 expected CRCs     (MUIR_UPDATE_EXPECTED=1 cargo test --test firmware)
 #   5. models/muir-slim.eval.{json,md}, models/muir-slim-fixed.eval.json,
@@ -37,6 +38,9 @@ cargo build --release --bin muir
 step "2/5 quantised blob"
 bash scripts/quantize-shipped.sh models/muir-slim.safetensors models/muir-slim.muirq models/muir-slim.calib.md
 bash scripts/quantize-shipped.sh models/muir-slim.safetensors models/muir-slim-wide.muirq models/muir-slim-wide.calib.md --wide-trunk
+for b in muir-slim muir-slim-wide; do   # the slot formats the twin's QAT reads (python/muir/qat.py)
+    cargo run --release --quiet --bin muir -- info --model "models/$b.muirq" --json > "models/$b.formats.json"
+done
 
 step "3/5 float parity fixture"
 PYTHONPATH=python python -m muir.golden --shipped models/muir-slim.safetensors

@@ -15,41 +15,57 @@ in float.
 """
 from __future__ import annotations
 
+import json
 import math
 import os
-import re
 
 import torch
 
-# Storage of the simulated slots (the arithmetic spec, src/model/graph.rs): (bits, unsigned).
-_U8 = (8, True)
-ENCODER_SLOTS = {
-    "c1": _U8,
-    **{f"l{l}b{b}{k}": _U8 for l in range(1, 5) for b in range(2) for k in "mo"},
-    **{f"h{r}{h}{k}": _U8 for r in ("08", "16") for h in "nc" for k in "mo"},
-    "fmap_raw1": (16, False), "fmap_mid": _U8, "fmap_raw2": (16, False), "fmap_blk": _U8, "fmap": (8, False),
-    "inp08": _U8, "inp16": _U8,
-}
+# The slots the twin simulates (the tensors it can hook). Their storage (width, signedness) and,
+# for a given blob, their fraction bits come from the Rust side's one table (`src/model/graph.rs`),
+# exported by `muir info --model BLOB.muirq --json` (`models/muir-slim.formats.json` for the shipped
+# blob; a test checks that file against the blob), never repeated or parsed out of Markdown here.
+ENCODER_SLOT_NAMES = (
+    "c1",
+    *(f"l{l}b{b}{k}" for l in range(1, 5) for b in range(2) for k in "mo"),
+    *(f"h{r}{h}{k}" for r in ("08", "16") for h in "nc" for k in "mo"),
+    "fmap_raw1", "fmap_mid", "fmap_raw2", "fmap_blk", "fmap",
+    "inp08", "inp16",
+)
+FORMATS_FILE = os.path.join(os.path.dirname(__file__), "..", "..", "models", "muir-slim.formats.json")
+
+
+def read_formats(path: str) -> dict[str, dict]:
+    """Every encoder slot's `{"bits", "unsigned", "frac"}` from `muir info --json` output of a blob;
+    a ValueError naming the file if it is not one or lacks a slot."""
+    try:
+        with open(path) as f:
+            j = json.load(f)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: not JSON ({e}); write it with `muir info --model BLOB.muirq --json`") from None
+    if not isinstance(j, dict) or j.get("kind") != "muirq" or not isinstance(j.get("slots"), list):
+        raise ValueError(f"{path}: not the `muir info --json` output of a .muirq blob")
+    slots = {e["name"]: e for e in j["slots"] if isinstance(e, dict) and "name" in e}
+    missing = [s for s in ENCODER_SLOT_NAMES if s not in slots]
+    if missing:
+        raise ValueError(f"{path}: no format for slot(s) {', '.join(missing)}")
+    return {s: {k: slots[s][k] for k in ("bits", "unsigned", "frac")} for s in ENCODER_SLOT_NAMES}
+
+
+def encoder_storage(path: str = FORMATS_FILE) -> dict[str, tuple[int, bool]]:
+    """(bits, unsigned) of each simulated slot in the u8-trunk engine (the shipped blob's table)."""
+    return {s: (f["bits"], f["unsigned"]) for s, f in read_formats(path).items()}
 
 
 def read_report(path: str) -> dict[str, int]:
-    """Fraction bits per slot from a calibration report (`| slot | bits | frac | ...` rows)."""
-    return {slot: frac for slot, (_, frac) in read_report_formats(path).items()}
+    """Fraction bits per slot of a blob's `muir info --json` output."""
+    return {slot: f["frac"] for slot, f in read_formats(path).items()}
 
 
 def read_report_formats(path: str) -> dict[str, tuple[int, int]]:
-    """(bits, fraction bits) per slot from a calibration report; a wide-trunk blob's report
+    """(bits, fraction bits) per slot of a blob's `muir info --json` output; a wide-trunk blob
     (`muir quantize --wide-trunk`) gives 16 bits for conv1 .. layer2."""
-    formats = {}
-    with open(path) as f:
-        for line in f:
-            m = re.match(r"\|\s*([a-z0-9_]+)\s*\|\s*(\d+)\s*\|\s*(-?\d+)\s*\|", line)
-            if m:
-                formats[m.group(1)] = (int(m.group(2)), int(m.group(3)))
-    missing = sorted(s for s in ENCODER_SLOTS if s not in formats)
-    if missing:
-        raise ValueError(f"{path}: no format for slot(s) {', '.join(missing)}")
-    return formats
+    return {slot: (f["bits"], f["frac"]) for slot, f in read_formats(path).items()}
 
 
 def dynamic_frac(x: torch.Tensor, qmax: int, percentile: float = 99.99) -> int:
@@ -73,10 +89,10 @@ class ActQuant:
 
     def __init__(self, fracs: dict[str, int] | None = None, weights: bool = True,
                  bits: dict[str, int] | None = None):
-        """`bits`: storage width per slot from a report (`read_report_formats`); a slot the report
-        widens to 16 bits (a wide trunk, `muir quantize --wide-trunk`) holds i16 codes [0, 32767]."""
+        """`bits`: storage width per slot from a blob's formats (`read_report_formats`); a slot a
+        wide-trunk blob (`muir quantize --wide-trunk`) widens to 16 bits holds i16 codes [0, 32767]."""
         self.grid = {}
-        for slot, (width, unsigned) in ENCODER_SLOTS.items():
+        for slot, (width, unsigned) in encoder_storage().items():
             if bits is not None and bits.get(slot, width) == 16 and width == 8 and unsigned:
                 lo, hi = 0, 2**15 - 1
             else:
@@ -179,8 +195,9 @@ def main(argv=None):
 
     ap = argparse.ArgumentParser(prog="python -m muir.qat", description=main.__doc__)
     ap.add_argument("--model", default="models/muir-slim.safetensors")
-    ap.add_argument("--report", default="models/muir-slim.calib.md",
-                    help="calibration report (slot formats; models/muir-slim-wide.calib.md for the wide trunk)")
+    ap.add_argument("--report", default="models/muir-slim.formats.json",
+                    help="the blob's slot formats, `muir info --model BLOB.muirq --json` "
+                         "(models/muir-slim-wide.formats.json for the wide trunk)")
     ap.add_argument("--data", default="../shared/data")
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     ap.add_argument("--activations-only", action="store_true", help="do not round the encoder's weights")

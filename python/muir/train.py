@@ -372,9 +372,10 @@ def build_parser():
     p.add_argument("--resume", nargs="?", const="auto", default=None,
                    help="continue from OUT/ckpt_last.pt (or the given checkpoint)")
     p.add_argument("--init", default=None, help="start from these weights (.safetensors or ckpt .pt)")
-    p.add_argument("--qat", default=None, metavar="REPORT.md|dynamic",
+    p.add_argument("--qat", default=None, metavar="FORMATS.json|dynamic",
                    help="quantisation-aware: simulate the integer engine's encoder activation rounding, with the "
-                        "slot formats of this calibration report (muir quantize --report) or, with 'dynamic', "
+                        "slot formats of a blob (`muir info --model BLOB.muirq --json`, e.g. "
+                        "models/muir-slim.formats.json) or, with 'dynamic', "
                         "formats re-derived from each batch by the calibration's percentile rule")
     p.add_argument("--qat-p", type=float, default=0.5,
                    help="with --qat: fraction of steps run with the rounding (the rest run the float network)")

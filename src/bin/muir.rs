@@ -251,6 +251,10 @@ struct MacsArgs {
 struct InfoArgs {
     #[command(flatten)]
     model: ModelArgs,
+    /// Print one JSON object (config; for a .muirq also every activation slot's storage and
+    /// fraction bits, the table `python -m muir.train --qat` reads) instead of text
+    #[arg(long)]
+    json: bool,
 }
 
 fn parse_preset(name: &str) -> Result<Config, String> {
@@ -616,15 +620,89 @@ fn spinner(message: &str) -> ProgressBar {
 }
 
 fn info(args: &InfoArgs) -> Result<(), String> {
+    // A quantised blob is recognised by its magic, whatever its name.
+    let path = args.model.path(args.model.engine(None));
+    let head = std::fs::File::open(&path).and_then(|mut f| {
+        let mut m = [0u8; 4];
+        std::io::Read::read(&mut f, &mut m).map(|n| (n, m))
+    });
+    if let Ok((4, m)) = head {
+        if m == muir::format::MAGIC {
+            return info_blob(&path, args.json);
+        }
+    }
     let loaded = load_model(&args.model)?;
     let c = &loaded.weights.config;
-    println!("model: {} ({} bytes)", args.model.path(Engine::Float).display(), loaded.bytes);
+    if args.json {
+        let j = serde_json::json!({
+            "model": path.display().to_string(),
+            "kind": "safetensors",
+            "bytes": loaded.bytes,
+            "config": json_value(&config_to_json(c))?,
+            "tensors": loaded.tensors,
+            "values": loaded.values,
+        });
+        println!("{j:#}");
+        return Ok(());
+    }
+    println!("model: {} ({} bytes)", path.display(), loaded.bytes);
     println!("config: {}", config_to_json(c));
     println!("tensors: {} ({} values)", loaded.tensors, loaded.values);
     println!(
         "features: mud {}, ufi {}, mga {}, post-pool lookup {}, {} iterations",
         c.mud, c.ufi, c.mga, c.post_pool, c.iters
     );
+    Ok(())
+}
+
+fn json_value(text: &str) -> Result<serde_json::Value, String> {
+    serde_json::from_str(text).map_err(|e| format!("internal: config JSON: {e}"))
+}
+
+/// `muir info` on a .muirq: its header, config and activation formats.
+fn info_blob(path: &Path, json: bool) -> Result<(), String> {
+    use muir::model::graph::Act;
+    let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let q = QuantModel::parse(&bytes).map_err(|e| format!("{}: {e}", path.display()))?;
+    let c = q.config();
+    let slots: Vec<_> = Act::ALL
+        .iter()
+        .map(|a| {
+            let f = q.format(*a);
+            (a.name(), f.bits, f.unsigned, f.frac, a.fixed_format().is_none())
+        })
+        .collect();
+    if json {
+        let j = serde_json::json!({
+            "model": path.display().to_string(),
+            "kind": "muirq",
+            "format_version": muir::format::VERSION,
+            "bytes": bytes.len(),
+            "config": json_value(&config_to_json(c))?,
+            "wide_trunk": c.wide_trunk,
+            "slots": slots.iter().map(|(name, bits, unsigned, frac, calibrated)| serde_json::json!({
+                "name": name, "bits": bits, "unsigned": unsigned, "frac": frac, "calibrated": calibrated,
+            })).collect::<Vec<_>>(),
+        });
+        println!("{j:#}");
+        return Ok(());
+    }
+    println!("model: {} ({} bytes, quantised, format version {})", path.display(), bytes.len(), muir::format::VERSION);
+    println!("config: {}", config_to_json(c));
+    println!("trunk: {}", if c.wide_trunk { "i16 (wide)" } else { "u8" });
+    println!(
+        "features: mud {}, ufi {}, mga {}, post-pool lookup {}, {} iterations",
+        c.mud, c.ufi, c.mga, c.post_pool, c.iters
+    );
+    println!("\n| slot | storage | frac | |\n|---|---|---:|---|");
+    for (name, bits, unsigned, frac, calibrated) in &slots {
+        let storage = match (bits, unsigned) {
+            (8, true) => "u8",
+            (8, false) => "i8",
+            _ => "i16",
+        };
+        println!("| {name} | {storage} | {frac} | {} |", if *calibrated { "calibrated" } else { "fixed by the spec" });
+    }
     Ok(())
 }
 
