@@ -1,7 +1,7 @@
-"""Model description shared with the Rust crate (`src/config.rs`).
+"""Model description shared with the Rust crate (`src/model/config.rs`).
 
 A config is a flat JSON object. The same field names, the same presets and the same defaults live in
-`src/config.rs`; `host-tests` checks that a config written here parses there. Widths are channel counts.
+`src/model/config.rs`; `host-tests/model_files.rs` (`python_presets_parse`) checks that every preset written here (`host-tests/fixtures/python-presets.json`) equals the Rust one. Widths are channel counts.
 """
 from __future__ import annotations
 

@@ -1,5 +1,6 @@
-"""The QAT simulation's slot table comes from the Rust side (`muir info --json`), never from a
-Markdown report; a wrong file is a ValueError naming it."""
+"""Tables Python shares with the Rust side come from one source: the QAT slot table from `muir info
+--json` (never from a Markdown report; a wrong file is a ValueError naming it), and the presets
+checked against the fixture the Rust tests read."""
 from __future__ import annotations
 
 import json
@@ -39,3 +40,14 @@ def test_wrong_files_are_named(tmp_path):
     other.write_text(json.dumps({"kind": "safetensors"}))
     with pytest.raises(ValueError, match="float.json"):
         qat.read_formats(str(other))
+
+
+def test_presets_fixture_is_what_config_py_writes():
+    """host-tests/model_files.rs checks host-tests/fixtures/python-presets.json against the Rust
+    presets; this closes the chain: the fixture is what python/muir/config.py writes today."""
+    from muir import config
+
+    fixture = json.load(open(os.path.join(REPO, "host-tests", "fixtures", "python-presets.json")))
+    assert set(fixture) == set(config.PRESETS)
+    for name, c in config.PRESETS.items():
+        assert json.loads(c.to_json()) == fixture[name], f"{name}: regenerate host-tests/fixtures/python-presets.json"
