@@ -213,6 +213,25 @@ fn info_reads_blobs_and_the_committed_formats_match() {
     assert_fails(&muir(&[&"info", &"--model", &corrupt]), &["corrupt.muirq"]);
 }
 
+/// A reader that stops early (`muir plan | head -1`) ends the program quietly, not with a panic.
+#[cfg(unix)]
+#[test]
+fn closed_stdout_pipe_is_not_a_panic() {
+    use std::io::Read;
+    let mut child = Command::new(env!("CARGO_BIN_EXE_muir"))
+        .args(["macs"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take()); // the reader goes away before the first line
+    let mut err = String::new();
+    child.stderr.take().unwrap().read_to_string(&mut err).unwrap();
+    let status = child.wait().unwrap();
+    assert!(!err.contains("panicked"), "{err}");
+    assert!(status.success(), "{status:?}: {err}");
+}
+
 #[test]
 fn help_for_every_subcommand() {
     for (args, needle) in

@@ -20,6 +20,20 @@ use muir::input::{ImageView, check_pair};
 use muir::io::{colourise_disparity, colourise_uncertainty, read_disparity_file, read_png, write_pfm, write_png};
 use muir::model::config::Config;
 
+/// `println!` that ends the program quietly when stdout is a closed pipe (`muir plan | head`), as
+/// command-line tools do, instead of panicking.
+macro_rules! out {
+    ($($t:tt)*) => {{
+        use std::io::Write as _;
+        if let Err(e) = writeln!(std::io::stdout(), $($t)*) {
+            if e.kind() == std::io::ErrorKind::BrokenPipe {
+                std::process::exit(0);
+            }
+            panic!("failed printing to stdout: {e}");
+        }
+    }};
+}
+
 /// MUIR stereo matching: disparity and predicted error from a rectified image pair.
 #[derive(Parser, Debug)]
 #[command(name = "muir", version, propagate_version = true)]
@@ -280,6 +294,7 @@ fn parse_size(s: &str) -> Result<(usize, usize), String> {
         )),
     }
 }
+
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
@@ -642,13 +657,13 @@ fn info(args: &InfoArgs) -> Result<(), String> {
             "tensors": loaded.tensors,
             "values": loaded.values,
         });
-        println!("{j:#}");
+        out!("{j:#}");
         return Ok(());
     }
-    println!("model: {} ({} bytes)", path.display(), loaded.bytes);
-    println!("config: {}", config_to_json(c));
-    println!("tensors: {} ({} values)", loaded.tensors, loaded.values);
-    println!(
+    out!("model: {} ({} bytes)", path.display(), loaded.bytes);
+    out!("config: {}", config_to_json(c));
+    out!("tensors: {} ({} values)", loaded.tensors, loaded.values);
+    out!(
         "features: mud {}, ufi {}, mga {}, post-pool lookup {}, {} iterations",
         c.mud, c.ufi, c.mga, c.post_pool, c.iters
     );
@@ -684,24 +699,24 @@ fn info_blob(path: &Path, json: bool) -> Result<(), String> {
                 "name": name, "bits": bits, "unsigned": unsigned, "frac": frac, "calibrated": calibrated,
             })).collect::<Vec<_>>(),
         });
-        println!("{j:#}");
+        out!("{j:#}");
         return Ok(());
     }
-    println!("model: {} ({} bytes, quantised, format version {})", path.display(), bytes.len(), muir::format::VERSION);
-    println!("config: {}", config_to_json(c));
-    println!("trunk: {}", if c.wide_trunk { "i16 (wide)" } else { "u8" });
-    println!(
+    out!("model: {} ({} bytes, quantised, format version {})", path.display(), bytes.len(), muir::format::VERSION);
+    out!("config: {}", config_to_json(c));
+    out!("trunk: {}", if c.wide_trunk { "i16 (wide)" } else { "u8" });
+    out!(
         "features: mud {}, ufi {}, mga {}, post-pool lookup {}, {} iterations",
         c.mud, c.ufi, c.mga, c.post_pool, c.iters
     );
-    println!("\n| slot | storage | frac | |\n|---|---|---:|---|");
+    out!("\n| slot | storage | frac | |\n|---|---|---:|---|");
     for (name, bits, unsigned, frac, calibrated) in &slots {
         let storage = match (bits, unsigned) {
             (8, true) => "u8",
             (8, false) => "i8",
             _ => "i16",
         };
-        println!("| {name} | {storage} | {frac} | {} |", if *calibrated { "calibrated" } else { "fixed by the spec" });
+        out!("| {name} | {storage} | {frac} | {} |", if *calibrated { "calibrated" } else { "fixed by the spec" });
     }
     Ok(())
 }
@@ -804,14 +819,14 @@ fn plan(args: &PlanArgs) -> Result<(), String> {
     } else {
         args.sizes.clone()
     };
-    println!(
+    out!(
         "| config | input | trunk (conv1..layer2) | working RAM (bytes) | KiB | + stack budget (KiB) | frame zone | encoder rings | refinement rings | outputs (d + u) |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|");
+    out!("|---|---|---|---|---|---|---|---|---|---|");
     for c in &configs {
         for (&(w, h), wide_trunk) in sizes.iter().flat_map(|s| [(s, false), (s, true)]) {
             let p = muir::engine::Plan::new(&Config { wide_trunk, ..*c }, w, h);
-            println!(
+            out!(
                 "| {} | {w}x{h} | {} | {} | {:.1} | {:.1} | {} | {} | {} | {} |",
                 c.name,
                 if wide_trunk { "i16 (`--wide-trunk`)" } else { "u8" },
@@ -825,7 +840,7 @@ fn plan(args: &PlanArgs) -> Result<(), String> {
             );
         }
     }
-    println!(
+    out!(
         "\nWorking RAM = the static arena (`Plan::ram_bytes`, all of the engine's buffers); reserve {} KiB of stack \
          beside it (`engine::STACK_BUDGET`: the QEMU firmware measures 19.1-19.2 KiB on Cortex-M7 and M55, any image size). \
          The model stays in flash; the caller's images are not included.",
@@ -848,14 +863,14 @@ fn macs(args: &MacsArgs) -> Result<(), String> {
     let g = |v: u64| format!("{:.3}", v as f64 / 1e9);
     let row = |name: &str, what: &str, f: &dyn Fn(&Macs) -> u64| {
         let vals: Vec<String> = cols.iter().map(|(_, m)| g(f(m))).collect();
-        println!("| {name} | {what} | {} |", vals.join(" | "));
+        out!("| {name} | {what} | {} |", vals.join(" | "));
     };
-    println!("Multiply-accumulates per frame (G). Network: every tensor computed once, context convs merged into");
-    println!("the GRU gates; engine: what the streaming fixed-point engine computes (network + recompute).");
-    println!();
+    out!("Multiply-accumulates per frame (G). Network: every tensor computed once, context convs merged into");
+    out!("the GRU gates; engine: what the streaming fixed-point engine computes (network + recompute).");
+    out!();
     let heads: Vec<&str> = cols.iter().map(|(h, _)| h.as_str()).collect();
-    println!("| stage | covers | {} |", heads.join(" | "));
-    println!("|---|---|{}", "---:|".repeat(cols.len()));
+    out!("| stage | covers | {} |", heads.join(" | "));
+    out!("|---|---|{}", "---:|".repeat(cols.len()));
     let first = cols[0].1;
     for (i, s) in first.network().iter().enumerate() {
         row(s.name, s.what, &|m: &Macs| m.network()[i].macs);
