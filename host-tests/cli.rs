@@ -213,6 +213,24 @@ fn info_reads_blobs_and_the_committed_formats_match() {
     assert_fails(&muir(&[&"info", &"--model", &corrupt]), &["corrupt.muirq"]);
 }
 
+/// `--threads` splits the float engine's matrix products; every output bit stays the same.
+#[test]
+fn float_engine_threads_give_the_same_bits() {
+    let s = Scratch::new("threads");
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let (left, right) = (root.join("assets/teddy/left.png"), root.join("assets/teddy/right.png"));
+    let mut outs = Vec::new();
+    for t in ["1", "2", "4"] {
+        let (d, u) = (s.path(&format!("d{t}.pfm")), s.path(&format!("u{t}.pfm")));
+        let o = muir(&[&"run", &"--engine", &"float", &"--left", &left, &"--right", &right, &"--threads", &t, &"--disparity", &d, &"--uncertainty", &u]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        outs.push((std::fs::read(&d).unwrap(), std::fs::read(&u).unwrap()));
+    }
+    assert!(outs.iter().all(|o| *o == outs[0]), "outputs differ between thread counts");
+    let o = muir(&[&"run", &"--threads", &"0"]);
+    assert!(!o.status.success() && stderr(&o).contains("--threads"), "{}", stderr(&o));
+}
+
 /// A reader that stops early (`muir plan | head -1`) ends the program quietly, not with a panic.
 #[cfg(unix)]
 #[test]

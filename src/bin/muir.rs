@@ -124,10 +124,15 @@ struct RunArgs {
     /// Engine computing the network (default: from the model file, fixed for .muirq, else float).
     #[arg(long, value_enum)]
     engine: Option<Engine>,
-    /// Skips the full-resolution refinement (integer narrow-band matching around the network's
-    /// disparity, on by default in both engines): the network's upsampled disparity as it is.
+    /// Skips the full-resolution refinement (integer semi-global matching in a band around the
+    /// network's disparity, on by default in both engines): the network's upsampled disparity as
+    /// it is.
     #[arg(long)]
     no_refine: bool,
+    /// Threads for the float engine's convolutions (its matrix products; 1 to 4, the results are
+    /// the same bits for any count). The fixed-point engine runs on one thread.
+    #[arg(long, value_name = "N", default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=4))]
+    threads: u8,
     /// Fixed engine: adaptive iterations, stop once at most P per mille of the 1/8-grid pixels
     /// still move by more than --settled px (full resolution) per iteration; --iters stays the
     /// maximum.
@@ -372,6 +377,7 @@ struct Prediction {
 }
 
 fn run(args: &RunArgs) -> Result<(), String> {
+    muir::float::set_threads(args.threads as usize);
     let engine_kind = args.model.engine(args.engine);
     // Without --left/--right: the shipped demo pair, scored against its ground truth.
     let demo = args.left.is_none();

@@ -8,8 +8,8 @@
 //!
 //! The results are the same integers as the portable loops in `kernels` (host and target stay
 //! bit-exact): every product and partial sum fits in `i32` under the same bounds as there (u8 and
-//! i8 inputs: `|w x| < 2^15`, fewer than 2^16 terms; i16 inputs: chunks of 256 terms,
-//! `|w x| <= 2^22`), so the accumulation order does not matter and `SMLAD` never overflows. The
+//! i8 inputs: `|w x| < 2^15`, fewer than 2^16 terms; i16 inputs: chunks of `kernels::I16_CHUNK`
+//! terms, `|w x| <= 2^22`), so the accumulation order does not matter and `SMLAD` never overflows. The
 //! QEMU firmware test checks the whole frame against the host engine.
 
 use core::arch::asm;
@@ -144,7 +144,7 @@ fn mac4(w: u32, x: (u32, u32), acc: i32) -> i32 {
 }
 
 /// `sum w[i] * x[i]` (int8 weights, or i8 features against i8 features). For i16 activations at
-/// most 256 terms (the caller chunks, see the module doc).
+/// most `kernels::I16_CHUNK` terms (the caller chunks, see the module doc).
 #[inline]
 pub fn dot<T: Quad>(w: &[i8], x: &[T]) -> i32 {
     let n = w.len().min(x.len());

@@ -19,10 +19,11 @@
 //!
 //! The results are the same integers as the portable loops in `kernels`: every product is exact
 //! in 32 bits and the accumulators are 32-bit, with the same bounds as there and in `dsp` (u8 and
-//! i8 activations: `|w x| < 2^15`, fewer than 2^16 terms; i16 activations: chunks of at most 256
-//! terms, `|w x| <= 2^22`, which the caller in `kernels` makes), so no partial sum overflows and
-//! the summation order does not matter. The QEMU firmware `boards/qemu-mps3-m55` checks the whole
-//! frame against the host engine, and these functions against the portable ones on the target
+//! i8 activations: `|w x| < 2^15`, fewer than 2^16 terms; i16 activations: chunks of at most
+//! `kernels::I16_CHUNK` terms, `|w x| <= 2^22`, which the caller in `kernels` makes), so no
+//! partial sum overflows and the summation order does not matter. The QEMU firmware
+//! `boards/qemu-mps3-m55` checks the whole frame against the host engine, and these functions
+//! against the portable ones on the target
 //! (`boards/qemu-mps3-m55/src/bin/kernels.rs`): the host cannot run them.
 //!
 //! Register constraints of the encodings: the widening loads take a low base register (r0-r7),
@@ -216,8 +217,8 @@ impl PairLanes for i16 {
     }
 }
 
-/// `sum w[i] * x[i]` (int8 weights; u8, i8 or i16 activations). For i16 activations at most 256
-/// terms (the caller chunks, see the module doc).
+/// `sum w[i] * x[i]` (int8 weights; u8, i8 or i16 activations). For i16 activations at most
+/// `kernels::I16_CHUNK` terms (the caller chunks, see the module doc).
 #[inline]
 pub fn dot<T: Lanes>(w: &[i8], x: &[T]) -> i32 {
     let n = w.len().min(x.len());
