@@ -2,8 +2,8 @@
 //! wrong input.
 //!
 //! Models are seeded (`float::seeded`), written to a scratch folder. The run on real data uses a
-//! 128x96 crop of Middlebury 2001 tsukuba from `../shared/data` and is skipped, with a note, when
-//! that folder is absent; the error cases use synthetic images.
+//! 128x96 crop of Middlebury 2001 tsukuba from `../shared/data` and fails when that folder is
+//! absent (skipped, with a note, with `MUIR_SKIP_DATA=1`); the error cases use synthetic images.
 
 mod support;
 
@@ -81,8 +81,12 @@ fn tsukuba() -> Option<(PathBuf, PathBuf)> {
     if l.exists() && r.exists() {
         Some((l, r))
     } else {
-        println!("skipped: {} is absent (../shared not checked out)", dir.display());
-        None
+        // As host-tests/support/crops.rs `data_missing`: a failure unless MUIR_SKIP_DATA=1.
+        if std::env::var_os("MUIR_SKIP_DATA").is_some_and(|v| v == "1") {
+            eprintln!("skipped (MUIR_SKIP_DATA=1): {} is absent", dir.display());
+            return None;
+        }
+        panic!("{} is absent: check out ../shared beside the repository, or set MUIR_SKIP_DATA=1 to skip the tests that need it", dir.display());
     }
 }
 
