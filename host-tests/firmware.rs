@@ -17,7 +17,7 @@
 use std::path::{Path, PathBuf};
 
 use muir::Config;
-use muir::engine::{Engine, Output, Plan, reject, u_threshold};
+use muir::engine::{CHECKED_TAUS, Engine, Output, Plan, reject, u_threshold};
 use muir::format::{QuantModel, crc32};
 use muir::input::{ImageView, PixelFormat};
 
@@ -100,9 +100,18 @@ fn result_line(model: &QuantModel<'_>, w: usize, h: usize) -> String {
     let (d_crc, u_crc) = (crc32(&le_bytes(&d)), crc32(&le_bytes(&u)));
     let mut kept = d.clone();
     let kept_1px = reject(&mut kept, &u, u_threshold(1.0));
+    // Thresholds and kept pixels at several tau (the firmware computes the same on the target).
+    let t = CHECKED_TAUS.map(u_threshold);
+    let k = t.map(|th| {
+        kept.copy_from_slice(&d);
+        reject(&mut kept, &u, th)
+    });
+    let list = |v: &[String]| v.join(",");
     format!(
-        "MUIR-RESULT width={w} height={h} ram={} disparity_crc=0x{d_crc:08x} uncertainty_crc=0x{u_crc:08x} kept_1px={kept_1px}",
-        plan.ram_bytes
+        "MUIR-RESULT width={w} height={h} ram={} disparity_crc=0x{d_crc:08x} uncertainty_crc=0x{u_crc:08x} kept_1px={kept_1px} u_thresholds={} kept={}",
+        plan.ram_bytes,
+        list(&t.map(|x| x.to_string())),
+        list(&k.map(|x| x.to_string()))
     )
 }
 

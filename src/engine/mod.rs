@@ -304,6 +304,12 @@ pub fn refine_ctx<'f, 'm, 'a>(m: &'m QuantModel<'a>, plan: &Plan, arena: &'f mut
     refine::Ctx { m, g: plan.grid, frame, st, px: pixel, rings: cv.raw(r.rings) }
 }
 
+/// The predicted-error limits (px) at which the firmware and the host test compare rejection
+/// (`MUIR-RESULT ... u_thresholds=... kept=...`): from well below to well above the typical error,
+/// where an inexact `ln` would show first.
+#[doc(hidden)]
+pub const CHECKED_TAUS: [f32; 7] = [0.05, 0.25, 0.5, 1.0, 2.0, 4.0, 16.0];
+
 /// Rejection threshold for a predicted-error limit `tau` pixels: a pixel is rejected when its
 /// `u` (Q4.11) exceeds the returned value (`exp(u/2) > tau` <=> `u > 2 ln tau`). Setup-time
 /// conversion (not used inside the engine), the same integer on every target.

@@ -22,7 +22,7 @@ use cortex_m_rt::entry;
 use embedded_hal::digital::{ErrorKind, ErrorType, OutputPin};
 use muir::Config;
 use muir::engine::hal::run_with_busy_pin;
-use muir::engine::{Arena, Engine, Output, Plan, predicted_error_px, reject, u_threshold};
+use muir::engine::{Arena, CHECKED_TAUS, Engine, Output, Plan, predicted_error_px, reject, u_threshold};
 use muir::format::{QuantModel, crc32};
 use muir::input::{ImageView, PixelFormat};
 use semihosting::{eprintln, println, process};
@@ -277,9 +277,19 @@ fn main() -> ! {
     let u_crc = crc_i16(uncertainty);
     kept.copy_from_slice(disparity);
     let kept_1px = reject(kept, uncertainty, u_threshold(1.0));
+    // The rejection thresholds of several tau, computed here (the same integers as on the host:
+    // `u_threshold` uses IEEE-exact operations only), and the pixels each keeps.
+    let t = CHECKED_TAUS.map(u_threshold);
+    let k = t.map(|th| {
+        kept.copy_from_slice(disparity);
+        reject(kept, uncertainty, th)
+    });
     println!(
-        "MUIR-RESULT width={W} height={H} ram={} disparity_crc=0x{d_crc:08x} uncertainty_crc=0x{u_crc:08x} kept_1px={kept_1px}",
-        PLAN.ram_bytes
+        "MUIR-RESULT width={W} height={H} ram={} disparity_crc=0x{d_crc:08x} uncertainty_crc=0x{u_crc:08x} kept_1px={kept_1px} \
+         u_thresholds={},{},{},{},{},{},{} kept={},{},{},{},{},{},{}",
+        PLAN.ram_bytes,
+        t[0], t[1], t[2], t[3], t[4], t[5], t[6],
+        k[0], k[1], k[2], k[3], k[4], k[5], k[6]
     );
     // Not part of MUIR-RESULT: the host cannot compute it (it depends on the target's code).
     println!("MUIR-STACK bytes={stack_bytes} arena={} total={}", PLAN.ram_bytes, PLAN.ram_bytes + stack_bytes);
