@@ -384,7 +384,11 @@ def evaluate_method(name, scenes, root, predict, out_dir, vis_keys, info):
                          "epe_raw_valid": float(np.abs(raw[ok] - sc.disp[ok]).mean()) if ok.any() else float("nan")}
         per_scene[sc.key] = r
         a = r["all"]
-        msg = f"[{name}] {i + 1}/{len(scenes)} {sc.key} {r['size']}: EPE {a['epe']:.2f} bad2 {a['bad2']:.1f}% D1 {a['d1']:.1f}%"
+        # progress: share done and the time left at the rate so far (plain lines, for logs too)
+        done, elapsed = i + 1, time.time() - t_all
+        left = elapsed / done * (len(scenes) - done)
+        msg = (f"[{name}] {done}/{len(scenes)} ({100 * done / len(scenes):.0f}%, ETA {left:.0f} s) {sc.key} {r['size']}: "
+               f"EPE {a['epe']:.2f} bad2 {a['bad2']:.1f}% D1 {a['d1']:.1f}%")
         if "noc" in r:
             msg += f" | noc EPE {r['noc']['epe']:.2f}"
         if "unc" in r:
