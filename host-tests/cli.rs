@@ -7,6 +7,10 @@
 
 mod support;
 
+#[path = "support/crops.rs"]
+#[allow(dead_code)]
+mod crops;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
@@ -16,7 +20,7 @@ use muir::input::PixelFormat;
 use muir::io::{OwnedImage, read_ground_truth, read_pfm, read_png, write_pfm, write_png};
 use muir::model::config::Config;
 
-const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data");
+use crops::DATA;
 
 /// A scratch folder, removed when dropped.
 struct Scratch(PathBuf);
@@ -81,12 +85,9 @@ fn tsukuba() -> Option<(PathBuf, PathBuf)> {
     if l.exists() && r.exists() {
         Some((l, r))
     } else {
-        // As host-tests/support/crops.rs `data_missing`: a failure unless MUIR_SKIP_DATA=1.
-        if std::env::var_os("MUIR_SKIP_DATA").is_some_and(|v| v == "1") {
-            eprintln!("skipped (MUIR_SKIP_DATA=1): {} is absent", dir.display());
-            return None;
-        }
-        panic!("{} is absent: check out ../shared beside the repository, or set MUIR_SKIP_DATA=1 to skip the tests that need it", dir.display());
+        // A failure unless MUIR_SKIP_DATA=1 (then None: skipped with a note).
+        crops::data_missing(&dir.display().to_string());
+        None
     }
 }
 

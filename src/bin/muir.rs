@@ -669,11 +669,12 @@ fn info(args: &InfoArgs) -> Result<(), String> {
     out!("model: {} ({} bytes)", path.display(), loaded.bytes);
     out!("config: {}", config_to_json(c));
     out!("tensors: {} ({} values)", loaded.tensors, loaded.values);
-    out!(
-        "features: mud {}, ufi {}, mga {}, post-pool lookup {}, {} iterations",
-        c.mud, c.ufi, c.mga, c.post_pool, c.iters
-    );
+    out!("{}", features_line(c));
     Ok(())
+}
+
+fn features_line(c: &Config) -> String {
+    format!("features: mud {}, ufi {}, mga {}, post-pool lookup {}, {} iterations", c.mud, c.ufi, c.mga, c.post_pool, c.iters)
 }
 
 fn json_value(text: &str) -> Result<serde_json::Value, String> {
@@ -711,10 +712,7 @@ fn info_blob(path: &Path, json: bool) -> Result<(), String> {
     out!("model: {} ({} bytes, quantised, format version {})", path.display(), bytes.len(), muir::format::VERSION);
     out!("config: {}", config_to_json(c));
     out!("trunk: {}", if c.wide_trunk { "i16 (wide)" } else { "u8" });
-    out!(
-        "features: mud {}, ufi {}, mga {}, post-pool lookup {}, {} iterations",
-        c.mud, c.ufi, c.mga, c.post_pool, c.iters
-    );
+    out!("{}", features_line(c));
     out!("\n| slot | storage | frac | |\n|---|---|---:|---|");
     for (name, bits, unsigned, frac, calibrated) in &slots {
         let storage = match (bits, unsigned) {
