@@ -223,7 +223,7 @@ fn stages(c: &mut Criterion, models: &[Model], pair: &(OwnedImage, OwnedImage)) 
         ctx.st.flow.fill(0);
         if cfg.ufi {
             g.throughput(Throughput::Elements(m.ufi_peaks + m.ufi_lookups + m.ufi_convs + m.ufi_recompute));
-            g.bench_function("ufi", |b| b.iter(|| refine::ufi(&mut ctx)));
+            g.bench_function("ufi", |b| b.iter(|| refine::ufi(&mut ctx, muir::model::config::MaxDisparity::DEFAULT.grid8())));
         }
         if cfg.mga {
             g.throughput(Throughput::Elements(m.mga_setup + m0.mga_recompute));

@@ -12,7 +12,9 @@
 //!    (the blob scales each input part of a multi-part layer separately, so the update block's
 //!    figure here is an upper bound).
 //!
-//! `cargo run --release --example quant_drift [-- MODEL_STEM]` (default `models/muir-slim`).
+//! `cargo run --release --example quant_drift [-- MODEL_STEM [SCENE:Y:H:X:W]]` (default
+//! `models/muir-slim` on the five crops; a strip `SCENE:Y:H:X:W` of a `../shared/data` scene, e.g.
+//! `kitti2015/000005_10:230:96:0:1242`, replaces the crops by that one strip).
 
 // The test's crops; the ground truth it also loads is not needed here.
 #[path = "../host-tests/support/crops.rs"]
@@ -26,7 +28,7 @@ use muir::model::graph::{Act, QLayer};
 use muir::model::layers::ConvId;
 use muir::reference::Reference;
 
-use crops::{H, W, disparity_gap};
+use crops::disparity_gap;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let stem = std::env::args().nth(1).unwrap_or_else(|| "models/muir-slim".into());
@@ -34,8 +36,18 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let float = FloatModel::new(weights.clone());
     let blob = std::fs::read(format!("{stem}.muirq"))?;
     let q = QuantModel::parse(&blob)?;
-    let pairs: Vec<_> = crops::pairs().ok_or("needs ../shared/data")?.into_iter().map(|p| (p.left, p.right)).collect();
-    let n = (pairs.len() * W * H) as f64;
+    let pairs: Vec<_> = match std::env::args().nth(2) {
+        Some(strip) => {
+            let f: Vec<&str> = strip.split(':').collect();
+            let [scene, y, h, x, w] = f[..] else { return Err("strip: SCENE:Y:H:X:W".into()) };
+            let (y, h, x, w) = (y.parse()?, h.parse()?, x.parse()?, w.parse()?);
+            let dir = std::path::Path::new(crops::DATA).join(scene);
+            let cut = |v: &str| -> Result<_, Box<dyn std::error::Error>> { muir::io::read_png(dir.join(v))?.crop(x, y, w, h).ok_or_else(|| "strip outside the image".into()) };
+            vec![(cut("left.png")?, cut("right.png")?)]
+        }
+        None => crops::pairs().ok_or("needs ../shared/data")?.into_iter().map(|p| (p.left, p.right)).collect(),
+    };
+    let n = pairs.iter().map(|(l, _)| l.width * l.height).sum::<usize>() as f64;
 
     println!("| iterations | mean abs diff (px) | within 1 px |\n|---|---|---|");
     for iters in [0usize, 1, 2, 4, 7] {
@@ -72,7 +84,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             let f = float.trace_pair(&l.view(), &r.view(), iters, &mut rec)?;
             rec.0.retain(|(name, _)| names.contains(&name.as_str()));
             let d = Reference::with_injected(&q, &rec).predict(&l.view(), &r.view(), None, &mut NoTrace)?;
-            let fd: Vec<f32> = (0..H).flat_map(|y| f.disparity.data[y * f.disparity.w..y * f.disparity.w + W].to_vec()).collect();
+            let (w, h) = (l.width, l.height);
+            let fd: Vec<f32> = (0..h).flat_map(|y| f.disparity.data[y * f.disparity.w..y * f.disparity.w + w].to_vec()).collect();
             let (s, w) = disparity_gap(&fd, &d.disparity);
             sd += s;
             wi += w;

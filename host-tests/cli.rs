@@ -321,7 +321,7 @@ fn wrong_input_fails_with_a_message() {
     assert_fails(&o, &["slim.safetensors", "not a quantised muir model"]);
 
     // Usage errors are clap's: status 2.
-    for extra in [&["--engine", "gpu"][..], &["--config", "no-such-preset"], &["--iters", "0"], &["--reject-above", "-1"]] {
+    for extra in [&["--engine", "gpu"][..], &["--config", "no-such-preset"], &["--iters", "0"], &["--reject-above", "-1"], &["--max-disparity", "4"], &["--max-disparity", "2000"]] {
         let o = run(&model, &left, &right, extra);
         assert_eq!(o.status.code(), Some(2), "{extra:?}: {}", stderr(&o));
     }

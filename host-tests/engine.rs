@@ -332,7 +332,7 @@ fn early_stop_is_the_same_as_fewer_iterations() {
     let plan = Plan::new(&cfg, w, h);
     let mut mem = arena(&plan);
     let mut e = Engine::new(&qm, bytemuck::cast_slice_mut(&mut mem)).unwrap();
-    let mut run = |e: &mut Engine<'_, '_, '_>, iters: usize| {
+    let run = |e: &mut Engine<'_, '_, '_>, iters: usize| {
         let (mut d, mut u) = (vec![0i16; w * h], vec![0i16; w * h]);
         e.run_iters(&lv, &rv, iters, &mut Output { disparity: &mut d, uncertainty: Some(&mut u) }).unwrap();
         (d, u, e.last_iterations())

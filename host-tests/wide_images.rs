@@ -39,7 +39,7 @@ const ROOT: &str = env!("CARGO_MANIFEST_DIR");
 /// One strip: scene, first row, rows, first column, columns, upscaled width (0 = none), and the
 /// figures measured on it (mean |d_fixed - d_float| px, share within 1 px) for the u8-trunk blob
 /// and the wide-trunk blob, 2026-12-04, shipped model (phase 8; phase 7 in git history), calibration of
-/// `scripts/quantize-shipped.sh`.
+/// `scripts/quantize-shipped.sh`, proposal search up to the default `MaxDisparity` (256 px).
 struct Strip {
     scene: &'static str,
     y: usize,
@@ -58,15 +58,15 @@ const fn s(scene: &'static str, y: usize, h: usize, x: usize, w: usize, up: usiz
 const KITTI: &str = "kitti2015/000005_10";
 const REINDEER: &str = "middlebury2005_half/Reindeer";
 const STRIPS: [Strip; 9] = [
-    s(KITTI, 230, 96, 0, 320, 0, (0.1161, 1.0000), (0.0826, 0.9999)),
-    s(KITTI, 230, 96, 0, 640, 0, (0.2328, 0.9649), (0.1261, 0.9879)),
-    s(KITTI, 230, 96, 0, 1024, 0, (0.3089, 0.9375), (0.2687, 0.9527)),
-    s(KITTI, 230, 96, 0, 1242, 0, (0.6741, 0.8687), (0.4473, 0.8947)),
-    s(KITTI, 250, 62, 0, 1242, 1920, (1.0233, 0.7465), (0.8779, 0.8009)),
-    s(REINDEER, 200, 128, 671 - 512, 512, 0, (0.2245, 0.9606), (0.1801, 0.9595)),
-    s(REINDEER, 200, 128, 671 - 520, 520, 0, (0.2202, 0.9668), (0.1764, 0.9665)),
-    s(REINDEER, 200, 128, 0, 671, 0, (0.1543, 0.9755), (0.1121, 0.9831)),
-    s("eth3d_twoview/playground", 250, 96, 0, 941, 0, (0.1571, 0.9773), (0.1205, 0.9801)),
+    s(KITTI, 230, 96, 0, 320, 0, (0.1160, 1.0000), (0.0806, 0.9999)),
+    s(KITTI, 230, 96, 0, 640, 0, (0.1221, 1.0000), (0.1008, 0.9919)),
+    s(KITTI, 230, 96, 0, 1024, 0, (0.1439, 0.9877), (0.0977, 0.9896)),
+    s(KITTI, 230, 96, 0, 1242, 0, (0.2602, 0.9607), (0.1428, 0.9750)),
+    s(KITTI, 250, 62, 0, 1242, 1920, (0.4157, 0.8936), (0.2987, 0.9169)),
+    s(REINDEER, 200, 128, 671 - 512, 512, 0, (0.1967, 0.9770), (0.1354, 0.9783)),
+    s(REINDEER, 200, 128, 671 - 520, 520, 0, (0.1845, 0.9823), (0.1102, 0.9933)),
+    s(REINDEER, 200, 128, 0, 671, 0, (0.1668, 0.9734), (0.1812, 0.9502)),
+    s("eth3d_twoview/playground", 250, 96, 0, 941, 0, (0.0857, 0.9930), (0.0393, 0.9997)),
 ];
 
 /// The blobs, in the order of `Strip::measured`.
@@ -74,10 +74,13 @@ const BLOBS: [&str; 2] = ["muir-slim.muirq", "muir-slim-wide.muirq"];
 
 /// A strip fails when it is clearly worse than measured: the mean difference grows by more than
 /// 30 % + 0.03 px, or the pixels off by more than 1 px by more than 30 % + 1 point. Issue #19's
-/// target (mean <= 0.1 px, >= 99 % within 1 px) is printed met / not met per strip; the
-/// large-disparity strips (KITTI's near cars, Reindeer) do not meet it: the gap there is the 8-bit
-/// trunk's noise flipping UFI proposals where the float model is itself ambiguous (README
-/// "Accuracy"), not a size limit (the same columns agree equally in a 320-px and a 1242-px strip).
+/// target (mean <= 0.1 px, >= 99 % within 1 px) is printed met / not met per strip. Most of what
+/// remained on the large-disparity strips after the saturation fix was UFI's proposal search over
+/// the whole row: a far, spurious correlation peak won on near-ties and the engines' features
+/// picked different ones (KITTI 1242 px strip, u8 trunk: 0.674 px / 86.9 % within 1 px); with the
+/// search bounded by `MaxDisparity` (default 256 px) it is 0.260 px / 96.1 %. What is left there
+/// is the 8-bit trunk's noise flipping near-tied proposals where the float model is itself
+/// ambiguous (README "Accuracy"), not a size limit.
 fn within_bounds((mean, within): (f64, f64), (m0, w0): (f64, f64)) -> bool {
     mean <= 1.3 * m0 + 0.03 && (1.0 - within) <= 1.3 * (1.0 - w0) + 0.01
 }

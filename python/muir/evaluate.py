@@ -82,7 +82,8 @@ def run_model(model, left: np.ndarray, right: np.ndarray, iters=None, device="cp
     return out
 
 
-def run_fixed_engine(muir_bin: str, blob: str, scene_dir: str, iters=None, refine=True, early_stop=None):
+def run_fixed_engine(muir_bin: str, blob: str, scene_dir: str, iters=None, refine=True, early_stop=None,
+                     max_disparity=None):
     """The Rust fixed-point engine on a scene's left.png/right.png (the files, as a user would run it):
     (disparity (H,W), dict(u=log-variance from the predicted error exp(u/2) the CLI writes))."""
     with tempfile.TemporaryDirectory() as tmp:
@@ -94,6 +95,8 @@ def run_fixed_engine(muir_bin: str, blob: str, scene_dir: str, iters=None, refin
             cmd += ["--iters", str(iters)]
         if not refine:
             cmd += ["--no-refine"]
+        if max_disparity is not None:
+            cmd += ["--max-disparity", str(max_disparity)]
         if early_stop is not None:
             cmd += ["--early-stop", str(early_stop[0]), "--settled", str(early_stop[1])]
         r = subprocess.run(cmd, capture_output=True, text=True)
@@ -532,6 +535,8 @@ def _main(argv=None):
     p.add_argument("--settled", type=float, default=0.25, help="with --early-stop: px at full resolution")
     p.add_argument("--no-refine", action="store_true",
                    help="the network's disparity without the full-resolution refinement (muir.fullres)")
+    p.add_argument("--max-disparity", type=int, default=None, metavar="PX",
+                   help="largest disparity of UFI's proposal search, 8..1016 px (default: the engines' 256)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
     p.add_argument("--vis", default="4", help="number of scenes to draw (first N) or comma list of scene keys")
@@ -546,6 +551,8 @@ def _main(argv=None):
         return 0
     if not a.model and not a.blob and not a.sgbm:
         p.error("nothing to evaluate: give --model, --blob and/or --sgbm")
+    if a.max_disparity is not None and not 8 <= a.max_disparity <= 1016:
+        p.error(f"--max-disparity {a.max_disparity}: must be 8 ..= 1016 px")
     # Every input is checked before the first (minutes-long) evaluation starts.
     for path in a.model + a.blob:
         if not os.path.exists(path):
@@ -592,7 +599,10 @@ def _main(argv=None):
 
         with safe_open(path, framework="pt") as f:
             meta = f.metadata() or {}
+        if a.max_disparity is not None:
+            model.max_disparity = a.max_disparity
         info = {"model": os.path.abspath(path), "config": model.cfg.name, "iters": a.iters or model.cfg.iters,
+                "max_disparity": model.max_disparity,
                 "full_res_refinement": not a.no_refine,
                 "train_steps": meta.get("steps"), "train_command": meta.get("command")}
 
@@ -611,7 +621,8 @@ def _main(argv=None):
 
         def predict_fixed(sc, path=path):
             es = None if a.early_stop is None else (a.early_stop, a.settled)
-            return run_fixed_engine(a.muir_bin, path, os.path.join(a.root, sc.dataset, sc.name), a.iters, not a.no_refine, es)
+            return run_fixed_engine(a.muir_bin, path, os.path.join(a.root, sc.dataset, sc.name), a.iters, not a.no_refine, es,
+                                    a.max_disparity)
 
         try:
             results.append(evaluate_method(name, scenes, a.root, predict_fixed, a.out, vis_keys, info))

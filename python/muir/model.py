@@ -304,17 +304,22 @@ def lookup(vol, flow, cfg: Config):
 # disparity the engine's Q7.8 flow state holds (i16::MAX >> 8 = 127, 1016 px at full resolution).
 # Only inputs wider than 1024 px reach it.
 MAX_PROPOSAL_D8 = 127
+# Default largest disparity (px, full resolution) of the proposal search (Rust:
+# model::config::MaxDisparity::DEFAULT): a run-time setting of every engine, `MUIR.max_disparity`
+# here. Searching the whole row lets far, spurious correlation peaks win on near-ties, where the
+# fixed-point engine's 8-bit features then pick another peak than the float model.
+DEFAULT_MAX_DISPARITY = 256
 
 
-def correlation_peaks(vol, separation: int):
-    """UFI proposals: per left pixel, the two highest correlations over d in [0, min(x, 127)] (d integer, 1/8
-    grid), the second at least `separation` away from the first (the first again if none is).
-    Ties go to the smaller d. Returns disparities (B, 2, H, W) as float."""
+def correlation_peaks(vol, separation: int, max_d8: int = MAX_PROPOSAL_D8):
+    """UFI proposals: per left pixel, the two highest correlations over d in [0, min(x, max_d8, 127)] (d
+    integer, 1/8 grid), the second at least `separation` away from the first (the first again if none
+    is). Ties go to the smaller d. Returns disparities (B, 2, H, W) as float."""
     b, h, w1, w2 = vol.shape
     x = torch.arange(w1, device=vol.device).view(w1, 1)
     d = torch.arange(w2, device=vol.device).view(1, w2)
     x2 = x - d  # (w1, w2): column index for disparity d
-    valid = (x2 >= 0) & (d <= MAX_PROPOSAL_D8)
+    valid = (x2 >= 0) & (d <= min(max_d8, MAX_PROPOSAL_D8))
     idx = x2.clamp(min=0).view(1, 1, w1, w2).expand(b, h, w1, w2)
     cd = torch.gather(vol, 3, idx)
     neg = torch.finfo(vol.dtype).min
@@ -368,6 +373,8 @@ class MUIR(nn.Module):
     def __init__(self, cfg: Config):
         super().__init__()
         self.cfg = cfg
+        # Largest disparity (px) of UFI's proposal search; 8 ..= 1016, a run-time setting.
+        self.max_disparity = DEFAULT_MAX_DISPARITY
         self.cnet = MultiBasicEncoder(cfg)
         d3 = cfg.backbone_dims[2]
         self.conv2 = nn.Sequential(ResidualBlock(d3, d3, "instance", 1), nn.Conv2d(d3, cfg.fmap_dim, 3, padding=1))
@@ -431,7 +438,9 @@ class MUIR(nn.Module):
         """Returns (flow0, u0, candidate flows (B,3,H,W), candidate u (B,3,H,W), net08)."""
         cfg = self.cfg
         b, _, h, w = net08.shape
-        peaks = correlation_peaks(vol, cfg.ufi_peak_separation)
+        if not 8 <= self.max_disparity <= 8 * MAX_PROPOSAL_D8:
+            raise ValueError(f"max_disparity {self.max_disparity} outside 8 ..= {8 * MAX_PROPOSAL_D8} px")
+        peaks = correlation_peaks(vol, cfg.ufi_peak_separation, int(self.max_disparity) // 8)
         _rec(trace, "ufi.peaks", peaks)
         props = torch.cat([torch.zeros_like(peaks[:, :1]), peaks], dim=1)  # disparities (B,3,H,W)
         feats = []

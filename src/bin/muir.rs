@@ -18,7 +18,7 @@ use muir::float::{FloatModel, FloatWeights};
 use muir::format::QuantModel;
 use muir::input::{ImageView, check_pair};
 use muir::io::{colourise_disparity, colourise_uncertainty, read_disparity_file, read_png, write_pfm, write_png};
-use muir::model::config::Config;
+use muir::model::config::{Config, MaxDisparity};
 
 /// `println!` that ends the program quietly when stdout is a closed pipe (`muir plan | head`), as
 /// command-line tools do, instead of panicking.
@@ -129,6 +129,11 @@ struct RunArgs {
     /// it is.
     #[arg(long)]
     no_refine: bool,
+    /// Largest disparity (px) of the network's initial proposals (UFI): like a classical matcher's
+    /// disparity range, it stops far, spurious correlation peaks from being proposed. 8 to 1016;
+    /// the refinement iterations may still move a pixel beyond it. Same in both engines.
+    #[arg(long, value_name = "PX", default_value_t = MaxDisparity::DEFAULT.px(), value_parser = parse_max_disparity)]
+    max_disparity: usize,
     /// Threads for the float engine's convolutions (its matrix products; 1 to 4, the results are
     /// the same bits for any count). The fixed-point engine runs on one thread.
     #[arg(long, value_name = "N", default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=4))]
@@ -280,6 +285,13 @@ fn parse_preset(name: &str) -> Result<Config, String> {
     Config::preset(name).map_err(|e| e.to_string())
 }
 
+fn parse_max_disparity(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>().map(MaxDisparity::new) {
+        Ok(Ok(m)) => Ok(m.px()),
+        _ => Err(format!("'{s}' is not a disparity of {} to {} px", MaxDisparity::MIN, MaxDisparity::MAX)),
+    }
+}
+
 fn parse_tau(s: &str) -> Result<f32, String> {
     match s.parse::<f32>() {
         Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
@@ -411,11 +423,14 @@ fn run(args: &RunArgs) -> Result<(), String> {
             return Err(format!("{}: the output would overwrite the input {}", path.display(), clash.display()));
         }
     }
+    let max_disparity = MaxDisparity::new(args.max_disparity).map_err(|e| e.to_string())?;
     let path = &args.model.path(engine_kind);
     let (config, engine) = match engine_kind {
         Engine::Float => {
             let loaded = load_model(&args.model)?;
-            (loaded.weights.config, Loaded::Float(Box::new(FloatModel::new(loaded.weights))))
+            let mut model = FloatModel::new(loaded.weights);
+            model.set_max_disparity(max_disparity);
+            (*model.config(), Loaded::Float(Box::new(model)))
         }
         Engine::Fixed => {
             let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
@@ -476,7 +491,7 @@ fn run(args: &RunArgs) -> Result<(), String> {
         settled: (args.settled * 32.0).round().clamp(0.0, u16::MAX as f32) as u16,
         max_moving_per_mille: p.min(1000),
     });
-    let pred = engine.predict(&left.view(), &right.view(), iters, args.reject_above, !args.no_refine, early);
+    let pred = engine.predict(&left.view(), &right.view(), iters, args.reject_above, !args.no_refine, early, max_disparity);
     let network = start.elapsed();
     spinner.finish_and_clear();
     let pred = pred.map_err(|e| pair_err(&e))?;
@@ -546,7 +561,17 @@ enum Loaded {
 }
 
 impl Loaded {
-    fn predict(&self, left: &ImageView<'_>, right: &ImageView<'_>, iters: usize, tau: Option<f32>, refine: bool, early: Option<muir::engine::EarlyStop>) -> Result<Prediction, String> {
+    #[allow(clippy::too_many_arguments)]
+    fn predict(
+        &self,
+        left: &ImageView<'_>,
+        right: &ImageView<'_>,
+        iters: usize,
+        tau: Option<f32>,
+        refine: bool,
+        early: Option<muir::engine::EarlyStop>,
+        max_disparity: MaxDisparity,
+    ) -> Result<Prediction, String> {
         match self {
             Loaded::Float(model) => {
                 let mut p = model.predict(left, right, Some(iters)).map_err(|e| e.to_string())?;
@@ -570,6 +595,7 @@ impl Loaded {
                 let mut engine = muir::engine::Engine::new(&model, bytemuck::cast_slice_mut(&mut arena)).map_err(|e| e.to_string())?;
                 engine.set_full_res_refinement(refine);
                 engine.set_early_stop(early);
+                engine.set_max_disparity(max_disparity);
                 let mut d = vec![0i16; w * h];
                 let mut u = vec![0i16; w * h];
                 let unc = if model.config().mud { Some(&mut u[..]) } else { None };

@@ -26,6 +26,7 @@ use core::fmt;
 pub use plan::{Grid, Plan, STACK_BUDGET, ram_bytes};
 
 use crate::format::QuantModel;
+use crate::model::config::MaxDisparity;
 use crate::input::{ImageView, InputError, check_pair};
 use ring::Carver;
 
@@ -131,6 +132,7 @@ pub struct Engine<'m, 'a, 'w> {
     arena: &'w mut [u8],
     full_res: bool,
     early_stop: Option<EarlyStop>,
+    max_disparity: MaxDisparity,
     last_iters: usize,
 }
 
@@ -141,12 +143,18 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
         if arena.as_ptr() as usize % 8 != 0 {
             return Err(EngineError::ArenaAlignment);
         }
-        Ok(Self { model, arena, full_res: true, early_stop: None, last_iters: 0 })
+        Ok(Self { model, arena, full_res: true, early_stop: None, max_disparity: MaxDisparity::DEFAULT, last_iters: 0 })
     }
 
     /// Turns adaptive iterations on ([`EarlyStop`]) or off (`None`, the default: every iteration).
     pub fn set_early_stop(&mut self, stop: Option<EarlyStop>) {
         self.early_stop = stop;
+    }
+
+    /// Sets the largest disparity of UFI's proposal search ([`MaxDisparity`], default 256 px; the
+    /// float reference and the PyTorch twin take the same setting).
+    pub fn set_max_disparity(&mut self, max: MaxDisparity) {
+        self.max_disparity = max;
     }
 
     /// Refinement iterations the last successful run used.
@@ -204,7 +212,7 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
         let mut c = refine_ctx(m, &plan, self.arena);
         c.st.flow.fill(0);
         if cfg.ufi {
-            refine::ufi(&mut c);
+            refine::ufi(&mut c, self.max_disparity.grid8());
         }
         if cfg.mga {
             refine::mga_setup(&mut c);

@@ -352,8 +352,9 @@ pub const fn refine_rings(cfg: &Config, g: &Grid) -> usize {
 // ------------------------------------------------------------------------------------------------
 
 /// UFI: three proposals, the gated initializer (in place on `net08`), then the candidate with the
-/// lowest uncertainty per pixel into `flow`.
-pub fn ufi(c: &mut Ctx<'_, '_, '_>) {
+/// lowest uncertainty per pixel into `flow`. `max_d8`: the largest proposal on the 1/8 grid
+/// ([`crate::model::config::MaxDisparity::grid8`]).
+pub fn ufi(c: &mut Ctx<'_, '_, '_>, max_d8: usize) {
     let m = c.m;
     let cfg = *m.config();
     let g = c.g;
@@ -374,7 +375,7 @@ pub fn ufi(c: &mut Ctx<'_, '_, '_>) {
         let f2row = &c.frame.f2[y * w * fd..(y + 1) * w * fd];
         for x in 0..w {
             let p = y * w + x;
-            let (d1, d2) = peaks_pixel(&c.frame.f1[p * fd..(p + 1) * fd], f2row, x, cfg.ufi_peak_separation, c.px.peaks_row);
+            let (d1, d2) = peaks_pixel(&c.frame.f1[p * fd..(p + 1) * fd], f2row, x, cfg.ufi_peak_separation, max_d8, c.px.peaks_row);
             peaks[2 * p] = d1 as i16;
             peaks[2 * p + 1] = d2 as i16;
         }

@@ -78,9 +78,10 @@ pub fn lookup(f1: &Tensor, f2: &Tensor, flow: &Tensor, cfg: &Config) -> Tensor {
 }
 
 /// UFI proposals: per left pixel the integer disparities (1/8 grid) of the two highest
-/// correlations over `d in [0, min(x, MAX_PROPOSAL_D8)]`, the second at least `separation` from the first (the first
-/// again if no such d exists); ties go to the smaller d. Returns a 2-channel tensor.
-pub fn peaks(f1: &Tensor, f2: &Tensor, separation: usize) -> Tensor {
+/// correlations over `d in [0, min(x, max_d8, MAX_PROPOSAL_D8)]`, the second at least `separation`
+/// from the first (the first again if no such d exists); ties go to the smaller d. Returns a
+/// 2-channel tensor.
+pub fn peaks(f1: &Tensor, f2: &Tensor, separation: usize, max_d8: usize) -> Tensor {
     let (h, w) = (f1.h, f1.w);
     let mut out = Tensor::zeros(2, h, w);
     let mut row = vec![0.0f32; w];
@@ -89,7 +90,7 @@ pub fn peaks(f1: &Tensor, f2: &Tensor, separation: usize) -> Tensor {
             corr_row(f1, f2, y, x, &mut row);
             let best = |skip: Option<usize>| {
                 let mut arg: Option<usize> = None;
-                for d in 0..=x.min(crate::arith::MAX_PROPOSAL_D8) {
+                for d in 0..=x.min(max_d8).min(crate::arith::MAX_PROPOSAL_D8) {
                     if skip.is_some_and(|d1| d.abs_diff(d1) < separation) {
                         continue;
                     }

@@ -13,7 +13,7 @@ use super::ops::{
 use super::tensor::Tensor;
 use super::weights::{FloatConv, FloatWeights};
 use crate::input::{ImageView, InputError, check_pair};
-use crate::model::config::Config;
+use crate::model::config::{Config, MaxDisparity};
 use crate::model::layers::ConvId::{self, *};
 
 /// Receives intermediate tensors by name.
@@ -97,6 +97,7 @@ impl Prediction {
 #[derive(Clone, Debug)]
 pub struct FloatModel {
     weights: FloatWeights,
+    max_disparity: MaxDisparity,
 }
 
 struct Context {
@@ -112,7 +113,17 @@ struct Context {
 impl FloatModel {
     /// Wraps validated weights.
     pub fn new(weights: FloatWeights) -> Self {
-        Self { weights }
+        Self { weights, max_disparity: MaxDisparity::DEFAULT }
+    }
+
+    /// Sets the largest disparity of UFI's proposal search ([`MaxDisparity`], default 256 px).
+    pub fn set_max_disparity(&mut self, max: MaxDisparity) {
+        self.max_disparity = max;
+    }
+
+    /// The largest disparity of UFI's proposal search.
+    pub fn max_disparity(&self) -> MaxDisparity {
+        self.max_disparity
     }
 
     /// The model config.
@@ -258,7 +269,7 @@ impl FloatModel {
 
     fn ufi(&self, c: &Context, tr: &mut dyn Trace) -> (Tensor, Tensor) {
         let cfg = self.config();
-        let pk = peaks(&c.f1, &c.f2, cfg.ufi_peak_separation);
+        let pk = peaks(&c.f1, &c.f2, cfg.ufi_peak_separation, self.max_disparity.grid8());
         tr.record("ufi.peaks", &pk);
         let (h8, w8) = (c.net08.h, c.net08.w);
         let props = [Tensor::zeros(1, h8, w8), pk.channels(0, 1), pk.channels(1, 1)];

@@ -156,11 +156,12 @@ pub fn lookup_pixel_plain(p: &LookupParams<'_>, f1: &[i8], f2: &[i8], w: usize, 
 }
 
 /// UFI proposals for left pixel `x`: integer disparities `(d1, d2)` of the highest correlations
-/// over `d in [0, min(x, MAX_PROPOSAL_D8)]`, `d2` at least `separation` from `d1` (`d1` again if none is); ties go to the
-/// smaller d. `row` is scratch of at least `x + 1` values.
-pub fn peaks_pixel(f1: &[i8], f2: &[i8], x: usize, separation: usize, row: &mut [i32]) -> (u16, u16) {
+/// over `d in [0, min(x, max_d8, MAX_PROPOSAL_D8)]` (`max_d8`: the largest disparity on the 1/8 grid,
+/// [`crate::model::config::MaxDisparity::grid8`]), `d2` at least `separation` from `d1` (`d1` again
+/// if none is); ties go to the smaller d. `row` is scratch of at least `x + 1` values.
+pub fn peaks_pixel(f1: &[i8], f2: &[i8], x: usize, separation: usize, max_d8: usize, row: &mut [i32]) -> (u16, u16) {
     let c = f1.len();
-    let dmax = x.min(MAX_PROPOSAL_D8);
+    let dmax = x.min(max_d8).min(MAX_PROPOSAL_D8);
     for d in 0..=dmax {
         row[d] = dot_i8(f1, &f2[(x - d) * c..(x - d + 1) * c]);
     }
@@ -182,10 +183,10 @@ pub fn peaks_pixel(f1: &[i8], f2: &[i8], x: usize, separation: usize, row: &mut 
 }
 
 /// Plain twin of [`peaks_pixel`] (no row buffer: correlations recomputed per comparison).
-pub fn peaks_pixel_plain(f1: &[i8], f2: &[i8], x: usize, separation: usize) -> (u16, u16) {
+pub fn peaks_pixel_plain(f1: &[i8], f2: &[i8], x: usize, separation: usize, max_d8: usize) -> (u16, u16) {
     let c = f1.len();
     let corr = |d: usize| dot_i8(f1, &f2[(x - d) * c..(x - d + 1) * c]);
-    let dmax = x.min(MAX_PROPOSAL_D8);
+    let dmax = x.min(max_d8).min(MAX_PROPOSAL_D8);
     let mut d1 = 0;
     for d in 1..=dmax {
         if corr(d) > corr(d1) {
@@ -239,9 +240,12 @@ mod tests {
         let mut row = vec![0i32; w];
         for x in 0..w {
             for sep in [1, 2, 5] {
-                let a = peaks_pixel(&f1[x * c..(x + 1) * c], &f2, x, sep, &mut row);
-                let b = peaks_pixel_plain(&f1[x * c..(x + 1) * c], &f2, x, sep);
-                assert_eq!(a, b, "x {x}");
+                for max_d8 in [1, 7, 32, MAX_PROPOSAL_D8] {
+                    let a = peaks_pixel(&f1[x * c..(x + 1) * c], &f2, x, sep, max_d8, &mut row);
+                    let b = peaks_pixel_plain(&f1[x * c..(x + 1) * c], &f2, x, sep, max_d8);
+                    assert_eq!(a, b, "x {x} sep {sep} max {max_d8}");
+                    assert!(a.0 as usize <= max_d8.min(x) && a.1 as usize <= max_d8.min(x));
+                }
             }
         }
     }
@@ -260,9 +264,13 @@ mod tests {
         f2[(x - 200) * c..(x - 199) * c].fill(100);
         f2[(x - MAX_PROPOSAL_D8) * c..(x - MAX_PROPOSAL_D8 + 1) * c].fill(90);
         let mut row = vec![0i32; w];
-        let (d1, _) = peaks_pixel(&f1, &f2, x, 2, &mut row);
+        let (d1, _) = peaks_pixel(&f1, &f2, x, 2, usize::MAX, &mut row);
         assert_eq!(d1 as usize, MAX_PROPOSAL_D8);
-        assert_eq!(peaks_pixel_plain(&f1, &f2, x, 2).0 as usize, MAX_PROPOSAL_D8);
+        assert_eq!(peaks_pixel_plain(&f1, &f2, x, 2, usize::MAX).0 as usize, MAX_PROPOSAL_D8);
+        // A smaller search range (the default 256 px, 32 on the 1/8 grid) hides both matches.
+        let d8 = crate::model::config::MaxDisparity::DEFAULT.grid8();
+        assert_eq!(d8, 32);
+        assert!(peaks_pixel(&f1, &f2, x, 2, d8, &mut row).0 as usize <= d8);
         assert_eq!(proposal_flow(d1), -(MAX_PROPOSAL_D8 as i16) * 256);
         assert_eq!(proposal_flow(MAX_PROPOSAL_D8 as u16 + 2), i16::MIN, "beyond the format: saturated");
     }

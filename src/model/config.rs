@@ -166,6 +166,8 @@ pub enum ConfigError {
     UnknownPreset,
     /// `config_version` is not [`CONFIG_VERSION`].
     Version,
+    /// A largest disparity outside [`MaxDisparity::MIN`]`..=`[`MaxDisparity::MAX`].
+    MaxDisparity,
 }
 
 impl fmt::Display for ConfigError {
@@ -183,7 +185,55 @@ impl fmt::Display for ConfigError {
             Self::TooWide => "a channel width exceeds the supported maximum",
             Self::UnknownPreset => "unknown config name (raft-stereo-realtime, muir-fast, muir-slim)",
             Self::Version => "unsupported config_version",
+            Self::MaxDisparity => "the largest disparity must be 8 ..= 1016 px",
         })
+    }
+}
+
+/// Largest disparity (pixels, full resolution) that UFI's proposal search considers: each left
+/// pixel's proposals are the best correlations over disparities `0 ..= min(x, max)` on the 1/8 grid,
+/// `max` = this value / 8 rounded down. It is a run-time setting of every engine (and of the PyTorch
+/// twin), like the disparity range of classical matchers; the refinement iterations may still move
+/// a pixel beyond it. Why it exists: searching the whole row (up to 1016 px) lets a far, spurious
+/// correlation peak win where the scene has near-ties, and on such pixels the fixed-point engine's
+/// 8-bit features pick another peak than the float model (KITTI 000005, 1242x375: 93.0 % of pixels
+/// within 1 px between the engines with the whole row, 98.5 % with 256 px; float EPE 2.12 -> 1.93 px).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct MaxDisparity(u16);
+
+impl MaxDisparity {
+    /// The default, 256 px: every scene of `../shared/data` at its stored size (KITTI reaches
+    /// ~230 px) and 1080p frames of a short-baseline module.
+    pub const DEFAULT: Self = Self(256);
+    /// Smallest accepted value (one 1/8-grid step).
+    pub const MIN: usize = Config::FACTOR;
+    /// Largest accepted value: the largest proposal the Q7.8 flow state holds
+    /// ([`crate::arith::MAX_PROPOSAL_D8`] x 8 = 1016 px).
+    pub const MAX: usize = crate::arith::MAX_PROPOSAL_D8 * Config::FACTOR;
+
+    /// `px` pixels at full resolution.
+    ///
+    /// # Errors
+    /// [`ConfigError::MaxDisparity`] outside `MIN..=MAX`.
+    pub const fn new(px: usize) -> Result<Self, ConfigError> {
+        if px < Self::MIN || px > Self::MAX { Err(ConfigError::MaxDisparity) } else { Ok(Self(px as u16)) }
+    }
+
+    /// The value in pixels.
+    pub const fn px(self) -> usize {
+        self.0 as usize
+    }
+
+    /// The largest proposal on the 1/8 grid (`px / 8`, at most [`crate::arith::MAX_PROPOSAL_D8`]).
+    pub const fn grid8(self) -> usize {
+        self.0 as usize / Config::FACTOR
+    }
+}
+
+impl Default for MaxDisparity {
+    fn default() -> Self {
+        Self::DEFAULT
     }
 }
 
@@ -390,6 +440,16 @@ pub const fn padded(n: usize) -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn max_disparity_bounds() {
+        assert_eq!(MaxDisparity::new(7), Err(ConfigError::MaxDisparity));
+        assert_eq!(MaxDisparity::new(1017), Err(ConfigError::MaxDisparity));
+        assert_eq!(MaxDisparity::new(8).map(MaxDisparity::grid8), Ok(1));
+        assert_eq!(MaxDisparity::new(100).map(MaxDisparity::grid8), Ok(12));
+        assert_eq!(MaxDisparity::new(1016).map(MaxDisparity::grid8), Ok(crate::arith::MAX_PROPOSAL_D8));
+        assert_eq!(MaxDisparity::default().px(), 256);
+    }
 
     #[test]
     fn presets_are_valid_and_named() {

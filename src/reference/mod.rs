@@ -74,6 +74,7 @@ pub struct FixedOutput {
 pub struct Reference<'m, 'a> {
     m: &'m QuantModel<'a>,
     inject: Option<&'m crate::calib::Records>,
+    max_disparity: crate::model::config::MaxDisparity,
 }
 
 /// Encoder outputs.
@@ -95,7 +96,12 @@ pub struct Ctx {
 impl<'m, 'a> Reference<'m, 'a> {
     /// Wraps a parsed model.
     pub fn new(m: &'m QuantModel<'a>) -> Self {
-        Self { m, inject: None }
+        Self { m, inject: None, max_disparity: Default::default() }
+    }
+
+    /// The same with another largest disparity of UFI's proposal search (default 256 px).
+    pub fn with_max_disparity(self, max: crate::model::config::MaxDisparity) -> Self {
+        Self { max_disparity: max, ..self }
     }
 
     /// Diagnostic: replaces the tensors named `backbone.conv1`, `backbone.layer1`, `backbone.layer2`,
@@ -105,7 +111,7 @@ impl<'m, 'a> Reference<'m, 'a> {
     /// (`examples/quant_drift.rs`).
     #[doc(hidden)]
     pub fn with_injected(m: &'m QuantModel<'a>, float_records: &'m crate::calib::Records) -> Self {
-        Self { m, inject: Some(float_records) }
+        Self { m, inject: Some(float_records), max_disparity: Default::default() }
     }
 
     fn injected(&self, name: &str) -> Option<&Tensor> {
@@ -348,7 +354,7 @@ impl<'m, 'a> Reference<'m, 'a> {
             let f2 = &c.f2.d[y * w * fc..(y + 1) * w * fc];
             for x in 0..w {
                 let px = y * w + x;
-                let (d1, d2) = peaks_pixel_plain(&c.f1.d[px * fc..(px + 1) * fc], f2, x, cfg.ufi_peak_separation);
+                let (d1, d2) = peaks_pixel_plain(&c.f1.d[px * fc..(px + 1) * fc], f2, x, cfg.ufi_peak_separation, self.max_disparity.grid8());
                 props[1].d[px] = proposal_flow(d1);
                 props[2].d[px] = proposal_flow(d2);
             }
