@@ -63,4 +63,10 @@ if [ -f boards/qemu-mps2/panic-sites.py ]; then
     [ -d boards/qemu-mps3-m55 ] && python3 boards/qemu-mps2/panic-sites.py \
         boards/qemu-mps3-m55/target/thumbv8m.main-none-eabihf/release/stereo
 fi
+if [ -f boards/qemu-mps2/float-sites.py ]; then
+    echo "== floating point in the firmware: none on muir's inference path (a gate; issue #22 item 4)"
+    python3 boards/qemu-mps2/float-sites.py
+    [ -d boards/qemu-mps3-m55 ] && python3 boards/qemu-mps2/float-sites.py \
+        boards/qemu-mps3-m55/target/thumbv8m.main-none-eabihf/release/stereo
+fi
 echo "== all tests passed"
