@@ -27,6 +27,11 @@ if [ -d boards/qemu-mps2 ] && ! command -v qemu-system-arm >/dev/null 2>&1; then
     need_root apt-get update -qq
     need_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq qemu-system-arm >/dev/null
 fi
+if [ -d boards/qemu-mps2 ] && ! command -v llvm-objdump >/dev/null 2>&1; then
+    echo "== installing llvm (llvm-objdump: panic and float sites of the firmware)"
+    need_root apt-get update -qq
+    need_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq llvm >/dev/null
+fi
 
 echo "== Python packages of the twin (torch CPU, numpy, OpenCV, ...; python/pyproject.toml)"
 python3 -m pip install -q --disable-pip-version-check "torch>=2.2" "numpy>=1.24" "opencv-python-headless>=4.8" \
