@@ -12,7 +12,7 @@ use clap::{Args, Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use muir::calib::{CalibOptions, RangeMethod, Rounding, calibrate};
-use muir::engine::{Output, REJECTED, reject, u_threshold};
+use muir::engine::{Disparity, LogVariance, Output, REJECTED, reject, u_threshold};
 use muir::float::weights::{ParamData, config_to_json, parse_safetensors};
 use muir::float::{FloatModel, FloatWeights};
 use muir::format::QuantModel;
@@ -601,17 +601,15 @@ impl Loaded {
                 let unc = if model.config().mud { Some(&mut u[..]) } else { None };
                 engine.run_iters(left, right, iters, &mut Output { disparity: &mut d, uncertainty: unc }).map_err(|e| e.to_string())?;
                 let used = engine.last_iterations();
-                let scale = 1.0 / (1u32 << muir::arith::DISP_FRAC) as f32;
-                let raw_disparity = d.iter().map(|v| *v as f32 * scale).collect();
+                // The engine's integers as numbers, their fraction bits in the types (exact in f32).
+                let px = |v: i16| Disparity::from_bits(v).to_num::<f32>();
+                let raw_disparity = d.iter().map(|v| px(*v)).collect();
                 let rejected = match tau {
                     Some(t) if model.config().mud => Some(d.len() - reject(&mut d, &u, u_threshold(t))),
                     _ => None,
                 };
-                let disparity = d.iter().map(|v| if *v == REJECTED { f32::INFINITY } else { *v as f32 * scale }).collect();
-                let error_px = model.config().mud.then(|| {
-                    let us = 1.0 / (1u32 << muir::arith::LOG_FRAC) as f32;
-                    u.iter().map(|v| (0.5 * *v as f32 * us).exp()).collect()
-                });
+                let disparity = d.iter().map(|v| if *v == REJECTED { f32::INFINITY } else { px(*v) }).collect();
+                let error_px = model.config().mud.then(|| u.iter().map(|v| (0.5 * LogVariance::from_bits(*v).to_num::<f32>()).exp()).collect());
                 Ok(Prediction { width: w, height: h, disparity, error_px, raw_disparity, rejected, iters_used: used })
             }
         }

@@ -100,12 +100,30 @@ impl From<InputError> for EngineError {
 }
 
 /// Caller-provided outputs, `width x height` each (the input size), row-major.
+///
+/// The values are the raw bits of fixed-point numbers whose fraction bits the types [`Disparity`]
+/// and [`LogVariance`] carry: `Disparity::from_bits(d)` is a disparity in pixels that prints,
+/// compares and converts as a number (`to_num::<f32>()`), with no float on the device unless the
+/// caller converts. Rejected pixels ([`reject`]) hold [`REJECTED`].
 pub struct Output<'o> {
-    /// Left-view disparity, Q10.5 pixels (1/32 px; `fixed::types::I11F5` has the same bits).
+    /// Left-view disparity, Q10.5 pixels (1/32 px): [`Disparity`]'s bits.
     pub disparity: &'o mut [i16],
-    /// Uncertainty `u` in Q4.11; predicted error `exp(u/2)` px. Needs a model with MUD.
+    /// Uncertainty `u = log(beta^2)` in Q4.11: [`LogVariance`]'s bits; predicted error `exp(u/2)`
+    /// px. Needs a model with MUD.
     pub uncertainty: Option<&'o mut [i16]>,
 }
+
+/// A disparity in pixels as the engine writes it: 16 bits, [`crate::arith::DISP_FRAC`] = 5
+/// fraction bits (1/32 px, range +-1024 px).
+pub type Disparity = fixed::types::I11F5;
+
+/// An uncertainty `u = log(beta^2)` as the engine writes it: 16 bits, [`crate::arith::LOG_FRAC`] =
+/// 11 fraction bits (range [-16, 16)); the predicted error is `exp(u/2)` px.
+pub type LogVariance = fixed::types::I5F11;
+
+// The types and the integer spec name the same formats.
+const _: () = assert!(Disparity::FRAC_NBITS == crate::arith::DISP_FRAC as u32 && Disparity::INT_NBITS + Disparity::FRAC_NBITS == 16);
+const _: () = assert!(LogVariance::FRAC_NBITS == crate::arith::LOG_FRAC as u32 && LogVariance::INT_NBITS + LogVariance::FRAC_NBITS == 16);
 
 /// Adaptive iterations: stop refining a frame once its disparity has settled.
 ///

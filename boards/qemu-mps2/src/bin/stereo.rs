@@ -22,7 +22,7 @@ use cortex_m_rt::entry;
 use embedded_hal::digital::{ErrorKind, ErrorType, OutputPin};
 use muir::Config;
 use muir::engine::hal::run_with_busy_pin;
-use muir::engine::{Arena, CHECKED_TAUS, Engine, Output, Plan, predicted_error_px, reject, u_threshold};
+use muir::engine::{Arena, CHECKED_TAUS, Disparity, Engine, Output, Plan, predicted_error_px, reject, u_threshold};
 use muir::format::{QuantModel, crc32};
 use muir::input::{ImageView, PixelFormat};
 use semihosting::{eprintln, println, process};
@@ -222,22 +222,9 @@ fn fail(what: &str, e: impl fmt::Display) -> ! {
     process::exit(1)
 }
 
-/// A fixed-point value with `FRAC` fraction bits, printed with `DIGITS` decimals (truncated).
-struct Fix<const FRAC: u8, const DIGITS: u32>(i64);
-
-impl<const FRAC: u8, const DIGITS: u32> fmt::Display for Fix<FRAC, DIGITS> {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let a = self.0.unsigned_abs();
-        let scale = 10u64.pow(DIGITS);
-        let frac = ((a & ((1 << FRAC) - 1)) * scale) >> FRAC;
-        let sign = if self.0 < 0 { "-" } else { "" };
-        write!(f, "{sign}{}.{frac:0w$}", a >> FRAC, w = DIGITS as usize)
-    }
-}
-
-/// A disparity (Q10.5 px) for printing, with two decimals.
-fn px(v: i64) -> Fix<{ muir::arith::DISP_FRAC }, 2> {
-    Fix(v)
+/// A disparity of the engine's output as a number (Q10.5 px; printed without float).
+fn px(v: i64) -> Disparity {
+    Disparity::from_bits(v.clamp(i16::MIN.into(), i16::MAX.into()) as i16)
 }
 
 /// CRC-32 of `v` as little-endian i16 bytes (the in-memory layout on this little-endian core).
@@ -301,7 +288,7 @@ fn main() -> ! {
     // SAFETY: read-only system register.
     let part = (unsafe { (*cortex_m::peripheral::CPUID::PTR).base.read() } >> 4) & 0xFFF;
     println!(
-        "muir-slim{} {W}x{H} on CPU part 0x{part:03x} ({}): disparity {}..{} px, mean {} px; \
+        "muir-slim{} {W}x{H} on CPU part 0x{part:03x} ({}): disparity {:.2}..{:.2} px, mean {:.2} px; \
          {kept_1px} of {} pixels with predicted error <= 1 px (mean predicted error {:.2} px); working RAM {} bytes (one static arena, no heap); \
          model {} bytes read in place from flash; busy LED edges {}",
         if CONFIG.wide_trunk { " (wide trunk)" } else { "" },
