@@ -1,6 +1,7 @@
 //! The long run of the blob mutation harness (issue #22 item 3): `cargo run --release --example
-//! fuzz_blob -- [EXECUTIONS [SEED]]` (default 1,000,000 from seed 1). Prints progress every
-//! 10,000 executions and a summary; exits with status 1 if any execution panicked or hung.
+//! fuzz_blob -- [EXECUTIONS [SEED [FIRST]]]` (default 1,000,000 from seed 1; `FIRST` replays from
+//! that execution on). Prints progress every 10,000 executions and a summary; exits with status 1
+//! if any execution panicked or hung.
 
 #[path = "../host-tests/support/mutate.rs"]
 mod mutate;
@@ -9,8 +10,9 @@ fn main() {
     let mut args = std::env::args().skip(1);
     let n: u64 = args.next().and_then(|a| a.parse().ok()).unwrap_or(1_000_000);
     let seed: u64 = args.next().and_then(|a| a.parse().ok()).unwrap_or(1);
+    let first: u64 = args.next().and_then(|a| a.parse().ok()).unwrap_or(0);
     let t0 = std::time::Instant::now();
-    let rep = mutate::run(n, seed, |r| {
+    let rep = mutate::run_from(first, n, seed, |r| {
         let s = t0.elapsed().as_secs_f64();
         eprintln!(
             "{} / {n} ({:.0} %, {:.0} s, ETA {:.0} s): parsed {}, ran {}, engine errors {}, panics {}, hangs {}",

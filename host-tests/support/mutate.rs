@@ -108,7 +108,12 @@ const HEADER: usize = HEADER_LEN;
 
 /// One mutation of `blob` in place (it may change the length).
 pub fn mutate(r: &mut Rng, blob: &mut Vec<u8>) {
-    let n = blob.len().max(1);
+    if blob.is_empty() {
+        // An earlier mutation of this execution truncated everything.
+        blob.push(r.next() as u8);
+        return;
+    }
+    let n = blob.len();
     // Most mutations hit the config and table region (the first few hundred bytes after the
     // header), where the parser's structure lives; the rest anywhere.
     let at = |r: &mut Rng| if r.below(2) == 0 { (HEADER + r.below(512)).min(n - 1) } else { r.below(n) };
@@ -205,7 +210,14 @@ pub struct Report {
 }
 
 /// Runs `executions` mutations from `seed`, calling `progress` every 10,000.
-pub fn run(executions: u64, seed: u64, mut progress: impl FnMut(&Report)) -> Report {
+#[allow(dead_code)] // the test calls it; the example calls run_from
+pub fn run(executions: u64, seed: u64, progress: impl FnMut(&Report)) -> Report {
+    run_from(0, executions, seed, progress)
+}
+
+/// [`run`] from execution `first` on (the earlier mutations are generated, not executed, so a
+/// long run's execution `e` can be replayed alone).
+pub fn run_from(first: u64, executions: u64, seed: u64, mut progress: impl FnMut(&Report)) -> Report {
     let bases = base_blobs();
     for b in &bases {
         QuantModel::parse(b).expect("the base blobs parse");
@@ -216,9 +228,18 @@ pub fn run(executions: u64, seed: u64, mut progress: impl FnMut(&Report)) -> Rep
     let (mut d, mut u) = (vec![0i16; W * H], vec![0i16; W * H]);
     let mut rng = Rng(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1);
     let mut rep = Report::default();
-    // Panics are caught and counted; keep the default hook from printing each one.
+    // Panics under test are caught and counted; the hook stays quiet only while one runs, so a
+    // panic of the harness itself still prints.
+    let quiet = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
     let hook = std::panic::take_hook();
-    std::panic::set_hook(Box::new(|_| {}));
+    {
+        let quiet = quiet.clone();
+        std::panic::set_hook(Box::new(move |info| {
+            if !quiet.load(std::sync::atomic::Ordering::Relaxed) {
+                eprintln!("{info}");
+            }
+        }));
+    }
     for e in 0..executions {
         let mut blob = bases[rng.below(2)].clone();
         for _ in 0..1 + rng.below(3) {
@@ -228,7 +249,14 @@ pub fn run(executions: u64, seed: u64, mut progress: impl FnMut(&Report)) -> Rep
             fix_header(&mut blob);
         }
         let small_disparity = rng.below(4) == 0;
+        if e < first {
+            continue;
+        }
+        if std::env::var_os("MUIR_FUZZ_TRACE").is_some() {
+            eprintln!("execution {e}: {} bytes", blob.len());
+        }
         let t0 = Instant::now();
+        quiet.store(true, std::sync::atomic::Ordering::Relaxed);
         let outcome = catch_unwind(AssertUnwindSafe(|| {
             let q = match QuantModel::parse(&blob) {
                 Ok(q) => q,
@@ -243,6 +271,7 @@ pub fn run(executions: u64, seed: u64, mut progress: impl FnMut(&Report)) -> Rep
             let ok = engine.run(&lv, &rv, &mut Output { disparity: &mut d, uncertainty: unc }).is_ok();
             (None, ok)
         }));
+        quiet.store(false, std::sync::atomic::Ordering::Relaxed);
         let dt = t0.elapsed();
         rep.executions += 1;
         rep.slowest = rep.slowest.max(dt);
