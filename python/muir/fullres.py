@@ -4,7 +4,7 @@
 The network's disparity is quantised to the engine's output format (Q10.5, 1/32 px) and its
 uncertainty to Q4.11; every pixel is re-matched in a band around it: 7x7 census costs summed over
 a 3x3 window, aggregated along five semi-global paths (left, right, top, top-left, top-right) with
-penalties that shrink across image edges, winner by least summed cost with a parabola fit, then a
+penalties that shrink across image edges, winner by least summed cost with an equiangular (V) sub-pixel fit, then a
 3x3 median. Vectorised over the image (one cost plane per absolute disparity), integer throughout.
 
     from muir.fullres import refine
@@ -158,7 +158,8 @@ def refine_q(left: np.ndarray, right: np.ndarray, dq: np.ndarray, uq: np.ndarray
     ok = (i > 0) & (i < D - 1) & (a0 < _INF) & (a1 < _INF) & (a2 < _INF)
     curv = a0 + a2 - 2 * a1
     ok &= curv > 0
-    off = div_round(16 * (a0 - a2), np.maximum(curv, 1))
+    # Equiangular (V) fit, as kernels::fullres::decide: divisor max(a0, a2) - a1 >= 1 where ok.
+    off = div_round(16 * (a0 - a2), np.maximum(np.maximum(a0 - a1, a2 - a1), 1))
     refined = np.clip(((i + d0).astype(np.int64) << DISP_FRAC) + off, -32768, 32767)
     out = np.where(ok, refined, dq).astype(np.int32)
     return median3(out), ok
