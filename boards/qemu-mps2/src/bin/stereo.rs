@@ -15,7 +15,7 @@
 #![no_std]
 #![no_main]
 
-use core::fmt;
+use core::fmt::{self, Write as _};
 use core::ptr::{read_volatile, write_volatile};
 
 use cortex_m_rt::entry;
@@ -271,12 +271,21 @@ fn main() -> ! {
         kept.copy_from_slice(disparity);
         reject(kept, uncertainty, th)
     });
+    // The two lists as comma-separated text, built without a heap whatever CHECKED_TAUS holds.
+    let list = |v: &[i64]| {
+        let mut s = heapless::String::<{ 8 * CHECKED_TAUS.len() }>::new();
+        for (i, x) in v.iter().enumerate() {
+            // Each value fits 7 characters (i16, or a pixel count below 10^7) plus its comma.
+            write!(s, "{}{x}", if i > 0 { "," } else { "" }).unwrap_or_else(|_| fail("result line", "value too long"));
+        }
+        s
+    };
     println!(
         "MUIR-RESULT width={W} height={H} ram={} disparity_crc=0x{d_crc:08x} uncertainty_crc=0x{u_crc:08x} kept_1px={kept_1px} \
-         u_thresholds={},{},{},{},{},{},{} kept={},{},{},{},{},{},{}",
+         u_thresholds={} kept={}",
         PLAN.ram_bytes,
-        t[0], t[1], t[2], t[3], t[4], t[5], t[6],
-        k[0], k[1], k[2], k[3], k[4], k[5], k[6]
+        list(&t.map(i64::from)),
+        list(&k.map(|n| n as i64)),
     );
     // Not part of MUIR-RESULT: the host cannot compute it (it depends on the target's code).
     println!("MUIR-STACK bytes={stack_bytes} arena={} total={}", PLAN.ram_bytes, PLAN.ram_bytes + stack_bytes);
