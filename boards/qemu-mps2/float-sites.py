@@ -19,12 +19,10 @@ from __future__ import annotations
 import collections
 import os
 import re
-import shutil
-import subprocess
 import sys
 
-BOARD = os.path.dirname(os.path.abspath(__file__))
-FUNC = re.compile(r"^[0-9a-f]+ <(?P<name>[^>]+)>:$")
+from elf_sites import disassembly, instructions, owner
+
 # A VFP data-processing or conversion instruction on a float type (vldr/vstr/vmov of raw bits, and
 # the integer MVE/DSP instructions, are not float arithmetic).
 FLOAT = re.compile(r"^\s*[0-9a-f]+:\s+(?P<op>v(?:add|sub|mul|div|fma|fms|nmul|nmla|nmls|mla|mls|sqrt|abs|neg|cmp|cmpe|"
@@ -41,33 +39,14 @@ ALLOWED = {
 }
 
 
-def owner(func: str) -> str:
-    if "muir::" in func or func.startswith("muir.."):
-        return "muir"
-    if func.startswith(("stereo::", "main", "__cortex_m_rt_main", "kernels::")):
-        return "firmware"
-    return "other"
-
-
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    elf = argv[0] if argv else os.path.join(BOARD, "target", "thumbv7em-none-eabihf", "release", "stereo")
-    tool = shutil.which("llvm-objdump")
-    if tool is None:
-        print("float-sites: llvm-objdump not found (apt-get install llvm); not listed")
-        return 0
-    if not os.path.exists(elf):
-        print(f"float-sites: {elf} not found (build the firmware first: run-tests.sh)", file=sys.stderr)
-        return 2
-    out = subprocess.run([tool, "-d", "--no-show-raw-insn", "-C", elf], capture_output=True, text=True, check=True).stdout
+    got = disassembly("float-sites", argv, "not listed")
+    if isinstance(got, int):
+        return got
+    elf, lines = got
     sites: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
-    func = "?"
-    for line in out.splitlines():
-        m = FUNC.match(line)
-        if m:
-            if not m.group("name").startswith("$"):  # Arm mapping symbols, not functions
-                func = m.group("name")
-            continue
+    for func, line in instructions(lines):
         m = FLOAT.match(line)
         if m:
             sites[func][m.group("op").split(".")[0]] += 1

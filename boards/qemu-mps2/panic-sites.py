@@ -14,13 +14,11 @@ from __future__ import annotations
 import collections
 import os
 import re
-import shutil
-import subprocess
 import sys
 
-BOARD = os.path.dirname(os.path.abspath(__file__))
+from elf_sites import disassembly, instructions, owner
+
 BRANCH = re.compile(r"^\s*[0-9a-f]+:\s+(?:bl|b|b\.w|blx)\s+0x[0-9a-f]+ <(?P<target>[^>]+)>")
-FUNC = re.compile(r"^[0-9a-f]+ <(?P<name>[^>]+)>:$")
 KINDS = [
     ("bounds check", ("panic_bounds_check", "slice_start_index", "slice_end_index", "slice_index_order", "slice_index_fail",
                       "str_index_overflow", "copy_from_slice::len_mismatch", "len_mismatch_fail")),
@@ -40,35 +38,23 @@ def kind_of(target: str):
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    elf = argv[0] if argv else os.path.join(BOARD, "target", "thumbv7em-none-eabihf", "release", "stereo")
-    tool = shutil.which("llvm-objdump")
-    if tool is None:
-        print("panic-sites: llvm-objdump not found (apt-get install llvm); not counted")
-        return 0
-    if not os.path.exists(elf):
-        print(f"panic-sites: {elf} not found (build the firmware first: run-tests.sh)", file=sys.stderr)
-        return 2
-    out = subprocess.run([tool, "-d", "--no-show-raw-insn", "-C", elf], capture_output=True, text=True, check=True).stdout
+    got = disassembly("panic-sites", argv, "not counted")
+    if isinstance(got, int):
+        return got
+    elf, lines = got
     by_kind = collections.Counter()
     by_owner = collections.Counter()
-    func = "?"
-    for line in out.splitlines():
-        m = FUNC.match(line)
-        if m:
-            if not m.group("name").startswith("$"):  # $t/$d/$a: Arm mapping symbols, not functions
-                func = m.group("name")
-            continue
+    names = {"muir": "muir (engine, kernels, format)", "firmware": "firmware (stereo.rs, with what it inlines)",
+             "other": "core / compiler_builtins / other crates"}
+    for func, line in instructions(lines):
         m = BRANCH.match(line)
         if not m:
             continue
         k = kind_of(m.group("target"))
         if k is None or kind_of(func) is not None:  # branches between panic helpers are not sites
             continue
-        owner = "muir (engine, kernels, format)" if "muir::" in func or "muir.." in func else (
-            "firmware (stereo.rs, with what it inlines)" if func.startswith(("stereo::", "main", "__cortex_m_rt_main"))
-            else "core / compiler_builtins / other crates")
         by_kind[k] += 1
-        by_owner[owner] += 1
+        by_owner[names[owner(func)]] += 1
     total = sum(by_kind.values())
     print(f"panic-sites: {total} branches into panic paths in {os.path.relpath(elf)}")
     for k, n in by_kind.most_common():
