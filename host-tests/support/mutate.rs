@@ -227,6 +227,7 @@ pub fn run_from(first: u64, executions: u64, seed: u64, mut progress: impl FnMut
     let mut arena = vec![0u64; ARENA / 8];
     let (mut d, mut u) = (vec![0i16; W * H], vec![0i16; W * H]);
     let mut rng = Rng(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1);
+    let trace = std::env::var_os("MUIR_FUZZ_TRACE").is_some();
     let mut rep = Report::default();
     // Panics under test are caught and counted; the hook stays quiet only while one runs, so a
     // panic of the harness itself still prints.
@@ -252,7 +253,7 @@ pub fn run_from(first: u64, executions: u64, seed: u64, mut progress: impl FnMut
         if e < first {
             continue;
         }
-        if std::env::var_os("MUIR_FUZZ_TRACE").is_some() {
+        if trace {
             eprintln!("execution {e}: {} bytes", blob.len());
         }
         let t0 = Instant::now();

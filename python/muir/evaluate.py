@@ -551,8 +551,10 @@ def _main(argv=None):
         return 0
     if not a.model and not a.blob and not a.sgbm:
         p.error("nothing to evaluate: give --model, --blob and/or --sgbm")
-    if a.max_disparity is not None and not 8 <= a.max_disparity <= 1016:
-        p.error(f"--max-disparity {a.max_disparity}: must be 8 ..= 1016 px")
+    from .model import MAX_PROPOSAL_D8
+
+    if a.max_disparity is not None and not 8 <= a.max_disparity <= 8 * MAX_PROPOSAL_D8:
+        p.error(f"--max-disparity {a.max_disparity}: must be 8 ..= {8 * MAX_PROPOSAL_D8} px")
     # Every input is checked before the first (minutes-long) evaluation starts.
     for path in a.model + a.blob:
         if not os.path.exists(path):

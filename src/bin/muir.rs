@@ -132,8 +132,8 @@ struct RunArgs {
     /// Largest disparity (px) of the network's initial proposals (UFI): like a classical matcher's
     /// disparity range, it stops far, spurious correlation peaks from being proposed. 8 to 1016;
     /// the refinement iterations may still move a pixel beyond it. Same in both engines.
-    #[arg(long, value_name = "PX", default_value_t = MaxDisparity::DEFAULT.px(), value_parser = parse_max_disparity)]
-    max_disparity: usize,
+    #[arg(long, value_name = "PX", default_value_t = MaxDisparity::DEFAULT, value_parser = parse_max_disparity)]
+    max_disparity: MaxDisparity,
     /// Threads for the float engine's convolutions (its matrix products; 1 to 4, the results are
     /// the same bits for any count). The fixed-point engine runs on one thread.
     #[arg(long, value_name = "N", default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=4))]
@@ -285,9 +285,9 @@ fn parse_preset(name: &str) -> Result<Config, String> {
     Config::preset(name).map_err(|e| e.to_string())
 }
 
-fn parse_max_disparity(s: &str) -> Result<usize, String> {
+fn parse_max_disparity(s: &str) -> Result<MaxDisparity, String> {
     match s.parse::<usize>().map(MaxDisparity::new) {
-        Ok(Ok(m)) => Ok(m.px()),
+        Ok(Ok(m)) => Ok(m),
         _ => Err(format!("'{s}' is not a disparity of {} to {} px", MaxDisparity::MIN, MaxDisparity::MAX)),
     }
 }
@@ -423,7 +423,7 @@ fn run(args: &RunArgs) -> Result<(), String> {
             return Err(format!("{}: the output would overwrite the input {}", path.display(), clash.display()));
         }
     }
-    let max_disparity = MaxDisparity::new(args.max_disparity).map_err(|e| e.to_string())?;
+    let max_disparity = args.max_disparity;
     let path = &args.model.path(engine_kind);
     let (config, engine) = match engine_kind {
         Engine::Float => {

@@ -231,6 +231,13 @@ impl MaxDisparity {
     }
 }
 
+impl fmt::Display for MaxDisparity {
+    /// The value in pixels.
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}", self.0)
+    }
+}
+
 impl Default for MaxDisparity {
     fn default() -> Self {
         Self::DEFAULT
