@@ -107,6 +107,112 @@ pub trait Quad: Copy + Into<i32> {
     fn quad_paired(x: &[Self], i: usize) -> (u32, u32) {
         Self::quad(x, i)
     }
+    /// [`dot2x2`]'s whole groups by the hand-scheduled assembly loop, where this type has one:
+    /// `q >= 1` groups of four, `w0`, `w1` at least `4 q` and `x` at least `8 q` long.
+    #[inline(always)]
+    fn groups_asm(_w0: &[u8], _w1: &[u8], _x: &[Self], _q: usize) -> Option<[i32; 4]> {
+        None
+    }
+}
+
+// The 2x2 inner loops of `dot2x2` for u8 and i16 activations, scheduled by hand. Compiled from
+// Rust, the loop needs 4 accumulators, 3 pointers, a bound and 6 widened operands (14 registers)
+// in the 12 that inline assembly may use on Thumb (r6 and r7 are reserved), so LLVM spilled
+// accumulators on every iteration (26 instructions per 16 MACs for i16 activations, 27 for u8).
+// As standalone AAPCS functions the loops have r0-r12 and lr (the callee-saved ones pushed once
+// per call): no spills. Per group of four values (16 MACs): i16 2 LDRD + 2 x (LDR + 2 SXTB16) +
+// 8 SMLAD + the loop's CMP/BNE = 18 instructions; u8 2 LDR + 4 UXTB16 instead of the LDRDs = 22.
+// Arguments: r0 = x (the pair layout), r1 = w0, r2 = w1, r3 = groups (>= 1), [sp] = out (4 x i32:
+// w0.a, w1.a, w0.b, w1.b). x of the i16 loop must be word-aligned (LDRD), the other pointers not.
+// Registers: r4..r7 accumulators (a0, a1, a2, a3), r8..r11 activations, r12 / lr weights, r3 the
+// end of w0.
+core::arch::global_asm!(
+    ".syntax unified",
+    ".thumb",
+    // Module-level assembly does not see `-C target-cpu`: on Armv8-M Mainline (Cortex-M33/M55)
+    // the DSP extension would be off. Every instruction below has the same Thumb-2 encoding in
+    // Armv7E-M, so the loops are assembled as Armv7E-M code on both.
+    ".arch armv7e-m",
+    ".section .text.muir_dsp_dot2x2_i16,\"ax\",%progbits",
+    ".global muir_dsp_dot2x2_i16",
+    ".type muir_dsp_dot2x2_i16,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_dot2x2_i16:",
+    "    push {{r4-r11, lr}}",
+    "    movs r4, #0",
+    "    movs r5, #0",
+    "    movs r6, #0",
+    "    movs r7, #0",
+    "    add r3, r1, r3, lsl #2",
+    "1:",
+    "    ldrd r8, r9, [r0], #8",      // a: (a0, a2), (a1, a3)
+    "    ldrd r10, r11, [r0], #8",    // b: (b0, b2), (b1, b3)
+    "    ldr lr, [r1], #4",
+    "    sxtb16 r12, lr",             // w0: (w0, w2)
+    "    sxtb16 lr, lr, ror #8",      //     (w1, w3)
+    "    smlad r4, r12, r8, r4",
+    "    smlad r4, lr, r9, r4",
+    "    smlad r6, r12, r10, r6",
+    "    smlad r6, lr, r11, r6",
+    "    ldr lr, [r2], #4",
+    "    sxtb16 r12, lr",
+    "    sxtb16 lr, lr, ror #8",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    smlad r7, r12, r10, r7",
+    "    smlad r7, lr, r11, r7",
+    "    cmp r1, r3",
+    "    bne 1b",
+    "    ldr r12, [sp, #36]",
+    "    stm r12, {{r4-r7}}",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_dsp_dot2x2_i16, . - muir_dsp_dot2x2_i16",
+    "",
+    ".section .text.muir_dsp_dot2x2_u8,\"ax\",%progbits",
+    ".global muir_dsp_dot2x2_u8",
+    ".type muir_dsp_dot2x2_u8,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_dot2x2_u8:",
+    "    push {{r4-r11, lr}}",
+    "    movs r4, #0",
+    "    movs r5, #0",
+    "    movs r6, #0",
+    "    movs r7, #0",
+    "    add r3, r1, r3, lsl #2",
+    "1:",
+    "    ldr r10, [r0, #4]",          // b: bytes 0..3
+    "    ldr r8, [r0], #8",           // a: bytes 0..3
+    "    uxtb16 r9, r8, ror #8",      // (a1, a3)
+    "    uxtb16 r8, r8",              // (a0, a2)
+    "    uxtb16 r11, r10, ror #8",    // (b1, b3)
+    "    uxtb16 r10, r10",            // (b0, b2)
+    "    ldr lr, [r1], #4",
+    "    sxtb16 r12, lr",
+    "    sxtb16 lr, lr, ror #8",
+    "    smlad r4, r12, r8, r4",
+    "    smlad r4, lr, r9, r4",
+    "    smlad r6, r12, r10, r6",
+    "    smlad r6, lr, r11, r6",
+    "    ldr lr, [r2], #4",
+    "    sxtb16 r12, lr",
+    "    sxtb16 lr, lr, ror #8",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    smlad r7, r12, r10, r7",
+    "    smlad r7, lr, r11, r7",
+    "    cmp r1, r3",
+    "    bne 1b",
+    "    ldr r12, [sp, #36]",
+    "    stm r12, {{r4-r7}}",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_dsp_dot2x2_u8, . - muir_dsp_dot2x2_u8",
+);
+
+unsafe extern "C" {
+    fn muir_dsp_dot2x2_i16(x: *const i16, w0: *const u8, w1: *const u8, groups: usize, out: *mut [i32; 4]);
+    fn muir_dsp_dot2x2_u8(x: *const u8, w0: *const u8, w1: *const u8, groups: usize, out: *mut [i32; 4]);
 }
 
 impl Quad for u8 {
@@ -114,6 +220,17 @@ impl Quad for u8 {
     fn quad(x: &[u8], i: usize) -> (u32, u32) {
         let v = word(x, i);
         (uxtb16(v), uxtb16_ror8(v))
+    }
+    #[inline(always)]
+    fn groups_asm(w0: &[u8], w1: &[u8], x: &[u8], q: usize) -> Option<[i32; 4]> {
+        if q == 0 || w0.len() < 4 * q || w1.len() < 4 * q || x.len() < 8 * q {
+            return None;
+        }
+        let mut out = [0i32; 4];
+        // SAFETY: the loop reads `4 q` bytes from each weight pointer and `8 q` from `x` (checked
+        // above), with unaligned word loads only (Cortex-M4/M7 allow them), and writes `out`.
+        unsafe { muir_dsp_dot2x2_u8(x.as_ptr(), w0.as_ptr(), w1.as_ptr(), q, &mut out) };
+        Some(out)
     }
 }
 
@@ -134,6 +251,19 @@ impl Quad for i16 {
     #[inline(always)]
     fn quad_paired(x: &[i16], i: usize) -> (u32, u32) {
         (pair(x, i), pair(x, i + 2))
+    }
+    #[inline(always)]
+    fn groups_asm(w0: &[u8], w1: &[u8], x: &[i16], q: usize) -> Option<[i32; 4]> {
+        // LDRD needs a word-aligned address; the engine's patch buffers are, a caller's slice at
+        // an odd element offset takes the Rust loop.
+        if q == 0 || w0.len() < 4 * q || w1.len() < 4 * q || x.len() < 8 * q || x.as_ptr() as usize % 4 != 0 {
+            return None;
+        }
+        let mut out = [0i32; 4];
+        // SAFETY: `4 q` bytes from each weight pointer (unaligned word loads), `8 q` i16 from the
+        // word-aligned `x` (checked above); writes `out`.
+        unsafe { muir_dsp_dot2x2_i16(x.as_ptr(), w0.as_ptr(), w1.as_ptr(), q, &mut out) };
+        Some(out)
     }
 }
 
@@ -202,16 +332,20 @@ pub fn dot2x2<T: Quad>(w0: &[i8], w1: &[i8], x: &[T]) -> [i32; 4] {
     let q = n / 4;
     let (b0, b1) = (bytes_of_i8(w0), bytes_of_i8(w1));
     let (mut a0, mut a1, mut a2, mut a3) = (0i32, 0i32, 0i32, 0i32);
-    for g in 0..q {
-        let (qa, qb) = (T::quad_paired(x, 8 * g), T::quad_paired(x, 8 * g + 4));
-        let v0 = word(b0, 4 * g);
-        let (w0l, w0h) = (sxtb16(v0), sxtb16_ror8(v0));
-        a0 = smlad(w0h, qa.1, smlad(w0l, qa.0, a0));
-        a2 = smlad(w0h, qb.1, smlad(w0l, qb.0, a2));
-        let v1 = word(b1, 4 * g);
-        let (w1l, w1h) = (sxtb16(v1), sxtb16_ror8(v1));
-        a1 = smlad(w1h, qa.1, smlad(w1l, qa.0, a1));
-        a3 = smlad(w1h, qb.1, smlad(w1l, qb.0, a3));
+    if let Some([s0, s1, s2, s3]) = T::groups_asm(b0, b1, x, q) {
+        (a0, a1, a2, a3) = (s0, s1, s2, s3);
+    } else {
+        for g in 0..q {
+            let (qa, qb) = (T::quad_paired(x, 8 * g), T::quad_paired(x, 8 * g + 4));
+            let v0 = word(b0, 4 * g);
+            let (w0l, w0h) = (sxtb16(v0), sxtb16_ror8(v0));
+            a0 = smlad(w0h, qa.1, smlad(w0l, qa.0, a0));
+            a2 = smlad(w0h, qb.1, smlad(w0l, qb.0, a2));
+            let v1 = word(b1, 4 * g);
+            let (w1l, w1h) = (sxtb16(v1), sxtb16_ror8(v1));
+            a1 = smlad(w1h, qa.1, smlad(w1l, qa.0, a1));
+            a3 = smlad(w1h, qb.1, smlad(w1l, qb.0, a3));
+        }
     }
     let (q4, r) = (4 * q, n - 4 * q);
     for j in 0..r {

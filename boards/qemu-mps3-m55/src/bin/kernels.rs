@@ -125,7 +125,11 @@ static mut B8: [u8; MAX_N] = [0; MAX_N];
 static mut P8: [u8; 2 * MAX_N] = [0; 2 * MAX_N];
 static mut A16: [i16; MAX_N] = [0; MAX_N];
 static mut B16: [i16; MAX_N] = [0; MAX_N];
-static mut P16: [i16; 2 * MAX_N] = [0; 2 * MAX_N];
+/// Word-aligned, as the engine's patch buffers are: the DSP build's i16 `dot2x2` loop loads
+/// pairs of words (`LDRD`) and takes its assembly path only on aligned patches.
+#[repr(C, align(8))]
+struct Aligned16([i16; 2 * MAX_N]);
+static mut P16: Aligned16 = Aligned16([0; 2 * MAX_N]);
 
 fn lengths() -> impl Iterator<Item = usize> {
     (0..=40).chain([63, 64, 65, 72, 127, 128, 129, 255, 256, 257, 260, 507, 508, 509, 511, 512, 513, 576, 1000, 1016, 1017, 1152, 2304, 5760])
@@ -145,7 +149,7 @@ fn main() -> ! {
             &mut *addr_of_mut!(P8),
             &mut *addr_of_mut!(A16),
             &mut *addr_of_mut!(B16),
-            &mut *addr_of_mut!(P16),
+            &mut (*addr_of_mut!(P16)).0,
         )
     };
     let mut r = Rng(0x9E37_79B9_7F4A_7C15);
