@@ -138,13 +138,26 @@ core::arch::global_asm!(
     ".type muir_dsp_dot2x2_i16,%function",
     ".p2align 2",
     ".thumb_func",
+    // i16: the whole patch in one call, `kernels::I16_CHUNK / 4` groups at a time in i32 (exact,
+    // module doc), each chunk's four sums added into the i64 `out` (which the caller zeroes);
+    // the groups still to do wait in the stack slot [sp].
     "muir_dsp_dot2x2_i16:",
     "    push {{r4-r11, lr}}",
+    "    sub sp, #8",
+    "    str r3, [sp]",
+    "2:",
+    "    ldr lr, [sp]",
+    "    mov r12, lr",
+    "    cmp r12, #{chunk}",
+    "    it hi",
+    "    movhi r12, #{chunk}",
+    "    sub lr, lr, r12",
+    "    str lr, [sp]",
+    "    add r3, r1, r12, lsl #2",
     "    movs r4, #0",
     "    movs r5, #0",
     "    movs r6, #0",
     "    movs r7, #0",
-    "    add r3, r1, r3, lsl #2",
     "1:",
     "    ldrd r8, r9, [r0], #8",      // a: (a0, a2), (a1, a3)
     "    ldrd r10, r11, [r0], #8",    // b: (b0, b2), (b1, b3)
@@ -164,8 +177,27 @@ core::arch::global_asm!(
     "    smlad r7, lr, r11, r7",
     "    cmp r1, r3",
     "    bne 1b",
-    "    ldr r12, [sp, #36]",
-    "    stm r12, {{r4-r7}}",
+    "    ldr r12, [sp, #44]",
+    "    ldrd r8, r9, [r12]",
+    "    adds r8, r8, r4",
+    "    adc r9, r9, r4, asr #31",
+    "    strd r8, r9, [r12]",
+    "    ldrd r8, r9, [r12, #8]",
+    "    adds r8, r8, r5",
+    "    adc r9, r9, r5, asr #31",
+    "    strd r8, r9, [r12, #8]",
+    "    ldrd r8, r9, [r12, #16]",
+    "    adds r8, r8, r6",
+    "    adc r9, r9, r6, asr #31",
+    "    strd r8, r9, [r12, #16]",
+    "    ldrd r8, r9, [r12, #24]",
+    "    adds r8, r8, r7",
+    "    adc r9, r9, r7, asr #31",
+    "    strd r8, r9, [r12, #24]",
+    "    ldr lr, [sp]",
+    "    cmp lr, #0",
+    "    bne 2b",
+    "    add sp, #8",
     "    pop {{r4-r11, pc}}",
     ".size muir_dsp_dot2x2_i16, . - muir_dsp_dot2x2_i16",
     "",
@@ -208,10 +240,11 @@ core::arch::global_asm!(
     "    stm r12, {{r4-r7}}",
     "    pop {{r4-r11, pc}}",
     ".size muir_dsp_dot2x2_u8, . - muir_dsp_dot2x2_u8",
+    chunk = const super::I16_CHUNK / 4,
 );
 
 unsafe extern "C" {
-    fn muir_dsp_dot2x2_i16(x: *const i16, w0: *const u8, w1: *const u8, groups: usize, out: *mut [i32; 4]);
+    fn muir_dsp_dot2x2_i16(x: *const i16, w0: *const u8, w1: *const u8, groups: usize, out: *mut [i64; 4]);
     fn muir_dsp_dot2x2_u8(x: *const u8, w0: *const u8, w1: *const u8, groups: usize, out: *mut [i32; 4]);
 }
 
@@ -251,19 +284,6 @@ impl Quad for i16 {
     #[inline(always)]
     fn quad_paired(x: &[i16], i: usize) -> (u32, u32) {
         (pair(x, i), pair(x, i + 2))
-    }
-    #[inline(always)]
-    fn groups_asm(w0: &[u8], w1: &[u8], x: &[i16], q: usize) -> Option<[i32; 4]> {
-        // LDRD needs a word-aligned address; the engine's patch buffers are, a caller's slice at
-        // an odd element offset takes the Rust loop.
-        if q == 0 || w0.len() < 4 * q || w1.len() < 4 * q || x.len() < 8 * q || x.as_ptr() as usize % 4 != 0 {
-            return None;
-        }
-        let mut out = [0i32; 4];
-        // SAFETY: `4 q` bytes from each weight pointer (unaligned word loads), `8 q` i16 from the
-        // word-aligned `x` (checked above); writes `out`.
-        unsafe { muir_dsp_dot2x2_i16(x.as_ptr(), w0.as_ptr(), w1.as_ptr(), q, &mut out) };
-        Some(out)
     }
 }
 
@@ -356,4 +376,40 @@ pub fn dot2x2<T: Quad>(w0: &[i8], w1: &[i8], x: &[T]) -> [i32; 4] {
         a3 += w1[q4 + j] as i32 * xb;
     }
     [a0, a1, a2, a3]
+}
+
+/// [`dot2x2`] for i16 activations over a whole patch of any length: the assembly loop takes
+/// every group of four, `kernels::I16_CHUNK` values at a time in i32 (so each chunk's sum is exact,
+/// module doc), into i64 sums; the last `n % 4` values are added here. Same integers as four
+/// `dot`s.
+#[inline]
+pub fn dot2x2_i16(w0: &[i8], w1: &[i8], x: &[i16]) -> [i64; 4] {
+    let n = w0.len().min(w1.len()).min(x.len() / 2);
+    let q = n / 4;
+    let (b0, b1) = (bytes_of_i8(w0), bytes_of_i8(w1));
+    let mut acc = [0i64; 4];
+    // LDRD needs a word-aligned address: the engine's patch buffers are; a slice at an odd
+    // element offset takes the Rust loop, chunk by chunk.
+    if q > 0 && x.as_ptr() as usize % 4 == 0 {
+        // SAFETY: the loop reads `4 q <= n` bytes from each weight slice (unaligned word loads,
+        // which Cortex-M4/M7 allow) and `8 q <= 2 n <= x.len()` values from the word-aligned
+        // `x`, and adds into `acc`.
+        unsafe { muir_dsp_dot2x2_i16(x.as_ptr(), b0.as_ptr(), b1.as_ptr(), q, &mut acc) };
+    } else {
+        let (w0q, w1q, xq) = (w0.get(..4 * q).unwrap_or(&[]), w1.get(..4 * q).unwrap_or(&[]), x.get(..8 * q).unwrap_or(&[]));
+        for ((c0, c1), xc) in w0q.chunks(super::I16_CHUNK).zip(w1q.chunks(super::I16_CHUNK)).zip(xq.chunks(2 * super::I16_CHUNK)) {
+            for (a, s) in acc.iter_mut().zip(dot2x2(c0, c1, xc)) {
+                *a += s as i64;
+            }
+        }
+    }
+    let (q4, r) = (4 * q, n - 4 * q);
+    let tail = |v: &[i8], at: usize| -> i64 {
+        (0..r).map(|j| *v.get(q4 + j).unwrap_or(&0) as i64 * *x.get(at + j).unwrap_or(&0) as i64).sum()
+    };
+    acc[0] += tail(w0, 2 * q4);
+    acc[1] += tail(w1, 2 * q4);
+    acc[2] += tail(w0, 2 * q4 + r);
+    acc[3] += tail(w1, 2 * q4 + r);
+    acc
 }

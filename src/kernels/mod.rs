@@ -231,17 +231,18 @@ impl Elem for i16 {
     fn dot2x2(w0: &[i8], w1: &[i8], x: &[i16]) -> [i64; 4] {
         // Same chunks as `dot` (a multiple of 4: each chunk of the pair layout is itself in the
         // pair layout), so every partial sum stays exact in i32.
-        let mut acc = [0i64; 4];
-        for ((c0, c1), xc) in w0.chunks(I16_CHUNK).zip(w1.chunks(I16_CHUNK)).zip(x.chunks(2 * I16_CHUNK)) {
-            #[cfg(feature = "mve")]
-            let d = mve::dot2x2(c0, c1, xc);
-            #[cfg(not(feature = "mve"))]
-            let d = dsp::dot2x2(c0, c1, xc);
-            for (a, s) in acc.iter_mut().zip(d) {
-                *a += s as i64;
+        #[cfg(not(feature = "mve"))]
+        return dsp::dot2x2_i16(w0, w1, x);
+        #[cfg(feature = "mve")]
+        {
+            let mut acc = [0i64; 4];
+            for ((c0, c1), xc) in w0.chunks(I16_CHUNK).zip(w1.chunks(I16_CHUNK)).zip(x.chunks(2 * I16_CHUNK)) {
+                for (a, s) in acc.iter_mut().zip(mve::dot2x2(c0, c1, xc)) {
+                    *a += s as i64;
+                }
             }
+            acc
         }
-        acc
     }
     fn as_out(d: &mut [i16]) -> OutRow<'_> {
         OutRow::I16(d)
