@@ -121,9 +121,11 @@ pub trait Quad: Copy + Into<i32> {
 // accumulators on every iteration (26 instructions per 16 MACs for i16 activations, 27 for u8).
 // As standalone AAPCS functions the loops have r0-r12 and lr (the callee-saved ones pushed once
 // per call): no spills. Per group of four values (16 MACs): i16 2 LDRD + 2 x (LDR + 2 SXTB16) +
-// 8 SMLAD + the loop's CMP/BNE = 18 instructions; u8 2 LDR + 4 UXTB16 instead of the LDRDs = 22.
-// Arguments: r0 = x (the pair layout), r1 = w0, r2 = w1, r3 = groups (>= 1), [sp] = out (4 x i32:
-// w0.a, w1.a, w0.b, w1.b). x of the i16 loop must be word-aligned (LDRD), the other pointers not.
+// 8 SMLAD = 16 instructions; u8 2 LDR + 4 UXTB16 instead of the LDRDs = 20; the loop's CMP/BNE
+// once per two groups (the body is written twice; an odd count enters at the second copy).
+// Arguments: r0 = x (the pair layout), r1 = w0, r2 = w1, r3 = groups (>= 1), [sp] = out (the
+// four sums w0.a, w1.a, w0.b, w1.b: i32 for u8; i64, added to, for i16). x of the i16 loop must
+// be word-aligned (LDRD), the other pointers need not be.
 // Registers: r4..r7 accumulators (a0, a1, a2, a3), r8..r11 activations, r12 / lr weights, r3 the
 // end of w0.
 core::arch::global_asm!(
@@ -158,7 +160,26 @@ core::arch::global_asm!(
     "    movs r5, #0",
     "    movs r6, #0",
     "    movs r7, #0",
+    "    tst r12, #1",               // an odd group count starts at 3
+    "    bne 3f",
     "1:",
+    "    ldrd r8, r9, [r0], #8",      // a: (a0, a2), (a1, a3)
+    "    ldrd r10, r11, [r0], #8",    // b: (b0, b2), (b1, b3)
+    "    ldr lr, [r1], #4",
+    "    sxtb16 r12, lr",             // w0: (w0, w2)
+    "    sxtb16 lr, lr, ror #8",      //     (w1, w3)
+    "    smlad r4, r12, r8, r4",
+    "    smlad r4, lr, r9, r4",
+    "    smlad r6, r12, r10, r6",
+    "    smlad r6, lr, r11, r6",
+    "    ldr lr, [r2], #4",
+    "    sxtb16 r12, lr",
+    "    sxtb16 lr, lr, ror #8",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    smlad r7, r12, r10, r7",
+    "    smlad r7, lr, r11, r7",
+    "3:",
     "    ldrd r8, r9, [r0], #8",      // a: (a0, a2), (a1, a3)
     "    ldrd r10, r11, [r0], #8",    // b: (b0, b2), (b1, b3)
     "    ldr lr, [r1], #4",
@@ -212,8 +233,31 @@ core::arch::global_asm!(
     "    movs r5, #0",
     "    movs r6, #0",
     "    movs r7, #0",
+    "    lsls r12, r3, #31",          // Z clear when the group count is odd: start at 3
     "    add r3, r1, r3, lsl #2",
+    "    bne 3f",
     "1:",
+    "    ldr r10, [r0, #4]",          // b: bytes 0..3
+    "    ldr r8, [r0], #8",           // a: bytes 0..3
+    "    uxtb16 r9, r8, ror #8",      // (a1, a3)
+    "    uxtb16 r8, r8",              // (a0, a2)
+    "    uxtb16 r11, r10, ror #8",    // (b1, b3)
+    "    uxtb16 r10, r10",            // (b0, b2)
+    "    ldr lr, [r1], #4",
+    "    sxtb16 r12, lr",
+    "    sxtb16 lr, lr, ror #8",
+    "    smlad r4, r12, r8, r4",
+    "    smlad r4, lr, r9, r4",
+    "    smlad r6, r12, r10, r6",
+    "    smlad r6, lr, r11, r6",
+    "    ldr lr, [r2], #4",
+    "    sxtb16 r12, lr",
+    "    sxtb16 lr, lr, ror #8",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    smlad r7, r12, r10, r7",
+    "    smlad r7, lr, r11, r7",
+    "3:",
     "    ldr r10, [r0, #4]",          // b: bytes 0..3
     "    ldr r8, [r0], #8",           // a: bytes 0..3
     "    uxtb16 r9, r8, ror #8",      // (a1, a3)
