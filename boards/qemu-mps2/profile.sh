@@ -6,7 +6,8 @@
 #   boards/qemu-mps2/profile.sh --size 160x120   # feature frame-160x120
 #
 # Needs what run-tests.sh needs, plus gcc (builds profile/pcprof.c), python3 and llvm-objdump
-# (the hot-loop listing is skipped without it). Counts cover the whole run (boot, model parse and
+# (the hot-loop listing is skipped without it); llvm-addr2line for the table by kernel family
+# (instructions and MACs per instruction per family, MACs from `muir macs`). Counts cover the whole run (boot, model parse and
 # the frame); the frame is almost all of it.
 set -euo pipefail
 
@@ -41,4 +42,10 @@ if command -v llvm-objdump >/dev/null; then
 else
     : >"$tmp/dis.txt"
 fi
-python3 "$board/profile/report.py" "$tmp/pcs.txt" "$tmp/syms.txt" "$tmp/dis.txt"
+# MACs per kernel family of the frame (host build of the CLI), for the family table.
+family=()
+if command -v llvm-addr2line >/dev/null && [ -s "$tmp/dis.txt" ]; then
+    (cd "$board/../.." && cargo run -q --release --bin muir -- macs --config muir-slim --size "$size") >"$tmp/macs.md"
+    family=("$elf" "$tmp/macs.md")
+fi
+python3 "$board/profile/report.py" "$tmp/pcs.txt" "$tmp/syms.txt" "$tmp/dis.txt" "${family[@]}"

@@ -221,11 +221,22 @@ impl Multiplier {
 /// Most accumulators fit in i32; then `|acc * m| < 2^62` and, for `shift <= 62`, the rounding
 /// constant keeps the sum below 2^63, so 64-bit arithmetic gives exactly the 128-bit result (a
 /// single `SMULL` on Cortex-M instead of a 128-bit multiply and shift).
+///
+/// With `33 <= shift` (every scale below 1/4: the usual case) only the product's high word
+/// matters: for `p = hi 2^32 + lo`, `floor((p + 2^(s-1)) / 2^s) = floor((hi + 2^(s-33)) /
+/// 2^(s-32))`, because `lo / 2^32 < 1` cannot carry the integer `hi + 2^(s-33)` past a multiple
+/// of `2^(s-32)`. On Cortex-M that is `SMULL`, an add and an arithmetic shift, where the general
+/// path needs a 64-bit add with carry and a 64-bit shift by a variable amount.
 #[inline(always)]
 pub const fn requantize(acc: i64, mult: Multiplier) -> i64 {
     if acc >= i32::MIN as i64 && acc <= i32::MAX as i64 && mult.shift <= 62 && mult.shift >= 1 {
         let p = acc * mult.m as i64;
         let s = mult.shift as u32;
+        if s >= 33 {
+            // |hi| <= 2^30 (|acc|, |m| <= 2^31), so the i32 sum cannot overflow.
+            let hi = (p >> 32) as i32;
+            return ((hi + (1i32 << (s - 33))) >> (s - 32)) as i64;
+        }
         return (p + (1i64 << (s - 1))) >> s;
     }
     requantize_wide(acc, mult)

@@ -910,6 +910,9 @@ fn macs(args: &MacsArgs) -> Result<(), String> {
     row("**engine total**", "", &|m: &Macs| m.engine_total());
     row("gru16 context", "share of gru16 spent on the merged context conv", &|m: &Macs| m.gru16_context);
     row("gru08 context", "share of gru08 spent on the merged context conv", &|m: &Macs| m.gru08_context);
+    for (i, s) in first.families().iter().enumerate() {
+        row(&format!("family: {}", s.name), s.what, &|m: &Macs| m.families()[i].macs);
+    }
     Ok(())
 }
 

@@ -56,7 +56,6 @@ pub fn query_stats(q: &[i16], keys: &[i16], m: Multiplier) -> (i64, i64) {
 /// format shifted by `shift` fraction bits. `acc` is scratch of `cv` values.
 #[allow(clippy::too_many_arguments)]
 pub fn aggregate_query(q: &[i16], keys: &[i16], values: &[i16], cv: usize, stats: (i64, i64), m: Multiplier, shift: i8, acc: &mut [i64], out: &mut [i16]) {
-    let c = q.len();
     let acc = &mut acc[..cv];
     acc.fill(0);
     #[cfg(all(target_arch = "x86_64", feature = "std"))]

@@ -187,6 +187,11 @@ pub struct Macs {
     pub gru16_context: u64,
     /// Share of [`Macs::gru08`] spent on the merged context (`context_zqr_convs.0`).
     pub gru08_context: u64,
+    /// MGA attention's query-key logits and weighted value sums (engine: statistics in two
+    /// passes, logits again per iteration), part of `mga_setup`, `mga` and `mga_recompute`.
+    pub attention: u64,
+    /// Correlation dot products (UFI peaks, every lookup, recomputed ones included).
+    pub correlation: u64,
 }
 
 /// MACs per frame of `cfg` on a `width x height` pair with `iters` iterations.
@@ -225,13 +230,14 @@ impl Macs {
             ufi_recompute = 3 * (look + encoder);
         }
 
-        let (mut mga_setup, mut mga, mut mga_recompute) = (0, 0, 0);
+        let (mut mga_setup, mut mga, mut mga_recompute, mut attention) = (0, 0, 0, 0);
         if cfg.mga {
             let pairs = n8l * n8l;
             let query = conv_macs(MgaQuery, cfg, n8);
             mga_setup = conv_macs(MgaKey, cfg, n8) + query + pairs * qk;
             mga = it * (convs(&[MgaMask, MgaValue], cfg, n8) + pairs * hd);
             mga_recompute = pairs * qk + it * (query + pairs * qk);
+            attention = pairs * (2 * qk + it * (qk + hd));
         }
 
         let mud_convs = convs(&[Mud1, Mud2, Mud3], cfg, n8);
@@ -267,7 +273,26 @@ impl Macs {
             mga_recompute,
             gru16_context: it * 2 * merged(&gru16_ids, cfg, n16),
             gru08_context: it * merged(&gru08_ids, cfg, n8),
+            attention,
+            correlation: ufi_peaks
+                + ufi_lookups
+                + if cfg.ufi { 3 * look } else { 0 }
+                + it * passes_with_lookup * look
+                + if cfg.mud { look } else { 0 },
         }
+    }
+
+    /// The engine's MACs by kernel family (what a per-function profile of the firmware can be
+    /// set against): convolutions (everything not in the other three), attention, correlation,
+    /// convex upsampling. They sum to [`Macs::engine_total`].
+    pub const fn families(&self) -> [Stage; 4] {
+        let other = self.attention + self.correlation + self.upsample;
+        [
+            Stage { name: "convolutions", what: "every conv layer, recomputed ones included", macs: self.engine_total() - other },
+            Stage { name: "attention", what: "MGA logits and weighted value sums", macs: self.attention },
+            Stage { name: "correlation", what: "UFI peaks and every correlation lookup", macs: self.correlation },
+            Stage { name: "upsampling", what: "convex upsampling", macs: self.upsample },
+        ]
     }
 
     /// Backbone conv1 .. layer3, both images.
@@ -419,6 +444,12 @@ mod tests {
             assert_eq!(m.engine_total(), m.total() + m.recompute_total());
             assert_eq!(Macs::per_iteration(&cfg, 320, 240) * 7, m.engine_total() - Macs::new(&cfg, 320, 240, 0).engine_total());
             assert!(m.features_recompute > m.features / 2 && m.features_recompute < m.features);
+            // Families: attention = statistics (two passes) + per-iteration logits and sums.
+            let (qk, hd) = (cfg.mga_qk_dim as u64, cfg.hidden_dim as u64);
+            assert_eq!(m.attention, n8 * n8 * (2 * qk + 7 * (qk + hd)));
+            assert_eq!(m.correlation, m.ufi_peaks + 2 * m.ufi_lookups + 3 * m.lookups + m.lookups / 7);
+            assert_eq!(m.families().iter().map(|f| f.macs).sum::<u64>(), m.engine_total());
+            assert!(m.families()[0].macs > m.engine_total() / 2);
         }
         // slim has half the widths: about a quarter of the conv MACs
         let (f, s) = (Macs::new(&Config::MUIR_FAST, 320, 240, 7), Macs::new(&Config::MUIR_SLIM, 320, 240, 7));

@@ -1,11 +1,84 @@
 """Aggregates a pcprof.c dump: instructions per function, then the hottest straight-line regions
-(loop bodies) with their instructions. Usage: report.py PCS SYMS DISASSEMBLY"""
+(loop bodies) with their instructions, then (with ELF and MACS) instructions and MACs per
+instruction by kernel family. Usage: report.py PCS SYMS DISASSEMBLY [ELF MACS]
+
+MACS is the output of `muir macs --config muir-slim --size WxH` (its `family:` rows). Families
+come from the inlined call chain of each executed address (llvm-addr2line, the firmware's debug
+information): the innermost frame that belongs to a family's kernel names it, so a dot product
+inlined into the correlation lookup counts as correlation and one inside a convolution as
+convolution."""
 import bisect
 import re
+import subprocess
 import sys
 
+# (family, substrings of a frame's function path), checked innermost frame first.
+FAMILIES = [
+    ("convolutions", ("muir_dsp_dot2x2", "muir_mve_", "kernels::conv::", "encoder::run_conv")),
+    ("attention", ("kernels::attention::",)),
+    ("correlation", ("kernels::corr::", "refine::lookup_row")),
+    ("upsampling", ("kernels::upsample::", "refine::upsample")),
+    ("full-resolution refinement", ("kernels::fullres::",)),
+    ("instance norm", ("kernels::norm::",)),
+    ("element-wise (GRU gates, residuals, resampling)", ("kernels::eltwise::", "kernels::resample::", "refine::gru08", "refine::gru16")),
+    ("model parse and checks", ("crc::crc32", "QuantModel::parse", "format::")),
+]
 
-def main(pcs_path, syms_path, dis_path):
+
+def family_of(frames):
+    for fn in frames:
+        for name, keys in FAMILIES:
+            if any(k in fn for k in keys):
+                return name
+    return "other (engine control, firmware)"
+
+
+def families(counts, syms, starts, elf, macs_path):
+    total = sum(counts.values())
+    addrs = sorted(counts)
+    out = subprocess.run(["llvm-addr2line", "-e", elf, "-a", "-f", "-i", "-C"], input="\n".join(hex(a) for a in addrs),
+                         capture_output=True, text=True, check=True).stdout
+    chains, cur = {}, None
+    lines = out.split("\n")
+    i = 0
+    while i < len(lines):
+        line = lines[i]
+        if line.startswith("0x"):
+            cur = int(line, 16)
+            chains[cur] = []
+            i += 1
+            continue
+        if line and cur is not None:
+            chains[cur].append(line)  # function name; the next line is its file:line
+            i += 2
+            continue
+        i += 1
+    per = {}
+    for a, c in counts.items():
+        frames = [f for f in chains.get(a, []) if f != "??"]
+        j = bisect.bisect_right(starts, a) - 1
+        if j >= 0:
+            frames.append(syms[j][2])  # the symbol (assembly functions have no debug lines)
+        fam = family_of(frames)
+        per[fam] = per.get(fam, 0) + c
+    macs = {}
+    for line in open(macs_path):
+        m = re.match(r"\| family: ([^|]+) \|[^|]*\| ([0-9.]+) \|", line)
+        if m:
+            macs[m.group(1).strip()] = float(m.group(2)) * 1e9
+    print("\nby kernel family (whole run: boot and model parse included; MACs from `muir macs`):")
+    print("| family | instructions | share | MACs | MAC per instruction |")
+    print("|---|---:|---:|---:|---:|")
+    for name, c in sorted(per.items(), key=lambda x: -x[1]):
+        mac = macs.get(name)
+        extra = f"{mac / 1e9:.3f} G | {mac / c:.3f}" if mac else "– | –"
+        print(f"| {name} | {c:,} | {100 * c / total:.1f} % | {extra} |")
+    all_macs = sum(macs.values())
+    if all_macs:
+        print(f"| **all** | {total:,} | 100 % | {all_macs / 1e9:.3f} G | {all_macs / total:.3f} |")
+
+
+def main(pcs_path, syms_path, dis_path, elf=None, macs_path=None):
     counts = {}
     for line in open(pcs_path):
         a, c = line.split()
@@ -26,6 +99,9 @@ def main(pcs_path, syms_path, dis_path):
     print(f"{total:,} instructions executed\n\nby function:")
     for name, c in sorted(per_fn.items(), key=lambda x: -x[1])[:15]:
         print(f"  {100 * c / total:5.1f} %  {c:>15,}  {name[:110]}")
+
+    if elf and macs_path:
+        families(counts, syms, starts, elf, macs_path)
 
     dis = {}
     for line in open(dis_path):
@@ -52,4 +128,4 @@ def main(pcs_path, syms_path, dis_path):
 
 
 if __name__ == "__main__":
-    main(*sys.argv[1:4])
+    main(*sys.argv[1:6])
