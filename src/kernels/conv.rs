@@ -275,26 +275,38 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
         while ox + 2 <= w_out {
             gather2(p, inputs, w_in, ox, pair);
             let (at_a, at_b) = (ox * p.cout, (ox + 1) * p.cout);
-            let mut c = 0;
-            while c + 2 <= p.cout {
-                let (w0, w1) = (&p.weights[c * kl..(c + 1) * kl], &p.weights[(c + 1) * kl..(c + 2) * kl]);
+            let nparts = p.parts.len();
+            // Channel pairs walk the weights in steps of two patches (no index arithmetic or
+            // bounds check per pair); a one-part layer needs no per-part loop.
+            for (cp, wpair) in p.weights.chunks_exact(2 * kl).take(p.cout / 2).enumerate() {
+                let c = 2 * cp;
+                let (w0, w1) = wpair.split_at(kl);
                 let mut s = [0i64; 4];
-                let mut o = 0;
-                for (part, &ch) in p.parts.iter().enumerate() {
-                    let n = ch * k * k;
-                    let d = T::dot2x2(&w0[o..o + n], &w1[o..o + n], &pair[2 * o..2 * (o + n)]);
-                    s[0] = s[0].saturating_add(part_sum(p, c, part, d[0]));
-                    s[1] = s[1].saturating_add(part_sum(p, c + 1, part, d[1]));
-                    s[2] = s[2].saturating_add(part_sum(p, c, part, d[2]));
-                    s[3] = s[3].saturating_add(part_sum(p, c + 1, part, d[3]));
-                    o += n;
+                if nparts == 1 {
+                    let d = T::dot2x2(w0, w1, pair);
+                    let (m0, m1) = (p.mult.get(c), p.mult.get(c + 1));
+                    s = [requantize(d[0], m0), requantize(d[1], m1), requantize(d[2], m0), requantize(d[3], m1)];
+                } else {
+                    let mut o = 0;
+                    for (part, &ch) in p.parts.iter().enumerate() {
+                        let n = ch * k * k;
+                        let (Some(a), Some(b), Some(x)) = (w0.get(o..o + n), w1.get(o..o + n), pair.get(2 * o..2 * (o + n))) else {
+                            break;
+                        };
+                        let d = T::dot2x2(a, b, x);
+                        s[0] = s[0].saturating_add(part_sum(p, c, part, d[0]));
+                        s[1] = s[1].saturating_add(part_sum(p, c + 1, part, d[1]));
+                        s[2] = s[2].saturating_add(part_sum(p, c, part, d[2]));
+                        s[3] = s[3].saturating_add(part_sum(p, c + 1, part, d[3]));
+                        o += n;
+                    }
                 }
                 out.set(at_a + c, finish(p, c, s[0]));
                 out.set(at_a + c + 1, finish(p, c + 1, s[1]));
                 out.set(at_b + c, finish(p, c, s[2]));
                 out.set(at_b + c + 1, finish(p, c + 1, s[3]));
-                c += 2;
             }
+            let c = p.cout / 2 * 2;
             if c < p.cout {
                 // An odd last channel: the two pixels one at a time (their own patches again).
                 for (x, at) in [(ox, at_a), (ox + 1, at_b)] {
