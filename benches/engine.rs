@@ -14,12 +14,12 @@ use std::time::Duration;
 use criterion::{BenchmarkId, Criterion, SamplingMode, Throughput, criterion_group, criterion_main};
 
 use muir::Config;
-use muir::calib::{CalibOptions, RangeMethod, Rounding, calibrate};
+use muir_tools::calib::{CalibOptions, RangeMethod, Rounding, calibrate};
 use muir::engine::{Engine, Output, Plan, encode_image, refine, refine_ctx};
-use muir::float::{FloatModel, FloatWeights, seeded};
+use muir_tools::float::{FloatModel, FloatWeights, seeded};
 use muir::format::QuantModel;
 use muir::input::PixelFormat;
-use muir::io::{OwnedImage, read_png};
+use muir_tools::io::{OwnedImage, read_png};
 use muir::kernels::attention::aggregate_query;
 use muir::kernels::conv::{PartRows, conv_plain, conv_row};
 use muir::kernels::corr::{LookupParams, LookupScratch, lookup_pixel, lookup_pixel_plain, window_len};
@@ -92,7 +92,7 @@ fn model(cfg: Config, calib: &(OwnedImage, OwnedImage)) -> Model {
         wide_trunk: cfg.wide_trunk,
     };
     let cal = calibrate(&float, &pairs, opts, &mut |_, _| {}).unwrap();
-    Model { cfg, float, blob: muir::format::writer::write(&cal.data) }
+    Model { cfg, float, blob: muir_tools::writer::write(&cal.data) }
 }
 
 /// MACs of the float reference: the network items with the context convs once per frame

@@ -19,14 +19,14 @@ mod crops;
 
 use std::collections::BTreeMap;
 
-use muir::calib::{CalibOptions, RangeMethod, Records, Rounding, calibrate, paired};
-use muir::float::{FloatModel, FloatWeights, NoTrace};
+use muir_tools::calib::{CalibOptions, RangeMethod, Records, Rounding, calibrate, paired};
+use muir_tools::float::{FloatModel, FloatWeights, NoTrace};
 use muir::format::QuantModel;
-use muir::format::writer::{QuantModelData, write};
-use muir::io::{OwnedImage, read_png};
+use muir_tools::writer::{QuantModelData, write};
+use muir_tools::io::{OwnedImage, read_png};
 use muir::kernels::conv::EXTRA_BITS;
 use muir::model::graph::{Act, PostOp, QLayer};
-use muir::reference::Reference;
+use muir_tools::reference::Reference;
 
 /// The shipped blob's calibration pairs (models/README.md), cropped to 320x240 like `--max-size`.
 const CALIB: [&str; 4] = ["oakd_desk", "oakd_living_room", "kitti2015_000051_11", "oakd_stairs"];

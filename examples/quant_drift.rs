@@ -21,12 +21,12 @@
 #[allow(dead_code)]
 mod crops;
 
-use muir::calib::Records;
-use muir::float::{FloatModel, FloatWeights, NoTrace};
+use muir_tools::calib::Records;
+use muir_tools::float::{FloatModel, FloatWeights, NoTrace};
 use muir::format::QuantModel;
 use muir::model::graph::{Act, QLayer};
 use muir::model::layers::ConvId;
-use muir::reference::Reference;
+use muir_tools::reference::Reference;
 
 use crops::disparity_gap;
 
@@ -42,7 +42,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             let [scene, y, h, x, w] = f[..] else { return Err("strip: SCENE:Y:H:X:W".into()) };
             let (y, h, x, w) = (y.parse()?, h.parse()?, x.parse()?, w.parse()?);
             let dir = std::path::Path::new(crops::DATA).join(scene);
-            let cut = |v: &str| -> Result<_, Box<dyn std::error::Error>> { muir::io::read_png(dir.join(v))?.crop(x, y, w, h).ok_or_else(|| "strip outside the image".into()) };
+            let cut = |v: &str| -> Result<_, Box<dyn std::error::Error>> { muir_tools::io::read_png(dir.join(v))?.crop(x, y, w, h).ok_or_else(|| "strip outside the image".into()) };
             vec![(cut("left.png")?, cut("right.png")?)]
         }
         None => crops::pairs().ok_or("needs ../shared/data")?.into_iter().map(|p| (p.left, p.right)).collect(),

@@ -14,10 +14,10 @@ mod crops;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use muir::float::seeded;
-use muir::float::weights::to_safetensors;
+use muir_tools::float::seeded;
+use muir_tools::float::weights::to_safetensors;
 use muir::input::PixelFormat;
-use muir::io::{OwnedImage, read_ground_truth, read_pfm, read_png, write_pfm, write_png};
+use muir_tools::io::{OwnedImage, read_ground_truth, read_pfm, read_png, write_pfm, write_png};
 use muir::model::config::Config;
 
 use crops::DATA;
@@ -454,8 +454,8 @@ fn snap_writes_a_model_on_the_int8_grid() {
     let first = o;
     // The output is a valid model of the same config, with every weight moved by at most half an
     // int8 step of its group (so by well under its group's largest magnitude / 127).
-    let a = muir::float::FloatWeights::from_safetensors(&std::fs::read(&model).unwrap(), None).unwrap();
-    let b = muir::float::FloatWeights::from_safetensors(&std::fs::read(&out).unwrap(), None).unwrap();
+    let a = muir_tools::float::FloatWeights::from_safetensors(&std::fs::read(&model).unwrap(), None).unwrap();
+    let b = muir_tools::float::FloatWeights::from_safetensors(&std::fs::read(&out).unwrap(), None).unwrap();
     assert_eq!(b.config, Config::MUIR_SLIM);
     let conv = muir::model::layers::ConvId::Conv1;
     let (wa, wb) = (&a.get(conv).unwrap().weight, &b.get(conv).unwrap().weight);

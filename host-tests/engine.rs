@@ -7,13 +7,14 @@ use std::cell::Cell;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use muir::Config;
-use muir::calib::{CalibOptions, RangeMethod, Rounding, calibrate};
+use muir_tools::calib::{CalibOptions, RangeMethod, Rounding, calibrate};
 use muir::engine::{Engine, EngineError, Output, Plan, REJECTED, reject, u_threshold};
-use muir::float::{FloatModel, FloatWeights, NoTrace, seeded};
-use muir::format::{BlobError, QuantModel, writer};
+use muir_tools::float::{FloatModel, FloatWeights, NoTrace, seeded};
+use muir::format::{BlobError, QuantModel};
+use muir_tools::writer;
 use muir::input::{ImageView, PixelFormat};
 use muir::model::graph::Act;
-use muir::reference::Reference;
+use muir_tools::reference::Reference;
 
 /// Counts the allocations of the thread that set `COUNTING` (tests run in parallel threads).
 struct Counting;

@@ -22,12 +22,12 @@ use std::path::{Path, PathBuf};
 
 use crops::{H, W, pairs};
 
-use muir::calib::{Records, sqnr};
+use muir_tools::calib::{Records, sqnr};
 use muir::engine::{Engine, Output, Plan, u_threshold};
-use muir::float::{FloatModel, FloatWeights};
+use muir_tools::float::{FloatModel, FloatWeights};
 use muir::format::QuantModel;
 use muir::model::config::Config;
-use muir::reference::{Reference, disparity_px};
+use muir_tools::reference::{Reference, disparity_px};
 
 const ROOT: &str = env!("CARGO_MANIFEST_DIR");
 /// Regression bounds of the u8-trunk blob (and of the wide trunk's within-1-px). Measured with the

@@ -2,13 +2,13 @@
 //!
 //! Fixtures: `host-tests/fixtures/golden/<config>.safetensors`, written by `python -m muir.golden`
 //! (the twin with seeded weights on a crop of Middlebury 2003 "cones"). The weights are rebuilt here
-//! from the seed (`muir::float::seeded`, bit-identical to `python/muir/seeded.py`). Tolerance: for
+//! from the seed (`muir_tools::float::seeded`, bit-identical to `python/muir/seeded.py`). Tolerance: for
 //! each tensor, max |rust - twin| <= 1e-4 * max |twin|.
 
 use std::collections::BTreeMap;
 
-use muir::float::weights::{FloatWeights, ParamData, parse_safetensors};
-use muir::float::{FloatModel, Tensor, seeded};
+use muir_tools::float::weights::{FloatWeights, ParamData, parse_safetensors};
+use muir_tools::float::{FloatModel, Tensor, seeded};
 
 const TOLERANCE: f32 = 1e-4;
 
@@ -112,7 +112,7 @@ fn shipped_model_matches_twin_on_a_real_pair() {
         let (s, v) = get(name);
         Tensor::from_vec(s[0], s[1], s[2], v)
     };
-    let out = model.forward(&input("input.left"), &input("input.right"), &mut muir::float::NoTrace);
+    let out = model.forward(&input("input.left"), &input("input.right"), &mut muir_tools::float::NoTrace);
     let (_, want) = get("up.disp");
     let worst = out.disparity.data.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
     let range = want.iter().fold(0f32, |m, v| m.max(v.abs()));
@@ -144,7 +144,7 @@ fn full_res_refinement_matches_twin_bit_for_bit() {
     // The crop of python/muir/golden.py FULLRES_CROP.
     let (y0, x0) = (150, 180);
     let root = env!("CARGO_MANIFEST_DIR");
-    let crop = |v: &str| muir::io::read_png(format!("{root}/assets/teddy/{v}.png")).unwrap().crop(x0, y0, w, h).unwrap();
+    let crop = |v: &str| muir_tools::io::read_png(format!("{root}/assets/teddy/{v}.png")).unwrap().crop(x0, y0, w, h).unwrap();
     let (l, r) = (crop("left"), crop("right"));
     let mut d = d0.clone();
     let mut scratch = ScratchVec::new(w);

@@ -7,8 +7,8 @@
 mod support;
 
 use muir::Config;
-use muir::float::seeded;
-use muir::float::weights::{FloatWeights, Param, ParamData, StateDict, WeightError, to_safetensors};
+use muir_tools::float::seeded;
+use muir_tools::float::weights::{FloatWeights, Param, ParamData, StateDict, WeightError, to_safetensors};
 
 fn checkpoint_layout() -> Vec<(String, Vec<usize>, bool)> {
     let text = include_str!("fixtures/raft-stereo-realtime-params.txt");
@@ -57,7 +57,7 @@ fn realtime_checkpoint_layout_loads() {
     let bytes = bytes_without_config(&checkpoint_state_dict("module."));
     FloatWeights::from_safetensors(&bytes, Some(&rt)).expect("module.-prefixed checkpoint loads");
     // The layout the loader expects is exactly the checkpoint's (names and shapes).
-    let mut ours: Vec<_> = muir::float::weights::expected_tensors(&rt).into_iter().map(|(n, s, _)| (n, s)).collect();
+    let mut ours: Vec<_> = muir_tools::float::weights::expected_tensors(&rt).into_iter().map(|(n, s, _)| (n, s)).collect();
     let mut theirs: Vec<_> = layout.into_iter().map(|(n, s, _)| (n, s)).collect();
     ours.sort();
     theirs.sort();
@@ -148,15 +148,15 @@ fn config_metadata_is_checked() {
     assert!(matches!(FloatWeights::from_safetensors(&bytes, None), Err(WeightError::Shape { .. })));
     // Invalid config JSON.
     assert!(matches!(
-        muir::float::weights::config_from_json(r#"{"config_version": 1, "name": "x"}"#),
+        muir_tools::float::weights::config_from_json(r#"{"config_version": 1, "name": "x"}"#),
         Err(WeightError::Config(_))
     ));
-    let mut json: serde_json::Value = serde_json::from_str(&muir::float::weights::config_to_json(&Config::MUIR_SLIM)).unwrap();
+    let mut json: serde_json::Value = serde_json::from_str(&muir_tools::float::weights::config_to_json(&Config::MUIR_SLIM)).unwrap();
     json["mga_qk_dim"] = 30.into();
-    assert!(matches!(muir::float::weights::config_from_json(&json.to_string()), Err(WeightError::Config(_))));
+    assert!(matches!(muir_tools::float::weights::config_from_json(&json.to_string()), Err(WeightError::Config(_))));
     json["mga_qk_dim"] = 32.into();
     json["config_version"] = 9.into();
-    assert!(matches!(muir::float::weights::config_from_json(&json.to_string()), Err(WeightError::Config(_))));
+    assert!(matches!(muir_tools::float::weights::config_from_json(&json.to_string()), Err(WeightError::Config(_))));
 }
 
 #[test]
@@ -166,6 +166,6 @@ fn python_presets_parse() {
     let all: serde_json::Value = serde_json::from_str(text).unwrap();
     for c in Config::PRESETS {
         let j = all[c.name.as_str()].to_string();
-        assert_eq!(muir::float::weights::config_from_json(&j).unwrap(), c, "{}", c.name);
+        assert_eq!(muir_tools::float::weights::config_from_json(&j).unwrap(), c, "{}", c.name);
     }
 }

@@ -26,10 +26,10 @@ mod crops;
 use std::path::Path;
 
 use muir::engine::{Engine, Output, Plan};
-use muir::float::{FloatModel, FloatWeights};
+use muir_tools::float::{FloatModel, FloatWeights};
 use muir::format::QuantModel;
 use muir::input::PixelFormat;
-use muir::io::{OwnedImage, read_png};
+use muir_tools::io::{OwnedImage, read_png};
 use muir::model::config::Config;
 
 use crops::{DATA, disparity_gap};

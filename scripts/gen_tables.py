@@ -1,10 +1,10 @@
 #!/usr/bin/env python3
-"""Writes src/arith/tables.rs: the nonlinearity tables of the integer arithmetic spec.
+"""Writes crates/muir/src/arith/tables.rs: the nonlinearity tables of the integer arithmetic spec.
 
-    python3 scripts/gen_tables.py > src/arith/tables.rs
+    python3 scripts/gen_tables.py > crates/muir/src/arith/tables.rs
 
 Every entry is round-half-away-from-zero of the real function times 2^15 (sine: times 32767), in f64.
-`src/arith/lut.rs` tests recompute each entry, so a stale or edited table fails the build's tests.
+`crates/muir/src/arith/lut.rs` tests recompute each entry, so a stale or edited table fails the build's tests.
 """
 import math
 

@@ -3,7 +3,8 @@
 # machine, then runs every test.
 #   1. host tests (unit, parity with the PyTorch twin's golden files, fixed vs float on real pairs,
 #      streaming vs plain fixed-point engine, model files, CLI), optimised ([profile.test]);
-#   2. the library without std for thumbv7em-none-eabihf (Cortex-M4F/M7);
+#   2. the core crate (crates/muir) without std for thumbv7em-none-eabihf (Cortex-M4F/M7), and what
+#      its published package would hold;
 #   3. the PyTorch twin's own tests (python/tests: the split, the refinement's integer helpers, ONNX export vs the twin, a
 #      data-parallel training step under torchrun against the single-process step);
 #   4. the QEMU firmware in boards/ (bit-exact with the host), u8 and wide-trunk blobs: Cortex-M7
@@ -39,11 +40,12 @@ python3 -m pip install -q --disable-pip-version-check "torch>=2.2" "numpy>=1.24"
     "onnx>=1.15" "onnxruntime>=1.17"
 
 echo "== host tests"
-cargo test --all-targets --no-fail-fast 2>&1 | tee /tmp/muir-test.log
-cargo test --doc
+cargo test --workspace --all-targets --no-fail-fast 2>&1 | tee /tmp/muir-test.log
+cargo test --workspace --doc
 
-echo "== no_std build for thumbv7em-none-eabihf"
-cargo build --lib --target thumbv7em-none-eabihf --no-default-features
+echo "== no_std build of the core (crates/muir) for thumbv7em-none-eabihf, and its package (no model files, < 10 MiB)"
+cargo build -p muir --lib --target thumbv7em-none-eabihf
+python3 scripts/package-size.py
 
 echo "== Python twin tests (split, refinement helpers, one DDP step = one single-process step)"
 (cd python && PYTHONPATH=. python3 -m pytest -q)

@@ -4,8 +4,8 @@
 
 use std::path::Path;
 
-use muir::io::{OwnedImage, read_ground_truth, read_png};
-use muir::reference::disparity_px;
+use muir_tools::io::{OwnedImage, read_ground_truth, read_png};
+use muir_tools::reference::disparity_px;
 
 /// The shared data sets, beside the repository as in CI.
 pub const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data");

@@ -12,10 +12,11 @@ use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::time::{Duration, Instant};
 
 use muir::Config;
-use muir::calib::{CalibOptions, RangeMethod, Rounding, calibrate};
+use muir_tools::calib::{CalibOptions, RangeMethod, Rounding, calibrate};
 use muir::engine::{Engine, Output};
-use muir::float::{FloatModel, FloatWeights, seeded};
-use muir::format::{HEADER_LEN, QuantModel, crc32, writer};
+use muir_tools::float::{FloatModel, FloatWeights, seeded};
+use muir::format::{HEADER_LEN, QuantModel, crc32};
+use muir_tools::writer;
 use muir::input::{ImageView, PixelFormat};
 use muir::model::config::MaxDisparity;
 

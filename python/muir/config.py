@@ -1,7 +1,7 @@
-"""Model description shared with the Rust crate (`src/model/config.rs`).
+"""Model description shared with the Rust crate (`crates/muir/src/model/config.rs`).
 
 A config is a flat JSON object. The same field names, the same presets and the same defaults live in
-`src/model/config.rs`; `host-tests/model_files.rs` (`python_presets_parse`) checks that every preset written here (`host-tests/fixtures/python-presets.json`) equals the Rust one. Widths are channel counts.
+`crates/muir/src/model/config.rs`; `host-tests/model_files.rs` (`python_presets_parse`) checks that every preset written here (`host-tests/fixtures/python-presets.json`) equals the Rust one. Widths are channel counts.
 """
 from __future__ import annotations
 
@@ -72,7 +72,7 @@ class Config:
             problems.append("corr_levels, corr_radius and iters must be >= 1")
         if len(self.backbone_dims) != 3:
             problems.append("backbone_dims has three entries")
-        # The Rust crate's further limits (src/model/config.rs validate), so a model the twin
+        # The Rust crate's further limits (crates/muir/src/model/config.rs validate), so a model the twin
         # accepts is one the engines accept.
         if self.iters > 64:
             problems.append("iters exceeds the supported maximum (64)")

@@ -38,7 +38,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 DEFAULT_OPSET = 17
-# The Rust engines' limits (src/model/config.rs: MIN_SIDE, MAX_IMAGE_WIDTH, MAX_IMAGE_HEIGHT).
+# The Rust engines' limits (crates/muir/src/model/config.rs: MIN_SIDE, MAX_IMAGE_WIDTH, MAX_IMAGE_HEIGHT).
 MIN_SIDE = 32
 MAX_WIDTH, MAX_HEIGHT = 1920, 1088
 MAX_ITERS = 64

@@ -1,5 +1,5 @@
 """Full-resolution refinement of the network's disparity, bit for bit the Rust stage
-(`src/kernels/fullres.rs`, where the algorithm and its constants are specified).
+(`crates/muir/src/kernels/fullres.rs`, where the algorithm and its constants are specified).
 
 The network's disparity is quantised to the engine's output format (Q10.5, 1/32 px) and its
 uncertainty to Q4.11; every pixel is re-matched in a band around it: 7x7 census costs summed over

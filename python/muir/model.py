@@ -62,7 +62,7 @@ class ResidualBlock(nn.Module):
         return self.relu(x + y)
 
     def _forward_quantised(self, x):
-        """As `forward`, each tensor the engine stores rounded to its slot (src/engine/encoder.rs)."""
+        """As `forward`, each tensor the engine stores rounded to its slot (crates/muir/src/engine/encoder.rs)."""
         q = self.aq
         if len(self.slots) == 4:  # InstanceNorm block of the feature head: raw conv outputs are slots
             raw1, mid, raw2, out = self.slots

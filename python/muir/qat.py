@@ -8,7 +8,7 @@ near-tied matches and separates the two engines on ambiguous pixels (README, "Ac
 gradient, so that a model can be fine-tuned against it (`python -m muir.train --qat dynamic`, see
 docs/training.md; the trials and what they bought: docs/experiments/qat-trial/).
 
-Slots simulated (src/model/graph.rs): the backbone (`c1`, `l*b*m/o`), the context/hidden heads
+Slots simulated (crates/muir/src/model/graph.rs): the backbone (`c1`, `l*b*m/o`), the context/hidden heads
 (`h08*`, `h16*`, `inp08`, `inp16`) and the matching-feature head (`fmap_raw1`, `fmap_mid`, `fmap_raw2`,
 `fmap_blk`, `fmap`). The update block's slots are 16-bit and its weights several-part, and are left
 in float.
@@ -22,7 +22,7 @@ import os
 import torch
 
 # The slots the twin simulates (the tensors it can hook). Their storage (width, signedness) and,
-# for a given blob, their fraction bits come from the Rust side's one table (`src/model/graph.rs`),
+# for a given blob, their fraction bits come from the Rust side's one table (`crates/muir/src/model/graph.rs`),
 # exported by `muir info --model BLOB.muirq --json` (`models/muir-slim.formats.json` for the shipped
 # blob; a test checks that file against the blob), never repeated or parsed out of Markdown here.
 ENCODER_SLOT_NAMES = (

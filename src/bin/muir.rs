@@ -11,13 +11,13 @@ use std::time::{Duration, Instant};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 
-use muir::calib::{CalibOptions, RangeMethod, Rounding, calibrate};
+use muir_tools::calib::{CalibOptions, RangeMethod, Rounding, calibrate};
 use muir::engine::{Disparity, LogVariance, Output, REJECTED, reject, u_threshold};
-use muir::float::weights::{ParamData, config_to_json, parse_safetensors};
-use muir::float::{FloatModel, FloatWeights};
+use muir_tools::float::weights::{ParamData, config_to_json, parse_safetensors};
+use muir_tools::float::{FloatModel, FloatWeights};
 use muir::format::QuantModel;
 use muir::input::{ImageView, check_pair};
-use muir::io::{colourise_disparity, colourise_uncertainty, read_disparity_file, read_png, write_pfm, write_png};
+use muir_tools::io::{colourise_disparity, colourise_uncertainty, read_disparity_file, read_png, write_pfm, write_png};
 use muir::model::config::{Config, MaxDisparity};
 
 /// `println!` that ends the program quietly when stdout is a closed pipe (`muir plan | head`), as
@@ -368,7 +368,7 @@ fn model_config(path: &Path, found: Option<Config>, named: Option<Config>) -> Re
             Err(format!("{}: the file's config '{}' differs from --config {}{how}", path.display(), found.name, named.name))
         }
         (Some(c), _) | (None, Some(c)) => Ok(c),
-        (None, None) => Err(format!("{}: {}", path.display(), muir::float::WeightError::NoConfig)),
+        (None, None) => Err(format!("{}: {}", path.display(), muir_tools::float::WeightError::NoConfig)),
     }
 }
 
@@ -389,7 +389,7 @@ struct Prediction {
 }
 
 fn run(args: &RunArgs) -> Result<(), String> {
-    muir::float::set_threads(args.threads as usize);
+    muir_tools::float::set_threads(args.threads as usize);
     let engine_kind = args.model.engine(args.engine);
     // Without --left/--right: the shipped demo pair, scored against its ground truth.
     let demo = args.left.is_none();
@@ -763,7 +763,7 @@ fn quantize(args: &QuantizeArgs) -> Result<(), String> {
         let (l, r) = match args.max_size {
             Some((mw, mh)) => {
                 let (w, h) = (l.width.min(mw), l.height.min(mh));
-                let crop = |im: &muir::io::OwnedImage| im.crop(0, 0, w, h);
+                let crop = |im: &muir_tools::io::OwnedImage| im.crop(0, 0, w, h);
                 (crop(&l).unwrap_or(l.clone()), crop(&r).unwrap_or(r.clone()))
             }
             None => (l, r),
@@ -799,7 +799,7 @@ fn quantize(args: &QuantizeArgs) -> Result<(), String> {
     })
     .map_err(|e| e.to_string())?;
     bar.finish_and_clear();
-    let blob = muir::format::writer::write(&cal.data);
+    let blob = muir_tools::writer::write(&cal.data);
     QuantModel::parse(&blob).map_err(|e| format!("internal error: written model does not parse: {e}"))?;
     std::fs::write(&args.out, &blob).map_err(|e| format!("{}: {e}", args.out.display()))?;
     if let Some(r) = &args.report {
@@ -823,7 +823,7 @@ fn snap(args: &SnapArgs) -> Result<(), String> {
     let mut file = parse_safetensors(&bytes).map_err(|e| at(&e))?;
     let config = model_config(&args.model, file.config, args.config)?;
     let weights = FloatWeights::from_state_dict(file.tensors.clone(), &config).map_err(|e| at(&e))?;
-    let (snapped, rms) = muir::calib::snap_to_grid(&weights);
+    let (snapped, rms) = muir_tools::calib::snap_to_grid(&weights);
     let mut layers = 0;
     for &id in muir::model::layers::ConvId::ALL {
         if let (Some(fc), Some(p)) = (snapped.get(id), file.tensors.get_mut(&format!("{}.weight", id.name()))) {
@@ -833,8 +833,8 @@ fn snap(args: &SnapArgs) -> Result<(), String> {
     }
     file.metadata.insert("muir_int8_grid".into(), "weights snapped to the int8 grid by `muir snap`".into());
     let extra: Vec<(&str, String)> =
-        file.metadata.iter().filter(|(k, _)| k.as_str() != muir::float::weights::CONFIG_KEY).map(|(k, v)| (k.as_str(), v.clone())).collect();
-    let out = muir::float::weights::to_safetensors(&file.tensors, &config, &extra).map_err(|e| e.to_string())?;
+        file.metadata.iter().filter(|(k, _)| k.as_str() != muir_tools::float::weights::CONFIG_KEY).map(|(k, v)| (k.as_str(), v.clone())).collect();
+    let out = muir_tools::float::weights::to_safetensors(&file.tensors, &config, &extra).map_err(|e| e.to_string())?;
     std::fs::write(&args.out, out).map_err(|e| format!("{}: {e}", args.out.display()))?;
     eprintln!("muir: snapped {layers} layers of {} to the int8 grid (RMS relative change {rms:.2e}): {}", config.name, args.out.display());
     Ok(())

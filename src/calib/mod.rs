@@ -18,16 +18,16 @@ pub mod gptq;
 use std::collections::BTreeMap;
 use std::fmt::{self, Write as _};
 
-use crate::arith::{GATE_FRAC, LOG_FRAC, Multiplier, QFormat};
+use muir::arith::{GATE_FRAC, LOG_FRAC, Multiplier, QFormat};
 use crate::float::weights::FloatWeights;
-use crate::kernels::conv::EXTRA_BITS;
+use muir::kernels::conv::EXTRA_BITS;
 use crate::float::{FloatModel, Tensor, Trace};
-use crate::format::writer::{QuantLayer, QuantModelData};
-use crate::format::{MAX_LEVELS, U_TABLE_LEN};
-use crate::input::ImageView;
-use crate::model::config::Config;
-use crate::model::graph::{Act, PostOp, QLayer};
-use crate::model::layers::ConvId;
+use crate::writer::{QuantLayer, QuantModelData};
+use muir::format::{MAX_LEVELS, U_TABLE_LEN};
+use muir::input::ImageView;
+use muir::model::config::Config;
+use muir::model::graph::{Act, PostOp, QLayer};
+use muir::model::layers::ConvId;
 use gptq::{InputMoments, Rounder};
 
 const BINS_PER_OCTAVE: f64 = 32.0;
@@ -197,7 +197,7 @@ pub enum CalibError {
     /// No calibration pair was given.
     NoPairs,
     /// An input pair was rejected.
-    Input(crate::input::InputError),
+    Input(muir::input::InputError),
     /// A calibrated slot was never observed (the float model did not record it).
     Unobserved {
         /// Slot name.

@@ -6,7 +6,7 @@
 //! tests.)
 
 use super::tensor::Tensor;
-use crate::model::config::Config;
+use muir::model::config::Config;
 
 /// Correlation of left pixel `(y, x1)` with every right column of row `y`, into `row` (len w).
 pub fn corr_row(f1: &Tensor, f2: &Tensor, y: usize, x1: usize, row: &mut [f32]) {
@@ -90,7 +90,7 @@ pub fn peaks(f1: &Tensor, f2: &Tensor, separation: usize, max_d8: usize) -> Tens
             corr_row(f1, f2, y, x, &mut row);
             let best = |skip: Option<usize>| {
                 let mut arg: Option<usize> = None;
-                for d in 0..=x.min(max_d8).min(crate::arith::MAX_PROPOSAL_D8) {
+                for d in 0..=x.min(max_d8).min(muir::arith::MAX_PROPOSAL_D8) {
                     if skip.is_some_and(|d1| d.abs_diff(d1) < separation) {
                         continue;
                     }

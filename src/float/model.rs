@@ -12,9 +12,9 @@ use super::ops::{
 };
 use super::tensor::Tensor;
 use super::weights::{FloatConv, FloatWeights};
-use crate::input::{ImageView, InputError, check_pair};
-use crate::model::config::{Config, MaxDisparity};
-use crate::model::layers::ConvId::{self, *};
+use muir::input::{ImageView, InputError, check_pair};
+use muir::model::config::{Config, MaxDisparity};
+use muir::model::layers::ConvId::{self, *};
 
 /// Receives intermediate tensors by name.
 pub trait Trace {
@@ -69,18 +69,18 @@ pub struct Prediction {
 }
 
 impl Prediction {
-    /// The full-resolution refinement ([`crate::kernels::fullres`]) on this prediction, as the
+    /// The full-resolution refinement ([`muir::kernels::fullres`]) on this prediction, as the
     /// fixed engine runs it on its output: disparity rounded to Q10.5 and `u` to Q4.11, the integer
     /// stage, and the changed pixels' values written back (the others keep their float value).
     /// Returns the number of pixels the matching decided.
     pub fn refine_full_res(&mut self, left: &ImageView<'_>, right: &ImageView<'_>) -> usize {
-        use crate::arith::{DISP_FRAC, LOG_FRAC, sat_i16};
+        use muir::arith::{DISP_FRAC, LOG_FRAC, sat_i16};
         let q = |v: f32, frac: u8| sat_i16((v as f64 * (1u32 << frac) as f64).round() as i64);
         let mut d: Vec<i16> = self.disparity.iter().map(|v| if v.is_finite() { q(*v, DISP_FRAC) } else { 0 }).collect();
         let before = d.clone();
         let u: Option<Vec<i16>> = self.uncertainty.as_ref().map(|u| u.iter().map(|v| q(*v, LOG_FRAC)).collect());
-        let mut scratch = crate::kernels::fullres::ScratchVec::new(self.width);
-        let n = crate::kernels::fullres::refine_image(left, right, &mut d, u.as_deref(), scratch.view());
+        let mut scratch = muir::kernels::fullres::ScratchVec::new(self.width);
+        let n = muir::kernels::fullres::refine_image(left, right, &mut d, u.as_deref(), scratch.view());
         // A pixel whose result equals its rounded input keeps its float value (the
         // PyTorch twin's evaluation, python/muir/fullres.py, does the same).
         let scale = 1.0 / (1u32 << DISP_FRAC) as f32;

@@ -11,7 +11,7 @@
 //! `1 + 0.25 u`, running_mean `0.1 u`, running_var `1 + 0.5 u`, num_batches_tracked 0.
 
 use super::weights::{Param, ParamData, StateDict, expected_tensors};
-use crate::model::config::Config;
+use muir::model::config::Config;
 
 const GOLDEN: u64 = 0x9E37_79B9_7F4A_7C15;
 

@@ -9,8 +9,8 @@ use std::fmt;
 
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
-use crate::model::config::{CONFIG_VERSION, Config, ConfigError};
-use crate::model::layers::{ConvId, ConvShape, Norm};
+use muir::model::config::{CONFIG_VERSION, Config, ConfigError};
+use muir::model::layers::{ConvId, ConvShape, Norm};
 
 /// Safetensors metadata key holding the config JSON.
 pub const CONFIG_KEY: &str = "muir_config";
@@ -216,7 +216,7 @@ pub fn config_from_json(json: &str) -> Result<Config, WeightError> {
     if j.config_version != CONFIG_VERSION {
         return Err(ConfigError::Version.into());
     }
-    let name = crate::model::config::Name::new(&j.name)
+    let name = muir::model::config::Name::new(&j.name)
         .ok_or_else(|| WeightError::Config(format!("name '{}' is longer than 32 bytes", j.name)))?;
     let c = Config {
         name,

@@ -1,7 +1,7 @@
 //! Colourised previews of float maps (turbo colormap).
 
 use super::OwnedImage;
-use crate::input::PixelFormat;
+use muir::input::PixelFormat;
 
 /// Colour of pixels without a valid value (non-finite, or non-positive for uncertainty).
 pub const INVALID_COLOUR: [u8; 3] = [0, 0, 0];

@@ -23,7 +23,7 @@ pub use gt::{read_disparity_file, read_ground_truth};
 pub use pfm::{FloatImage, read_pfm, write_pfm};
 pub use png::{read_png, write_png};
 
-use crate::input::{ImageView, PixelFormat};
+use muir::input::{ImageView, PixelFormat};
 
 /// An 8-bit image that owns its pixels (a decoded file, a colourised map).
 #[derive(Clone, Debug, PartialEq, Eq)]

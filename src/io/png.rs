@@ -7,7 +7,7 @@ use std::path::Path;
 use ::png::{BitDepth, ColorType, Decoder, DecodingError, Encoder, EncodingError, Transformations};
 
 use super::{IoError, OwnedImage};
-use crate::input::PixelFormat;
+use muir::input::PixelFormat;
 
 /// Reads a PNG as 8-bit gray or RGB.
 ///
@@ -31,7 +31,7 @@ pub fn read_png(path: impl AsRef<Path>) -> Result<OwnedImage, IoError> {
     let mut reader = decoder.read_info().map_err(png_err)?;
     // The header's size is checked before anything is allocated: a small file may claim any size.
     let (hw, hh) = (reader.info().width as usize, reader.info().height as usize);
-    if let Err(e) = crate::input::check_size(hw, hh) {
+    if let Err(e) = muir::input::check_size(hw, hh) {
         return Err(IoError::Unsupported { path: path.to_path_buf(), what: e.to_string() });
     }
     let size = reader.output_buffer_size().ok_or_else(|| IoError::Unsupported {

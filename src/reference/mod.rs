@@ -1,23 +1,23 @@
 //! Plain fixed-point engine (host): the quantised network over whole tensors, with the plain
-//! kernel twins. It defines what the streaming engine (`crate::engine`) must compute bit for bit,
+//! kernel twins. It defines what the streaming engine (`muir::engine`) must compute bit for bit,
 //! and exposes every intermediate tensor (dequantised) for per-layer SQNR against the float
 //! reference.
 
-use crate::arith::{FLOW_FRAC, LOG_FRAC, UNIT_FRAC, lut, sat_i16};
+use muir::arith::{FLOW_FRAC, LOG_FRAC, UNIT_FRAC, lut, sat_i16};
 use crate::float::{Tensor, Trace};
-use crate::format::QuantModel;
-use crate::input::{ImageView, InputError, check_pair};
-use crate::kernels::attention::{attention_plain, rope_pixel};
-use crate::kernels::conv::conv_plain;
-use crate::kernels::corr::{LookupParams, lookup_pixel_plain, peaks_pixel_plain};
-use crate::kernels::eltwise::{Skip, blend_q15, mud_mask, mul_plane_q15, mul_q15, proposal_flow, residual_relu};
-use crate::kernels::norm::{channel_stats, normalize};
-use crate::kernels::resample::{interp_row, pool2x_row};
-use crate::kernels::upsample::upsample_pixel;
-use crate::kernels::Elem;
-use crate::model::config::Config;
-use crate::model::graph::Act;
-use crate::model::layers::ConvId::{self, *};
+use muir::format::QuantModel;
+use muir::input::{ImageView, InputError, check_pair};
+use muir::kernels::attention::{attention_plain, rope_pixel};
+use muir::kernels::conv::conv_plain;
+use muir::kernels::corr::{LookupParams, lookup_pixel_plain, peaks_pixel_plain};
+use muir::kernels::eltwise::{Skip, blend_q15, mud_mask, mul_plane_q15, mul_q15, proposal_flow, residual_relu};
+use muir::kernels::norm::{channel_stats, normalize};
+use muir::kernels::resample::{interp_row, pool2x_row};
+use muir::kernels::upsample::upsample_pixel;
+use muir::kernels::Elem;
+use muir::model::config::Config;
+use muir::model::graph::Act;
+use muir::model::layers::ConvId::{self, *};
 
 /// A whole HWC tensor.
 #[derive(Clone, Debug, PartialEq)]
@@ -64,7 +64,7 @@ pub struct FixedOutput {
     pub width: usize,
     /// Rows (padded).
     pub height: usize,
-    /// Disparity, Q10.5 pixels ([`crate::arith::DISP_FRAC`]).
+    /// Disparity, Q10.5 pixels ([`muir::arith::DISP_FRAC`]).
     pub disparity: Vec<i16>,
     /// Uncertainty `u`, Q4.11; `None` without MUD.
     pub uncertainty: Option<Vec<i16>>,
@@ -74,7 +74,7 @@ pub struct FixedOutput {
 pub struct Reference<'m, 'a> {
     m: &'m QuantModel<'a>,
     inject: Option<&'m crate::calib::Records>,
-    max_disparity: crate::model::config::MaxDisparity,
+    max_disparity: muir::model::config::MaxDisparity,
 }
 
 /// Encoder outputs.
@@ -100,7 +100,7 @@ impl<'m, 'a> Reference<'m, 'a> {
     }
 
     /// The same with another largest disparity of UFI's proposal search (default 256 px).
-    pub fn with_max_disparity(self, max: crate::model::config::MaxDisparity) -> Self {
+    pub fn with_max_disparity(self, max: muir::model::config::MaxDisparity) -> Self {
         Self { max_disparity: max, ..self }
     }
 
@@ -120,7 +120,7 @@ impl<'m, 'a> Reference<'m, 'a> {
 
     /// `t` (CHW float) quantised into an HWC tensor of format `frac`.
     fn quantize_like<T: Elem>(&self, t: &Tensor, frac: i8) -> QT<T> {
-        let f = crate::arith::QFormat { frac, ..T::STORAGE };
+        let f = muir::arith::QFormat { frac, ..T::STORAGE };
         let mut q = QT::<T>::zeros(t.h, t.w, t.c);
         for ch in 0..t.c {
             for p in 0..t.h * t.w {
@@ -186,7 +186,7 @@ impl<'m, 'a> Reference<'m, 'a> {
     }
 
     fn in_frac(&self, id: ConvId) -> i8 {
-        let ql = crate::model::graph::QLayer::of(id, self.cfg());
+        let ql = muir::model::graph::QLayer::of(id, self.cfg());
         ql.and_then(|l| l.parts[0]).map_or(0, |p| self.frac(p.act))
     }
 
@@ -551,7 +551,7 @@ impl<'m, 'a> Reference<'m, 'a> {
         }
         if tr.active() {
             let dq = QT { h: hh, w: ww, c: 1, d: disp.clone() };
-            self.record(tr, "up.disp", &dq, crate::arith::DISP_FRAC as i8);
+            self.record(tr, "up.disp", &dq, muir::arith::DISP_FRAC as i8);
             if let Some(u) = &uo {
                 self.record(tr, "up.u", &QT { h: hh, w: ww, c: 1, d: u.clone() }, LOG_FRAC as i8);
             }
@@ -632,6 +632,6 @@ pub fn u_threshold(tau_px: f32) -> i16 {
 
 /// Dequantised disparity in pixels.
 pub fn disparity_px(q: i16) -> f32 {
-    q as f32 / (1 << crate::arith::DISP_FRAC) as f32
+    q as f32 / (1 << muir::arith::DISP_FRAC) as f32
 }
 

@@ -1,13 +1,13 @@
 //! Host-side writer of `.muirq` blobs (the layout is documented in the parent module).
 
-use super::{
+use muir::format::{
     CONFIG_LEN, FORMATS_AT, HEADER_LEN, LAYER_HEADER_LEN, MAGIC, MAX_LEVELS, Sections, U_TABLE_LEN, VERSION, config_record,
     crc32, layer_record_len, rope_pairs,
 };
-use crate::arith::{Multiplier, QFormat};
-use crate::model::config::Config;
-use crate::model::graph::{Act, MAX_PARTS, PostOp};
-use crate::model::layers::ConvId;
+use muir::arith::{Multiplier, QFormat};
+use muir::model::config::Config;
+use muir::model::graph::{Act, MAX_PARTS, PostOp};
+use muir::model::layers::ConvId;
 
 /// One quantised conv, ready to serialise.
 #[derive(Clone, Debug, PartialEq)]

@@ -26,8 +26,6 @@
 //! formats, every layer's shape against the config); afterwards all accessors are infallible.
 
 mod crc;
-#[cfg(feature = "std")]
-pub mod writer;
 
 use core::fmt;
 
