@@ -14,12 +14,23 @@
 //! 1/8 GRU, disparity head), final MUD, upsampling. Results equal the plain fixed-point engine
 //! (`crate::reference`) bit for bit.
 
+// The engine's parts are internal; with the `internals` feature they are public for the host
+// tools' benches (which time the phases one by one) and tests.
+#[cfg(feature = "internals")]
 pub mod encoder;
+#[cfg(not(feature = "internals"))]
+mod encoder;
 #[cfg(feature = "hal")]
 pub mod hal;
-pub mod plan;
+mod plan;
+#[cfg(feature = "internals")]
 pub mod refine;
+#[cfg(not(feature = "internals"))]
+mod refine;
+#[cfg(feature = "internals")]
 pub mod ring;
+#[cfg(not(feature = "internals"))]
+mod ring;
 
 use core::fmt;
 

@@ -354,6 +354,7 @@ pub const fn refine_rings(cfg: &Config, g: &Grid) -> usize {
 /// UFI: three proposals, the gated initializer (in place on `net08`), then the candidate with the
 /// lowest uncertainty per pixel into `flow`. `max_d8`: the largest proposal on the 1/8 grid
 /// ([`crate::model::config::MaxDisparity::grid8`]).
+#[inline(never)] // a phase: its stack frame must not add to the caller's (see `engine::STACK_BUDGET`)
 pub fn ufi(c: &mut Ctx<'_, '_, '_>, max_d8: usize) {
     let m = c.m;
     let cfg = *m.config();
@@ -493,6 +494,7 @@ fn rope_phases(m: &QuantModel<'_>) -> [u32; crate::model::config::MAX_WIDTH / 2]
 }
 
 /// Keys (after RoPE) and every query's softmax statistics; once per frame.
+#[inline(never)] // a phase: its stack frame must not add to the caller's (see `engine::STACK_BUDGET`)
 pub fn mga_setup(c: &mut Ctx<'_, '_, '_>) {
     let m = c.m;
     let cfg = *m.config();
@@ -523,6 +525,7 @@ pub fn mga_setup(c: &mut Ctx<'_, '_, '_>) {
 // ------------------------------------------------------------------------------------------------
 
 /// MUD pass: matchability mask into `mask`, uncertainty into `u`.
+#[inline(never)] // a phase: its stack frame must not add to the caller's (see `engine::STACK_BUDGET`)
 pub fn mud_pass(c: &mut Ctx<'_, '_, '_>) {
     let m = c.m;
     let cfg = *m.config();
@@ -559,6 +562,7 @@ pub fn mud_pass(c: &mut Ctx<'_, '_, '_>) {
 }
 
 /// MGA value pass: `values = value(net08) * sigmoid(mask conv([net08, corr, flow, m]))`.
+#[inline(never)] // a phase: its stack frame must not add to the caller's (see `engine::STACK_BUDGET`)
 pub fn mga_values(c: &mut Ctx<'_, '_, '_>) {
     let m = c.m;
     let cfg = *m.config();
@@ -590,6 +594,7 @@ pub fn mga_values(c: &mut Ctx<'_, '_, '_>) {
 }
 
 /// The 1/16 ConvGRU step: `net16 = gru16(net16, ctx16, pool2x(net08))`, in place.
+#[inline(never)] // a phase: its stack frame must not add to the caller's (see `engine::STACK_BUDGET`)
 pub fn gru16(c: &mut Ctx<'_, '_, '_>) {
     let m = c.m;
     let cfg = *m.config();
@@ -627,6 +632,7 @@ pub fn gru16(c: &mut Ctx<'_, '_, '_>) {
 
 /// Motion encoder and the 1/8 ConvGRU: `net08 = gru08(net08, ctx08, [motion, interp(net16), glb])`,
 /// in place; the correlation is looked up at the current disparity row by row.
+#[inline(never)] // a phase: its stack frame must not add to the caller's (see `engine::STACK_BUDGET`)
 pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
     let m = c.m;
     let cfg = *m.config();
@@ -727,6 +733,7 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
 /// Disparity head: `flow += conv2(relu(conv1(net08)))`, row by row.
 /// Disparity head: adds its update to the disparity state. Returns how many 1/8-grid pixels moved
 /// by more than `settled` (Q7.8), the measure of [`super::EarlyStop`].
+#[inline(never)] // a phase: its stack frame must not add to the caller's (see `engine::STACK_BUDGET`)
 pub fn flow_head(c: &mut Ctx<'_, '_, '_>, settled: u16) -> usize {
     let m = c.m;
     let cfg = *m.config();
@@ -758,6 +765,7 @@ pub fn flow_head(c: &mut Ctx<'_, '_, '_>, settled: u16) -> usize {
 
 /// Upsampling: mask head and convex upsampling of disparity (Q10.5 px) and uncertainty (Q4.11)
 /// into the cropped `width x height` outputs.
+#[inline(never)] // a phase: its stack frame must not add to the caller's (see `engine::STACK_BUDGET`)
 pub fn upsample(c: &mut Ctx<'_, '_, '_>, width: usize, height: usize, disp: &mut [i16], mut unc: Option<&mut [i16]>) {
     let m = c.m;
     let cfg = *m.config();

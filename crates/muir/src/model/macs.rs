@@ -30,7 +30,7 @@
 use super::config::Config;
 use super::graph::QLayer;
 use super::layers::ConvId::{self, *};
-use crate::engine::plan::Grid;
+use crate::model::grid::Grid;
 
 /// MACs of conv `id` under `cfg` producing `pixels` output pixels (0 when the layer is not
 /// computed under `cfg`). `cin` counts every quantised input part, merged context included.

@@ -2,6 +2,7 @@
 
 pub mod config;
 pub mod graph;
+pub mod grid;
 pub mod layers;
 pub mod macs;
 
