@@ -347,3 +347,29 @@ fn early_stop_is_the_same_as_fewer_iterations() {
     let (_, _, n) = run(&mut e, 5);
     assert_eq!(n, 5, "nothing settles: every iteration runs");
 }
+
+/// Host threads (`Engine::set_threads`): the right image's encoder on a second thread with its
+/// own scratch gives the same bits as one thread, whatever the arena held before.
+#[test]
+fn threads_give_the_same_bits() {
+    for cfg in [Config::MUIR_SLIM, Config { wide_trunk: true, ..Config::MUIR_SLIM }] {
+        let (w, h) = (100, 70);
+        let blob = blob(&cfg);
+        let qm = QuantModel::parse(&blob).unwrap();
+        let (l, r) = pair(w, h, 17, false);
+        let (lv, rv) = (view(&l, w, h, false), view(&r, w, h, false));
+        let plan = Plan::new(&cfg, w, h);
+        let run = |threads: usize, fill: u64| {
+            let mut mem = arena(&plan);
+            mem.fill(fill);
+            let mut e = Engine::new(&qm, bytemuck::cast_slice_mut(&mut mem)).unwrap();
+            e.set_threads(threads);
+            let (mut d, mut u) = (vec![0i16; w * h], vec![0i16; w * h]);
+            e.run_iters(&lv, &rv, 3, &mut Output { disparity: &mut d, uncertainty: Some(&mut u) }).unwrap();
+            (d, u)
+        };
+        let one = run(1, 0);
+        assert_eq!(run(2, 0), one, "{}: 2 threads", cfg.name);
+        assert_eq!(run(3, 0xA5A5_A5A5_A5A5_A5A5), one, "{}: 3 threads on a dirty arena", cfg.name);
+    }
+}

@@ -134,8 +134,8 @@ struct RunArgs {
     /// the refinement iterations may still move a pixel beyond it. Same in both engines.
     #[arg(long, value_name = "PX", default_value_t = MaxDisparity::DEFAULT, value_parser = parse_max_disparity)]
     max_disparity: MaxDisparity,
-    /// Threads for the float engine's convolutions (its matrix products; 1 to 4, the results are
-    /// the same bits for any count). The fixed-point engine runs on one thread.
+    /// Threads (1 to 4; the results are the same bits for any count): the float engine's matrix
+    /// products; the fixed-point engine's two image encoders side by side (2 or more).
     #[arg(long, value_name = "N", default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=4))]
     threads: u8,
     /// Fixed engine: adaptive iterations, stop once at most P per mille of the 1/8-grid pixels
@@ -491,7 +491,7 @@ fn run(args: &RunArgs) -> Result<(), String> {
         settled: (args.settled * 32.0).round().clamp(0.0, u16::MAX as f32) as u16,
         max_moving_per_mille: p.min(1000),
     });
-    let pred = engine.predict(&left.view(), &right.view(), iters, args.reject_above, !args.no_refine, early, max_disparity);
+    let pred = engine.predict(&left.view(), &right.view(), iters, args.reject_above, !args.no_refine, early, max_disparity, args.threads as usize);
     let network = start.elapsed();
     spinner.finish_and_clear();
     let pred = pred.map_err(|e| pair_err(&e))?;
@@ -571,6 +571,7 @@ impl Loaded {
         refine: bool,
         early: Option<muir::engine::EarlyStop>,
         max_disparity: MaxDisparity,
+        threads: usize,
     ) -> Result<Prediction, String> {
         match self {
             Loaded::Float(model) => {
@@ -596,6 +597,7 @@ impl Loaded {
                 engine.set_full_res_refinement(refine);
                 engine.set_early_stop(early);
                 engine.set_max_disparity(max_disparity);
+                engine.set_threads(threads);
                 let mut d = vec![0i16; w * h];
                 let mut u = vec![0i16; w * h];
                 let unc = if model.config().mud { Some(&mut u[..]) } else { None };

@@ -163,6 +163,8 @@ pub struct Engine<'m, 'a, 'w> {
     early_stop: Option<EarlyStop>,
     max_disparity: MaxDisparity,
     last_iters: usize,
+    #[cfg(feature = "std")]
+    threads: usize,
 }
 
 impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
@@ -172,7 +174,25 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
         if arena.as_ptr() as usize % 8 != 0 {
             return Err(EngineError::ArenaAlignment);
         }
-        Ok(Self { model, arena, full_res: true, early_stop: None, max_disparity: MaxDisparity::DEFAULT, last_iters: 0 })
+        Ok(Self {
+            model,
+            arena,
+            full_res: true,
+            early_stop: None,
+            max_disparity: MaxDisparity::DEFAULT,
+            last_iters: 0,
+            #[cfg(feature = "std")]
+            threads: 1,
+        })
+    }
+
+    /// Threads for a frame (host builds, feature `std`; default 1): with 2 or more the right
+    /// image's encoder runs on a second thread beside the left one's, with its own scratch (the
+    /// encoder's line buffers and patch, allocated per frame: the one allocation of a host frame;
+    /// the firmware path has none). The same integers for any count.
+    #[cfg(feature = "std")]
+    pub fn set_threads(&mut self, n: usize) {
+        self.threads = n.max(1);
     }
 
     /// Turns adaptive iterations on ([`EarlyStop`]) or off (`None`, the default: every iteration).
@@ -235,8 +255,17 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
             _ => {}
         }
         // Encoder: right image first (features only), then the left (features and context).
-        encode_image(m, &plan, self.arena, right, false);
-        encode_image(m, &plan, self.arena, left, true);
+        #[cfg(feature = "std")]
+        let threaded = self.threads > 1;
+        #[cfg(not(feature = "std"))]
+        let threaded = false;
+        if threaded {
+            #[cfg(feature = "std")]
+            encode_pair_threaded(m, &plan, self.arena, left, right);
+        } else {
+            encode_image(m, &plan, self.arena, right, false);
+            encode_image(m, &plan, self.arena, left, true);
+        }
         // Refinement.
         let mut c = refine_ctx(m, &plan, self.arena);
         c.st.flow.fill(0);
@@ -279,6 +308,40 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
         }
         Ok(())
     }
+}
+
+/// Both encoders at once (host): the right image's on a scoped thread with scratch of its own,
+/// the left image's on this one with the arena's. They write disjoint outputs (`f2`; `f1` and the
+/// context) and read only the model and their image, so the frame zone is what a sequential
+/// [`encode_image`] pair leaves.
+#[cfg(feature = "std")]
+fn encode_pair_threaded(m: &QuantModel<'_>, plan: &Plan, arena: &mut [u8], left: &ImageView<'_>, right: &ImageView<'_>) {
+    let (fr, px, e) = (plan.frame, plan.pixel, plan.encoder);
+    // The right encoder's scratch: the same buffers laid out from 0, 8-byte aligned.
+    let mut at = 0;
+    let mut next = |len: usize| {
+        let b = plan::Buf { at, len };
+        at = (at + len).div_ceil(8) * 8;
+        b
+    };
+    let (p2, l3, l4, norm, rings) = (next(px.patch.len), next(e.l3.len), next(e.l4.len), next(e.norm.len), next(e.rings.len));
+    let mut own = std::vec![0u64; at / 8];
+    let mut cr = Carver::new(bytemuck::cast_slice_mut(&mut own));
+    let patch_r = cr.raw(p2);
+    let scratch_r = encoder::EncoderScratch { l3: cr.u8(l3), l4: cr.u8(l4), norms: cr.i64(norm), rings: cr.raw(rings), patch: patch_r };
+
+    let mut cv = Carver::new(&mut arena[..plan.ram_bytes]);
+    let (f1, f2) = (cv.i8(fr.f1), cv.i8(fr.f2));
+    let (net08, net16, inp08, inp16) = (cv.i16(fr.net08), cv.i16(fr.net16), cv.u8(fr.inp08), cv.u8(fr.inp16));
+    let patch = cv.raw(px.patch);
+    let scratch_l = encoder::EncoderScratch { l3: cv.u8(e.l3), l4: cv.u8(e.l4), norms: cv.i64(e.norm), rings: cv.raw(e.rings), patch };
+    let out_l = encoder::EncoderOut { features: f1, context: Some(encoder::ContextOut { net08, net16, inp08, inp16 }) };
+    let out_r = encoder::EncoderOut { features: f2, context: None };
+    let grid = &plan.grid;
+    std::thread::scope(|s| {
+        s.spawn(move || encoder::encode(m, right, grid, scratch_r, out_r));
+        encoder::encode(m, left, grid, scratch_l, out_l);
+    });
 }
 
 /// Encodes one image into the frame zone of an arena laid out by `plan`: matching features, and
