@@ -47,6 +47,11 @@ echo "== no_std build of the core (crates/muir) for thumbv7em-none-eabihf, and i
 cargo build -p muir --lib --target thumbv7em-none-eabihf
 python3 scripts/package-size.py
 
+echo "== clippy on the core: no unwrap / expect / panic! outside tests (crate-level deny), target and host builds"
+rustup component list --installed 2>/dev/null | grep -q '^clippy' || rustup component add clippy
+cargo clippy -q -p muir --lib --target thumbv7em-none-eabihf --features dsp
+cargo clippy -q -p muir --lib --features std,internals
+
 echo "== Python twin tests (split, refinement helpers, one DDP step = one single-process step)"
 (cd python && PYTHONPATH=. python3 -m pytest -q)
 

@@ -441,7 +441,7 @@ pub fn predicted_error_px(u: i16) -> f32 {
 /// then `ln m = 2 atanh((m - 1) / (m + 1))` by its series for `m` in [1, 2)): the same bits on
 /// every target, within 1e-15 of the true value.
 fn ln_exact(x: f64) -> f64 {
-    if !(x > 0.0) || !x.is_finite() {
+    if x.is_nan() || x <= 0.0 || !x.is_finite() {
         return if x == f64::INFINITY { f64::MAX } else { -745.0 };
     }
     let bits = x.to_bits();
