@@ -16,8 +16,9 @@ import numpy as np
 
 CENSUS_RADIUS = 3
 WINDOW_RADIUS = 1
-MIN_BAND = 3
-MAX_BAND = 12
+BAND_MARGIN = 2  # px added to every band radius (kernels::fullres::BAND_MARGIN)
+MIN_BAND = 3 + BAND_MARGIN
+MAX_BAND = 12 + BAND_MARGIN
 BAND_U_THRESHOLDS = np.array([0, 1178, 2092, 2839, 3470, 4017, 4499, 4931, 5321], np.int32)
 P1 = 256  # penalty of a 1 px step along a path
 P2 = 2048  # penalty of a larger jump, on a flat image

@@ -22,9 +22,10 @@ def test_split_is_disjoint_and_holds_out_enough():
 
 def test_band_thresholds_match_their_formula():
     for i, t in enumerate(fullres.BAND_U_THRESHOLDS):
-        r = fullres.MIN_BAND + 1 + i
+        r = fullres.MIN_BAND - fullres.BAND_MARGIN + 1 + i
         assert t == math.floor(2 * math.log((r - 1) / 3) * 2048)
-    assert fullres.band_radius(np.array([-100, 0, 1, 32767])).tolist() == [3, 3, 4, 12]
+    m = fullres.BAND_MARGIN
+    assert fullres.band_radius(np.array([-100, 0, 1, 32767])).tolist() == [3 + m, 3 + m, 4 + m, 12 + m]
 
 
 def test_div_round_is_half_away_from_zero():
