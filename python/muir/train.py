@@ -330,8 +330,9 @@ def fmt_time(s: float) -> str:
 # ------------------------------------------------------------------------------------------------
 # Main
 # ------------------------------------------------------------------------------------------------
+# What defines a run: a resume keeps these from the checkpoint (a quantisation-aware run stays one).
 SCHEDULE_KEYS = ("config", "steps", "batch", "crop", "lr", "wd", "pct_start", "seed", "gamma", "binarize_p", "iters",
-                 "proxy_frac", "real_frac")
+                 "proxy_frac", "real_frac", "qat", "qat_p", "qat_activations_only", "qat_consistency")
 
 
 def build_parser():
@@ -435,6 +436,11 @@ def main(argv=None):
         stored = state["args"]
         for k in SCHEDULE_KEYS:
             if k not in stored:
+                continue
+            if k.startswith("qat") and stored[k] is None and getattr(args, k) is not None:
+                # Checkpoints before the quantisation-aware keys were recorded hold None: the
+                # command says whether the run is quantisation-aware.
+                print(f"note: --resume: the checkpoint does not record {k}; the command's {getattr(args, k)} is used", file=sys.stderr)
                 continue
             v = tuple(stored[k]) if k == "crop" else stored[k]
             if getattr(args, k) != v:
