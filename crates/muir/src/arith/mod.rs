@@ -11,7 +11,7 @@
 //!   [`sat_i32`].
 //! * **Requantisation**: `y = sat(rshift_round(acc * m, shift))` with `m` a 31-bit multiplier in
 //!   `[2^30, 2^31)` and `shift` in `[1, 126]`, computed in 128-bit ([`requantize`]). Multiplier and
-//!   shift are found on the host by [`Multiplier::from_f64`] and stored in the model blob.
+//!   shift are found on the host by `Multiplier::from_f64` (host builds) and stored in the model blob.
 //! * **Activation formats**: activations are `i8`, `u8` or `i16` with a power-of-two scale,
 //!   `value = q * 2^-frac` ([`QFormat`]). `u8` holds the tensors that follow a ReLU (the backbone
 //!   and the context): they are never negative, so the sign bit would waste half the codes. Weights are `i8`, symmetric, with a scale per output channel (in

@@ -211,7 +211,7 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
         self.last_iters
     }
 
-    /// Turns the full-resolution refinement ([`crate::kernels::fullres`]) on (the default) or off
+    /// Turns the full-resolution refinement (semi-global matching in a band around the network's disparity, `kernels::fullres`) on (the default) or off
     /// (the network's upsampled disparity as it is). It runs after the network in memory the
     /// network no longer needs, so it adds no RAM beyond the plan (about 490 bytes per image column,
     /// less than the network's own peak); per pixel it costs 9 census comparisons and five path
