@@ -4,6 +4,7 @@
 #
 #   boards/qemu-mps2/profile.sh                  # the 64x48 CI pair
 #   boards/qemu-mps2/profile.sh --size 160x120   # feature frame-160x120
+#   boards/qemu-mps2/profile.sh --m55 [--size 160x120]   # the Cortex-M55 firmware (qemu-mps3-m55, Helium)
 #
 # Needs what run-tests.sh needs, plus gcc (builds profile/pcprof.c), python3 and llvm-objdump
 # (the hot-loop listing is skipped without it); llvm-addr2line for the table by kernel family
@@ -13,11 +14,13 @@ set -euo pipefail
 
 board="$(cd "$(dirname "$0")" && pwd)"
 size=64x48
+m55=0
 while [ $# -gt 0 ]; do
     case "$1" in
+        --m55) m55=1; shift ;;
         --size) size="$2"; shift 2 ;;
         --size=*) size="${1#--size=}"; shift ;;
-        -h|--help) sed -n '2,10p' "$0"; exit 0 ;;
+        -h|--help) sed -n '2,11p' "$0"; exit 0 ;;
         *) echo "profile.sh: unknown argument '$1' (try --help)" >&2; exit 2 ;;
     esac
 done
@@ -29,11 +32,21 @@ done
 
 tmp="$(mktemp -d)"
 trap 'rm -rf "$tmp"' EXIT
-(cd "$board" && cargo build --release --bin stereo "${features[@]}")
-elf="$board/target/thumbv7em-none-eabihf/release/stereo"
+if [ "$m55" = 1 ]; then
+    fw="$board/../qemu-mps3-m55"
+    feats=mve
+    [ "$size" = 64x48 ] || feats="mve,frame-$size"
+    (cd "$fw" && cargo build --release --bin stereo --no-default-features --features "$feats")
+    elf="$fw/target/thumbv8m.main-none-eabihf/release/stereo"
+    machine=mps3-an547 base=0x10000000
+else
+    (cd "$board" && cargo build --release --bin stereo "${features[@]}")
+    elf="$board/target/thumbv7em-none-eabihf/release/stereo"
+    machine=mps2-an500 base=0
+fi
 gcc -O2 -shared -fPIC -fvisibility=hidden -o "$tmp/libpcprof.so" "$board/profile/pcprof.c"
-timeout "${QEMU_TIMEOUT:-900}" qemu-system-arm -M mps2-an500 -nographic \
-    -semihosting-config enable=on,target=native -plugin "$tmp/libpcprof.so,out=$tmp/pcs.txt" -d plugin \
+timeout "${QEMU_TIMEOUT:-900}" qemu-system-arm -M "$machine" -nographic \
+    -semihosting-config enable=on,target=native -plugin "$tmp/libpcprof.so,out=$tmp/pcs.txt,base=$base" -d plugin \
     -kernel "$elf" >"$tmp/qemu.log" 2>&1 || { cat "$tmp/qemu.log" >&2; exit 1; }
 grep -m1 '^MUIR-RESULT' "$tmp/qemu.log" || true
 nm -n -S -C "$elf" | awk 'NF >= 4 && ($3 == "t" || $3 == "T")' >"$tmp/syms.txt"

@@ -27,9 +27,11 @@ void qemu_plugin_outs(const char *);
 
 __attribute__((visibility("default"))) int qemu_plugin_version = 1;
 
-/* One counter per Thumb halfword address of the first 4 MiB (the mps2-an500 flash). */
+/* One counter per Thumb halfword address of the 4 MiB from `base` (0: the mps2-an500 flash;
+ * base=0x10000000 for the mps3-an547 firmware, linked at the ITCM's Secure alias). */
 #define NSLOT (1u << 21)
 static uint64_t counts[NSLOT];
+static uint64_t base;
 static char out_path[512] = "pcprof.txt";
 
 static void tb_trans(qemu_plugin_id_t id, struct qemu_plugin_tb *tb) {
@@ -37,7 +39,9 @@ static void tb_trans(qemu_plugin_id_t id, struct qemu_plugin_tb *tb) {
     size_t n = qemu_plugin_tb_n_insns(tb);
     for (size_t i = 0; i < n; i++) {
         struct qemu_plugin_insn *insn = qemu_plugin_tb_get_insn(tb, i);
-        uint64_t slot = qemu_plugin_insn_vaddr(insn) >> 1;
+        uint64_t va = qemu_plugin_insn_vaddr(insn);
+        if (va < base) continue;
+        uint64_t slot = (va - base) >> 1;
         if (slot < NSLOT) qemu_plugin_register_vcpu_insn_exec_inline(insn, QEMU_PLUGIN_INLINE_ADD_U64, &counts[slot], 1);
     }
 }
@@ -47,7 +51,7 @@ static void at_exit(qemu_plugin_id_t id, void *u) {
     FILE *f = fopen(out_path, "w");
     if (!f) { qemu_plugin_outs("pcprof: cannot write the output file\n"); return; }
     for (uint64_t i = 0; i < NSLOT; i++)
-        if (counts[i]) fprintf(f, "%llx %llu\n", (unsigned long long)(i << 1), (unsigned long long)counts[i]);
+        if (counts[i]) fprintf(f, "%llx %llu\n", (unsigned long long)(base + (i << 1)), (unsigned long long)counts[i]);
     fclose(f);
 }
 
@@ -56,6 +60,7 @@ int qemu_plugin_install(qemu_plugin_id_t id, const qemu_info_t *info, int argc, 
     (void)info;
     for (int i = 0; i < argc; i++) {
         if (!strncmp(argv[i], "out=", 4)) snprintf(out_path, sizeof out_path, "%s", argv[i] + 4);
+        else if (!strncmp(argv[i], "base=", 5)) base = strtoull(argv[i] + 5, NULL, 0);
         else { fprintf(stderr, "pcprof: unknown arg %s\n", argv[i]); return -1; }
     }
     qemu_plugin_register_vcpu_tb_trans_cb(id, tb_trans);

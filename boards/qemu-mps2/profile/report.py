@@ -4,9 +4,9 @@ instruction by kernel family. Usage: report.py PCS SYMS DISASSEMBLY [ELF MACS]
 
 MACS is the output of `muir macs --config muir-slim --size WxH` (its `family:` rows). Families
 come from the inlined call chain of each executed address (llvm-addr2line, the firmware's debug
-information): the innermost frame that belongs to a family's kernel names it, so a dot product
-inlined into the correlation lookup counts as correlation and one inside a convolution as
-convolution."""
+information): the innermost frame that belongs to a family's kernel names it (building blocks
+such as dot products are looked through), so a dot product inlined into the correlation lookup
+counts as correlation and one inside a convolution as convolution."""
 import bisect
 import re
 import subprocess
@@ -14,7 +14,7 @@ import sys
 
 # (family, substrings of a frame's function path), checked innermost frame first.
 FAMILIES = [
-    ("convolutions", ("muir_dsp_dot2x2", "muir_mve_", "kernels::conv::", "encoder::run_conv")),
+    ("convolutions", ("kernels::conv::", "encoder::run_conv")),
     ("attention", ("kernels::attention::",)),
     ("correlation", ("kernels::corr::", "refine::lookup_row")),
     ("upsampling", ("kernels::upsample::", "refine::upsample")),
@@ -25,12 +25,22 @@ FAMILIES = [
 ]
 
 
+# Building blocks several families inline (dot products, integer arithmetic): skipped when looking
+# for the family, so that a dot product inside the correlation lookup counts as correlation.
+PRIMITIVES = ("kernels::dsp::", "kernels::mve::", "kernels..Elem", "kernels::Elem", "arith::", "core::", "compiler_builtins")
+
+
 def family_of(frames):
+    # The 2x2 (two pixels x two channels) dot products exist only for the convolutions.
+    if any("dot2x2" in f for f in frames):
+        return "convolutions"
     for fn in frames:
+        if any(p in fn for p in PRIMITIVES):
+            continue
         for name, keys in FAMILIES:
             if any(k in fn for k in keys):
                 return name
-    return "other (engine control, firmware)"
+    return "other (engine control, shared dot products, firmware)"
 
 
 def families(counts, syms, starts, elf, macs_path):
