@@ -316,7 +316,7 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
 /// [`encode_image`] pair leaves.
 #[cfg(feature = "std")]
 fn encode_pair_threaded(m: &QuantModel<'_>, plan: &Plan, arena: &mut [u8], left: &ImageView<'_>, right: &ImageView<'_>) {
-    let (fr, px, e) = (plan.frame, plan.pixel, plan.encoder);
+    let (px, e) = (plan.pixel, plan.encoder);
     // The right encoder's scratch: the same buffers laid out from 0, 8-byte aligned.
     let mut at = 0;
     let mut next = |len: usize| {
@@ -330,13 +330,7 @@ fn encode_pair_threaded(m: &QuantModel<'_>, plan: &Plan, arena: &mut [u8], left:
     let patch_r = cr.raw(p2);
     let scratch_r = encoder::EncoderScratch { l3: cr.u8(l3), l4: cr.u8(l4), norms: cr.i64(norm), rings: cr.raw(rings), patch: patch_r };
 
-    let mut cv = Carver::new(&mut arena[..plan.ram_bytes]);
-    let (f1, f2) = (cv.i8(fr.f1), cv.i8(fr.f2));
-    let (net08, net16, inp08, inp16) = (cv.i16(fr.net08), cv.i16(fr.net16), cv.u8(fr.inp08), cv.u8(fr.inp16));
-    let patch = cv.raw(px.patch);
-    let scratch_l = encoder::EncoderScratch { l3: cv.u8(e.l3), l4: cv.u8(e.l4), norms: cv.i64(e.norm), rings: cv.raw(e.rings), patch };
-    let out_l = encoder::EncoderOut { features: f1, context: Some(encoder::ContextOut { net08, net16, inp08, inp16 }) };
-    let out_r = encoder::EncoderOut { features: f2, context: None };
+    let (out_l, out_r, scratch_l) = encoder_zone(plan, arena);
     let grid = &plan.grid;
     std::thread::scope(|s| {
         s.spawn(move || encoder::encode(m, right, grid, scratch_r, out_r));
@@ -348,18 +342,22 @@ fn encode_pair_threaded(m: &QuantModel<'_>, plan: &Plan, arena: &mut [u8], left:
 /// for the left image the hidden states and context. Public for the benches, which time phases.
 #[doc(hidden)]
 pub fn encode_image(m: &QuantModel<'_>, plan: &Plan, arena: &mut [u8], img: &ImageView<'_>, left: bool) {
+    let (out_l, out_r, scratch) = encoder_zone(plan, arena);
+    encoder::encode(m, img, &plan.grid, scratch, if left { out_l } else { out_r });
+}
+
+/// The encoders' buffers in an arena laid out by `plan`: the left image's outputs (matching
+/// features and context), the right image's (features) and the arena's encoder scratch.
+fn encoder_zone<'a>(plan: &Plan, arena: &'a mut [u8]) -> (encoder::EncoderOut<'a>, encoder::EncoderOut<'a>, encoder::EncoderScratch<'a>) {
     let (fr, px, e) = (plan.frame, plan.pixel, plan.encoder);
     let mut cv = Carver::new(&mut arena[..plan.ram_bytes]);
     let (f1, f2) = (cv.i8(fr.f1), cv.i8(fr.f2));
     let (net08, net16, inp08, inp16) = (cv.i16(fr.net08), cv.i16(fr.net16), cv.u8(fr.inp08), cv.u8(fr.inp16));
     let patch = cv.raw(px.patch);
     let scratch = encoder::EncoderScratch { l3: cv.u8(e.l3), l4: cv.u8(e.l4), norms: cv.i64(e.norm), rings: cv.raw(e.rings), patch };
-    let out = if left {
-        encoder::EncoderOut { features: f1, context: Some(encoder::ContextOut { net08, net16, inp08, inp16 }) }
-    } else {
-        encoder::EncoderOut { features: f2, context: None }
-    };
-    encoder::encode(m, img, &plan.grid, scratch, out);
+    let out_l = encoder::EncoderOut { features: f1, context: Some(encoder::ContextOut { net08, net16, inp08, inp16 }) };
+    let out_r = encoder::EncoderOut { features: f2, context: None };
+    (out_l, out_r, scratch)
 }
 
 /// The refinement context over an arena laid out by `plan`: the frame zone the encoder filled,

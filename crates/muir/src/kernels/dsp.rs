@@ -447,13 +447,15 @@ pub fn dot2x2_i16(w0: &[i8], w1: &[i8], x: &[i16]) -> [i64; 4] {
             }
         }
     }
-    let (q4, r) = (4 * q, n - 4 * q);
-    let tail = |v: &[i8], at: usize| -> i64 {
-        (0..r).map(|j| *v.get(q4 + j).unwrap_or(&0) as i64 * *x.get(at + j).unwrap_or(&0) as i64).sum()
-    };
-    acc[0] += tail(w0, 2 * q4);
-    acc[1] += tail(w1, 2 * q4);
-    acc[2] += tail(w0, 2 * q4 + r);
-    acc[3] += tail(w1, 2 * q4 + r);
+    // The last `n % 4` values of each patch: `dot2x2`'s own tail, on the rest of the pair layout.
+    let q4 = 4 * q;
+    if q4 == n {
+        return acc;
+    }
+    if let (Some(t0), Some(t1), Some(tx)) = (w0.get(q4..n), w1.get(q4..n), x.get(2 * q4..2 * n)) {
+        for (a, s) in acc.iter_mut().zip(dot2x2(t0, t1, tx)) {
+            *a += s as i64;
+        }
+    }
     acc
 }
