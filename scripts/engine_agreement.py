@@ -17,16 +17,7 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "python"))
 from muir import split  # noqa: E402
-
-
-def read_pfm(path):
-    with open(path, "rb") as f:
-        if f.readline().strip() != b"Pf":
-            sys.exit(f"error: {path}: not a grey PFM")
-        w, h = map(int, f.readline().split())
-        scale = float(f.readline())
-        a = np.frombuffer(f.read(), dtype="<f4" if scale < 0 else ">f4").reshape(h, w)
-    return a
+from muir.data import read_pfm  # noqa: E402
 
 
 def main():
