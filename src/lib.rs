@@ -8,13 +8,20 @@
 //! - [`io`]: PNG, PFM and ground-truth readers and writers, colour maps;
 //! - the `muir` command-line tool (`src/bin/muir.rs`).
 #![warn(missing_docs)]
+// Everything here needs std (feature `std`, on by default); without it the package is empty.
+#![cfg_attr(not(feature = "std"), no_std)]
 
 pub use muir;
 
+#[cfg(feature = "std")]
 pub mod calib;
+#[cfg(feature = "std")]
 pub mod float;
+#[cfg(feature = "std")]
 pub mod io;
+#[cfg(feature = "std")]
 pub mod reference;
+#[cfg(feature = "std")]
 pub mod writer;
 
 /// The repository README's examples, compiled by `cargo test --doc` (its firmware example
