@@ -131,6 +131,63 @@ static mut B16: [i16; MAX_N] = [0; MAX_N];
 struct Aligned16([i16; 2 * MAX_N]);
 static mut P16: Aligned16 = Aligned16([0; 2 * MAX_N]);
 
+/// The Helium MGA kernels (`mve::dot_i16_i64`, the logits; `mve::aggregate`, the value sums of a
+/// block of keys) against plain loops: lengths around the 8- and 4-lane vectors, key blocks of 1
+/// to 33 (the engine's are up to 32) with odd and even channel counts, random and extreme
+/// values (softmax weights up to 32768 = exp(0), values at i16's limits).
+#[cfg(feature = "mve")]
+fn check_attention(q: &mut [i16; MAX_N], k: &mut [i16; MAX_N], r: &mut Rng) -> usize {
+    use muir::kernels::mve;
+    let mut cases = 0;
+    for n in lengths() {
+        for fill in [Fill::Random, Fill::Min, Fill::Max] {
+            for i in 0..n {
+                q[i] = i16::sample(r, fill);
+                k[i] = i16::sample(r, if matches!(fill, Fill::Max) { Fill::Min } else { fill });
+            }
+            let want: i64 = q[..n].iter().zip(&k[..n]).map(|(a, b)| *a as i64 * *b as i64).sum();
+            let got = mve::dot_i16_i64(&q[..n], &k[..n]);
+            if got != want {
+                fail("logit", n, &[got], &[want]);
+            }
+            cases += 1;
+        }
+    }
+    let v = q;
+    for cv in [1usize, 2, 3, 5, 64, 128] {
+        for nb in 1..=33usize {
+            for fill in [Fill::Random, Fill::Max, Fill::Min] {
+                let mut e = [0i32; 33];
+                for (j, w) in e.iter_mut().enumerate().take(nb) {
+                    *w = match fill {
+                        Fill::Random => (r.next() % 32769) as i32,
+                        _ if j % 3 == 0 => 0,
+                        _ => 32768,
+                    };
+                }
+                for x in v.iter_mut().take(nb * cv) {
+                    *x = i16::sample(r, fill);
+                }
+                let mut got = [0i64; 128];
+                let mut want = [0i64; 128];
+                for (g, w) in got.iter_mut().zip(want.iter_mut()).take(cv) {
+                    let start = (r.next() >> 40) as i64 - (1 << 23);
+                    (*g, *w) = (start, start);
+                }
+                for (ch, w) in want.iter_mut().enumerate().take(cv) {
+                    *w += (0..nb).map(|j| e[j] as i64 * v[j * cv + ch] as i64).sum::<i64>();
+                }
+                mve::aggregate(&e[..nb], &v[..nb * cv], cv, &mut got[..cv]);
+                if got[..cv] != want[..cv] {
+                    fail("aggregate", nb * 1000 + cv, &got[..cv], &want[..cv]);
+                }
+                cases += 1;
+            }
+        }
+    }
+    cases
+}
+
 fn lengths() -> impl Iterator<Item = usize> {
     (0..=40).chain([63, 64, 65, 72, 127, 128, 129, 255, 256, 257, 260, 507, 508, 509, 511, 512, 513, 576, 1000, 1016, 1017, 1152, 2304, 5760])
 }
@@ -182,6 +239,10 @@ fn main() -> ! {
         for &(wf, xf) in &fills {
             cases += check("i16", &mut i16s, &mut r, n, wf, xf);
         }
+    }
+    #[cfg(feature = "mve")]
+    {
+        cases += check_attention(i16s.a, i16s.b, &mut r);
     }
     println!("MUIR-KERNELS ok cases={cases}");
     process::exit(0)

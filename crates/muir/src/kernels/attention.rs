@@ -26,6 +26,9 @@ pub fn rope_pixel(v: &mut [i16], x: usize, y: usize, phase: &[u32]) {
 
 #[inline(always)]
 fn logit(q: &[i16], k: &[i16]) -> i64 {
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    return super::mve::dot_i16_i64(q, k);
+    #[allow(unreachable_code)]
     let mut s = 0i64;
     for (a, b) in q.iter().zip(k) {
         s += *a as i64 * *b as i64;
@@ -101,6 +104,13 @@ fn aggregate_blocked(q: &[i16], keys: &[i16], values: &[i16], cv: usize, max: i6
         if vb.len() < nb * cv {
             continue;
         }
+        #[cfg(all(target_arch = "arm", feature = "mve"))]
+        {
+            // Helium: four keys per vector, two channels per pass (`mve::aggregate`).
+            super::mve::aggregate(e, vb, cv, acc);
+            continue;
+        }
+        #[allow(unreachable_code)]
         for (i, a) in acc.chunks_mut(2).enumerate() {
             let mut o = 2 * i;
             match a {

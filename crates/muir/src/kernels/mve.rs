@@ -252,3 +252,102 @@ pub fn dot2x2<T: PairLanes>(w0: &[i8], w1: &[i8], x: &[T]) -> [i32; 4] {
     }
     [a0, a1, a2, a3]
 }
+
+/// `sum q[i] * k[i]` over `min(q.len(), k.len())` i16 values, exact in 64 bits (the MGA logits):
+/// `VMLALDAVA.S16` (written `vmlalva.s16`) adds eight products to a 64-bit pair of general
+/// registers, so two loads and one instruction make eight MACs (tail-predicated loop).
+#[inline]
+pub fn dot_i16_i64(q: &[i16], k: &[i16]) -> i64 {
+    let n = q.len().min(k.len());
+    if n == 0 {
+        return 0;
+    }
+    let (mut lo, mut hi) = (0u32, 0u32);
+    // SAFETY: the loop reads `n` values of each slice (tail-predicated: disabled lanes are not
+    // loaded); RdaLo/RdaHi must be an even/odd register pair, hence r0/r1.
+    unsafe {
+        asm!(
+            "dlstp.16 lr, {n}",
+            "2:",
+            "vldrh.u16 q0, [{q}], #16",
+            "vldrh.u16 q1, [{k}], #16",
+            "vmlalva.s16 r0, r1, q0, q1",
+            "letp lr, 2b",
+            n = in(reg) n,
+            q = inout(reg) q.as_ptr() => _,
+            k = inout(reg) k.as_ptr() => _,
+            inout("r0") lo,
+            inout("r1") hi,
+            out("lr") _,
+            out("d0") _, out("d1") _, out("d2") _, out("d3") _,
+            options(nostack, readonly),
+        );
+    }
+    ((hi as u64) << 32 | lo as u64) as i64
+}
+
+/// The MGA value sums of one block of keys: `acc[ch] += sum_j e[j] * v[j * cv + ch]` for every
+/// `ch < acc.len()` and key `j < e.len()` (`v` key-major, `cv` values per key; the softmax
+/// weights `e` are `0..=32768`). Lanes run over four keys: a gather load (`VLDRH.S32` with the
+/// offsets `j cv`) picks one channel of four keys, `VMLALDAVA.S32` adds the four products
+/// `e_j v_j` to that channel's 64-bit sum in two general registers; two channels per pass share
+/// the weights' load and the offsets' step. Exact, so the same integers as the portable loop.
+/// Channels the slices do not cover are left as they are (the engine's always are).
+pub fn aggregate(e: &[i32], v: &[i16], cv: usize, acc: &mut [i64]) {
+    let nb = e.len();
+    let chans = acc.len().min(cv);
+    // Every read below is `v[j cv + ch]` for `j < nb`, `ch < chans`.
+    if nb == 0 || chans == 0 || v.len() < (nb - 1) * cv + chans || cv > (u32::MAX / 8) as usize {
+        return;
+    }
+    let offs: [u32; 4] = [0, cv as u32, 2 * cv as u32, 3 * cv as u32];
+    let step = 4 * cv as u32;
+    let mut ch = 0;
+    while ch + 2 <= chans {
+        let (mut l0, mut h0, mut l1, mut h1) = (0u32, 0u32, 0u32, 0u32);
+        // SAFETY: `nb` lanes (tail-predicated) of `e`, and gathers of `v[j cv + ch]` and
+        // `v[j cv + ch + 1]` for `j < nb` only (disabled lanes are not loaded), inside `v` by the
+        // check above since `ch + 1 < chans`. RdaLo/RdaHi pairs: even/odd registers.
+        unsafe {
+            let b0 = v.as_ptr().add(ch);
+            asm!(
+                "vldrw.u32 q3, [{offs}]",
+                "dlstp.32 lr, {nb}",
+                "2:",
+                "vldrw.u32 q0, [{e}], #16",
+                "vldrh.s32 q1, [{b0}, q3, uxtw #1]",
+                "vldrh.s32 q2, [{b1}, q3, uxtw #1]",
+                "vmlalva.s32 r0, r1, q0, q1",
+                "vmlalva.s32 r2, r3, q0, q2",
+                "vadd.i32 q3, q3, {step}",
+                "letp lr, 2b",
+                offs = in(reg) offs.as_ptr(),
+                nb = in(reg) nb,
+                e = inout(reg) e.as_ptr() => _,
+                b0 = in(reg) b0,
+                b1 = in(reg) b0.add(1),
+                step = in(reg) step,
+                inout("r0") l0,
+                inout("r1") h0,
+                inout("r2") l1,
+                inout("r3") h1,
+                out("lr") _,
+                out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _,
+                out("d6") _, out("d7") _,
+                options(nostack, readonly),
+            );
+        }
+        if let Some([a0, a1]) = acc.get_mut(ch..ch + 2).and_then(|a| <&mut [i64; 2]>::try_from(a).ok()) {
+            *a0 += ((h0 as u64) << 32 | l0 as u64) as i64;
+            *a1 += ((h1 as u64) << 32 | l1 as u64) as i64;
+        }
+        ch += 2;
+    }
+    if ch < chans {
+        // An odd last channel: the portable sum.
+        let s: i64 = e.iter().zip(v.iter().skip(ch).step_by(cv)).map(|(w, x)| *w as i64 * *x as i64).sum();
+        if let Some(a) = acc.get_mut(ch) {
+            *a += s;
+        }
+    }
+}
