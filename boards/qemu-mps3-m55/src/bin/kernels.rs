@@ -9,7 +9,7 @@
 #![no_main]
 
 use cortex_m_rt::entry;
-use muir::kernels::{Elem, dot_plain, pair_index};
+use muir::kernels::{Elem, dot_plain};
 use semihosting::{println, process};
 
 /// Longest patch tested (the largest layer patch, 9 x 640, is 5,760 values).
@@ -93,8 +93,8 @@ fn check<T: Sample>(name: &str, buf: &mut Buffers<T>, r: &mut Rng, n: usize, wf:
     }
     let (w0, w1, a, b) = (&buf.w0[..n], &buf.w1[..n], &buf.a[..n], &buf.b[..n]);
     for j in 0..n {
-        buf.pair[pair_index(n, j, false, T::PAIR_SWAP)] = a[j];
-        buf.pair[pair_index(n, j, true, T::PAIR_SWAP)] = b[j];
+        buf.pair[T::pair_at(n, j, false)] = a[j];
+        buf.pair[T::pair_at(n, j, true)] = b[j];
     }
     let pair = &buf.pair[..2 * n];
 

@@ -162,11 +162,63 @@ fn gather<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, 
     }
 }
 
+/// One part's patch of output column `ox` (`[ky][kx][c]`, zeros outside the input) into `dst`
+/// (`k * k * ch` values): each kernel row is one run of the input row where the window lies
+/// inside it, else value groups one by one.
+#[inline]
+fn gather_part<T: Elem>(k: usize, stride: usize, rows: &PartRows<'_, T>, ch: usize, w_in: usize, ox: usize, dst: &mut [T]) {
+    if ch == 0 || k == 0 {
+        return;
+    }
+    let pad = k / 2;
+    let x0 = ox * stride; // the window covers input columns x0 - pad .. x0 - pad + k
+    for (d, row) in dst.chunks_exact_mut(k * ch).zip(rows.rows.iter()) {
+        match row {
+            Some(r) if x0 >= pad && x0 - pad + k <= w_in => match r.get((x0 - pad) * ch..(x0 - pad + k) * ch) {
+                Some(s) => d.copy_from_slice(s),
+                None => d.fill(T::default()), // a row shorter than `w_in` (never in the engine)
+            },
+            Some(r) => {
+                for (kx, dc) in d.chunks_exact_mut(ch).enumerate() {
+                    let ix = (x0 + kx).wrapping_sub(pad); // huge (outside) left of the image
+                    match r.get(ix.saturating_mul(ch)..ix.saturating_mul(ch).saturating_add(ch)) {
+                        Some(s) if ix < w_in => dc.copy_from_slice(s),
+                        _ => dc.fill(T::default()),
+                    }
+                }
+            }
+            None => d.fill(T::default()),
+        }
+    }
+}
+
+/// [`gather2`] for the split pair layout ([`Elem::SPLIT_PAIRS`]): per part, the patch of `ox`
+/// then that of `ox + 1`, each gathered by [`gather_part`].
+#[inline]
+fn gather2_split<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, ox: usize, pair: &mut [T]) {
+    let k = p.k;
+    let mut rest = pair;
+    for (part, &ch) in inputs.iter().zip(p.parts) {
+        let n = ch * k * k;
+        let Some((block, tail)) = core::mem::take(&mut rest).split_at_mut_checked(2 * n) else {
+            return;
+        };
+        let (a, b) = block.split_at_mut(n);
+        gather_part(k, p.stride, part, ch, w_in, ox, a);
+        gather_part(k, p.stride, part, ch, w_in, ox + 1, b);
+        rest = tail;
+    }
+}
+
 /// Gathers the patches of output columns `ox` and `ox + 1` in the pair layout
 /// ([`super::pair_index`]), part by part (each part's `n` values form their own pair block of
 /// `2n`), so that [`Elem::dot2x2`] reads both with one pointer.
 #[inline]
 fn gather2<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, ox: usize, pair: &mut [T]) {
+    if T::SPLIT_PAIRS {
+        gather2_split(p, inputs, w_in, ox, pair);
+        return;
+    }
     let k = p.k;
     let pad = (k / 2) as isize;
     let mut base = 0;

@@ -39,7 +39,9 @@ pub const fn window_len(levels: usize, radius: usize) -> usize {
 
 #[inline(always)]
 fn dot_i8(a: &[i8], b: &[i8]) -> i32 {
-    #[cfg(all(target_arch = "arm", feature = "dsp"))]
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    return super::mve::dot(a, b);
+    #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
     return super::dsp::dot(a, b);
     #[allow(unreachable_code)]
     let mut s = 0i32;

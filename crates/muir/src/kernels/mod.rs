@@ -55,6 +55,21 @@ pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + 'static {
     }
     /// Whether the pair layout stores groups as values 0, 2, 1, 3 ([`pair_index`]).
     const PAIR_SWAP: bool = false;
+    /// Whether this type's pair layout on this target is split: patch `a`'s `n` values, then
+    /// patch `b`'s (Helium, u8 and i16: both read by contiguous loads, [`mve::dot2x2_split`], and
+    /// gathered by whole runs of the input rows); otherwise the interleaved groups of
+    /// [`pair_index`].
+    const SPLIT_PAIRS: bool = false;
+    /// Where value `j` of the first (`second == false`) or second of two `n`-value patches sits in
+    /// this type's pair layout ([`Elem::SPLIT_PAIRS`], [`pair_index`]).
+    #[inline(always)]
+    fn pair_at(n: usize, j: usize, second: bool) -> usize {
+        if Self::SPLIT_PAIRS {
+            if second { n + j } else { j }
+        } else {
+            pair_index(n, j, second, Self::PAIR_SWAP)
+        }
+    }
     /// Two output channels at two output pixels: `[w0 . a, w1 . a, w0 . b, w1 . b]` where `a` and
     /// `b` are two patches of `n = w0.len()` values stored in the [`pair_index`] layout in `x`
     /// (`2n` values). On Cortex-M one pointer reads both patches and each weight and activation
@@ -155,7 +170,9 @@ impl Elem for u8 {
         }
         acc as i64
     }
-    #[cfg(all(target_arch = "arm", feature = "dsp"))]
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    const SPLIT_PAIRS: bool = true;
+    #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
     #[inline]
     fn dot2(w0: &[i8], w1: &[i8], x: &[u8]) -> (i64, i64) {
         let (a, b) = dsp::dot2(w0, w1, x);
@@ -169,7 +186,10 @@ impl Elem for u8 {
     #[cfg(all(target_arch = "arm", feature = "mve"))]
     #[inline]
     fn dot2x2(w0: &[i8], w1: &[i8], x: &[u8]) -> [i64; 4] {
-        mve::dot2x2(w0, w1, x).map(|v| v as i64)
+        // The split pair layout: patch `a`, then patch `b` (`SPLIT_PAIRS`).
+        let n = w0.len().min(w1.len()).min(x.len() / 2);
+        let (a, b) = x.split_at(n);
+        mve::dot2x2_split(w0, w1, a, b).map(|v| v as i64)
     }
     fn as_out(d: &mut [u8]) -> OutRow<'_> {
         OutRow::U8(d)
@@ -179,6 +199,8 @@ impl Elem for u8 {
 impl Elem for i16 {
     const BITS: u8 = 16;
     const PAIR_SWAP: bool = true;
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    const SPLIT_PAIRS: bool = true;
     const STORAGE: crate::arith::QFormat = crate::arith::QFormat::i16(0);
     #[inline(always)]
     fn to_i32(self) -> i32 {
@@ -214,7 +236,7 @@ impl Elem for i16 {
         }
         acc
     }
-    #[cfg(all(target_arch = "arm", feature = "dsp"))]
+    #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
     #[inline]
     fn dot2(w0: &[i8], w1: &[i8], x: &[i16]) -> (i64, i64) {
         // Same chunks as `dot`, so every partial sum stays exact in i32.
@@ -235,10 +257,14 @@ impl Elem for i16 {
         return dsp::dot2x2_i16(w0, w1, x);
         #[cfg(feature = "mve")]
         {
+            // The split pair layout (`SPLIT_PAIRS`): both patches chunked alike.
+            let n = w0.len().min(w1.len()).min(x.len() / 2);
+            let (a, b) = x.split_at(n);
             let mut acc = [0i64; 4];
-            for ((c0, c1), xc) in w0.chunks(I16_CHUNK).zip(w1.chunks(I16_CHUNK)).zip(x.chunks(2 * I16_CHUNK)) {
-                for (a, s) in acc.iter_mut().zip(mve::dot2x2(c0, c1, xc)) {
-                    *a += s as i64;
+            let chunks = w0.chunks(I16_CHUNK).zip(w1.chunks(I16_CHUNK)).zip(a.chunks(I16_CHUNK).zip(b.chunks(I16_CHUNK)));
+            for ((c0, c1), (ca, cb)) in chunks {
+                for (acc, s) in acc.iter_mut().zip(mve::dot2x2_split(c0, c1, ca, cb)) {
+                    *acc += s as i64;
                 }
             }
             acc

@@ -351,3 +351,101 @@ pub fn aggregate(e: &[i32], v: &[i16], cv: usize, acc: &mut [i64]) {
         }
     }
 }
+
+/// An activation type with a Helium [`dot2x2_split`] (u8 and i16: the convolution inputs).
+pub trait SplitLanes: Lanes {
+    /// The four products of [`dot2x2_split`] over `n >= 1` values.
+    ///
+    /// # Safety
+    /// `n <= w0.len()`, `n <= w1.len()`, `n <= a.len()`, `n <= b.len()`.
+    unsafe fn dot2x2_n(w0: &[i8], w1: &[i8], a: &[Self], b: &[Self], n: usize) -> [i32; 4];
+}
+
+impl SplitLanes for u8 {
+    #[inline(always)]
+    unsafe fn dot2x2_n(w0: &[i8], w1: &[i8], a: &[u8], b: &[u8], n: usize) -> [i32; 4] {
+        let [mut s0, mut s1, mut s2, mut s3] = [0i32; 4];
+        // SAFETY: `n` lanes (tail-predicated: disabled lanes are not loaded) of each slice, inside
+        // them by the caller's bounds. The widening loads need low base registers (r0-r3), the
+        // `VMLADAVA` sums even ones (r4, r8, r10, r12).
+        unsafe {
+            asm!(
+                "dlstp.16 lr, {n}",
+                "2:",
+                "vldrb.u16 q0, [r0], #8",
+                "vldrb.u16 q1, [r1], #8",
+                "vldrb.s16 q2, [r2], #8",
+                "vmlava.s16 r4, q0, q2",
+                "vmlava.s16 r8, q1, q2",
+                "vldrb.s16 q2, [r3], #8",
+                "vmlava.s16 r10, q0, q2",
+                "vmlava.s16 r12, q1, q2",
+                "letp lr, 2b",
+                n = in(reg) n,
+                inout("r0") a.as_ptr() => _,
+                inout("r1") b.as_ptr() => _,
+                inout("r2") w0.as_ptr() => _,
+                inout("r3") w1.as_ptr() => _,
+                inout("r4") s0,
+                inout("r10") s1,
+                inout("r8") s2,
+                inout("r12") s3,
+                out("lr") _,
+                out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _,
+                options(nostack, readonly),
+            );
+        }
+        [s0, s1, s2, s3]
+    }
+}
+
+impl SplitLanes for i16 {
+    #[inline(always)]
+    unsafe fn dot2x2_n(w0: &[i8], w1: &[i8], a: &[i16], b: &[i16], n: usize) -> [i32; 4] {
+        let [mut s0, mut s1, mut s2, mut s3] = [0i32; 4];
+        // SAFETY: as for u8 (16-bit activation loads take any base register).
+        unsafe {
+            asm!(
+                "dlstp.16 lr, {n}",
+                "2:",
+                "vldrh.u16 q0, [{a}], #16",
+                "vldrh.u16 q1, [{b}], #16",
+                "vldrb.s16 q2, [r2], #8",
+                "vmlava.s16 r4, q0, q2",
+                "vmlava.s16 r8, q1, q2",
+                "vldrb.s16 q2, [r3], #8",
+                "vmlava.s16 r10, q0, q2",
+                "vmlava.s16 r12, q1, q2",
+                "letp lr, 2b",
+                n = in(reg) n,
+                a = inout(reg) a.as_ptr() => _,
+                b = inout(reg) b.as_ptr() => _,
+                inout("r2") w0.as_ptr() => _,
+                inout("r3") w1.as_ptr() => _,
+                inout("r4") s0,
+                inout("r10") s1,
+                inout("r8") s2,
+                inout("r12") s3,
+                out("lr") _,
+                out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _,
+                options(nostack, readonly),
+            );
+        }
+        [s0, s1, s2, s3]
+    }
+}
+
+/// Four dot products, two output channels at two output pixels, with the two patches side by
+/// side (the Helium pair layout, `kernels::pair_index`: patch `a` then patch `b`):
+/// `[w0 . a, w1 . a, w0 . b, w1 . b]` over `n = min` of the lengths. Contiguous loads with
+/// write-back and a tail-predicated loop: per 32 MACs two activation loads, two weight loads,
+/// four `VMLADAVA` and `LETP` (9 instructions), no scalar tail. Same chunking rule as [`dot`].
+#[inline]
+pub fn dot2x2_split<T: SplitLanes>(w0: &[i8], w1: &[i8], a: &[T], b: &[T]) -> [i32; 4] {
+    let n = w0.len().min(w1.len()).min(a.len()).min(b.len());
+    if n == 0 {
+        return [0; 4];
+    }
+    // SAFETY: 1 <= n <= every length.
+    unsafe { T::dot2x2_n(w0, w1, a, b, n) }
+}
