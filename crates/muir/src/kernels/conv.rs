@@ -175,6 +175,9 @@ fn gather_part<T: Elem>(k: usize, stride: usize, rows: &PartRows<'_, T>, ch: usi
     for (d, row) in dst.chunks_exact_mut(k * ch).zip(rows.rows.iter()) {
         match row {
             Some(r) if x0 >= pad && x0 - pad + k <= w_in => match r.get((x0 - pad) * ch..(x0 - pad + k) * ch) {
+                #[cfg(all(target_arch = "arm", feature = "mve"))]
+                Some(s) => super::mve::copy(d, s),
+                #[cfg(not(all(target_arch = "arm", feature = "mve")))]
                 Some(s) => d.copy_from_slice(s),
                 None => d.fill(T::default()), // a row shorter than `w_in` (never in the engine)
             },
