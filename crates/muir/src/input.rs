@@ -3,6 +3,7 @@
 //! Sides that are not multiples of [`Config::PAD_MULTIPLE`] are padded on the right and bottom by
 //! edge replication (the network needs whole 1/16 cells); the output is cropped back to the input
 //! size, so callers never see the padding.
+#![deny(clippy::indexing_slicing)]
 
 use core::fmt;
 
@@ -126,7 +127,8 @@ impl<'a> ImageView<'a> {
         let y = y.min(self.height - 1);
         let n = self.format.channels();
         let i = (y * self.width + x) * n + if n == 1 { 0 } else { c };
-        self.data[i]
+        // 0 past the end of a buffer shorter than its size says (`check_pair` refuses such a view).
+        self.data.get(i).copied().unwrap_or(0)
     }
 }
 
@@ -162,6 +164,7 @@ pub fn check_pair(left: &ImageView<'_>, right: &ImageView<'_>) -> Result<(usize,
 }
 
 #[cfg(test)]
+#[allow(clippy::indexing_slicing)]
 mod tests {
     use super::*;
 

@@ -3,9 +3,14 @@
 //!
 //! Stages pull their input rows on demand ([`Source::ensure`]); every ring holds only the rows
 //! its consumer still needs (3, or 4 in front of a stride-2 block).
+//!
+//! Buffers are carved from the plan-checked arena with the plan's sizes; rows are taken with the
+//! `ring` helpers, which give an empty row instead of panicking where a buffer is shorter than
+//! the plan says (which cannot happen for a plan-checked arena).
+#![deny(clippy::indexing_slicing)]
 
 use super::plan::{Buf, Bump, Grid};
-use super::ring::{Carver, Ring, last_input_row};
+use super::ring::{Carver, Ring, chunk, chunk_mut, copy_row, first_n_mut, last_input_row};
 use crate::arith::sat_u8;
 use crate::format::QuantModel;
 use crate::input::ImageView;
@@ -40,7 +45,7 @@ pub fn run_conv<T: Elem + bytemuck::Pod>(p: &ConvParams<'_>, inputs: &[PartRows<
     // Two patches when the scratch holds them (conv_row then works on pixel pairs), else one.
     let one = p.patch_len() * core::mem::size_of::<T>();
     let n = if patch.len() >= 2 * one { 2 * one } else { one };
-    let patch: &mut [T] = bytemuck::cast_slice_mut(&mut patch[..n]);
+    let patch: &mut [T] = bytemuck::cast_slice_mut(first_n_mut(patch, n));
     conv_row(p, inputs, w_in, out, patch);
 }
 
@@ -79,7 +84,7 @@ impl<T: Copy> Source for Full<'_, T> {
         PartRows::of_tensor(self.data, self.h, self.w * self.c, y, k, stride)
     }
     fn row(&self, r: usize) -> &[T] {
-        &self.data[r * self.w * self.c..(r + 1) * self.w * self.c]
+        chunk(self.data, r, self.w * self.c)
     }
     fn rows(&self) -> usize {
         self.h
@@ -103,9 +108,9 @@ impl Source for ImageRows<'_, '_> {
             let y = self.ring.produced();
             let (img, w) = (self.img, self.w);
             let dst = self.ring.push();
-            for x in 0..w {
-                for c in 0..3 {
-                    dst[x * 3 + c] = 2 * img.at_clamped(c, x, y) as i16 - 255;
+            for (x, px) in dst.chunks_exact_mut(3).take(w).enumerate() {
+                for (c, v) in px.iter_mut().enumerate() {
+                    *v = 2 * img.at_clamped(c, x, y) as i16 - 255;
                 }
             }
         }
@@ -194,16 +199,18 @@ where
                 run_conv(&p1, &[rows], w_in, &mut O::as_out(self.mid.push()), s.patch);
             }
             let n = self.w * p2.cout;
-            run_conv(&p2, &[self.mid.part_rows(y, 3, 1)], self.w, &mut OutRow::I16(&mut s.c2[..n]), s.patch);
+            let c2 = first_n_mut(s.c2, n);
+            run_conv(&p2, &[self.mid.part_rows(y, 3, 1)], self.w, &mut OutRow::I16(c2), s.patch);
             let skip = match self.ds {
                 Some(d) => {
                     let pd = conv(m, d);
-                    run_conv(&pd, &[self.src.part_rows(y, 1, self.stride)], w_in, &mut OutRow::I16(&mut s.ds[..n]), s.patch);
-                    Skip::Projected(&s.ds[..n])
+                    let ds = first_n_mut(s.ds, n);
+                    run_conv(&pd, &[self.src.part_rows(y, 1, self.stride)], w_in, &mut OutRow::I16(ds), s.patch);
+                    Skip::Projected(ds)
                 }
                 None => Skip::Input { x: self.src.row(y), frac: self.skip_frac },
             };
-            residual_relu(&s.c2[..n], skip, self.out_frac, self.out.push());
+            residual_relu(c2, skip, self.out_frac, self.out.push());
         }
     }
     fn part_rows(&self, y: usize, k: usize, stride: usize) -> PartRows<'_, O> {
@@ -286,11 +293,12 @@ impl TrunkLayout {
         let c1 = b.take(3 * g.w2 * d1 * e);
         let dims = [(g.w2, d1, e), (g.w2, d1, e), (g.w4, d2, e), (g.w4, d2, e), (g.w8, d3, 1), (g.w8, d3, 1)];
         let mut blocks = [(Buf { at: 0, len: 0 }, Buf { at: 0, len: 0 }); 6];
-        let mut i = 0;
-        while i < 6 {
-            let (w, c, e) = dims[i];
-            blocks[i] = (b.take(3 * w * c * e), b.take(TRUNK_OUT_CAP[i] * w * c * e));
-            i += 1;
+        // In step over the three arrays (a `const fn`: no iterators).
+        let (mut dims, mut caps, mut out): (&[_], &[usize], &mut [(Buf, Buf)]) = (&dims, &TRUNK_OUT_CAP, &mut blocks);
+        while let ([(w, c, e), dt @ ..], [cap, ct @ ..], [o, ot @ ..]) = (dims, caps, out) {
+            let n = *w * *c * *e;
+            *o = (b.take(3 * n), b.take(*cap * n));
+            (dims, caps, out) = (dt, ct, ot);
         }
         let row = {
             let a = g.w2 * d1;
@@ -329,18 +337,14 @@ fn trunk_as<T: Elem + bytemuck::Pod>(
     let mut cv = Carver::new(rings);
     let image = ImageRows { img, ring: Ring::new(cv.i16(lay.image), 7, g.w * 3, g.h), w: g.w };
     let c1 = ConvStage { src: image, id: Conv1, out: Ring::<T>::new(cv.typed(lay.c1), 3, g.w2 * d1, g.h2), w: g.w2 };
-    let mut take = |i: usize| -> (&mut [T], &mut [T]) {
-        let (a, b) = lay.blocks[i];
-        (cv.typed(a), cv.typed(b))
-    };
-    let b0 = take(0);
-    let b1 = take(1);
-    let b2 = take(2);
-    let b3 = take(3);
-    let (a, b) = lay.blocks[4];
-    let b4 = (cv.u8(a), cv.u8(b));
-    let (a, b) = lay.blocks[5];
-    let b5 = (cv.u8(a), cv.u8(b));
+    let [k0, k1, k2, k3, (a4, b4), (a5, b5)] = lay.blocks;
+    let mut take = |(a, b): (Buf, Buf)| -> (&mut [T], &mut [T]) { (cv.typed(a), cv.typed(b)) };
+    let b0 = take(k0);
+    let b1 = take(k1);
+    let b2 = take(k2);
+    let b3 = take(k3);
+    let b4 = (cv.u8(a4), cv.u8(b4));
+    let b5 = (cv.u8(a5), cv.u8(b5));
     let c2 = cv.i16(lay.c2);
     let ds = cv.i16(lay.ds);
     use Act as A;
@@ -354,7 +358,7 @@ fn trunk_as<T: Elem + bytemuck::Pod>(
     let row = g.w8 * d3;
     for y in 0..g.h8 {
         x.ensure(y, m, &mut s);
-        l3[y * row..(y + 1) * row].copy_from_slice(x.row(y));
+        copy_row(chunk_mut(l3, y, row), x.row(y));
     }
 }
 
@@ -414,9 +418,9 @@ fn head(m: &QuantModel<'_>, x: &[u8], h: usize, w: usize, ids: [ConvId; 3], out_
         b.ensure(last_input_row(y, 3, 1, h), m, &mut s);
         let rows = b.part_rows(y, 3, 1);
         match &mut out {
-            OutRow::I8(o) => run_conv(&p, &[rows], w, &mut OutRow::I8(&mut o[y * n..(y + 1) * n]), s.patch),
-            OutRow::U8(o) => run_conv(&p, &[rows], w, &mut OutRow::U8(&mut o[y * n..(y + 1) * n]), s.patch),
-            OutRow::I16(o) => run_conv(&p, &[rows], w, &mut OutRow::I16(&mut o[y * n..(y + 1) * n]), s.patch),
+            OutRow::I8(o) => run_conv(&p, &[rows], w, &mut OutRow::I8(chunk_mut(o, y, n)), s.patch),
+            OutRow::U8(o) => run_conv(&p, &[rows], w, &mut OutRow::U8(chunk_mut(o, y, n)), s.patch),
+            OutRow::I16(o) => run_conv(&p, &[rows], w, &mut OutRow::I16(chunk_mut(o, y, n)), s.patch),
         }
     }
 }
@@ -435,7 +439,7 @@ fn layer4(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &HeadLayout, rings: &mut
     let row = g.w16 * d3;
     for y in 0..g.h16 {
         x.ensure(y, m, &mut s);
-        l4[y * row..(y + 1) * row].copy_from_slice(x.row(y));
+        copy_row(chunk_mut(l4, y, row), x.row(y));
     }
 }
 
@@ -455,15 +459,17 @@ fn features(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &HeadLayout, rings: &m
     let raw = cv.i16(lay.raw);
     let mid_buf = cv.u8(lay.mid);
     let blk_buf = cv.u8(lay.blk);
-    let ybuf = cv.i16(lay.y);
     let row = w * d3;
-    let (st1, st2) = norms.split_at_mut(2 * d3);
+    let ybuf = first_n_mut(cv.i16(lay.y), row);
+    // The plan's statistics buffer holds both passes' (2 x d3 each).
+    let Some((st1, st2)) = norms.split_at_mut_checked(2 * d3) else { return };
     // Pass 1: statistics of conv1.
     accumulate_stats(st1, d3, |r, out| run_conv(&p1, &[src.part_rows(r, 3, 1)], w, &mut OutRow::I16(out), patch), h, raw, row);
     let stats1 = finish_stats(st1, d3, n, f_raw1);
     // mid row r = relu(norm(conv1 row r)) as u8 (the saturation is the ReLU)
     let mid_row = |r: usize, raw: &mut [i16], patch: &mut [u8], dst: &mut [u8]| {
-        run_conv(&p1, &[src.part_rows(r, 3, 1)], w, &mut OutRow::I16(&mut raw[..row]), patch);
+        let raw = first_n_mut(raw, row);
+        run_conv(&p1, &[src.part_rows(r, 3, 1)], w, &mut OutRow::I16(raw), patch);
         for (i, (d, v)) in dst.iter_mut().zip(raw.iter()).enumerate() {
             *d = sat_u8(normalize(*v, stat(stats1, i % d3), f_mid));
         }
@@ -477,8 +483,8 @@ fn features(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &HeadLayout, rings: &m
                 let r = mid.produced();
                 mid_row(r, raw, patch, mid.push());
             }
-            run_conv(&p2, &[mid.part_rows(y, 3, 1)], w, &mut OutRow::I16(&mut ybuf[..row]), patch);
-            add_sums(st2, d3, &ybuf[..row]);
+            run_conv(&p2, &[mid.part_rows(y, 3, 1)], w, &mut OutRow::I16(ybuf), patch);
+            add_sums(st2, d3, ybuf);
         }
     }
     let stats2 = finish_stats(st2, d3, n, f_raw2);
@@ -493,44 +499,50 @@ fn features(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &HeadLayout, rings: &m
                 let q = mid.produced();
                 mid_row(q, raw, patch, mid.push());
             }
-            run_conv(&p2, &[mid.part_rows(r, 3, 1)], w, &mut OutRow::I16(&mut ybuf[..row]), patch);
-            for (i, v) in ybuf[..row].iter_mut().enumerate() {
+            run_conv(&p2, &[mid.part_rows(r, 3, 1)], w, &mut OutRow::I16(ybuf), patch);
+            for (i, v) in ybuf.iter_mut().enumerate() {
                 *v = crate::arith::sat_i16(normalize(*v, stat(stats2, i % d3), f_blk).max(0));
             }
-            residual_relu(&ybuf[..row], Skip::Input { x: &l3[r * row..(r + 1) * row], frac: f_l3 }, f_blk, blk.push());
+            residual_relu(ybuf, Skip::Input { x: chunk(l3, r, row), frac: f_l3 }, f_blk, blk.push());
         }
-        run_conv(&p3, &[blk.part_rows(y, 3, 1)], w, &mut OutRow::I8(&mut f[y * fo..(y + 1) * fo]), patch);
+        run_conv(&p3, &[blk.part_rows(y, 3, 1)], w, &mut OutRow::I8(chunk_mut(f, y, fo)), patch);
     }
 }
 
 fn accumulate_stats(st: &mut [i64], c: usize, mut conv_row_fn: impl FnMut(usize, &mut [i16]), h: usize, raw: &mut [i16], row: usize) {
     st.fill(0);
+    let raw = first_n_mut(raw, row);
     for y in 0..h {
-        conv_row_fn(y, &mut raw[..row]);
-        add_sums(st, c, &raw[..row]);
+        conv_row_fn(y, raw);
+        add_sums(st, c, raw);
     }
 }
 
 fn add_sums(st: &mut [i64], c: usize, row: &[i16]) {
     for (i, v) in row.iter().enumerate() {
-        let ch = i % c;
-        st[2 * ch] += *v as i64;
-        st[2 * ch + 1] += *v as i64 * *v as i64;
+        if let [sum, squares] = chunk_mut(st, i % c, 2) {
+            *sum += *v as i64;
+            *squares += *v as i64 * *v as i64;
+        }
     }
 }
 
 /// Turns per-channel (sum, sum of squares) into statistics, in place: (mean, recip).
 fn finish_stats(st: &mut [i64], c: usize, n: i64, f_in: i8) -> &[i64] {
-    for ch in 0..c {
-        let s = stats_from_sums(st[2 * ch], st[2 * ch + 1], n, f_in);
-        st[2 * ch] = s.mean;
-        st[2 * ch + 1] = s.recip;
+    for pair in st.chunks_exact_mut(2).take(c) {
+        if let [a, b] = pair {
+            let s = stats_from_sums(*a, *b, n, f_in);
+            (*a, *b) = (s.mean, s.recip);
+        }
     }
     st
 }
 
 fn stat(st: &[i64], ch: usize) -> ChannelNorm {
-    ChannelNorm { mean: st[2 * ch], recip: st[2 * ch + 1] }
+    match *chunk(st, ch, 2) {
+        [mean, recip] => ChannelNorm { mean, recip },
+        _ => ChannelNorm { mean: 0, recip: 0 },
+    }
 }
 
 /// Frame-zone outputs of the encoder.

@@ -13,6 +13,7 @@
 //! context), UFI, MGA keys and statistics, `iters` x (MUD, MGA values, 1/16 GRU twice, motion +
 //! 1/8 GRU, disparity head), final MUD, upsampling. Results equal the plain fixed-point engine
 //! (`crate::reference`) bit for bit.
+#![deny(clippy::indexing_slicing)]
 
 // The engine's parts are internal; with the `internals` feature they are public for the host
 // tools' benches (which time the phases one by one) and tests.
@@ -39,7 +40,7 @@ pub use plan::{Grid, Plan, STACK_BUDGET, ram_bytes};
 use crate::format::QuantModel;
 use crate::model::config::MaxDisparity;
 use crate::input::{ImageView, InputError, check_pair};
-use ring::Carver;
+use ring::{Carver, first_n_mut};
 
 /// Working memory with the alignment the engine needs; `N` from [`Plan::ram_bytes`].
 #[repr(C, align(8))]
@@ -301,7 +302,7 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
         }
         refine::upsample(&mut c, width, height, out.disparity, out.uncertainty.as_deref_mut());
         if self.full_res {
-            let mut cv = Carver::new(&mut self.arena[..plan.ram_bytes]);
+            let mut cv = Carver::new(first_n_mut(self.arena, plan.ram_bytes));
             let b = plan.fullres;
             let scratch = crate::kernels::fullres::Scratch { census: cv.u64(b.census), paths: cv.u16(b.paths), rows: cv.i16(b.rows), grey: cv.u8(b.grey) };
             crate::kernels::fullres::refine_image(left, right, out.disparity, out.uncertainty.as_deref(), scratch);
@@ -350,7 +351,7 @@ pub fn encode_image(m: &QuantModel<'_>, plan: &Plan, arena: &mut [u8], img: &Ima
 /// features and context), the right image's (features) and the arena's encoder scratch.
 fn encoder_zone<'a>(plan: &Plan, arena: &'a mut [u8]) -> (encoder::EncoderOut<'a>, encoder::EncoderOut<'a>, encoder::EncoderScratch<'a>) {
     let (fr, px, e) = (plan.frame, plan.pixel, plan.encoder);
-    let mut cv = Carver::new(&mut arena[..plan.ram_bytes]);
+    let mut cv = Carver::new(first_n_mut(arena, plan.ram_bytes));
     let (f1, f2) = (cv.i8(fr.f1), cv.i8(fr.f2));
     let (net08, net16, inp08, inp16) = (cv.i16(fr.net08), cv.i16(fr.net16), cv.u8(fr.inp08), cv.u8(fr.inp16));
     let patch = cv.raw(px.patch);
@@ -367,7 +368,7 @@ fn encoder_zone<'a>(plan: &Plan, arena: &'a mut [u8]) -> (encoder::EncoderOut<'a
 pub fn refine_ctx<'f, 'm, 'a>(m: &'m QuantModel<'a>, plan: &Plan, arena: &'f mut [u8]) -> refine::Ctx<'f, 'm, 'a> {
     let cfg = *m.config();
     let (fr, px, r) = (plan.frame, plan.pixel, plan.refine);
-    let mut cv = Carver::new(&mut arena[..plan.ram_bytes]);
+    let mut cv = Carver::new(first_n_mut(arena, plan.ram_bytes));
     let frame = refine::Frame {
         f1: cv.i8(fr.f1),
         f2: cv.i8(fr.f2),

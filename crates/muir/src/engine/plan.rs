@@ -10,6 +10,7 @@
 //!   line buffers.
 //!
 //! Sizes are in bytes, every buffer 8-byte aligned. [`Plan::ram_bytes`] is the total.
+#![deny(clippy::indexing_slicing)]
 
 use super::encoder::{HeadLayout, TrunkLayout};
 use super::refine::refine_rings;
@@ -180,15 +181,14 @@ pub const STACK_BUDGET: usize = 24 * 1024;
 /// Largest conv patch (elements) of a config.
 pub const fn max_patch(cfg: &Config) -> usize {
     let mut m = 0;
-    let mut i = 0;
-    while i < ConvId::COUNT {
-        let id = ConvId::ALL[i];
-        if let Some(q) = crate::model::graph::QLayer::of(id, cfg) {
+    let mut ids = ConvId::ALL;
+    while let [id, rest @ ..] = ids {
+        if let Some(q) = crate::model::graph::QLayer::of(*id, cfg) {
             if let Some(s) = id.shape(cfg) {
                 m = max(m, s.k * s.k * q.cin());
             }
         }
-        i += 1;
+        ids = rest;
     }
     m
 }
@@ -264,6 +264,7 @@ pub const fn ram_bytes(cfg: &Config, width: usize, height: usize) -> usize {
 }
 
 #[cfg(test)]
+#[allow(clippy::indexing_slicing)]
 mod tests {
     use super::*;
 

@@ -7,10 +7,15 @@
 //! reach. The hidden states are updated in place: with the gates at lag `L` and the candidate at
 //! `L + 1`, the row being blended is never read again by a later gate row. No gate map, no
 //! correlation volume and no attention matrix exists at full size.
+//!
+//! Buffers are carved from the plan-checked arena with the plan's sizes; rows are taken with the
+//! `ring` helpers, which give an empty row instead of panicking where a buffer is shorter than
+//! the plan says (which cannot happen for a plan-checked arena).
+#![deny(clippy::indexing_slicing)]
 
 use super::encoder::{conv, run_conv};
 use super::plan::{Buf, Bump, Grid};
-use super::ring::{Carver, Ring, last_input_row};
+use super::ring::{Carver, Ring, chunk, chunk_mut, copy_row, first_n, first_n_mut, last_input_row};
 use crate::arith::{lut, sat_i16};
 use crate::format::QuantModel;
 use crate::kernels::OutRow;
@@ -98,7 +103,7 @@ fn frac(m: &QuantModel<'_>, a: Act) -> i8 {
 
 /// A single row as the input of a 1x1 conv.
 fn one_row(t: &[i16], len: usize) -> PartRows<'_, i16> {
-    full(&t[..len], 1, len, 0, 1)
+    full(first_n(t, len), 1, len, 0, 1)
 }
 
 fn full<'a>(t: &'a [i16], h: usize, row_len: usize, y: usize, k: usize) -> PartRows<'a, i16> {
@@ -112,11 +117,12 @@ fn lookup_row(m: &QuantModel<'_>, f1: &[i8], f2: &[i8], flow: &[i16], fc: usize,
     let mults = m.corr_mults();
     let p = LookupParams { levels: cfg.corr_levels, radius: cfg.corr_radius, post_pool: cfg.post_pool, mults: &mults };
     let (w, fd, cc) = (g.w8, cfg.fmap_dim, cfg.corr_channels());
-    let f2row = &f2[y * w * fd..(y + 1) * w * fd];
+    let f2row = chunk(f2, y, w * fd);
     let mut s = LookupScratch { window: win, prefix: pre };
     for x in 0..w {
         let px = y * w + x;
-        lookup_pixel(&p, &f1[px * fd..(px + 1) * fd], f2row, w, x, flow[px * fc], &mut s, &mut out[x * cc..(x + 1) * cc]);
+        let d = flow.get(px * fc).copied().unwrap_or(0);
+        lookup_pixel(&p, chunk(f1, px, fd), f2row, w, x, d, &mut s, chunk_mut(out, x, cc));
     }
 }
 
@@ -373,17 +379,21 @@ pub fn ufi(c: &mut Ctx<'_, '_, '_>, max_d8: usize) {
     let h2 = cv.i16(lay.h2);
     // Proposals.
     for y in 0..h8 {
-        let f2row = &c.frame.f2[y * w * fd..(y + 1) * w * fd];
+        let f2row = chunk(c.frame.f2, y, w * fd);
         for x in 0..w {
             let p = y * w + x;
-            let (d1, d2) = peaks_pixel(&c.frame.f1[p * fd..(p + 1) * fd], f2row, x, cfg.ufi_peak_separation, max_d8, c.px.peaks_row);
-            peaks[2 * p] = d1 as i16;
-            peaks[2 * p + 1] = d2 as i16;
+            let (d1, d2) = peaks_pixel(chunk(c.frame.f1, p, fd), f2row, x, cfg.ufi_peak_separation, max_d8, c.px.peaks_row);
+            if let [a, b] = chunk_mut(peaks, p, 2) {
+                (*a, *b) = (d1 as i16, d2 as i16);
+            }
         }
     }
     let set_flow = |k: usize, flow_k: &mut [i16]| {
         for p in 0..n8 {
-            flow_k[p * fc] = if k == 0 { 0 } else { proposal_flow(peaks[2 * p + k - 1] as u16) };
+            let d = if k == 0 { 0 } else { peaks.get(2 * p + k - 1).map_or(0, |&d| proposal_flow(d as u16)) };
+            if let Some(f) = flow_k.get_mut(p * fc) {
+                *f = d;
+            }
         }
     };
     let (pc, pf, pconv, pq, pz, ph1, ph2) =
@@ -420,22 +430,22 @@ pub fn ufi(c: &mut Ctx<'_, '_, '_>, max_d8: usize) {
             // lag 2: candidate state q = tanh(convq([feat, flow_k, ctx]))
             if s >= 2 && s - 2 < h8 {
                 let r = s - 2;
-                fill(&mut rinp, last_input_row(r, 3, 1, h8), |y, d| widen_row(&c.frame.inp08[y * w * cfg.context_dim..(y + 1) * w * cfg.context_dim], d));
+                fill(&mut rinp, last_input_row(r, 3, 1, h8), |y, d| widen_row(chunk(c.frame.inp08, y, w * cfg.context_dim), d));
                 conv16(&pq, &[rows(&rfeat, r, 3), full(flow_k, h8, fl_row, r, 3), rows(&rinp, r, 3)], w, rq.push(), c.px.patch);
             }
             // lag 3: gate and blend (write-back one row later: the next gate row reads this one)
             if s >= 3 && s - 3 < h8 {
                 let r = s - 3;
-                conv16(&pz, &[full(c.frame.net08, h8, row, r, 3), rows(&rq, r, 3)], w, &mut z[..row], c.px.patch);
+                conv16(&pz, &[full(c.frame.net08, h8, row, r, 3), rows(&rq, r, 3)], w, first_n_mut(z, row), c.px.patch);
                 let dst = rpend.push();
-                dst.copy_from_slice(&c.frame.net08[r * row..(r + 1) * row]);
-                blend_q15(dst, &z[..row], rq.row(r));
+                copy_row(dst, chunk(c.frame.net08, r, row));
+                blend_q15(dst, first_n(z, row), rq.row(r));
                 if r >= 1 {
-                    c.frame.net08[(r - 1) * row..r * row].copy_from_slice(rpend.row(r - 1));
+                    copy_row(chunk_mut(c.frame.net08, r - 1, row), rpend.row(r - 1));
                 }
             }
         }
-        c.frame.net08[(h8 - 1) * row..h8 * row].copy_from_slice(rpend.row(h8 - 1));
+        copy_row(chunk_mut(c.frame.net08, h8 - 1, row), rpend.row(h8 - 1));
     }
     // Decoder: per proposal a refined disparity and an uncertainty; keep the least uncertain.
     let table = m.u_table();
@@ -453,15 +463,19 @@ pub fn ufi(c: &mut Ctx<'_, '_, '_>, max_d8: usize) {
             }
             if s >= 3 && s - 3 < h8 {
                 let r = s - 3;
-                conv16(&ph2, &[rows(&rh1, r, 3)], w, &mut h2[..2 * w], c.px.patch);
-                for x in 0..w {
+                let h2 = first_n_mut(h2, 2 * w);
+                conv16(&ph2, &[rows(&rh1, r, 3)], w, h2, c.px.patch);
+                for (x, (out, u)) in h2.chunks_exact(2).zip(chunk_mut(c.st.u, r, w)).enumerate() {
                     let p = r * w + x;
-                    let cand_flow = sat_i16(flow_k[p * fc] as i64 + h2[2 * x] as i64);
-                    let cand_u = lut::table_q11(&table, h2[2 * x + 1]);
+                    let (&[delta, logit], Some(&fk)) = (out, flow_k.get(p * fc)) else { continue };
+                    let cand_flow = sat_i16(fk as i64 + delta as i64);
+                    let cand_u = lut::table_q11(&table, logit);
                     // strictly smaller: ties keep the earlier proposal (argmin, first)
-                    if k == 0 || cand_u < c.st.u[p] {
-                        c.st.u[p] = cand_u;
-                        c.st.flow[p * fc] = cand_flow;
+                    if k == 0 || cand_u < *u {
+                        *u = cand_u;
+                        if let Some(f) = c.st.flow.get_mut(p * fc) {
+                            *f = cand_flow;
+                        }
                     }
                 }
             }
@@ -478,7 +492,7 @@ pub fn ufi(c: &mut Ctx<'_, '_, '_>, max_d8: usize) {
 fn qk_pixel(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, x: usize, y: usize, w: usize, phases: &[u32], patch: &mut [u8], out: &mut [i16]) {
     let i = y * w + x;
     let mut r = [None; MAX_K];
-    r[0] = Some(&inp08[i * ctx..(i + 1) * ctx]);
+    r[0] = Some(chunk(inp08, i, ctx));
     run_conv(p, &[PartRows { rows: r }], 1, &mut OutRow::I16(out), patch);
     rope_pixel(out, x, y, phases);
 }
@@ -500,12 +514,12 @@ pub fn mga_setup(c: &mut Ctx<'_, '_, '_>) {
     let cfg = *m.config();
     let (w, h8, qk, ctx) = (c.g.w8, c.g.h8, cfg.mga_qk_dim, cfg.context_dim);
     let phases = rope_phases(m);
-    let phases = &phases[..qk / 2];
+    let phases = first_n(&phases, qk / 2);
     let (pq, pk) = (conv(m, MgaQuery), conv(m, MgaKey));
     for y in 0..h8 {
         for x in 0..w {
             let p = y * w + x;
-            qk_pixel(&pk, c.frame.inp08, ctx, x, y, w, phases, c.px.patch, &mut c.st.keys[p * qk..(p + 1) * qk]);
+            qk_pixel(&pk, c.frame.inp08, ctx, x, y, w, phases, c.px.patch, chunk_mut(c.st.keys, p, qk));
         }
     }
     let am = m.att_mult();
@@ -514,8 +528,9 @@ pub fn mga_setup(c: &mut Ctx<'_, '_, '_>) {
             let p = y * w + x;
             qk_pixel(&pq, c.frame.inp08, ctx, x, y, w, phases, c.px.patch, c.px.query);
             let (mx, sum) = query_stats(c.px.query, c.st.keys, am);
-            c.st.stats[2 * p] = mx;
-            c.st.stats[2 * p + 1] = sum;
+            if let [a, b] = chunk_mut(c.st.stats, p, 2) {
+                (*a, *b) = (mx, sum);
+            }
         }
     }
 }
@@ -552,10 +567,14 @@ pub fn mud_pass(c: &mut Ctx<'_, '_, '_>) {
         }
         if s >= 3 && s - 3 < h8 {
             let r = s - 3;
-            conv16(&p3, &[rows(&r2, r, 3)], w, &mut out[..2 * w], c.px.patch);
-            for x in 0..w {
-                c.st.mask[r * w + x] = mud_mask(out[2 * x]);
-                c.st.u[r * w + x] = lut::table_q11(&table, out[2 * x + 1]);
+            let out = first_n_mut(out, 2 * w);
+            conv16(&p3, &[rows(&r2, r, 3)], w, out, c.px.patch);
+            let (mask, u) = (chunk_mut(c.st.mask, r, w), chunk_mut(c.st.u, r, w));
+            for ((o, m), u) in out.chunks_exact(2).zip(mask).zip(u) {
+                if let &[logit_m, logit_u] = o {
+                    *m = mud_mask(logit_m);
+                    *u = lut::table_q11(&table, logit_u);
+                }
             }
         }
     }
@@ -586,9 +605,10 @@ pub fn mga_values(c: &mut Ctx<'_, '_, '_>) {
                 full(c.st.flow, h8, w * fc, r, 3),
                 full(c.st.mask, h8, w, r, 3),
             ];
-            conv16(&pm, &parts, w, &mut hm[..w], c.px.patch);
-            conv16(&pv, &[full(c.frame.net08, h8, w * hd, r, 1)], w, &mut v[..w * hd], c.px.patch);
-            mul_plane_q15(&v[..w * hd], &hm[..w], hd, &mut c.st.values[r * w * hd..(r + 1) * w * hd]);
+            let (hm, v) = (first_n_mut(hm, w), first_n_mut(v, w * hd));
+            conv16(&pm, &parts, w, hm, c.px.patch);
+            conv16(&pv, &[full(c.frame.net08, h8, w * hd, r, 1)], w, v, c.px.patch);
+            mul_plane_q15(v, hm, hd, chunk_mut(c.st.values, r, w * hd));
         }
     }
 }
@@ -613,19 +633,21 @@ pub fn gru16(c: &mut Ctx<'_, '_, '_>) {
     for s in 0..h + 2 {
         if s < h {
             pool2x_row(c.frame.net08, h8, w8, hd, s, pool.push());
-            widen_row(&c.frame.inp16[s * w * ctx..(s + 1) * w * ctx], inp.push());
+            widen_row(chunk(c.frame.inp16, s, w * ctx), inp.push());
         }
         if s >= 1 && s - 1 < h {
             let r = s - 1;
             let parts = [full(c.frame.net16, h, row, r, 3), rows(&pool, r, 3), rows(&inp, r, 3)];
             conv16(&pz, &parts, w, rz.push(), c.px.patch);
-            conv16(&pr, &parts, w, &mut gate[..row], c.px.patch);
-            mul_q15(&gate[..row], &c.frame.net16[r * row..(r + 1) * row], rh.push());
+            let gate = first_n_mut(gate, row);
+            conv16(&pr, &parts, w, gate, c.px.patch);
+            mul_q15(gate, chunk(c.frame.net16, r, row), rh.push());
         }
         if s >= 2 {
             let r = s - 2;
-            conv16(&pq, &[rows(&rh, r, 3), rows(&pool, r, 3), rows(&inp, r, 3)], w, &mut q[..row], c.px.patch);
-            blend_q15(&mut c.frame.net16[r * row..(r + 1) * row], rz.row(r), &q[..row]);
+            let q = first_n_mut(q, row);
+            conv16(&pq, &[rows(&rh, r, 3), rows(&pool, r, 3), rows(&inp, r, 3)], w, q, c.px.patch);
+            blend_q15(chunk_mut(c.frame.net16, r, row), rz.row(r), q);
         }
     }
 }
@@ -658,16 +680,16 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
     let (pz, pr, pq) = (conv(m, Gru08Z), conv(m, Gru08R), conv(m, Gru08Q));
     let pquery = if cfg.mga { Some(conv(m, MgaQuery)) } else { None };
     let phases = rope_phases(m);
-    let phases = &phases[..cfg.mga_qk_dim / 2];
+    let phases = first_n(&phases, cfg.mga_qk_dim / 2);
     let (am, glb_shift) = (m.att_mult(), frac(m, Act::Glb) - frac(m, Act::MgaV));
     let row = w * hd;
     for s in 0..h8 + 4 {
         if s < h8 {
-            lookup_row(m, c.frame.f1, c.frame.f2, c.st.flow, fc, &g, s, c.px.window, c.px.prefix, &mut corr[..w * cc]);
+            lookup_row(m, c.frame.f1, c.frame.f2, c.st.flow, fc, &g, s, c.px.window, c.px.prefix, first_n_mut(corr, w * cc));
             // corr features: cat[C, C * m, m] with MUD (three parts), C alone without
             if cfg.mud {
-                let mrow = &c.st.mask[s * w..(s + 1) * w];
-                mul_plane_q15(&corr[..w * cc], mrow, cc, &mut corr_m[..w * cc]);
+                let mrow = chunk(c.st.mask, s, w);
+                mul_plane_q15(first_n(corr, w * cc), mrow, cc, first_n_mut(corr_m, w * cc));
                 conv16(&pc1, &[one_row(corr, w * cc), one_row(corr_m, w * cc), one_row(mrow, w)], w, rc1.push(), c.px.patch);
             } else {
                 conv16(&pc1, &[one_row(corr, w * cc)], w, rc1.push(), c.px.patch);
@@ -688,7 +710,7 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
             let upto = last_input_row(r, 3, 1, h8);
             let (net16, w16, h16) = (&*c.frame.net16, g.w16, g.h16);
             fill(&mut rup, upto, |y, d| interp_row(net16, h16, w16, hd, h8, w, y, d));
-            fill(&mut rinp, upto, |y, d| widen_row(&c.frame.inp08[y * w * ctx..(y + 1) * w * ctx], d));
+            fill(&mut rinp, upto, |y, d| widen_row(chunk(c.frame.inp08, y, w * ctx), d));
             if let Some(pqy) = &pquery {
                 let st = &c.st;
                 let px = &mut c.px;
@@ -696,8 +718,11 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
                     for x in 0..w {
                         let p = y * w + x;
                         qk_pixel(pqy, c.frame.inp08, ctx, x, y, w, phases, px.patch, px.query);
-                        let stats = (st.stats[2 * p], st.stats[2 * p + 1]);
-                        aggregate_query(px.query, st.keys, st.values, hd, stats, am, glb_shift, px.acc, &mut d[x * hd..(x + 1) * hd]);
+                        let stats = match *chunk(st.stats, p, 2) {
+                            [mx, sum] => (mx, sum),
+                            _ => (0, 0),
+                        };
+                        aggregate_query(px.query, st.keys, st.values, hd, stats, am, glb_shift, px.acc, chunk_mut(d, x, hd));
                     }
                 });
             }
@@ -710,9 +735,10 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
             } else {
                 5
             };
-            conv16(&pz, &parts[..n], w, rz.push(), c.px.patch);
-            conv16(&pr, &parts[..n], w, &mut gate[..row], c.px.patch);
-            mul_q15(&gate[..row], &c.frame.net08[r * row..(r + 1) * row], rrh.push());
+            let gate = first_n_mut(gate, row);
+            conv16(&pz, first_n(&parts, n), w, rz.push(), c.px.patch);
+            conv16(&pr, first_n(&parts, n), w, gate, c.px.patch);
+            mul_q15(gate, chunk(c.frame.net08, r, row), rrh.push());
         }
         if s >= 4 {
             let r = s - 4;
@@ -724,8 +750,9 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
             } else {
                 5
             };
-            conv16(&pq, &parts[..n], w, &mut q[..row], c.px.patch);
-            blend_q15(&mut c.frame.net08[r * row..(r + 1) * row], rz.row(r), &q[..row]);
+            let q = first_n_mut(q, row);
+            conv16(&pq, first_n(&parts, n), w, q, c.px.patch);
+            blend_q15(chunk_mut(c.frame.net08, r, row), rz.row(r), q);
         }
     }
 }
@@ -751,12 +778,15 @@ pub fn flow_head(c: &mut Ctx<'_, '_, '_>, settled: u16) -> usize {
         }
         if s >= 1 {
             let r = s - 1;
-            conv16(&p2, &[rows(&rh, r, 3)], w, &mut out[..w * fc], c.px.patch);
+            let out = first_n_mut(out, w * fc);
+            conv16(&p2, &[rows(&rh, r, 3)], w, out, c.px.patch);
+            let flow = chunk_mut(c.st.flow, r, w * fc);
             for x in 0..w {
-                let i = (r * w + x) * fc;
-                let before = c.st.flow[i];
-                c.st.flow[i] = sat_i16(before as i64 + out[x * fc] as i64);
-                moved += ((c.st.flow[i] as i64 - before as i64).unsigned_abs() > settled as u64) as usize;
+                let i = x * fc;
+                let (Some(f), Some(&delta)) = (flow.get_mut(i), out.get(i)) else { break };
+                let before = *f;
+                *f = sat_i16(before as i64 + delta as i64);
+                moved += ((*f as i64 - before as i64).unsigned_abs() > settled as u64) as usize;
             }
         }
     }
@@ -779,32 +809,36 @@ pub fn upsample(c: &mut Ctx<'_, '_, '_>, width: usize, height: usize, disp: &mut
     let mask_frac = frac(m, Act::MaskLogit);
     // channel 0 of the disparity state (the only one with MUIR; RAFT's y is 0)
     for (d, f) in flow0.iter_mut().zip(c.st.flow.chunks_exact(fc)) {
-        *d = f[0];
+        if let Some(&f) = f.first() {
+            *d = f;
+        }
     }
     let u_src: Option<&[i16]> = if cfg.mud { Some(&*c.st.u) } else { None };
     let mut dblk = [0i16; 64];
     let mut ublk = [0i16; 64];
+    let flow0 = first_n(flow0, g.n8());
+    let mid = first_n_mut(mid, w * mh);
     for y in 0..h8 {
-        conv16(&p1, &[full(c.frame.net08, h8, w * hd, y, 3)], w, &mut mid[..w * mh], c.px.patch);
+        conv16(&p1, &[full(c.frame.net08, h8, w * hd, y, 3)], w, mid, c.px.patch);
         for x in 0..w {
             let mut r = [None; MAX_K];
-            r[0] = Some(&mid[x * mh..(x + 1) * mh]);
-            conv16(&p2, &[PartRows { rows: r }], 1, &mut c.px.logits[..MASK_CHANNELS], c.px.patch);
-            upsample_pixel(&c.px.logits[..MASK_CHANNELS], mask_frac, &flow0[..g.n8()], u_src, h8, w, y, x, &mut dblk, u_src.map(|_| &mut ublk[..]), 8);
-            for dy in 0..8 {
+            r[0] = Some(chunk(mid, x, mh));
+            let logits = first_n_mut(c.px.logits, MASK_CHANNELS);
+            conv16(&p2, &[PartRows { rows: r }], 1, logits, c.px.patch);
+            upsample_pixel(logits, mask_frac, flow0, u_src, h8, w, y, x, &mut dblk, u_src.map(|_| &mut ublk[..]), 8);
+            // The 8 x 8 block, cropped to the output: `cols` columns from `8 x` on.
+            let cols = width.saturating_sub(8 * x).min(8);
+            for (dy, (db, ub)) in dblk.chunks_exact(8).zip(ublk.chunks_exact(8)).enumerate() {
                 let oy = 8 * y + dy;
                 if oy >= height {
                     break;
                 }
-                for dx in 0..8 {
-                    let ox = 8 * x + dx;
-                    if ox >= width {
-                        break;
-                    }
-                    disp[oy * width + ox] = dblk[dy * 8 + dx];
-                    if let Some(u) = unc.as_deref_mut() {
-                        u[oy * width + ox] = ublk[dy * 8 + dx];
-                    }
+                let at = oy * width + 8 * x;
+                if let Some(d) = disp.get_mut(at..at + cols) {
+                    d.iter_mut().zip(db).for_each(|(d, s)| *d = *s);
+                }
+                if let Some(u) = unc.as_deref_mut().and_then(|u| u.get_mut(at..at + cols)) {
+                    u.iter_mut().zip(ub).for_each(|(u, s)| *u = *s);
                 }
             }
         }

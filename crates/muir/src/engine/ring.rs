@@ -1,4 +1,10 @@
-//! Line buffers and arena carving.
+//! Line buffers and arena carving, and the slice helpers of the engine's phases.
+//!
+//! The phases carve their buffers from an arena whose length the engine checked against the plan,
+//! with the sizes the plan gives: every row they take lies inside its buffer. The helpers below
+//! still return an empty (or shorter) slice where a buffer is shorter than that, so no input can
+//! reach an index panic; for a plan-checked arena this cannot happen.
+#![deny(clippy::indexing_slicing)]
 
 use super::plan::Buf;
 use crate::kernels::conv::{MAX_K, PartRows};
@@ -22,8 +28,10 @@ impl<'a> Carver<'a> {
         // plan code, caught by the engine tests.
         assert!(b.at >= self.pos, "buffers carved out of order");
         let rest = core::mem::take(&mut self.rest);
-        let (_, tail) = rest.split_at_mut(b.at - self.pos);
-        let (buf, tail) = tail.split_at_mut(b.len);
+        // Past the end of the arena (shorter than the plan: the engine refuses that before it
+        // carves), the buffer is empty and so is every later one.
+        let Some((_, tail)) = rest.split_at_mut_checked(b.at - self.pos) else { return &mut [] };
+        let Some((buf, tail)) = tail.split_at_mut_checked(b.len) else { return &mut [] };
         self.rest = tail;
         self.pos = b.end();
         buf
@@ -102,15 +110,14 @@ impl<'a, T: Copy> Ring<'a, T> {
     /// Row `r`, which must still be held.
     pub fn row(&self, r: usize) -> &[T] {
         assert!(r < self.next && r + self.cap >= self.next, "ring row {r} not held (next {}, cap {})", self.next, self.cap);
-        let s = r % self.cap;
-        &self.buf[s * self.len..(s + 1) * self.len]
+        chunk(self.buf, r % self.cap, self.len)
     }
 
     /// The slot of the next row; it counts as produced once this returns.
     pub fn push(&mut self) -> &mut [T] {
         let s = self.next % self.cap;
         self.next += 1;
-        &mut self.buf[s * self.len..(s + 1) * self.len]
+        chunk_mut(self.buf, s, self.len)
     }
 
     /// The `k` input rows output row `y` of a `k`-kernel, stride-`stride` conv reads (`None` in
@@ -131,4 +138,40 @@ impl<'a, T: Copy> Ring<'a, T> {
 pub const fn last_input_row(y: usize, k: usize, stride: usize, rows: usize) -> usize {
     let r = y * stride + k / 2;
     if r >= rows { rows - 1 } else { r }
+}
+
+/// Element range `i * len .. (i + 1) * len` of `t` (row `i` of a tensor with rows of `len`
+/// values, or pixel `i` with `len` channels); empty when `t` is shorter, which a buffer carved from
+/// a plan-checked arena never is.
+#[inline(always)]
+pub fn chunk<T>(t: &[T], i: usize, len: usize) -> &[T] {
+    t.get(i * len..(i + 1) * len).unwrap_or(&[])
+}
+
+/// [`chunk`] of a mutable slice.
+#[inline(always)]
+pub fn chunk_mut<T>(t: &mut [T], i: usize, len: usize) -> &mut [T] {
+    t.get_mut(i * len..(i + 1) * len).unwrap_or_default()
+}
+
+/// The first `n` values of `t` (all of them when it is shorter).
+#[inline(always)]
+pub fn first_n<T>(t: &[T], n: usize) -> &[T] {
+    t.get(..n).unwrap_or(t)
+}
+
+/// [`first_n`] of a mutable slice.
+#[inline(always)]
+pub fn first_n_mut<T>(t: &mut [T], n: usize) -> &mut [T] {
+    let n = n.min(t.len());
+    t.get_mut(..n).unwrap_or_default()
+}
+
+/// `dst.copy_from_slice(src)`, skipped when the lengths differ (rows of plan-checked buffers
+/// never do).
+#[inline(always)]
+pub fn copy_row<T: Copy>(dst: &mut [T], src: &[T]) {
+    if dst.len() == src.len() {
+        dst.copy_from_slice(src);
+    }
 }

@@ -24,6 +24,10 @@
 //!
 //! [`QuantModel::parse`] checks everything once (magic, version, length, checksum, config,
 //! formats, every layer's shape against the config); afterwards all accessors are infallible.
+//!
+//! No blob reaches a panic: every read goes through `get` (a typed [`BlobError`] where `parse`
+//! reads, a zero where an accessor reads a section `parse` already bounds-checked).
+#![deny(clippy::indexing_slicing)]
 
 mod crc;
 
@@ -155,13 +159,24 @@ impl fmt::Display for BlobError {
 #[cfg(feature = "std")]
 impl std::error::Error for BlobError {}
 
+/// The `N` bytes at offset `o` of `b`; `None` past the end.
+#[inline]
+fn bytes_at<const N: usize>(b: &[u8], o: usize) -> Option<[u8; N]> {
+    b.get(o..)?.first_chunk().copied()
+}
+// The readers below give 0 past the end: `parse` checks a section's bounds before it reads the
+// section (and the accessors read only sections `parse` checked), so that never happens.
+#[inline]
+fn u8_at(b: &[u8], o: usize) -> u8 {
+    b.get(o).copied().unwrap_or(0)
+}
 #[inline]
 fn u16_at(b: &[u8], o: usize) -> u16 {
-    u16::from_le_bytes([b[o], b[o + 1]])
+    bytes_at(b, o).map_or(0, u16::from_le_bytes)
 }
 #[inline]
 fn u32_at(b: &[u8], o: usize) -> u32 {
-    u32::from_le_bytes([b[o], b[o + 1], b[o + 2], b[o + 3]])
+    bytes_at(b, o).map_or(0, u32::from_le_bytes)
 }
 #[inline]
 fn f32_at(b: &[u8], o: usize) -> f32 {
@@ -223,8 +238,8 @@ pub fn config_record(c: &Config) -> [u8; CONFIG_LEN] {
         | (c.checkpoint_extras as u8) << 4
         | (c.wide_trunk as u8) << 5;
     let v = config_u16s(c);
-    for (i, x) in v.iter().enumerate() {
-        r[36 + 2 * i..38 + 2 * i].copy_from_slice(&(*x as u16).to_le_bytes());
+    for (dst, x) in r[36..].chunks_exact_mut(2).zip(v) {
+        dst.copy_from_slice(&(x as u16).to_le_bytes());
     }
     r[88..92].copy_from_slice(&c.mga_rope_base.to_bits().to_le_bytes());
     r[92..96].copy_from_slice(&c.eps_min.to_bits().to_le_bytes());
@@ -262,12 +277,13 @@ fn config_u16s(c: &Config) -> [usize; 25] {
     ]
 }
 
-fn parse_config(r: &[u8]) -> Result<Config, BlobError> {
+fn parse_config(r: &[u8; CONFIG_LEN]) -> Result<Config, BlobError> {
     let len = r[32] as usize;
     if len > Name::CAPACITY {
         return Err(BlobError::ConfigName);
     }
-    let name = core::str::from_utf8(&r[..len]).map_err(|_| BlobError::ConfigName)?;
+    let name = r.get(..len).ok_or(BlobError::ConfigName)?;
+    let name = core::str::from_utf8(name).map_err(|_| BlobError::ConfigName)?;
     let name = Name::new(name).ok_or(BlobError::ConfigName)?;
     let flags = r[33];
     let v = |i: usize| u16_at(r, 36 + 2 * i) as usize;
@@ -349,13 +365,14 @@ impl<'a> QuantModel<'a> {
     /// # Errors
     /// Every malformation is a [`BlobError`]; nothing panics on bad input.
     pub fn parse(blob: &'a [u8]) -> Result<Self, BlobError> {
+        let magic = blob.first_chunk::<4>();
         if blob.len() < HEADER_LEN + CONFIG_LEN {
-            if blob.len() >= 4 && blob[..4] != MAGIC {
+            if magic.is_some_and(|m| *m != MAGIC) {
                 return Err(BlobError::BadMagic);
             }
             return Err(BlobError::Truncated { expected: HEADER_LEN + CONFIG_LEN, found: blob.len() });
         }
-        if blob[..4] != MAGIC {
+        if magic != Some(&MAGIC) {
             return Err(BlobError::BadMagic);
         }
         let version = u16_at(blob, 4);
@@ -370,11 +387,12 @@ impl<'a> QuantModel<'a> {
             return Err(BlobError::TrailingBytes { expected: total, found: blob.len() });
         }
         let expected = u32_at(blob, 12);
-        let found = crc32(&blob[HEADER_LEN..]);
+        let found = crc32(blob.get(HEADER_LEN..).unwrap_or(&[]));
         if expected != found {
             return Err(BlobError::Checksum { expected, found });
         }
-        let config = parse_config(&blob[HEADER_LEN..HEADER_LEN + CONFIG_LEN])?;
+        let record = blob.get(HEADER_LEN..).and_then(|r| r.first_chunk());
+        let config = parse_config(record.ok_or(BlobError::Truncated { expected: HEADER_LEN + CONFIG_LEN, found: blob.len() })?)?;
         let sections = Sections::new(rope_pairs(&config));
         if sections.records > total {
             return Err(BlobError::OutOfBounds { what: "tables" });
@@ -384,12 +402,16 @@ impl<'a> QuantModel<'a> {
             let o = FORMATS_AT + 2 * act.index();
             // Signedness is the slot's (the arithmetic spec's), not the blob's.
             let storage = act.storage_in(&config);
-            let f = QFormat { bits: blob[o], frac: blob[o + 1] as i8, unsigned: storage.unsigned };
+            let [bits, frac] = bytes_at(blob, o).ok_or(BlobError::OutOfBounds { what: "formats" })?;
+            let f = QFormat { bits, frac: frac as i8, unsigned: storage.unsigned };
             let fixed_ok = act.fixed_format().is_none_or(|x| x == f);
             if f.bits != storage.bits || !fixed_ok || !(-24..=40).contains(&f.frac) {
                 return Err(BlobError::Format { act });
             }
-            formats[act.index()] = f;
+            // `index() < Act::COUNT`: always a slot.
+            if let Some(slot) = formats.get_mut(act.index()) {
+                *slot = f;
+            }
         }
         for l in 0..MAX_LEVELS {
             let m = mult_at(blob, sections.corr_mults + 8 * l);
@@ -419,7 +441,8 @@ impl<'a> QuantModel<'a> {
             if at % 8 != 0 || at < sections.records || at.checked_add(len).is_none_or(|e| e > total) || len < LAYER_HEADER_LEN {
                 return Err(BlobError::OutOfBounds { what: id.name() });
             }
-            let h = &blob[at..at + LAYER_HEADER_LEN];
+            let h: &[u8; LAYER_HEADER_LEN] =
+                blob.get(at..).and_then(|r| r.first_chunk()).ok_or(BlobError::OutOfBounds { what: id.name() })?;
             let shape = id.shape(&config).ok_or(BlobError::UnexpectedLayer { layer: id })?;
             let bad = |field| Err(BlobError::LayerShape { layer: id, field });
             if h[0] as usize != id.index() {
@@ -442,7 +465,10 @@ impl<'a> QuantModel<'a> {
                 let ch = u16_at(h, 16 + 2 * i) as usize;
                 match part {
                     Some(p) if p.channels == ch => {
-                        loc.parts[n] = ch;
+                        // n < MAX_PARTS: one slot per part of `want`
+                        if let Some(slot) = loc.parts.get_mut(n) {
+                            *slot = ch;
+                        }
                         n += 1;
                     }
                     None if ch == 0 => {}
@@ -456,7 +482,10 @@ impl<'a> QuantModel<'a> {
             if len != layer_record_len(cout, patch, n) {
                 return bad("record length");
             }
-            layers[id.index()] = loc;
+            // `index() < ConvId::COUNT`: always a slot.
+            if let Some(slot) = layers.get_mut(id.index()) {
+                *slot = loc;
+            }
         }
         Ok(Self { blob, config, formats, layers, sections })
     }
@@ -468,28 +497,30 @@ impl<'a> QuantModel<'a> {
 
     /// Format of an activation slot.
     pub fn format(&self, act: Act) -> QFormat {
-        self.formats[act.index()]
+        // `index() < Act::COUNT`: the fallback is never taken.
+        self.formats.get(act.index()).copied().unwrap_or(QFormat::i8(0))
     }
 
     /// Conv parameters of layer `id`; `None` when the config does not compute it.
     pub fn conv(&self, id: ConvId) -> Option<ConvParams<'_>> {
-        let l = &self.layers[id.index()];
+        let l = self.layers.get(id.index())?;
         if l.at == 0 {
             return None;
         }
         let w0 = l.at + LAYER_HEADER_LEN;
         let b0 = w0 + align8(l.cout * l.patch);
         let m0 = b0 + 8 * l.cout;
+        // `parse` checked that the record (header, weights, biases, multipliers) lies inside the blob.
         // SAFETY-free reinterpretation: i8 and u8 have the same size and alignment.
-        let weights = bytes_as_i8(&self.blob[w0..w0 + l.cout * l.patch]);
+        let weights = bytes_as_i8(self.blob.get(w0..w0 + l.cout * l.patch)?);
         Some(ConvParams {
             k: l.k,
             stride: l.stride,
-            parts: &l.parts[..l.nparts],
+            parts: l.parts.get(..l.nparts)?,
             cout: l.cout,
             weights,
-            bias: BiasRef(&self.blob[b0..m0]),
-            mult: MultRef(&self.blob[m0..m0 + 8 * l.cout * l.nparts]),
+            bias: BiasRef(self.blob.get(b0..m0)?),
+            mult: MultRef(self.blob.get(m0..m0 + 8 * l.cout * l.nparts)?),
             post: match l.post {
                 1 => PostOp::Relu,
                 2 => PostOp::Sigmoid,
@@ -526,8 +557,11 @@ impl<'a> QuantModel<'a> {
     /// The whole uncertainty table.
     pub fn u_table(&self) -> [i16; U_TABLE_LEN] {
         let mut t = [0i16; U_TABLE_LEN];
-        for (i, v) in t.iter_mut().enumerate() {
-            *v = self.u_table_entry(i);
+        let src = self.blob.get(self.sections.u_table..).unwrap_or(&[]);
+        for (v, b) in t.iter_mut().zip(src.chunks_exact(2)) {
+            if let &[lo, hi] = b {
+                *v = i16::from_le_bytes([lo, hi]);
+            }
         }
         t
     }
@@ -545,7 +579,7 @@ fn bytes_as_i8(b: &[u8]) -> &[i8] {
 }
 
 fn mult_at(b: &[u8], o: usize) -> Multiplier {
-    Multiplier { m: u32_at(b, o) as i32, shift: b[o + 4] }
+    Multiplier { m: u32_at(b, o) as i32, shift: u8_at(b, o + 4) }
 }
 
 fn valid_mult(m: Multiplier) -> bool {

@@ -3,6 +3,7 @@
 //! The same fields, presets and validation rules live in the PyTorch twin (`python/muir/config.py`);
 //! a model file carries its config as JSON (safetensors metadata key `muir_config`) or, in the
 //! quantised blob, as a fixed binary record (`crate::format`).
+#![deny(clippy::indexing_slicing)]
 
 use core::fmt;
 
@@ -27,10 +28,11 @@ impl Name {
             return None;
         }
         let mut bytes = [0u8; Self::CAPACITY];
-        let mut i = 0;
-        while i < src.len() {
-            bytes[i] = src[i];
-            i += 1;
+        // A `const fn`: byte by byte, with slice patterns (no iterators, no indexing).
+        let (mut dst, mut rest): (&mut [u8], &[u8]) = (&mut bytes, src);
+        while let ([d, dt @ ..], [s, st @ ..]) = (dst, rest) {
+            *d = *s;
+            (dst, rest) = (dt, st);
         }
         Some(Self { bytes, len: src.len() as u8 })
     }
@@ -39,7 +41,7 @@ impl Name {
     pub fn as_str(&self) -> &str {
         // Built from a &str (or checked UTF-8 in the blob reader), so this cannot fail; fall back to
         // an empty name rather than panic.
-        core::str::from_utf8(&self.bytes[..self.len as usize]).unwrap_or("")
+        core::str::from_utf8(self.bytes.get(..self.len as usize).unwrap_or(&[])).unwrap_or("")
     }
 
     /// Raw bytes (fixed capacity, zero padded) for binary records.
@@ -369,15 +371,15 @@ impl Config {
             self.ufi_head_dim,
             self.mga_qk_dim,
         ];
-        let mut i = 0;
-        while i < widths.len() {
-            if widths[i] == 0 {
+        let mut rest: &[usize] = &widths;
+        while let [w, tail @ ..] = rest {
+            if *w == 0 {
                 return Err(ConfigError::Zero);
             }
-            if widths[i] > MAX_WIDTH {
+            if *w > MAX_WIDTH {
                 return Err(ConfigError::TooWide);
             }
-            i += 1;
+            rest = tail;
         }
         if self.motion_dim <= self.flow_channels || self.ufi_dim <= self.flow_channels {
             return Err(ConfigError::Zero);
@@ -447,6 +449,7 @@ pub const fn padded(n: usize) -> usize {
 }
 
 #[cfg(test)]
+#[allow(clippy::indexing_slicing)]
 mod tests {
     use super::*;
 

@@ -6,6 +6,7 @@
 //! weights", quantised per output channel), so parts never need rescaling before a conv. The
 //! context convs `context_zqr_convs.*` are merged into the GRU gate convs the same way: their
 //! input (the context feature) is one more part, their bias is added to the gate bias.
+#![deny(clippy::indexing_slicing)]
 
 use super::config::Config;
 use super::layers::{ConvId, MASK_CHANNELS};
@@ -163,12 +164,12 @@ impl QLayer {
     /// Sum of the parts' channels (the conv's `cin` including a merged context).
     pub const fn cin(&self) -> usize {
         let mut c = 0;
-        let mut i = 0;
-        while i < MAX_PARTS {
-            if let Some(p) = self.parts[i] {
+        let mut rest: &[Option<Part>] = &self.parts;
+        while let [part, tail @ ..] = rest {
+            if let Some(p) = part {
                 c += p.channels;
             }
-            i += 1;
+            rest = tail;
         }
         c
     }
@@ -313,6 +314,7 @@ impl QLayer {
 pub const UPSAMPLE_MASK_CHANNELS: usize = MASK_CHANNELS;
 
 #[cfg(test)]
+#[allow(clippy::indexing_slicing)]
 mod tests {
     use super::*;
 

@@ -1,5 +1,6 @@
 //! The resolution pyramid of a padded input: the sizes every stage of the network works at.
 //! Part of the model description (MAC counts and the engine's memory plan both build on it).
+#![deny(clippy::indexing_slicing)]
 
 use super::config::padded;
 

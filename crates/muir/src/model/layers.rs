@@ -4,6 +4,7 @@
 //! these names, the quantised blob stores layers in [`ConvId::ALL`] order, MAC counts and the memory
 //! plan read the shapes from here. Names are the PyTorch twin's state_dict keys (those of the public
 //! RAFT-Stereo checkpoint for the shared parts), without the `.weight` / `.bias` suffix.
+#![deny(clippy::indexing_slicing)]
 
 use super::config::Config;
 
@@ -233,6 +234,7 @@ pub fn parameter_count(cfg: &Config) -> usize {
 }
 
 #[cfg(test)]
+#[allow(clippy::indexing_slicing)]
 mod tests {
     use super::*;
 

@@ -26,6 +26,7 @@
 //! `min(window_len, w8)` per pixel. At 320x240 (`w8 = 40`, window 74 columns post-pooled, 80 for
 //! the RAFT pyramid) the window covers almost the whole row: 1588 dot products per row for
 //! post-pooling (1600 is the bound).
+#![deny(clippy::indexing_slicing)]
 
 use super::config::Config;
 use super::graph::QLayer;
@@ -57,10 +58,10 @@ pub const fn merged_macs(id: ConvId, cfg: &Config, pixels: usize) -> u64 {
 /// Sum of [`conv_macs`] over `ids`, each with `pixels` output pixels.
 const fn convs(ids: &[ConvId], cfg: &Config, pixels: usize) -> u64 {
     let mut t = 0;
-    let mut i = 0;
-    while i < ids.len() {
-        t += conv_macs(ids[i], cfg, pixels);
-        i += 1;
+    let mut rest = ids;
+    while let [id, tail @ ..] = rest {
+        t += conv_macs(*id, cfg, pixels);
+        rest = tail;
     }
     t
 }
@@ -68,10 +69,10 @@ const fn convs(ids: &[ConvId], cfg: &Config, pixels: usize) -> u64 {
 /// Sum of [`merged_macs`] over `ids`.
 const fn merged(ids: &[ConvId], cfg: &Config, pixels: usize) -> u64 {
     let mut t = 0;
-    let mut i = 0;
-    while i < ids.len() {
-        t += merged_macs(ids[i], cfg, pixels);
-        i += 1;
+    let mut rest = ids;
+    while let [id, tail @ ..] = rest {
+        t += merged_macs(*id, cfg, pixels);
+        rest = tail;
     }
     t
 }
@@ -344,10 +345,10 @@ impl Macs {
     pub const fn total(&self) -> u64 {
         let n = self.network();
         let mut t = 0;
-        let mut i = 0;
-        while i < n.len() {
-            t += n[i].macs;
-            i += 1;
+        let mut rest: &[Stage] = &n;
+        while let [stage, tail @ ..] = rest {
+            t += stage.macs;
+            rest = tail;
         }
         t
     }
@@ -370,6 +371,7 @@ impl Macs {
 }
 
 #[cfg(test)]
+#[allow(clippy::indexing_slicing)]
 mod tests {
     use super::*;
 

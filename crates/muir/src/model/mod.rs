@@ -1,4 +1,5 @@
 //! Model description: configuration presets and the table of layers.
+#![deny(clippy::indexing_slicing)]
 
 pub mod config;
 pub mod graph;
