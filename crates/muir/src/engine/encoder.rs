@@ -9,7 +9,8 @@
 //! the plan says (which cannot happen for a plan-checked arena).
 #![deny(clippy::indexing_slicing)]
 
-use super::plan::{Buf, Bump, Grid};
+use super::layout::{Buf, FeatureHeadLayout, TRUNK_OUT_CAP, TrunkLayout};
+use crate::model::grid::Grid;
 use super::ring::{Carver, Ring, chunk, chunk_mut, copy_row, first_n_mut, last_input_row};
 use crate::arith::sat_u8;
 use crate::format::QuantModel;
@@ -18,7 +19,6 @@ use crate::kernels::conv::{ConvParams, PartRows, conv_row};
 use crate::kernels::eltwise::{Skip, residual_relu};
 use crate::kernels::norm::{ChannelNorm, normalize, stats_from_sums};
 use crate::kernels::{Elem, OutRow};
-use crate::model::config::Config;
 use crate::model::graph::{Act, QLayer};
 use crate::model::layers::ConvId::{self, *};
 
@@ -262,57 +262,6 @@ fn block<'a, S: Source, O: Elem>(
     }
 }
 
-/// Layout of the trunk's line buffers (relative to the encoder ring region).
-#[derive(Clone, Copy, Debug)]
-pub struct TrunkLayout {
-    /// Image rows (i16).
-    pub image: Buf,
-    /// conv1 output.
-    pub c1: Buf,
-    /// Block mid and out rings, 6 blocks.
-    pub blocks: [(Buf, Buf); 6],
-    /// conv2 and downsample rows (i16).
-    pub c2: Buf,
-    /// Downsample row.
-    pub ds: Buf,
-    /// Total bytes.
-    pub total: usize,
-}
-
-/// Out-ring capacity of each trunk block (4 in front of a stride-2 block).
-const TRUNK_OUT_CAP: [usize; 6] = [3, 4, 3, 4, 3, 1];
-
-impl TrunkLayout {
-    /// Layout for `cfg` on grid `g`.
-    pub const fn new(cfg: &Config, g: &Grid) -> Self {
-        let [d1, d2, d3] = cfg.backbone_dims;
-        // Bytes per element of conv1, layer1 and layer2 (2 in a wide trunk).
-        let e = if cfg.wide_trunk { 2 } else { 1 };
-        let mut b = Bump::new(0);
-        let image = b.take(7 * g.w * 3 * 2);
-        let c1 = b.take(3 * g.w2 * d1 * e);
-        let dims = [(g.w2, d1, e), (g.w2, d1, e), (g.w4, d2, e), (g.w4, d2, e), (g.w8, d3, 1), (g.w8, d3, 1)];
-        let mut blocks = [(Buf { at: 0, len: 0 }, Buf { at: 0, len: 0 }); 6];
-        // In step over the three arrays (a `const fn`: no iterators).
-        let (mut dims, mut caps, mut out): (&[_], &[usize], &mut [(Buf, Buf)]) = (&dims, &TRUNK_OUT_CAP, &mut blocks);
-        while let ([(w, c, e), dt @ ..], [cap, ct @ ..], [o, ot @ ..]) = (dims, caps, out) {
-            let n = *w * *c * *e;
-            *o = (b.take(3 * n), b.take(*cap * n));
-            (dims, caps, out) = (dt, ct, ot);
-        }
-        let row = {
-            let a = g.w2 * d1;
-            let bb = g.w4 * d2;
-            let c = g.w8 * d3;
-            let m = if a > bb { a } else { bb };
-            if m > c { m } else { c }
-        };
-        let c2 = b.take(2 * row);
-        let ds = b.take(2 * row);
-        Self { image, c1, blocks, c2, ds, total: b.at }
-    }
-}
-
 /// Streams one image through conv1 .. layer3 into `l3` (HWC u8, `h8 x w8 x d3`).
 pub fn trunk(m: &QuantModel<'_>, img: &ImageView<'_>, g: &Grid, rings: &mut [u8], patch: &mut [u8], l3: &mut [u8]) {
     if m.config().wide_trunk {
@@ -362,48 +311,10 @@ fn trunk_as<T: Elem + bytemuck::Pod>(
     }
 }
 
-/// Layout of the 1/8 and 1/16 head pipelines (relative to the encoder ring region).
-#[derive(Clone, Copy, Debug)]
-pub struct HeadLayout {
-    /// Two blocks' mid and out rings.
-    pub blocks: [(Buf, Buf); 2],
-    /// conv2 / downsample rows.
-    pub c2: Buf,
-    /// Downsample row.
-    pub ds: Buf,
-    /// InstanceNorm pipeline: raw row (i16), mid ring, blk ring, y row (i16).
-    pub raw: Buf,
-    /// mid ring.
-    pub mid: Buf,
-    /// blk ring.
-    pub blk: Buf,
-    /// normalised row.
-    pub y: Buf,
-    /// Total bytes.
-    pub total: usize,
-}
-
-impl HeadLayout {
-    /// Layout for `cfg` on grid `g`.
-    pub const fn new(cfg: &Config, g: &Grid) -> Self {
-        let d3 = cfg.backbone_dims[2];
-        let w = g.w8; // the 1/16 pipelines are smaller
-        let mut b = Bump::new(0);
-        let blocks = [(b.take(3 * w * d3), b.take(4 * w * d3)), (b.take(3 * w * d3), b.take(4 * w * d3))];
-        let c2 = b.take(2 * w * d3);
-        let ds = b.take(2 * w * d3);
-        let raw = b.take(2 * w * d3);
-        let mid = b.take(3 * w * d3);
-        let blk = b.take(3 * w * d3);
-        let y = b.take(2 * w * d3);
-        Self { blocks, c2, ds, raw, mid, blk, y, total: b.at }
-    }
-}
-
 /// Context heads on the 1/8 (or 1/16) features: block + 3x3 conv; the output rows go to `out`
 /// (HWC, `i16` for the hidden state, `u8` for the context).
 #[allow(clippy::too_many_arguments)]
-fn head(m: &QuantModel<'_>, x: &[u8], h: usize, w: usize, ids: [ConvId; 3], out_act: Act, lay: &HeadLayout, rings: &mut [u8], patch: &mut [u8], out: OutRow<'_>) {
+fn head(m: &QuantModel<'_>, x: &[u8], h: usize, w: usize, ids: [ConvId; 3], out_act: Act, lay: &FeatureHeadLayout, rings: &mut [u8], patch: &mut [u8], out: OutRow<'_>) {
     let d3 = m.config().backbone_dims[2];
     let mut cv = Carver::new(rings);
     let bufs = (cv.u8(lay.blocks[0].0), cv.u8(lay.blocks[0].1));
@@ -426,7 +337,7 @@ fn head(m: &QuantModel<'_>, x: &[u8], h: usize, w: usize, ids: [ConvId; 3], out_
 }
 
 /// layer4 (two blocks, the first with stride 2) from `l3` into `l4`.
-fn layer4(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &HeadLayout, rings: &mut [u8], patch: &mut [u8], l4: &mut [u8]) {
+fn layer4(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &FeatureHeadLayout, rings: &mut [u8], patch: &mut [u8], l4: &mut [u8]) {
     let d3 = m.config().backbone_dims[2];
     let mut cv = Carver::new(rings);
     let b0 = (cv.u8(lay.blocks[0].0), cv.u8(lay.blocks[0].1));
@@ -447,7 +358,7 @@ fn layer4(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &HeadLayout, rings: &mut
 /// InstanceNorm statistics need whole maps, so the rows are computed three times: conv1 for its
 /// statistics, conv1 + norm + conv2 for the second statistics, then everything for the output.
 #[allow(clippy::too_many_arguments)]
-fn features(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &HeadLayout, rings: &mut [u8], patch: &mut [u8], norms: &mut [i64], f: &mut [i8]) {
+fn features(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &FeatureHeadLayout, rings: &mut [u8], patch: &mut [u8], norms: &mut [i64], f: &mut [i8]) {
     let d3 = m.config().backbone_dims[2];
     let (h, w) = (g.h8, g.w8);
     let n = (h * w) as i64;
@@ -583,7 +494,7 @@ pub struct EncoderScratch<'a> {
 pub fn encode(m: &QuantModel<'_>, img: &ImageView<'_>, g: &Grid, s: EncoderScratch<'_>, out: EncoderOut<'_>) {
     let cfg = *m.config();
     trunk(m, img, g, s.rings, s.patch, s.l3);
-    let lay = HeadLayout::new(&cfg, g);
+    let lay = FeatureHeadLayout::new(&cfg, g);
     features(m, s.l3, g, &lay, s.rings, s.patch, s.norms, out.features);
     if let Some(ctx) = out.context {
         use Act as A;

@@ -23,6 +23,10 @@ pub mod encoder;
 mod encoder;
 #[cfg(feature = "hal")]
 pub mod hal;
+#[cfg(feature = "internals")]
+pub mod layout;
+#[cfg(not(feature = "internals"))]
+mod layout;
 mod plan;
 #[cfg(feature = "internals")]
 pub mod refine;

@@ -12,55 +12,15 @@
 //! Sizes are in bytes, every buffer 8-byte aligned. [`Plan::ram_bytes`] is the total.
 #![deny(clippy::indexing_slicing)]
 
-use super::encoder::{HeadLayout, TrunkLayout};
-use super::refine::refine_rings;
+pub use super::layout::{Buf, Bump};
+use super::layout::{FeatureHeadLayout, TrunkLayout, refine_rings};
 use crate::kernels::corr::window_len;
 use crate::model::config::Config;
 pub use crate::model::grid::Grid;
 use crate::model::layers::{ConvId, MASK_CHANNELS};
 
-const fn align8(n: usize) -> usize {
-    (n + 7) & !7
-}
-
 const fn max(a: usize, b: usize) -> usize {
     if a > b { a } else { b }
-}
-
-/// A buffer: byte offset in the arena and byte length.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct Buf {
-    /// Byte offset.
-    pub at: usize,
-    /// Byte length.
-    pub len: usize,
-}
-
-impl Buf {
-    /// End offset.
-    pub const fn end(&self) -> usize {
-        self.at + self.len
-    }
-}
-
-/// Sequential allocator used by the plan's `const fn`s.
-#[derive(Clone, Copy, Debug)]
-pub struct Bump {
-    /// Next free offset.
-    pub at: usize,
-}
-
-impl Bump {
-    /// Starts at `at`.
-    pub const fn new(at: usize) -> Self {
-        Self { at: align8(at) }
-    }
-    /// Reserves `len` bytes.
-    pub const fn take(&mut self, len: usize) -> Buf {
-        let b = Buf { at: self.at, len };
-        self.at = align8(self.at + len);
-        b
-    }
 }
 
 /// Frame-long buffers.
@@ -221,7 +181,7 @@ impl Plan {
             logits: b.take(2 * MASK_CHANNELS + 2 * cfg.mask_head_dim),
         };
         let scratch = b.at;
-        let encoder_rings = max(TrunkLayout::new(cfg, &g).total, HeadLayout::new(cfg, &g).total);
+        let encoder_rings = max(TrunkLayout::new(cfg, &g).total, FeatureHeadLayout::new(cfg, &g).total);
         let mut e = Bump::new(scratch);
         let encoder = EncoderBufs {
             l3: e.take(n8 * d3),

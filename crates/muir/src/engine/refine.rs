@@ -14,7 +14,8 @@
 #![deny(clippy::indexing_slicing)]
 
 use super::encoder::{conv, run_conv};
-use super::plan::{Buf, Bump, Grid};
+use super::layout::{FlowHeadLayout, GruLayout, MudLayout, UfiLayout};
+use crate::model::grid::Grid;
 use super::ring::{Carver, Ring, chunk, chunk_mut, copy_row, first_n, first_n_mut, last_input_row};
 use crate::arith::{lut, sat_i16};
 use crate::format::QuantModel;
@@ -25,7 +26,6 @@ use crate::kernels::corr::{LookupParams, LookupScratch, lookup_pixel, peaks_pixe
 use crate::kernels::eltwise::{blend_q15, mud_mask, mul_plane_q15, mul_q15, proposal_flow};
 use crate::kernels::resample::{interp_row, pool2x_row};
 use crate::kernels::upsample::upsample_pixel;
-use crate::model::config::Config;
 use crate::model::graph::Act;
 use crate::model::layers::{ConvId::*, MASK_CHANNELS};
 
@@ -150,208 +150,11 @@ fn conv16(p: &ConvParams<'_>, parts: &[PartRows<'_, i16>], w: usize, out: &mut [
     run_conv(p, parts, w, &mut OutRow::I16(out), patch);
 }
 
-/// Bytes of `rows` i16 rows of `w x c`.
-const fn ring16(w: usize, rows: usize, c: usize) -> usize {
-    2 * rows * w * c
-}
-
-// ------------------------------------------------------------------------------------------------
-// Layouts of the passes' line buffers (relative to the refinement ring region)
-// ------------------------------------------------------------------------------------------------
-
-/// Line buffers of the UFI passes.
-#[derive(Clone, Copy, Debug)]
-pub struct UfiLayout {
-    /// Proposals (d1, d2 per pixel).
-    pub peaks: Buf,
-    /// Proposal flow, whole.
-    pub flow_k: Buf,
-    /// Correlation row.
-    pub corr: Buf,
-    /// Rings: corr features, disparity features, proposal features, candidate, context rows.
-    pub c: Buf,
-    /// Disparity features ring.
-    pub f: Buf,
-    /// Proposal features ring.
-    pub feat: Buf,
-    /// Candidate state ring.
-    pub q: Buf,
-    /// Context rows ring.
-    pub inp: Buf,
-    /// Gate row.
-    pub z: Buf,
-    /// Blended rows waiting for write-back.
-    pub pending: Buf,
-    /// Decoder hidden ring.
-    pub h1: Buf,
-    /// Decoder output row.
-    pub h2: Buf,
-    /// Total bytes.
-    pub total: usize,
-}
-
-impl UfiLayout {
-    /// Layout for `cfg` on `g`.
-    pub const fn new(cfg: &Config, g: &Grid) -> Self {
-        let w = g.w8;
-        let h = cfg.hidden_dim;
-        let fc = cfg.flow_channels;
-        let mut b = Bump::new(0);
-        Self {
-            peaks: b.take(2 * 2 * g.n8()),
-            flow_k: b.take(2 * g.n8() * fc),
-            corr: b.take(2 * w * cfg.corr_channels()),
-            c: b.take(2 * 3 * w * cfg.ufi_corr_dim),
-            f: b.take(2 * 3 * w * cfg.ufi_flow_dim),
-            feat: b.take(2 * 3 * w * (cfg.ufi_dim - fc)),
-            q: b.take(2 * 3 * w * h),
-            inp: b.take(2 * 3 * w * cfg.context_dim),
-            z: b.take(2 * w * h),
-            pending: b.take(2 * 2 * w * h),
-            h1: b.take(2 * 3 * w * cfg.ufi_head_dim),
-            h2: b.take(2 * w * 2),
-            total: b.at,
-        }
-    }
-}
-
-/// Line buffers of the MUD and MGA-value passes.
-#[derive(Clone, Copy, Debug)]
-pub struct MudLayout {
-    /// Correlation rows (3).
-    pub corr: Buf,
-    /// MUD hidden rings.
-    pub mud1: Buf,
-    /// Second MUD ring.
-    pub mud2: Buf,
-    /// MUD output row.
-    pub mud3: Buf,
-    /// MGA mask row.
-    pub hm: Buf,
-    /// MGA value row.
-    pub v: Buf,
-    /// Total bytes.
-    pub total: usize,
-}
-
-impl MudLayout {
-    /// Layout for `cfg` on `g`.
-    pub const fn new(cfg: &Config, g: &Grid) -> Self {
-        let w = g.w8;
-        let mut b = Bump::new(0);
-        Self {
-            corr: b.take(ring16(w, 3, cfg.corr_channels())),
-            mud1: b.take(ring16(w, 3, cfg.mud_dim)),
-            mud2: b.take(ring16(w, 3, cfg.mud_dim)),
-            mud3: b.take(ring16(w, 1, 2)),
-            hm: b.take(ring16(w, 1, 1)),
-            v: b.take(ring16(w, 1, cfg.hidden_dim)),
-            total: b.at,
-        }
-    }
-}
-
-/// Line buffers of a ConvGRU pass (the 1/8 one with the motion encoder; the 1/16 one uses the
-/// GRU rings only, with shorter rows).
-#[derive(Clone, Copy, Debug)]
-pub struct GruLayout {
-    /// Correlation row.
-    pub corr: Buf,
-    /// Masked correlation row (`C * m`).
-    pub corr_m: Buf,
-    /// Motion rings.
-    pub c1: Buf,
-    /// ..
-    pub c2: Buf,
-    /// ..
-    pub f1: Buf,
-    /// ..
-    pub f2: Buf,
-    /// Motion features ring (4); pooled 1/8 state for the 1/16 GRU.
-    pub mo: Buf,
-    /// Upsampled 1/16 state ring (4).
-    pub up: Buf,
-    /// MGA output ring (4).
-    pub glb: Buf,
-    /// Context ring (4).
-    pub inp: Buf,
-    /// Update gate ring (2).
-    pub z: Buf,
-    /// Reset-gated state ring (3).
-    pub rh: Buf,
-    /// Gate row.
-    pub gate: Buf,
-    /// Candidate row.
-    pub q: Buf,
-    /// Total bytes.
-    pub total: usize,
-}
-
-impl GruLayout {
-    /// Layout for `cfg` on `g`.
-    pub const fn new(cfg: &Config, g: &Grid) -> Self {
-        let w = g.w8;
-        let h = cfg.hidden_dim;
-        let fc = cfg.flow_channels;
-        let mut b = Bump::new(0);
-        Self {
-            corr: b.take(ring16(w, 1, cfg.corr_channels())),
-            corr_m: b.take(ring16(w, 1, cfg.corr_channels())),
-            c1: b.take(ring16(w, 3, cfg.motion_corr_dims[0])),
-            c2: b.take(ring16(w, 3, cfg.motion_corr_dims[1])),
-            f1: b.take(ring16(w, 3, cfg.motion_flow_dims[0])),
-            f2: b.take(ring16(w, 3, cfg.motion_flow_dims[1])),
-            mo: b.take(ring16(w, 4, if cfg.motion_dim - fc > h { cfg.motion_dim - fc } else { h })),
-            up: b.take(ring16(w, 4, h)),
-            glb: b.take(ring16(w, 4, h)),
-            inp: b.take(ring16(w, 4, cfg.context_dim)),
-            z: b.take(ring16(w, 2, h)),
-            rh: b.take(ring16(w, 3, h)),
-            gate: b.take(ring16(w, 1, h)),
-            q: b.take(ring16(w, 1, h)),
-            total: b.at,
-        }
-    }
-}
-
-/// Line buffers of the disparity head and of the output (mask head, upsampling) passes.
-#[derive(Clone, Copy, Debug)]
-pub struct HeadLayout {
-    /// Head hidden ring (3).
-    pub head: Buf,
-    /// Head output row.
-    pub head_out: Buf,
-    /// Disparity channel 0 for the upsampler.
-    pub flow0: Buf,
-    /// Total bytes.
-    pub total: usize,
-}
-
-impl HeadLayout {
-    /// Layout for `cfg` on `g`.
-    pub const fn new(cfg: &Config, g: &Grid) -> Self {
-        let w = g.w8;
-        let mh = if cfg.flow_head_dim > cfg.mask_head_dim { cfg.flow_head_dim } else { cfg.mask_head_dim };
-        let mut b = Bump::new(0);
-        Self {
-            head: b.take(ring16(w, 3, mh)),
-            head_out: b.take(ring16(w, 1, cfg.flow_channels)),
-            flow0: b.take(2 * g.n8()),
-            total: b.at,
-        }
-    }
-}
-
-/// Bytes of the refinement line buffers: the largest pass.
-pub const fn refine_rings(cfg: &Config, g: &Grid) -> usize {
-    let a = UfiLayout::new(cfg, g).total;
-    let b = MudLayout::new(cfg, g).total;
-    let c = GruLayout::new(cfg, g).total;
-    let d = HeadLayout::new(cfg, g).total;
-    let ab = if a > b { a } else { b };
-    let cd = if c > d { c } else { d };
-    if ab > cd { ab } else { cd }
-}
+/// The convex upsampler's factor: every 1/8-grid pixel becomes an `UP x UP` block of the output
+/// (the per-pixel block buffers of the output pass are this size).
+const UP: usize = 8;
+// The mask head predicts 9 convex weights for each pixel of the block.
+const _: () = assert!(MASK_CHANNELS == 9 * UP * UP);
 
 // ------------------------------------------------------------------------------------------------
 // UFI
@@ -372,10 +175,10 @@ pub fn ufi(c: &mut Ctx<'_, '_, '_>, max_d8: usize) {
     let peaks = cv.i16(lay.peaks);
     let flow_k = cv.i16(lay.flow_k);
     let corr = cv.i16(lay.corr);
-    let (b_c, b_f, b_feat, b_q, b_inp) = (cv.i16(lay.c), cv.i16(lay.f), cv.i16(lay.feat), cv.i16(lay.q), cv.i16(lay.inp));
+    let (b_c, b_f, b_feat, b_q, b_inp) = (cv.i16(lay.c.buf), cv.i16(lay.f.buf), cv.i16(lay.feat.buf), cv.i16(lay.q.buf), cv.i16(lay.inp.buf));
     let z = cv.i16(lay.z);
-    let pend = cv.i16(lay.pending);
-    let b_h1 = cv.i16(lay.h1);
+    let pend = cv.i16(lay.pending.buf);
+    let b_h1 = cv.i16(lay.h1.buf);
     let h2 = cv.i16(lay.h2);
     // Proposals.
     for y in 0..h8 {
@@ -417,12 +220,12 @@ pub fn ufi(c: &mut Ctx<'_, '_, '_>, max_d8: usize) {
     }
     for k in 0..3 {
         set_flow(k, flow_k);
-        let mut rc = Ring::new(&mut b_c[..], 3, w * cfg.ufi_corr_dim, h8);
-        let mut rf = Ring::new(&mut b_f[..], 3, w * cfg.ufi_flow_dim, h8);
-        let mut rfeat = Ring::new(&mut b_feat[..], 3, w * (cfg.ufi_dim - fc), h8);
-        let mut rq = Ring::new(&mut b_q[..], 3, w * hd, h8);
-        let mut rinp = Ring::new(&mut b_inp[..], 3, w * cfg.context_dim, h8);
-        let mut rpend = Ring::new(&mut pend[..], 2, w * hd, h8);
+        let mut rc = Ring::of(&mut b_c[..], lay.c, h8);
+        let mut rf = Ring::of(&mut b_f[..], lay.f, h8);
+        let mut rfeat = Ring::of(&mut b_feat[..], lay.feat, h8);
+        let mut rq = Ring::of(&mut b_q[..], lay.q, h8);
+        let mut rinp = Ring::of(&mut b_inp[..], lay.inp, h8);
+        let mut rpend = Ring::of(&mut pend[..], lay.pending, h8);
         let row = w * hd;
         for s in 0..h8 + 4 {
             // lag 0 and 1: corr, disparity and proposal features
@@ -451,10 +254,10 @@ pub fn ufi(c: &mut Ctx<'_, '_, '_>, max_d8: usize) {
     let table = m.u_table();
     for k in 0..3 {
         set_flow(k, flow_k);
-        let mut rc = Ring::new(&mut b_c[..], 3, w * cfg.ufi_corr_dim, h8);
-        let mut rf = Ring::new(&mut b_f[..], 3, w * cfg.ufi_flow_dim, h8);
-        let mut rfeat = Ring::new(&mut b_feat[..], 3, w * (cfg.ufi_dim - fc), h8);
-        let mut rh1 = Ring::new(&mut b_h1[..], 3, w * cfg.ufi_head_dim, h8);
+        let mut rc = Ring::of(&mut b_c[..], lay.c, h8);
+        let mut rf = Ring::of(&mut b_f[..], lay.f, h8);
+        let mut rfeat = Ring::of(&mut b_feat[..], lay.feat, h8);
+        let mut rh1 = Ring::of(&mut b_h1[..], lay.h1, h8);
         for s in 0..h8 + 4 {
             feature_rows!(s, rc, rf, rfeat);
             if s >= 2 && s - 2 < h8 {
@@ -545,12 +348,12 @@ pub fn mud_pass(c: &mut Ctx<'_, '_, '_>) {
     let m = c.m;
     let cfg = *m.config();
     let g = c.g;
-    let (w, h8, hd, fc, cc) = (g.w8, g.h8, cfg.hidden_dim, cfg.flow_channels, cfg.corr_channels());
+    let (w, h8, hd, fc) = (g.w8, g.h8, cfg.hidden_dim, cfg.flow_channels);
     let lay = MudLayout::new(&cfg, &g);
     let mut cv = Carver::new(c.rings);
-    let mut rcorr = Ring::new(cv.i16(lay.corr), 3, w * cc, h8);
-    let mut r1 = Ring::new(cv.i16(lay.mud1), 3, w * cfg.mud_dim, h8);
-    let mut r2 = Ring::new(cv.i16(lay.mud2), 3, w * cfg.mud_dim, h8);
+    let mut rcorr = cv.ring16(lay.corr, h8);
+    let mut r1 = cv.ring16(lay.mud1, h8);
+    let mut r2 = cv.ring16(lay.mud2, h8);
     let out = cv.i16(lay.mud3);
     let (p1, p2, p3) = (conv(m, Mud1), conv(m, Mud2), conv(m, Mud3));
     let table = m.u_table();
@@ -586,10 +389,10 @@ pub fn mga_values(c: &mut Ctx<'_, '_, '_>) {
     let m = c.m;
     let cfg = *m.config();
     let g = c.g;
-    let (w, h8, hd, fc, cc) = (g.w8, g.h8, cfg.hidden_dim, cfg.flow_channels, cfg.corr_channels());
+    let (w, h8, hd, fc) = (g.w8, g.h8, cfg.hidden_dim, cfg.flow_channels);
     let lay = MudLayout::new(&cfg, &g);
     let mut cv = Carver::new(c.rings);
-    let mut rcorr = Ring::new(cv.i16(lay.corr), 3, w * cc, h8);
+    let mut rcorr = cv.ring16(lay.corr, h8);
     let hm = cv.i16(lay.hm);
     let v = cv.i16(lay.v);
     let (pm, pv) = (conv(m, MgaMask), conv(m, MgaValue));
@@ -623,10 +426,10 @@ pub fn gru16(c: &mut Ctx<'_, '_, '_>) {
     let lay = GruLayout::new(&cfg, &g);
     let mut cv = Carver::new(c.rings);
     let row = w * hd;
-    let mut pool = Ring::new(cv.i16(lay.mo), 4, row, h);
-    let mut inp = Ring::new(cv.i16(lay.inp), 4, w * ctx, h);
-    let mut rz = Ring::new(cv.i16(lay.z), 2, row, h);
-    let mut rh = Ring::new(cv.i16(lay.rh), 3, row, h);
+    let mut pool = Ring::of_len(cv.i16(lay.mo.buf), lay.mo, row, h);
+    let mut inp = Ring::of_len(cv.i16(lay.inp.buf), lay.inp, w * ctx, h);
+    let mut rz = Ring::of_len(cv.i16(lay.z.buf), lay.z, row, h);
+    let mut rh = Ring::of_len(cv.i16(lay.rh.buf), lay.rh, row, h);
     let gate = cv.i16(lay.gate);
     let q = cv.i16(lay.q);
     let (pz, pr, pq) = (conv(m, Gru16Z), conv(m, Gru16R), conv(m, Gru16Q));
@@ -664,16 +467,16 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
     let mut cv = Carver::new(c.rings);
     let corr = cv.i16(lay.corr);
     let corr_m = cv.i16(lay.corr_m);
-    let mut rc1 = Ring::new(cv.i16(lay.c1), 3, w * cfg.motion_corr_dims[0], h8);
-    let mut rc2 = Ring::new(cv.i16(lay.c2), 3, w * cfg.motion_corr_dims[1], h8);
-    let mut rf1 = Ring::new(cv.i16(lay.f1), 3, w * cfg.motion_flow_dims[0], h8);
-    let mut rf2 = Ring::new(cv.i16(lay.f2), 3, w * cfg.motion_flow_dims[1], h8);
-    let mut rmo = Ring::new(cv.i16(lay.mo), 4, w * (cfg.motion_dim - fc), h8);
-    let mut rup = Ring::new(cv.i16(lay.up), 4, w * hd, h8);
-    let mut rglb = Ring::new(cv.i16(lay.glb), 4, w * hd, h8);
-    let mut rinp = Ring::new(cv.i16(lay.inp), 4, w * ctx, h8);
-    let mut rz = Ring::new(cv.i16(lay.z), 2, w * hd, h8);
-    let mut rrh = Ring::new(cv.i16(lay.rh), 3, w * hd, h8);
+    let mut rc1 = cv.ring16(lay.c1, h8);
+    let mut rc2 = cv.ring16(lay.c2, h8);
+    let mut rf1 = cv.ring16(lay.f1, h8);
+    let mut rf2 = cv.ring16(lay.f2, h8);
+    let mut rmo = Ring::of_len(cv.i16(lay.mo.buf), lay.mo, w * (cfg.motion_dim - fc), h8);
+    let mut rup = cv.ring16(lay.up, h8);
+    let mut rglb = cv.ring16(lay.glb, h8);
+    let mut rinp = cv.ring16(lay.inp, h8);
+    let mut rz = cv.ring16(lay.z, h8);
+    let mut rrh = cv.ring16(lay.rh, h8);
     let gate = cv.i16(lay.gate);
     let q = cv.i16(lay.q);
     let (pc1, pc2, pf1, pf2, pmo) = (conv(m, MotC1), conv(m, MotC2), conv(m, MotF1), conv(m, MotF2), conv(m, MotOut));
@@ -757,8 +560,7 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
     }
 }
 
-/// Disparity head: `flow += conv2(relu(conv1(net08)))`, row by row.
-/// Disparity head: adds its update to the disparity state. Returns how many 1/8-grid pixels moved
+/// Disparity head: `flow += conv2(relu(conv1(net08)))`, row by row: adds its update to the disparity state. Returns how many 1/8-grid pixels moved
 /// by more than `settled` (Q7.8), the measure of [`super::EarlyStop`].
 #[inline(never)] // a phase: its stack frame must not add to the caller's (see `engine::STACK_BUDGET`)
 pub fn flow_head(c: &mut Ctx<'_, '_, '_>, settled: u16) -> usize {
@@ -766,9 +568,9 @@ pub fn flow_head(c: &mut Ctx<'_, '_, '_>, settled: u16) -> usize {
     let cfg = *m.config();
     let g = c.g;
     let (w, h8, hd, fc) = (g.w8, g.h8, cfg.hidden_dim, cfg.flow_channels);
-    let lay = HeadLayout::new(&cfg, &g);
+    let lay = FlowHeadLayout::new(&cfg, &g);
     let mut cv = Carver::new(c.rings);
-    let mut rh = Ring::new(cv.i16(lay.head), 3, w * cfg.flow_head_dim, h8);
+    let mut rh = Ring::of_len(cv.i16(lay.head.buf), lay.head, w * cfg.flow_head_dim, h8);
     let out = cv.i16(lay.head_out);
     let (p1, p2) = (conv(m, Flow1), conv(m, Flow2));
     let mut moved = 0usize;
@@ -801,9 +603,9 @@ pub fn upsample(c: &mut Ctx<'_, '_, '_>, width: usize, height: usize, disp: &mut
     let cfg = *m.config();
     let g = c.g;
     let (w, h8, hd, fc, mh) = (g.w8, g.h8, cfg.hidden_dim, cfg.flow_channels, cfg.mask_head_dim);
-    let lay = HeadLayout::new(&cfg, &g);
+    let lay = FlowHeadLayout::new(&cfg, &g);
     let mut cv = Carver::new(c.rings);
-    let mid = cv.i16(lay.head);
+    let mid = cv.i16(lay.head.buf);
     let flow0 = cv.i16(lay.flow0);
     let (p1, p2) = (conv(m, Mask1), conv(m, Mask2));
     let mask_frac = frac(m, Act::MaskLogit);
@@ -814,8 +616,8 @@ pub fn upsample(c: &mut Ctx<'_, '_, '_>, width: usize, height: usize, disp: &mut
         }
     }
     let u_src: Option<&[i16]> = if cfg.mud { Some(&*c.st.u) } else { None };
-    let mut dblk = [0i16; 64];
-    let mut ublk = [0i16; 64];
+    let mut dblk = [0i16; UP * UP];
+    let mut ublk = [0i16; UP * UP];
     let flow0 = first_n(flow0, g.n8());
     let mid = first_n_mut(mid, w * mh);
     for y in 0..h8 {
@@ -825,15 +627,15 @@ pub fn upsample(c: &mut Ctx<'_, '_, '_>, width: usize, height: usize, disp: &mut
             r[0] = Some(chunk(mid, x, mh));
             let logits = first_n_mut(c.px.logits, MASK_CHANNELS);
             conv16(&p2, &[PartRows { rows: r }], 1, logits, c.px.patch);
-            upsample_pixel(logits, mask_frac, flow0, u_src, h8, w, y, x, &mut dblk, u_src.map(|_| &mut ublk[..]), 8);
-            // The 8 x 8 block, cropped to the output: `cols` columns from `8 x` on.
-            let cols = width.saturating_sub(8 * x).min(8);
-            for (dy, (db, ub)) in dblk.chunks_exact(8).zip(ublk.chunks_exact(8)).enumerate() {
-                let oy = 8 * y + dy;
+            upsample_pixel(logits, mask_frac, flow0, u_src, h8, w, y, x, &mut dblk, u_src.map(|_| &mut ublk[..]), UP);
+            // The UP x UP block, cropped to the output: `cols` columns from `UP x` on.
+            let cols = width.saturating_sub(UP * x).min(UP);
+            for (dy, (db, ub)) in dblk.chunks_exact(UP).zip(ublk.chunks_exact(UP)).enumerate() {
+                let oy = UP * y + dy;
                 if oy >= height {
                     break;
                 }
-                let at = oy * width + 8 * x;
+                let at = oy * width + UP * x;
                 if let Some(d) = disp.get_mut(at..at + cols) {
                     d.iter_mut().zip(db).for_each(|(d, s)| *d = *s);
                 }

@@ -6,7 +6,7 @@
 //! reach an index panic; for a plan-checked arena this cannot happen.
 #![deny(clippy::indexing_slicing)]
 
-use super::plan::Buf;
+use super::layout::{Buf, RingDecl};
 use crate::kernels::conv::{MAX_K, PartRows};
 
 /// Splits typed, disjoint buffers off an arena, in increasing offset order.
@@ -57,6 +57,10 @@ impl<'a> Carver<'a> {
     pub fn i16(&mut self, b: Buf) -> &'a mut [i16] {
         bytemuck::cast_slice_mut(self.bytes(b))
     }
+    /// The i16 ring a layout declares ([`Ring::of`]), carved here.
+    pub fn ring16(&mut self, d: RingDecl, rows: usize) -> Ring<'a, i16> {
+        Ring::of(self.i16(d.buf), d, rows)
+    }
     /// A byte buffer viewed as `T` (`u8` or `i16`: the trunk's storage).
     pub fn typed<T: bytemuck::Pod>(&mut self, b: Buf) -> &'a mut [T] {
         bytemuck::cast_slice_mut(self.bytes(b))
@@ -90,6 +94,20 @@ impl<'a, T: Copy> Ring<'a, T> {
     pub fn new(buf: &'a mut [T], cap: usize, len: usize, rows: usize) -> Self {
         assert!(buf.len() >= cap * len, "ring buffer too small");
         Self { buf, cap, len, rows, next: 0 }
+    }
+
+    /// The ring a stage's layout declares ([`RingDecl`]: depth and row length), over the buffer
+    /// carved from that declaration, for a tensor of `rows` rows.
+    pub fn of(buf: &'a mut [T], d: RingDecl, rows: usize) -> Self {
+        Self::new(buf, d.cap, d.len, rows)
+    }
+
+    /// [`Ring::of`] with rows of `len <= d.len` elements: a pass that reuses a declared ring for a
+    /// narrower tensor (the 1/16 ConvGRU in the 1/8 one's rings, the disparity head in the ring
+    /// sized for the larger of the two heads). A longer `len` is cut to the declaration's.
+    pub fn of_len(buf: &'a mut [T], d: RingDecl, len: usize, rows: usize) -> Self {
+        debug_assert!(len <= d.len, "ring row {len} longer than declared {}", d.len);
+        Self::new(buf, d.cap, len.min(d.len), rows)
     }
 
     /// Rows pushed so far (the next row to produce).
