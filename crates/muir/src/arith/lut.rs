@@ -3,6 +3,11 @@
 //!
 //! Interpolation between entries `a = T[i]` and `b = T[i+1]` at fraction `f / 2^k`:
 //! `a + rshift_round((b - a) * f, k)`.
+//!
+//! Every entry index comes from a 10-bit field of the input (at most 1023), so both `T[i]` and
+//! `T[i+1]` of a 1025-entry table always exist: the reads are checked (`get`), never indexed, and
+//! the compiler drops the checks.
+#![deny(clippy::indexing_slicing)]
 
 use super::rshift_round;
 use super::tables::{EXP, SIGMOID, SIN, TANH};
@@ -12,23 +17,33 @@ fn interp(a: i32, b: i32, frac: u32, bits: u32) -> i32 {
     a + rshift_round(((b - a) as i64) * frac as i64, bits) as i32
 }
 
+/// Entries `i` and `i + 1` of a 1025-entry table, widened. Every caller's `i` is at most 1023 (a
+/// 10-bit field), so the fallback `(0, 0)` is never taken.
+#[inline(always)]
+fn pair<T: Copy + Into<i32>>(t: &[T; 1025], i: usize) -> (i32, i32) {
+    match t.get(i..i + 2) {
+        Some(&[a, b]) => (a.into(), b.into()),
+        _ => (0, 0),
+    }
+}
+
 /// Reads a 1025-entry table over a 16-bit input `u` in `[0, 65536)` (64 input steps per entry).
 #[inline(always)]
-fn table16(t: impl Fn(usize) -> i32, u: u32) -> i32 {
-    let i = (u >> 6) as usize;
-    interp(t(i), t(i + 1), u & 63, 6)
+fn table16(t: &[i16; 1025], u: u32) -> i32 {
+    let (a, b) = pair(t, (u >> 6) as usize);
+    interp(a, b, u & 63, 6)
 }
 
 /// Sigmoid of a Q3.12 value, in Q0.15 (`0..=32767`).
 #[inline]
 pub fn sigmoid_q12(x: i16) -> i16 {
-    table16(|i| SIGMOID[i] as i32, (x as i32 + 32768) as u32) as i16
+    table16(&SIGMOID, (x as i32 + 32768) as u32) as i16
 }
 
 /// Tanh of a Q3.12 value, in Q0.15 (`-32767..=32767`).
 #[inline]
 pub fn tanh_q12(x: i16) -> i16 {
-    table16(|i| TANH[i] as i32, (x as i32 + 32768) as u32) as i16
+    table16(&TANH, (x as i32 + 32768) as u32) as i16
 }
 
 /// `exp(x)` for a Q4.11 value `x <= 0` (positive inputs are treated as 0), in Q0.15
@@ -41,14 +56,15 @@ pub fn exp_q11(x: i32) -> i32 {
     if i >= 1024 {
         return EXP[1024] as i32;
     }
-    interp(EXP[i] as i32, EXP[i + 1] as i32, u & 31, 5)
+    let (a, b) = pair(&EXP, i);
+    interp(a, b, u & 31, 5)
 }
 
 /// Sine of a 32-bit phase (`2^32` = one turn), times 32767.
 #[inline]
 pub fn sin_phase(phase: u32) -> i32 {
-    let i = (phase >> 22) as usize;
-    interp(SIN[i] as i32, SIN[i + 1] as i32, (phase >> 6) & 0xFFFF, 16)
+    let (a, b) = pair(&SIN, (phase >> 22) as usize);
+    interp(a, b, (phase >> 6) & 0xFFFF, 16)
 }
 
 /// Cosine of a 32-bit phase, times 32767.
@@ -61,10 +77,11 @@ pub fn cos_phase(phase: u32) -> i32 {
 /// a MUD logit), read like the built-in ones.
 #[inline]
 pub fn table_q11(table: &[i16; 1025], x: i16) -> i16 {
-    table16(|i| table[i] as i32, (x as i32 + 32768) as u32) as i16
+    table16(table, (x as i32 + 32768) as u32) as i16
 }
 
 #[cfg(all(test, feature = "std"))]
+#[allow(clippy::indexing_slicing)]
 mod tests {
     use super::*;
 

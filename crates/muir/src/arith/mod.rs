@@ -19,6 +19,7 @@
 //!   the model blob writer checks the worst-case bound).
 //! * **Nonlinearities** by table with linear interpolation ([`lut`]): sigmoid and tanh take Q3.12
 //!   and return Q0.15; exp takes Q4.11 in `[-16, 0]` and returns Q0.15; sine takes a 32-bit phase.
+#![deny(clippy::indexing_slicing)]
 
 pub mod lut;
 mod tables;
@@ -345,6 +346,7 @@ impl QFormat {
 }
 
 #[cfg(test)]
+#[allow(clippy::indexing_slicing)]
 mod tests {
     use super::*;
 

@@ -10,8 +10,13 @@
 //! part `p` is requantised with `mult[c][p]` to the output format with [`EXTRA_BITS`] more fraction
 //! bits; the parts' results and the bias (same units) are summed, then rounded:
 //! `y = post(rshift_round(bias[c] + sum_p requantize(sum(w * x)_p, mult[c][p]), EXTRA_BITS))`.
+//!
+//! Buffers shorter than the parameters say never reach a panic: a missing input row or column
+//! is padding, a missing bias is 0, a missing multiplier is [`Multiplier::ZERO`], and a missing
+//! weight row, patch or output element ends that channel's (or row's) work early.
+#![deny(clippy::indexing_slicing)]
 
-use super::{Elem, OutRow, dot_plain, pair_index};
+use super::{Elem, OutRow, dot_plain, head_mut, pair_index, set_at};
 use crate::arith::{Multiplier, lut, requantize};
 use crate::model::graph::PostOp;
 
@@ -23,12 +28,17 @@ pub const MAX_K: usize = 7;
 pub struct BiasRef<'a>(pub &'a [u8]);
 
 impl BiasRef<'_> {
-    /// Bias of channel `c`.
+    /// Bias of channel `c` (0 past the end of the table).
     #[inline(always)]
     pub fn get(&self, c: usize) -> i64 {
-        let b = &self.0[8 * c..8 * c + 8];
-        i64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]])
+        bias_at(self.0.get(8 * c..).unwrap_or_default())
     }
+}
+
+/// The bias stored at the start of `b` ([`BiasRef`] layout; 0 when `b` is shorter than 8 bytes).
+#[inline(always)]
+fn bias_at(b: &[u8]) -> i64 {
+    b.first_chunk::<8>().map_or(0, |b| i64::from_le_bytes(*b))
 }
 
 /// Extra fraction bits of the per-part requantised sums (see the module doc).
@@ -40,11 +50,20 @@ pub const EXTRA_BITS: u32 = 8;
 pub struct MultRef<'a>(pub &'a [u8]);
 
 impl MultRef<'_> {
-    /// Multiplier of channel `c`.
+    /// Multiplier of channel `c` ([`Multiplier::ZERO`] past the end of the table).
     #[inline(always)]
     pub fn get(&self, c: usize) -> Multiplier {
-        let b = &self.0[8 * c..8 * c + 8];
-        Multiplier { m: i32::from_le_bytes([b[0], b[1], b[2], b[3]]), shift: b[4].clamp(1, 126) }
+        mult_at(self.0.get(8 * c..).unwrap_or_default())
+    }
+}
+
+/// The multiplier stored at the start of `b` ([`MultRef`] layout; [`Multiplier::ZERO`] when `b`
+/// is shorter than 8 bytes).
+#[inline(always)]
+fn mult_at(b: &[u8]) -> Multiplier {
+    match b.first_chunk::<8>() {
+        Some(&[m0, m1, m2, m3, shift, ..]) => Multiplier { m: i32::from_le_bytes([m0, m1, m2, m3]), shift: shift.clamp(1, 126) },
+        None => Multiplier::ZERO,
     }
 }
 
@@ -108,8 +127,14 @@ pub fn part_sum(p: &ConvParams<'_>, c: usize, part: usize, acc: i64) -> i64 {
 /// Bias, rounding and activation of output channel `c` from the sum of its parts' contributions.
 #[inline(always)]
 pub fn finish(p: &ConvParams<'_>, c: usize, sum: i64) -> i64 {
-    let v = crate::arith::rshift_round(sum.saturating_add(p.bias.get(c)), EXTRA_BITS);
-    match p.post {
+    finish_with(p.post, p.bias.get(c), sum)
+}
+
+/// [`finish`] with the channel's bias.
+#[inline(always)]
+fn finish_with(post: PostOp, bias: i64, sum: i64) -> i64 {
+    let v = crate::arith::rshift_round(sum.saturating_add(bias), EXTRA_BITS);
+    match post {
         PostOp::None => v,
         PostOp::Relu => v.max(0),
         PostOp::Sigmoid => lut::sigmoid_q12(crate::arith::sat_i16(v)) as i64,
@@ -127,20 +152,37 @@ pub struct PartRows<'a, T> {
 }
 
 impl<'a, T> PartRows<'a, T> {
-    /// Rows `y*stride - k/2 + ky` of a whole HWC tensor `t` (`h` rows of `row_len` values).
+    /// Rows `y*stride - k/2 + ky` of a whole HWC tensor `t` (`h` rows of `row_len` values; rows
+    /// past the end of a shorter `t` are padding).
     pub fn of_tensor(t: &'a [T], h: usize, row_len: usize, y: usize, k: usize, stride: usize) -> Self {
         let mut rows = [None; MAX_K];
         for (ky, r) in rows.iter_mut().enumerate().take(k) {
             let iy = (y * stride + ky) as isize - (k / 2) as isize;
             if iy >= 0 && (iy as usize) < h {
-                *r = Some(&t[iy as usize * row_len..(iy as usize + 1) * row_len]);
+                *r = t.get(iy as usize * row_len..(iy as usize + 1) * row_len);
             }
         }
         Self { rows }
     }
+    /// Row `ky`, `None` in the padding (and for `ky >= MAX_K`, which no layer has).
+    #[inline(always)]
+    fn row(&self, ky: usize) -> Option<&'a [T]> {
+        self.rows.get(ky).copied().flatten()
+    }
 }
 
-/// Gathers the patch of output column `ox`: `[part][ky][kx][c]`, zeros outside the input.
+/// Values `ix * ch ..` of an input row (`ch` of them), `None` in the padding: outside the `w_in`
+/// columns, or past the end of a short row.
+#[inline(always)]
+fn column<T>(row: Option<&[T]>, ix: isize, w_in: usize, ch: usize) -> Option<&[T]> {
+    match row {
+        Some(r) if ix >= 0 && (ix as usize) < w_in => r.get(ix as usize * ch..(ix as usize + 1) * ch),
+        _ => None,
+    }
+}
+
+/// Gathers the patch of output column `ox`: `[part][ky][kx][c]`, zeros outside the input (stops
+/// at the end of a too-short `patch`).
 #[inline]
 fn gather<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, ox: usize, patch: &mut [T]) {
     let k = p.k;
@@ -148,13 +190,15 @@ fn gather<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, 
     let mut o = 0;
     for (part, &ch) in inputs.iter().zip(p.parts) {
         for ky in 0..k {
-            let row = part.rows[ky];
+            let row = part.row(ky);
             for kx in 0..k {
                 let ix = (ox * p.stride + kx) as isize - pad;
-                let dst = &mut patch[o..o + ch];
-                match row {
-                    Some(r) if ix >= 0 && (ix as usize) < w_in => dst.copy_from_slice(&r[ix as usize * ch..(ix as usize + 1) * ch]),
-                    _ => dst.fill(T::default()),
+                let Some(dst) = patch.get_mut(o..o + ch) else {
+                    return;
+                };
+                match column(row, ix, w_in, ch) {
+                    Some(src) => dst.copy_from_slice(src),
+                    None => dst.fill(T::default()),
                 }
                 o += ch;
             }
@@ -227,27 +271,28 @@ fn gather2<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize,
     let mut base = 0;
     for (part, &ch) in inputs.iter().zip(p.parts) {
         let n = ch * k * k;
-        let dst = &mut pair[2 * base..2 * (base + n)];
+        let Some(dst) = pair.get_mut(2 * base..2 * (base + n)) else {
+            return;
+        };
         for (second, x) in [(false, ox), (true, ox + 1)] {
             let mut j = 0;
             for ky in 0..k {
-                let row = part.rows[ky];
+                let row = part.row(ky);
                 for kx in 0..k {
                     let ix = (x * p.stride + kx) as isize - pad;
-                    let src = match row {
-                        Some(r) if ix >= 0 && (ix as usize) < w_in => Some(&r[ix as usize * ch..(ix as usize + 1) * ch]),
-                        _ => None,
-                    };
+                    let src = column(row, ix, w_in, ch);
                     if ch % 4 == 0 {
                         // Every group whole (`j` and `n` are multiples of 4): group `g` of these
                         // values goes to `2 j + 8 g` (plus 4 for the second patch).
-                        let d = dst[2 * j..2 * (j + ch)].chunks_exact_mut(8).map(|d| &mut d[if second { 4 } else { 0 }..][..4]);
+                        let d = dst.get_mut(2 * j..2 * (j + ch)).unwrap_or_default().chunks_exact_mut(8).map(|d| {
+                            let (a, b) = d.split_at_mut(4);
+                            if second { b } else { a }
+                        });
                         match src {
                             Some(s) if T::PAIR_SWAP => d.zip(s.chunks_exact(4)).for_each(|(g, s)| {
-                                g[0] = s[0];
-                                g[1] = s[2];
-                                g[2] = s[1];
-                                g[3] = s[3];
+                                if let ([g0, g1, g2, g3], &[s0, s1, s2, s3]) = (g, s) {
+                                    (*g0, *g1, *g2, *g3) = (s0, s2, s1, s3);
+                                }
                             }),
                             Some(s) => d.zip(s.chunks_exact(4)).for_each(|(g, s)| g.copy_from_slice(s)),
                             None => d.for_each(|g| g.fill(T::default())),
@@ -260,20 +305,16 @@ fn gather2<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize,
                     while e < ch {
                         let at = pair_index(n, j + e, second, T::PAIR_SWAP);
                         if (j + e) % 4 == 0 && e + 4 <= ch && j + e + 4 <= n / 4 * 4 {
-                            let g = &mut dst[at..at + 4];
-                            match src {
-                                Some(s) if T::PAIR_SWAP => {
-                                    g[0] = s[e];
-                                    g[1] = s[e + 2];
-                                    g[2] = s[e + 1];
-                                    g[3] = s[e + 3];
+                            if let Some(g) = dst.get_mut(at..at + 4) {
+                                match src.and_then(|s| s.get(e..e + 4)) {
+                                    Some(&[s0, s1, s2, s3]) if T::PAIR_SWAP => g.copy_from_slice(&[s0, s2, s1, s3]),
+                                    Some(s) => g.copy_from_slice(s),
+                                    None => g.fill(T::default()),
                                 }
-                                Some(s) => g.copy_from_slice(&s[e..e + 4]),
-                                None => g.fill(T::default()),
                             }
                             e += 4;
                         } else {
-                            dst[at] = src.map_or(T::default(), |s| s[e]);
+                            set_at(dst, at, src.and_then(|s| s.get(e)).copied().unwrap_or_default());
                             e += 1;
                         }
                     }
@@ -285,106 +326,144 @@ fn gather2<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize,
     }
 }
 
-/// Output channel `c` (and `c + 1` when `pair`) at one pixel from its gathered patch.
+/// The two halves of a two-channel block (weights, multipliers or biases of channels `c` and
+/// `c + 1`).
+#[inline(always)]
+fn halves<T>(b: &[T]) -> (&[T], &[T]) {
+    b.split_at(b.len() / 2)
+}
+
+/// Weights (`2 kl` values), multipliers (`2 parts` entries) and biases (2 entries) of output
+/// channels `2i` and `2i + 1`, for `i < cout / 2`: the channel pairs walk the tables in steps of
+/// two channels, with no index arithmetic or bounds check per pair (stops early where a table is
+/// shorter; `kl` and the part count are not 0).
+#[inline(always)]
+fn channel_pairs<'a>(p: &ConvParams<'a>, kl: usize) -> impl Iterator<Item = ((&'a [i8], &'a [u8]), &'a [u8])> {
+    let weights = p.weights.chunks_exact(2 * kl);
+    weights.zip(p.mult.0.chunks_exact(16 * p.parts.len())).zip(p.bias.0.chunks_exact(16)).take(p.cout / 2)
+}
+
+/// Sums of the parts' contributions (before [`finish`]) of a channel pair at one pixel from its
+/// gathered patch: `w` and `m` are the pair's weights and multipliers ([`channel_pairs`]).
 #[inline]
-fn channels_at<T: Elem>(p: &ConvParams<'_>, patch: &[T], c: usize, pair: bool, out: &mut OutRow<'_>, at: usize) {
-    let (k, kl) = (p.k, p.patch_len());
-    if pair {
-        let (w0, w1) = (&p.weights[c * kl..(c + 1) * kl], &p.weights[(c + 1) * kl..(c + 2) * kl]);
-        let (mut s0, mut s1) = (0i64, 0i64);
-        let mut o = 0;
-        for (part, &ch) in p.parts.iter().enumerate() {
-            let n = ch * k * k;
-            let (d0, d1) = T::dot2(&w0[o..o + n], &w1[o..o + n], &patch[o..o + n]);
-            s0 = s0.saturating_add(part_sum(p, c, part, d0));
-            s1 = s1.saturating_add(part_sum(p, c + 1, part, d1));
-            o += n;
-        }
-        out.set(at + c, finish(p, c, s0));
-        out.set(at + c + 1, finish(p, c + 1, s1));
-    } else {
-        let w = &p.weights[c * kl..(c + 1) * kl];
-        let mut sum = 0i64;
-        let mut o = 0;
-        for (part, &ch) in p.parts.iter().enumerate() {
-            let n = ch * k * k;
-            sum = sum.saturating_add(part_sum(p, c, part, T::dot(&w[o..o + n], &patch[o..o + n])));
-            o += n;
-        }
-        out.set(at + c, finish(p, c, sum));
+fn pair_sums<T: Elem>(p: &ConvParams<'_>, patch: &[T], w: &[i8], m: &[u8]) -> (i64, i64) {
+    let ((w0, w1), (m0, m1)) = (halves(w), halves(m));
+    let (mut s0, mut s1) = (0i64, 0i64);
+    let mut o = 0;
+    for ((&ch, m0), m1) in p.parts.iter().zip(m0.chunks_exact(8)).zip(m1.chunks_exact(8)) {
+        let n = ch * p.k * p.k;
+        let (Some(a), Some(b), Some(x)) = (w0.get(o..o + n), w1.get(o..o + n), patch.get(o..o + n)) else {
+            break;
+        };
+        let (d0, d1) = T::dot2(a, b, x);
+        s0 = s0.saturating_add(requantize(d0, mult_at(m0)));
+        s1 = s1.saturating_add(requantize(d1, mult_at(m1)));
+        o += n;
     }
+    (s0, s1)
+}
+
+/// Output channel `c` alone at one pixel from its gathered patch (an odd last channel).
+#[inline]
+fn channel_at<T: Elem>(p: &ConvParams<'_>, patch: &[T], c: usize, out: &mut OutRow<'_>, at: usize) {
+    let (kl, np) = (p.patch_len(), p.parts.len());
+    let (Some(w), Some(m)) = (p.weights.get(c * kl..(c + 1) * kl), p.mult.0.get(8 * c * np..8 * (c + 1) * np)) else {
+        return;
+    };
+    let mut sum = 0i64;
+    let mut o = 0;
+    for (&ch, m) in p.parts.iter().zip(m.chunks_exact(8)) {
+        let n = ch * p.k * p.k;
+        let (Some(w), Some(x)) = (w.get(o..o + n), patch.get(o..o + n)) else {
+            break;
+        };
+        sum = sum.saturating_add(requantize(T::dot(w, x), mult_at(m)));
+        o += n;
+    }
+    out.set(at + c, finish(p, c, sum));
 }
 
 /// Computes one output row (`out_width * cout` values) from the parts' input rows. `patch` is
 /// scratch of at least [`ConvParams::patch_len`] elements; with room for two patches the row is
 /// computed two output pixels at a time, two output channels each ([`Elem::dot2x2`]: every
 /// weight and activation loaded and widened once for two products), else one pixel at a time.
-/// Same integers either way.
+/// Same integers either way. With less than one patch of scratch, or no weights per channel
+/// (`patch_len() == 0`), nothing is computed.
 pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, out: &mut OutRow<'_>, patch: &mut [T]) {
     let k = p.k;
     let kl = p.patch_len();
+    if kl == 0 {
+        return;
+    }
     let w_out = p.out_width(w_in);
     let mut ox = 0;
-    if patch.len() >= 2 * kl {
-        let pair = &mut patch[..2 * kl];
+    if let Some(pair) = patch.get_mut(..2 * kl) {
         while ox + 2 <= w_out {
             gather2(p, inputs, w_in, ox, pair);
             let (at_a, at_b) = (ox * p.cout, (ox + 1) * p.cout);
             let nparts = p.parts.len();
-            // Channel pairs walk the weights in steps of two patches (no index arithmetic or
-            // bounds check per pair); a one-part layer needs no per-part loop.
-            for (cp, wpair) in p.weights.chunks_exact(2 * kl).take(p.cout / 2).enumerate() {
-                let c = 2 * cp;
-                let (w0, w1) = wpair.split_at(kl);
+            let mut c = 0;
+            // A one-part layer needs no per-part loop.
+            for ((w, m), b) in channel_pairs(p, kl) {
+                let ((w0, w1), (m0, m1)) = (halves(w), halves(m));
                 let mut s = [0i64; 4];
                 if nparts == 1 {
                     let d = T::dot2x2(w0, w1, pair);
-                    // `part_sum` for part 0 of one part, with each channel's multiplier read once
-                    // (`part_sum` here costs the M55 160x120 frame 8.4 M instructions more).
-                    let (m0, m1) = (p.mult.get(c), p.mult.get(c + 1));
+                    // Each channel's multiplier read once (`part_sum` here costs the M55 160x120
+                    // frame 8.4 M instructions more).
+                    let (m0, m1) = (mult_at(m0), mult_at(m1));
                     s = [requantize(d[0], m0), requantize(d[1], m1), requantize(d[2], m0), requantize(d[3], m1)];
                 } else {
                     let mut o = 0;
-                    for (part, &ch) in p.parts.iter().enumerate() {
+                    for ((&ch, m0), m1) in p.parts.iter().zip(m0.chunks_exact(8)).zip(m1.chunks_exact(8)) {
                         let n = ch * k * k;
                         let (Some(a), Some(b), Some(x)) = (w0.get(o..o + n), w1.get(o..o + n), pair.get(2 * o..2 * (o + n))) else {
                             break;
                         };
                         let d = T::dot2x2(a, b, x);
-                        s[0] = s[0].saturating_add(part_sum(p, c, part, d[0]));
-                        s[1] = s[1].saturating_add(part_sum(p, c + 1, part, d[1]));
-                        s[2] = s[2].saturating_add(part_sum(p, c, part, d[2]));
-                        s[3] = s[3].saturating_add(part_sum(p, c + 1, part, d[3]));
+                        let (m0, m1) = (mult_at(m0), mult_at(m1));
+                        s[0] = s[0].saturating_add(requantize(d[0], m0));
+                        s[1] = s[1].saturating_add(requantize(d[1], m1));
+                        s[2] = s[2].saturating_add(requantize(d[2], m0));
+                        s[3] = s[3].saturating_add(requantize(d[3], m1));
                         o += n;
                     }
                 }
-                out.set(at_a + c, finish(p, c, s[0]));
-                out.set(at_a + c + 1, finish(p, c + 1, s[1]));
-                out.set(at_b + c, finish(p, c, s[2]));
-                out.set(at_b + c + 1, finish(p, c + 1, s[3]));
+                let (b0, b1) = halves(b);
+                let (b0, b1) = (bias_at(b0), bias_at(b1));
+                out.set(at_a + c, finish_with(p.post, b0, s[0]));
+                out.set(at_a + c + 1, finish_with(p.post, b1, s[1]));
+                out.set(at_b + c, finish_with(p.post, b0, s[2]));
+                out.set(at_b + c + 1, finish_with(p.post, b1, s[3]));
+                c += 2;
             }
-            let c = p.cout / 2 * 2;
             if c < p.cout {
                 // An odd last channel: the two pixels one at a time (their own patches again).
                 for (x, at) in [(ox, at_a), (ox + 1, at_b)] {
-                    let single = &mut pair[..kl];
+                    let single = head_mut(pair, kl);
                     gather(p, inputs, w_in, x, single);
-                    channels_at(p, single, c, false, out, at);
+                    channel_at(p, single, c, out, at);
                 }
             }
             ox += 2;
         }
     }
-    let patch = &mut patch[..kl];
+    let Some(patch) = patch.get_mut(..kl) else {
+        return;
+    };
     while ox < w_out {
         gather(p, inputs, w_in, ox, patch);
+        let at = ox * p.cout;
         let mut c = 0;
-        while c + 2 <= p.cout {
-            channels_at(p, patch, c, true, out, ox * p.cout);
+        for ((w, m), b) in channel_pairs(p, kl) {
+            let (s0, s1) = pair_sums(p, patch, w, m);
+            let (b0, b1) = halves(b);
+            out.set(at + c, finish_with(p.post, bias_at(b0), s0));
+            out.set(at + c + 1, finish_with(p.post, bias_at(b1), s1));
             c += 2;
         }
         if c < p.cout {
-            channels_at(p, patch, c, false, out, ox * p.cout);
+            channel_at(p, patch, c, out, at);
         }
         ox += 1;
     }
@@ -401,7 +480,7 @@ pub fn conv_plain<T: Elem>(p: &ConvParams<'_>, inputs: &[&[T]], h_in: usize, w_i
     for oy in 0..h_out {
         for ox in 0..w_out {
             for c in 0..p.cout {
-                let wts = &p.weights[c * kl..(c + 1) * kl];
+                let wts = p.weights.get(c * kl..(c + 1) * kl).unwrap_or_default();
                 let mut sum = 0i64;
                 let mut o = 0;
                 for (part, (t, &ch)) in inputs.iter().zip(p.parts).enumerate() {
@@ -412,7 +491,9 @@ pub fn conv_plain<T: Elem>(p: &ConvParams<'_>, inputs: &[&[T]], h_in: usize, w_i
                             let ix = (ox * p.stride) as isize + kx - pad;
                             if iy >= 0 && ix >= 0 && (iy as usize) < h_in && (ix as usize) < w_in {
                                 let base = (iy as usize * w_in + ix as usize) * ch;
-                                acc += dot_plain(&wts[o..o + ch], &t[base..base + ch]);
+                                if let (Some(w), Some(x)) = (wts.get(o..o + ch), t.get(base..base + ch)) {
+                                    acc += dot_plain(w, x);
+                                }
                             }
                             o += ch;
                         }
@@ -426,6 +507,7 @@ pub fn conv_plain<T: Elem>(p: &ConvParams<'_>, inputs: &[&[T]], h_in: usize, w_i
 }
 
 #[cfg(all(test, feature = "std"))]
+#[allow(clippy::indexing_slicing)]
 mod tests {
     use super::super::testutil::Rng;
     use super::*;

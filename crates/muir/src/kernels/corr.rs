@@ -14,6 +14,10 @@
 //!   (0 unless `k < floor(w / 2^l)`); units: C / 2^(8+2l).
 //!
 //! Each numerator is requantised with the level's multiplier (blob) into the `Corr` format.
+//!
+//! Columns of a too-short feature row count as 0 (uncorrelated); scratch or output shorter than
+//! the parameters need gets only what fits.
+#![deny(clippy::indexing_slicing)]
 
 use crate::arith::{MAX_PROPOSAL_D8, Multiplier, requantize, sat_i16};
 
@@ -73,37 +77,58 @@ pub struct LookupScratch<'a> {
     pub prefix: &'a mut [i64],
 }
 
+/// Correlation of `f1` with column `col` of the feature row `f2` (`c` values per column): 0
+/// outside the row's `w` columns (and past the end of a too-short `f2`).
+#[inline(always)]
+fn corr_at(f1: &[i8], f2: &[i8], c: usize, w: usize, col: i64) -> i32 {
+    if col < 0 || col as usize >= w {
+        return 0;
+    }
+    let col = col as usize;
+    f2.get(col * c..(col + 1) * c).map_or(0, |f| dot_i8(f1, f))
+}
+
 /// Tiled lookup for left pixel `x` of a row: `f1` is the pixel's feature vector, `f2` the right
-/// feature row (`w * c`, HWC), `flow` the pixel's Q8 flow. Writes `levels * (2r+1)` values.
+/// feature row (`w * c`, HWC), `flow` the pixel's Q8 flow. Writes `levels * (2r+1)` values
+/// (none when the scratch is shorter than [`window_len`]; levels without a multiplier or
+/// without room in `out` are skipped).
 #[allow(clippy::too_many_arguments)]
 pub fn lookup_pixel(p: &LookupParams<'_>, f1: &[i8], f2: &[i8], w: usize, x: usize, flow: i16, s: &mut LookupScratch<'_>, out: &mut [i16]) {
     let c = f1.len();
     let centre = ((x as i64) << 8) + flow as i64;
     let (lo, hi) = span(p, centre);
     let n = (hi - lo) as usize;
-    let win = &mut s.window[..n];
+    let (Some(win), Some(pre)) = (s.window.get_mut(..n), s.prefix.get_mut(..n + 1)) else {
+        return;
+    };
     for (i, v) in win.iter_mut().enumerate() {
-        let col = lo + i as i64;
-        *v = if col >= 0 && (col as usize) < w { dot_i8(f1, &f2[col as usize * c..(col as usize + 1) * c]) } else { 0 };
+        *v = corr_at(f1, f2, c, w, lo + i as i64);
     }
-    let pre = &mut s.prefix[..n + 1];
-    pre[0] = 0;
-    for i in 0..n {
-        pre[i + 1] = pre[i] + win[i] as i64;
+    // pre[i] = sum of win[..i].
+    let mut acc = 0i64;
+    if let Some((first, rest)) = pre.split_first_mut() {
+        *first = 0;
+        for (q, v) in rest.iter_mut().zip(win.iter()) {
+            acc += *v as i64;
+            *q = acc;
+        }
     }
+    let pre = &*pre;
     // S(u, v) over columns, clipped to the window (columns outside it hold no samples' data and
-    // those outside the row are 0 by construction).
+    // those outside the row are 0 by construction); `pre` has `n + 1` values.
     let box_sum = |u: i64, v: i64| {
         let a = (u - lo).clamp(0, n as i64) as usize;
         let b = (v - lo).clamp(0, n as i64) as usize;
-        pre[b] - pre[a]
+        match (pre.get(a), pre.get(b)) {
+            (Some(a), Some(b)) => b - a,
+            _ => 0,
+        }
     };
     let k = 2 * p.radius + 1;
     let r = p.radius as i64;
-    for lvl in 0..p.levels {
+    for ((lvl, &mult), out) in p.mults.iter().enumerate().take(p.levels).zip(out.chunks_exact_mut(k)) {
         let s_l = 1i64 << lvl;
-        let mult = p.mults[lvl];
-        for (jj, j) in (-r..=r).enumerate() {
+        for (j, o) in (-r..=r).zip(out) {
             let num = if p.post_pool {
                 let p0 = centre + (j << (8 + lvl)) - ((s_l - 1) << 7);
                 let (m, a) = (p0 >> 8, p0 & 255);
@@ -115,7 +140,7 @@ pub fn lookup_pixel(p: &LookupParams<'_>, f1: &[i8], f2: &[i8], w: usize, x: usi
                 let block = |b: i64| if b >= 0 && b < blocks { box_sum(b * s_l, (b + 1) * s_l) } else { 0 };
                 ((1i64 << (8 + lvl)) - a) * block(i) + a * block(i + 1)
             };
-            out[lvl * k + jj] = sat_i16(requantize(num, mult));
+            *o = sat_i16(requantize(num, mult));
         }
     }
 }
@@ -124,15 +149,13 @@ pub fn lookup_pixel(p: &LookupParams<'_>, f1: &[i8], f2: &[i8], w: usize, x: usi
 /// recomputed from the features.
 pub fn lookup_pixel_plain(p: &LookupParams<'_>, f1: &[i8], f2: &[i8], w: usize, x: usize, flow: i16, out: &mut [i16]) {
     let c = f1.len();
-    let corr = |col: i64| -> i64 {
-        if col >= 0 && (col as usize) < w { dot_i8(f1, &f2[col as usize * c..(col as usize + 1) * c]) as i64 } else { 0 }
-    };
+    let corr = |col: i64| -> i64 { corr_at(f1, f2, c, w, col) as i64 };
     let centre = ((x as i64) << 8) + flow as i64;
     let k = 2 * p.radius + 1;
     let r = p.radius as i64;
-    for lvl in 0..p.levels {
+    for ((lvl, &mult), out) in p.mults.iter().enumerate().take(p.levels).zip(out.chunks_exact_mut(k)) {
         let s_l = 1i64 << lvl;
-        for (jj, j) in (-r..=r).enumerate() {
+        for (j, o) in (-r..=r).zip(out) {
             let mut num = 0i64;
             if p.post_pool {
                 for i in 0..s_l {
@@ -152,7 +175,7 @@ pub fn lookup_pixel_plain(p: &LookupParams<'_>, f1: &[i8], f2: &[i8], w: usize, 
                 };
                 num = ((1i64 << (8 + lvl)) - a) * block(i) + a * block(i + 1);
             }
-            out[lvl * k + jj] = sat_i16(requantize(num, p.mults[lvl]));
+            *o = sat_i16(requantize(num, mult));
         }
     }
 }
@@ -160,24 +183,27 @@ pub fn lookup_pixel_plain(p: &LookupParams<'_>, f1: &[i8], f2: &[i8], w: usize, 
 /// UFI proposals for left pixel `x`: integer disparities `(d1, d2)` of the highest correlations
 /// over `d in [0, min(x, max_d8, MAX_PROPOSAL_D8)]` (`max_d8`: the largest disparity on the 1/8 grid,
 /// [`crate::model::config::MaxDisparity::grid8`]), `d2` at least `separation` from `d1` (`d1` again
-/// if none is); ties go to the smaller d. `row` is scratch of at least `x + 1` values.
+/// if none is); ties go to the smaller d. `row` is scratch of at least `x + 1` values (the search
+/// stops at its end).
 pub fn peaks_pixel(f1: &[i8], f2: &[i8], x: usize, separation: usize, max_d8: usize, row: &mut [i32]) -> (u16, u16) {
     let c = f1.len();
     let dmax = x.min(max_d8).min(MAX_PROPOSAL_D8);
-    for d in 0..=dmax {
-        row[d] = dot_i8(f1, &f2[(x - d) * c..(x - d + 1) * c]);
+    let row = super::head_mut(row, dmax + 1);
+    for (d, v) in row.iter_mut().enumerate() {
+        *v = corr_at(f1, f2, c, x + 1, (x - d) as i64);
     }
+    let row = &*row;
     let best = |skip: Option<usize>| {
-        let mut arg: Option<usize> = None;
-        for d in 0..=dmax {
+        let mut arg: Option<(usize, i32)> = None;
+        for (d, &v) in row.iter().enumerate() {
             if skip.is_some_and(|d1| d.abs_diff(d1) < separation) {
                 continue;
             }
-            if arg.is_none_or(|a| row[d] > row[a]) {
-                arg = Some(d);
+            if arg.is_none_or(|(_, a)| v > a) {
+                arg = Some((d, v));
             }
         }
-        arg
+        arg.map(|(d, _)| d)
     };
     let d1 = best(None).unwrap_or(0);
     let d2 = best(Some(d1)).unwrap_or(d1);
@@ -187,7 +213,7 @@ pub fn peaks_pixel(f1: &[i8], f2: &[i8], x: usize, separation: usize, max_d8: us
 /// Plain twin of [`peaks_pixel`] (no row buffer: correlations recomputed per comparison).
 pub fn peaks_pixel_plain(f1: &[i8], f2: &[i8], x: usize, separation: usize, max_d8: usize) -> (u16, u16) {
     let c = f1.len();
-    let corr = |d: usize| dot_i8(f1, &f2[(x - d) * c..(x - d + 1) * c]);
+    let corr = |d: usize| corr_at(f1, f2, c, x + 1, (x - d) as i64);
     let dmax = x.min(max_d8).min(MAX_PROPOSAL_D8);
     let mut d1 = 0;
     for d in 1..=dmax {
@@ -205,6 +231,7 @@ pub fn peaks_pixel_plain(f1: &[i8], f2: &[i8], x: usize, separation: usize, max_
 }
 
 #[cfg(test)]
+#[allow(clippy::indexing_slicing)]
 mod tests {
     use super::super::testutil::Rng;
     use super::*;

@@ -1,4 +1,7 @@
 //! Element-wise integer operations: residual add, GRU blend, Q0.15 products, format changes.
+//!
+//! Every operation walks its slices together and stops at the shortest.
+#![deny(clippy::indexing_slicing)]
 
 use crate::arith::{rescale, rshift_round, sat_i16};
 use crate::kernels::Elem;
@@ -9,12 +12,18 @@ use crate::kernels::Elem;
 /// `out_frac`. The output is `u8` (the ReLU is the saturation) or, in a wide trunk
 /// ([`crate::model::config::Config::wide_trunk`]), `i16` clamped to `[0, 32767]`.
 pub fn residual_relu<X: Elem, O: Elem>(y: &[i16], skip: Skip<'_, X>, out_frac: i8, out: &mut [O]) {
-    for (i, o) in out.iter_mut().enumerate() {
-        let s = match skip {
-            Skip::Input { x, frac } => rescale(x[i].to_i32() as i64, frac, out_frac),
-            Skip::Projected(p) => p[i] as i64,
-        };
-        *o = O::from_i64_sat((y[i] as i64 + s).max(0));
+    let add = |y: &i16, s: i64| O::from_i64_sat((*y as i64 + s).max(0));
+    match skip {
+        Skip::Input { x, frac } => {
+            for ((o, y), x) in out.iter_mut().zip(y).zip(x) {
+                *o = add(y, rescale(x.to_i32() as i64, frac, out_frac));
+            }
+        }
+        Skip::Projected(p) => {
+            for ((o, y), p) in out.iter_mut().zip(y).zip(p) {
+                *o = add(y, *p as i64);
+            }
+        }
     }
 }
 
@@ -49,6 +58,9 @@ pub fn mul_q15(x: &[i16], m: &[i16], out: &mut [i16]) {
 
 /// `out[p * c + i] = x[p * c + i] * m[p]`: every channel of pixel `p` times its Q0.15 scalar.
 pub fn mul_plane_q15(x: &[i16], m: &[i16], c: usize, out: &mut [i16]) {
+    if c == 0 {
+        return; // no channels (and `chunks` takes no empty chunks)
+    }
     for ((o, x), m) in out.chunks_mut(c).zip(x.chunks(c)).zip(m) {
         for (o, x) in o.iter_mut().zip(x) {
             *o = sat_i16(rshift_round(*x as i64 * *m as i64, 15));
@@ -76,6 +88,7 @@ pub fn proposal_flow(d: u16) -> i16 {
 }
 
 #[cfg(test)]
+#[allow(clippy::indexing_slicing)]
 mod tests {
     use super::*;
 

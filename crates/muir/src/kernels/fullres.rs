@@ -38,7 +38,12 @@
 //! row and the three downward paths of the previous and current rows ([`ScratchLen`]), so its
 //! memory grows with the width only. The PyTorch twin's evaluation mirrors it bit for bit
 //! (`python/muir/fullres.py`).
+//!
+//! No input reaches a panic: rows and per-column slots are taken with checked reads, and a map or
+//! scratch shorter than the image needs leaves the map as it is ([`refine_image`] returns 0).
+#![deny(clippy::indexing_slicing)]
 
+use super::{chunk, chunk_mut, head, head_mut, set_at};
 use crate::arith::{DISP_FRAC, div_round, sat_i16};
 use crate::input::{ImageView, PixelFormat};
 
@@ -92,10 +97,14 @@ pub fn grey_at(img: &ImageView<'_>, x: usize, y: usize) -> u8 {
 }
 
 /// Census codes of image row `clamp(y)` into `out` (`img.width` codes). `grey` is scratch of
-/// `(2 * CENSUS_RADIUS + 1) * img.width` bytes (the grey rows `y - 3 ..= y + 3`).
+/// `(2 * CENSUS_RADIUS + 1) * img.width` bytes (the grey rows `y - 3 ..= y + 3`; with less, the
+/// codes stop where the centre row does).
 pub fn census_row(img: &ImageView<'_>, y: isize, grey: &mut [u8], out: &mut [u64]) {
     let w = img.width;
     let n = 2 * CENSUS_RADIUS + 1;
+    if w == 0 || img.height == 0 {
+        return; // an empty image has no codes
+    }
     let clamp_y = |yy: isize| yy.clamp(0, img.height as isize - 1) as usize;
     // A row outside the image is the edge row's codes (the window replicates borders).
     let y = clamp_y(y) as isize;
@@ -106,18 +115,21 @@ pub fn census_row(img: &ImageView<'_>, y: isize, grey: &mut [u8], out: &mut [u64
         }
     }
     let r = CENSUS_RADIUS as isize;
+    let grey = &*grey;
     for (x, code) in out.iter_mut().enumerate().take(w) {
-        let centre = grey[CENSUS_RADIUS * w + x];
+        let Some(&centre) = grey.get(CENSUS_RADIUS * w + x) else {
+            break;
+        };
         let mut c = 0u64;
         let mut bit = 0;
         for dy in 0..n {
-            let row = &grey[dy * w..(dy + 1) * w];
+            let row = chunk(grey, dy, w);
             for dx in -r..=r {
                 if dy == CENSUS_RADIUS && dx == 0 {
                     continue;
                 }
                 let xx = (x as isize + dx).clamp(0, w as isize - 1) as usize;
-                c |= ((row[xx] < centre) as u64) << bit;
+                c |= (row.get(xx).is_some_and(|g| *g < centre) as u64) << bit;
                 bit += 1;
             }
         }
@@ -132,14 +144,17 @@ pub fn band_radius(u: i16) -> usize {
 }
 
 /// Cost of disparity `d` at column `x`: the 3x3 box sum of census Hamming distances; `left` and
-/// `right` are the census rows `y - 1 ..= y + 1` (clamped) of the two images.
+/// `right` are the census rows `y - 1 ..= y + 1` (clamped) of the two images (`w` codes each; a
+/// code past the end of a shorter row adds nothing).
 #[inline(always)]
 fn cost(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w: usize, x: usize, d: usize) -> u16 {
-    let cols = [x.saturating_sub(1), x, (x + 1).min(w - 1)];
+    let cols = [x.saturating_sub(1), x, (x + 1).min(w.saturating_sub(1))];
     let mut s = 0u32;
     for (cl, cr) in left.iter().zip(right.iter()) {
         for q in cols {
-            s += (cl[q] ^ cr[q.saturating_sub(d)]).count_ones();
+            if let (Some(a), Some(b)) = (cl.get(q), cr.get(q.saturating_sub(d))) {
+                s += (a ^ b).count_ones();
+            }
         }
     }
     s as u16
@@ -177,14 +192,23 @@ impl Band {
     }
 }
 
+/// `out[..n] = src[..n]` (as far as both reach).
+#[inline(always)]
+fn copy_head(out: &mut [u16], src: &[u16], n: usize) {
+    for (o, s) in out.iter_mut().zip(src).take(n) {
+        *o = *s;
+    }
+}
+
 /// One step along a path: `out` (the current pixel's `L_r`, `band.len` values) from the
-/// predecessor's `prev` (`pband.len` values) and the current costs `cost`.
+/// predecessor's `prev` (`pband.len` values) and the current costs `cost` (each slice read or
+/// written only as far as it reaches).
 #[inline(always)]
 fn path_step(prev: &[u16], pband: Band, cost: &[u16], band: Band, p2: u32, out: &mut [u16]) {
-    let (prev, cost) = (&prev[..pband.n()], &cost[..band.n()]);
-    let out = &mut out[..band.n()];
+    let (prev, cost) = (head(prev, pband.n()), head(cost, band.n()));
+    let out = head_mut(out, band.n());
     let Some(m) = prev.iter().min().map(|m| *m as u32) else {
-        out.copy_from_slice(cost);
+        copy_head(out, cost, band.n());
         return;
     };
     let at = |j: isize| if j >= 0 { prev.get(j as usize).map(|v| *v as u32) } else { None };
@@ -209,17 +233,21 @@ fn path_step(prev: &[u16], pband: Band, cost: &[u16], band: Band, p2: u32, out: 
 /// `None` where the network's value stays.
 #[inline(always)]
 fn decide(s: &[u32], band: Band) -> Option<i16> {
-    let s = &s[..band.n()];
-    let mut i = 0;
+    let s = head(s, band.n());
+    let (mut i, mut least) = (0, *s.first()?);
     for (k, v) in s.iter().enumerate() {
-        if *v < s[i] {
-            i = k;
+        if *v < least {
+            (i, least) = (k, *v);
         }
     }
-    if i == 0 || i + 1 >= s.len() {
+    if i == 0 {
         return None;
     }
-    let (a0, a1, a2) = (s[i - 1] as i64, s[i] as i64, s[i + 1] as i64);
+    // `S(d*-1), S(d*), S(d*+1)`; none where `d*` is the last candidate.
+    let &[a0, a1, a2] = s.get(i - 1..i + 2)? else {
+        return None;
+    };
+    let (a0, a1, a2) = (a0 as i64, a1 as i64, a2 as i64);
     let curv = a0 + a2 - 2 * a1;
     if curv <= 0 {
         return None;
@@ -245,8 +273,11 @@ fn median_row(rows: [&[i16]; 3], out: &mut [i16]) {
     for (x, o) in out.iter_mut().enumerate() {
         let cols = [x.saturating_sub(1), x, (x + 1).min(w - 1)];
         let mut v = [0i16; 9];
-        for (k, slot) in v.iter_mut().enumerate() {
-            *slot = rows[k / 3][cols[k % 3]];
+        for (vr, row) in v.chunks_exact_mut(3).zip(rows) {
+            for (slot, q) in vr.iter_mut().zip(cols) {
+                // (0 past the end of a row shorter than `out`: never, all rows are `w` long)
+                *slot = row.get(q).copied().unwrap_or(0);
+            }
         }
         *o = median9(v);
     }
@@ -338,27 +369,24 @@ pub fn refine_image(left: &ImageView<'_>, right: &ImageView<'_>, disparity: &mut
 #[inline(always)]
 fn refine_rows(left: &ImageView<'_>, right: &ImageView<'_>, disparity: &mut [i16], uncertainty: Option<&[i16]>, scratch: Scratch<'_>) -> usize {
     let (w, h) = (left.width, left.height);
-    let n = ScratchLen::new(w);
     if w == 0 || h == 0 || disparity.len() < w * h || uncertainty.is_some_and(|u| u.len() < w * h) {
         return 0;
     }
-    let Scratch { census, grey, paths, rows } = scratch;
-    if census.len() < n.census || grey.len() < n.grey || paths.len() < n.paths || rows.len() < n.rows {
-        return 0;
-    }
+    // The buffers, carved from the scratch (shorter than `ScratchLen::new(w)`: nothing is done).
+    let Scratch { mut census, mut grey, mut paths, mut rows } = scratch;
     let sw = SLOTS * w;
-    let (ring_l, rest) = census.split_at_mut(WINDOW_ROWS * w);
-    let ring_r = &mut rest[..WINDOW_ROWS * w];
-    let (cgrey, rest) = grey.split_at_mut((2 * CENSUS_RADIUS + 1) * w);
-    let (mut g_prev, rest) = rest.split_at_mut(w);
-    let mut g_cur = &mut rest[..w];
-    let (costs, rest) = paths.split_at_mut(sw);
-    let (rl, rest) = rest.split_at_mut(sw);
-    let (mut top_prev, rest) = rest.split_at_mut(3 * sw);
-    let mut top_cur = &mut rest[..3 * sw];
-    let (band_rows, rest) = rows.split_at_mut(4 * w);
-    let decided_rows = &mut rest[..3 * w];
-    let (mut b_prev, mut b_cur) = band_rows.split_at_mut(2 * w);
+    let (Some(ring_l), Some(ring_r)) = (take(&mut census, WINDOW_ROWS * w), take(&mut census, WINDOW_ROWS * w)) else {
+        return 0;
+    };
+    let (Some(cgrey), Some(mut g_prev), Some(mut g_cur)) = (take(&mut grey, (2 * CENSUS_RADIUS + 1) * w), take(&mut grey, w), take(&mut grey, w)) else {
+        return 0;
+    };
+    let (Some(costs), Some(rl), Some(mut top_prev), Some(mut top_cur)) = (take(&mut paths, sw), take(&mut paths, sw), take(&mut paths, 3 * sw), take(&mut paths, 3 * sw)) else {
+        return 0;
+    };
+    let (Some(mut b_prev), Some(mut b_cur), Some(decided_rows)) = (take(&mut rows, 2 * w), take(&mut rows, 2 * w), take(&mut rows, 3 * w)) else {
+        return 0;
+    };
 
     let slot = |y: isize| (y.rem_euclid(WINDOW_ROWS as isize)) as usize;
     let r = WINDOW_RADIUS as isize;
@@ -366,38 +394,41 @@ fn refine_rows(left: &ImageView<'_>, right: &ImageView<'_>, disparity: &mut [i16
     // is congruent to it); then, before output row y, row y + 1.
     for y in -r..r {
         let s = slot(y);
-        census_row(left, y, cgrey, &mut ring_l[s * w..(s + 1) * w]);
-        census_row(right, y, cgrey, &mut ring_r[s * w..(s + 1) * w]);
+        census_row(left, y, cgrey, chunk_mut(ring_l, s, w));
+        census_row(right, y, cgrey, chunk_mut(ring_r, s, w));
     }
     let mut decided = 0;
-    let band_at = |b: &[i16], x: usize| Band { first: b[x], len: b[w + x] };
+    // Band of column `x` from a row of bands (firsts, then lengths); no candidates past its end.
+    let band_at = |b: &[i16], x: usize| match (b.get(x), b.get(w + x)) {
+        (Some(&first), Some(&len)) => Band { first, len },
+        _ => Band::default(),
+    };
+    let grey_of = |g: &[u8], x: usize| g.get(x).copied().unwrap_or(0);
     for y in 0..h {
         let yi = y as isize;
         let s = slot(yi + r);
-        census_row(left, yi + r, cgrey, &mut ring_l[s * w..(s + 1) * w]);
-        census_row(right, yi + r, cgrey, &mut ring_r[s * w..(s + 1) * w]);
-        let slots: [usize; WINDOW_ROWS] = core::array::from_fn(|k| slot(yi - r + k as isize));
-        let lrows: [&[u64]; WINDOW_ROWS] = core::array::from_fn(|k| &ring_l[slots[k] * w..(slots[k] + 1) * w]);
-        let rrows: [&[u64]; WINDOW_ROWS] = core::array::from_fn(|k| &ring_r[slots[k] * w..(slots[k] + 1) * w]);
-        let row = y * w;
+        census_row(left, yi + r, cgrey, chunk_mut(ring_l, s, w));
+        census_row(right, yi + r, cgrey, chunk_mut(ring_r, s, w));
+        let lrows: [&[u64]; WINDOW_ROWS] = core::array::from_fn(|k| chunk(ring_l, slot(yi - r + k as isize), w));
+        let rrows: [&[u64]; WINDOW_ROWS] = core::array::from_fn(|k| chunk(ring_r, slot(yi - r + k as isize), w));
+        let d_row = chunk(disparity, y, w);
+        let u_row = uncertainty.map(|u| chunk(u, y, w));
         // Bands, grey levels and costs of the row.
-        for x in 0..w {
-            let b = Band::of(disparity[row + x], uncertainty.map(|u| u[row + x]));
-            b_cur[x] = b.first;
-            b_cur[w + x] = b.len;
-            g_cur[x] = grey_at(left, x, y);
-            for (k, c) in costs[x * SLOTS..x * SLOTS + b.n()].iter_mut().enumerate() {
+        for (x, (&d0, c)) in d_row.iter().zip(costs.chunks_exact_mut(SLOTS)).enumerate() {
+            let b = Band::of(d0, u_row.and_then(|u| u.get(x)).copied());
+            set_at(b_cur, x, b.first);
+            set_at(b_cur, w + x, b.len);
+            set_at(g_cur, x, grey_at(left, x, y));
+            for (k, c) in head_mut(c, b.n()).iter_mut().enumerate() {
                 *c = cost(&lrows, &rrows, w, x, b.first as usize + k);
             }
         }
         // The three downward paths (from above-left, above, above-right).
         for (p, (prev_plane, cur_plane)) in top_prev.chunks_exact(sw).zip(top_cur.chunks_exact_mut(sw)).enumerate() {
-            for x in 0..w {
+            for (x, (c, out)) in costs.chunks_exact(SLOTS).zip(cur_plane.chunks_exact_mut(SLOTS)).enumerate() {
                 let b = band_at(b_cur, x);
-                let c = &costs[x * SLOTS..(x + 1) * SLOTS];
-                let out = &mut cur_plane[x * SLOTS..(x + 1) * SLOTS];
                 if y == 0 {
-                    out[..b.n()].copy_from_slice(&c[..b.n()]);
+                    copy_head(out, c, b.n());
                     continue;
                 }
                 let q = match p {
@@ -405,60 +436,66 @@ fn refine_rows(left: &ImageView<'_>, right: &ImageView<'_>, disparity: &mut [i16
                     1 => x,
                     _ => (x + 1).min(w - 1),
                 };
-                path_step(&prev_plane[q * SLOTS..(q + 1) * SLOTS], band_at(b_prev, q), c, b, penalty2(g_cur[x], g_prev[q]), out);
+                path_step(chunk(prev_plane, q, SLOTS), band_at(b_prev, q), c, b, penalty2(grey_of(g_cur, x), grey_of(g_prev, q)), out);
             }
         }
-        // Right to left.
-        for x in (0..w).rev() {
+        // Right to left (`next`: the path at the column to the right).
+        let mut next: Option<&[u16]> = None;
+        for (x, (c, out)) in costs.chunks_exact(SLOTS).zip(rl.chunks_exact_mut(SLOTS)).enumerate().rev() {
             let b = band_at(b_cur, x);
-            let c = &costs[x * SLOTS..(x + 1) * SLOTS];
-            let (head, tail) = rl.split_at_mut((x + 1) * SLOTS);
-            let out = &mut head[x * SLOTS..];
-            if x + 1 == w {
-                out[..b.n()].copy_from_slice(&c[..b.n()]);
-            } else {
-                path_step(&tail[..SLOTS], band_at(b_cur, x + 1), c, b, penalty2(g_cur[x], g_cur[x + 1]), out);
+            match next {
+                None => copy_head(out, c, b.n()),
+                Some(prev) => path_step(prev, band_at(b_cur, x + 1), c, b, penalty2(grey_of(g_cur, x), grey_of(g_cur, x + 1)), out),
             }
+            next = Some(out);
         }
         // Left to right, the sum of the five paths and the decision.
-        let dec_row = &mut decided_rows[(y % 3) * w..(y % 3 + 1) * w];
+        let dec_row = chunk_mut(decided_rows, y % 3, w);
         let (mut lr_prev, mut lr_cur) = ([0u16; SLOTS], [0u16; SLOTS]);
-        for x in 0..w {
+        for (x, (c, dec)) in costs.chunks_exact(SLOTS).zip(dec_row.iter_mut()).enumerate() {
             let b = band_at(b_cur, x);
-            let c = &costs[x * SLOTS..(x + 1) * SLOTS];
             if x == 0 {
-                lr_cur[..b.n()].copy_from_slice(&c[..b.n()]);
+                copy_head(&mut lr_cur, c, b.n());
             } else {
-                path_step(&lr_prev, band_at(b_cur, x - 1), c, b, penalty2(g_cur[x], g_cur[x - 1]), &mut lr_cur);
+                path_step(&lr_prev, band_at(b_cur, x - 1), c, b, penalty2(grey_of(g_cur, x), grey_of(g_cur, x - 1)), &mut lr_cur);
             }
             let mut sum = [0u32; SLOTS];
-            let at = x * SLOTS;
-            for (k, s) in sum[..b.n()].iter_mut().enumerate() {
-                *s = lr_cur[k] as u32 + rl[at + k] as u32 + top_cur[at + k] as u32 + top_cur[sw + at + k] as u32 + top_cur[2 * sw + at + k] as u32;
+            let (rl_x, t0, t1, t2) = (chunk(rl, x, SLOTS), chunk(top_cur, x, SLOTS), chunk(top_cur, w + x, SLOTS), chunk(top_cur, 2 * w + x, SLOTS));
+            for (((((s, a), r), t0), t1), t2) in sum.iter_mut().zip(&lr_cur).zip(rl_x).zip(t0).zip(t1).zip(t2).take(b.n()) {
+                *s = *a as u32 + *r as u32 + *t0 as u32 + *t1 as u32 + *t2 as u32;
             }
-            dec_row[x] = match decide(&sum, b) {
+            *dec = match decide(&sum, b) {
                 Some(d) => {
                     decided += 1;
                     d
                 }
-                None => disparity[row + x],
+                None => d_row.get(x).copied().unwrap_or(0),
             };
             core::mem::swap(&mut lr_prev, &mut lr_cur);
         }
         // The median of row y - 1 (its inputs are no longer needed).
         if y >= 1 {
             let (above, mid, below) = ((y.saturating_sub(2)) % 3, (y - 1) % 3, y % 3);
-            let at = |k: usize| &decided_rows[k * w..(k + 1) * w];
-            median_row([at(above), at(mid), at(below)], &mut disparity[(y - 1) * w..y * w]);
+            let at = |k: usize| chunk(decided_rows, k, w);
+            median_row([at(above), at(mid), at(below)], chunk_mut(disparity, y - 1, w));
         }
         core::mem::swap(&mut top_prev, &mut top_cur);
         core::mem::swap(&mut b_prev, &mut b_cur);
         core::mem::swap(&mut g_prev, &mut g_cur);
     }
     let (above, mid) = ((h.saturating_sub(2)) % 3, (h - 1) % 3);
-    let at = |k: usize| &decided_rows[k * w..(k + 1) * w];
-    median_row([at(above), at(mid), at(mid)], &mut disparity[(h - 1) * w..h * w]);
+    let at = |k: usize| chunk(decided_rows, k, w);
+    median_row([at(above), at(mid), at(mid)], chunk_mut(disparity, h - 1, w));
     decided
+}
+
+/// The first `n` values split off the front of `*rest` (`None`, and `*rest` empty, when it is
+/// shorter).
+#[inline(always)]
+fn take<'a, T>(rest: &mut &'a mut [T], n: usize) -> Option<&'a mut [T]> {
+    let (head, tail) = core::mem::take(rest).split_at_mut_checked(n)?;
+    *rest = tail;
+    Some(head)
 }
 
 /// Plain twin of [`refine_image`]: census codes, bands and costs of the whole image first, each
@@ -467,32 +504,39 @@ fn refine_rows(left: &ImageView<'_>, right: &ImageView<'_>, disparity: &mut [i16
 #[cfg(feature = "std")]
 pub fn refine_image_plain(left: &ImageView<'_>, right: &ImageView<'_>, disparity: &mut [i16], uncertainty: Option<&[i16]>) -> usize {
     let (w, h) = (left.width, left.height);
+    // The same refusal as the streaming kernel's.
+    if w == 0 || h == 0 || disparity.len() < w * h || uncertainty.is_some_and(|u| u.len() < w * h) {
+        return 0;
+    }
     let codes = |img: &ImageView<'_>| {
         let mut grey = vec![0u8; (2 * CENSUS_RADIUS + 1) * w];
         let mut out = vec![0u64; w * h];
-        for y in 0..h {
-            census_row(img, y as isize, &mut grey, &mut out[y * w..(y + 1) * w]);
+        for (y, row) in out.chunks_exact_mut(w).enumerate() {
+            census_row(img, y as isize, &mut grey, row);
         }
         out
     };
     let (cl, cr) = (codes(left), codes(right));
     let g: Vec<u8> = (0..w * h).map(|i| grey_at(left, i % w, i / w)).collect();
-    let bands: Vec<Band> = (0..w * h).map(|i| Band::of(disparity[i], uncertainty.map(|u| u[i]))).collect();
+    let bands: Vec<Band> = disparity.iter().take(w * h).enumerate().map(|(i, d)| Band::of(*d, uncertainty.and_then(|u| u.get(i)).copied())).collect();
+    let band = |i: usize| bands.get(i).copied().unwrap_or_default();
+    let grey_of = |i: usize| g.get(i).copied().unwrap_or(0);
     let mut c = vec![0u16; w * h * SLOTS];
-    for y in 0..h {
-        let row_at = |k: usize| -> usize { (y as isize + k as isize - WINDOW_RADIUS as isize).clamp(0, h as isize - 1) as usize * w };
-        let lrows: [&[u64]; WINDOW_ROWS] = core::array::from_fn(|k| &cl[row_at(k)..row_at(k) + w]);
-        let rrows: [&[u64]; WINDOW_ROWS] = core::array::from_fn(|k| &cr[row_at(k)..row_at(k) + w]);
-        for x in 0..w {
-            let i = y * w + x;
-            for k in 0..bands[i].n() {
-                c[i * SLOTS + k] = cost(&lrows, &rrows, w, x, bands[i].first as usize + k);
+    for (y, c_row) in c.chunks_exact_mut(w * SLOTS).enumerate() {
+        let row_at = |k: usize| (y as isize + k as isize - WINDOW_RADIUS as isize).clamp(0, h as isize - 1) as usize;
+        let lrows: [&[u64]; WINDOW_ROWS] = core::array::from_fn(|k| chunk(&cl, row_at(k), w));
+        let rrows: [&[u64]; WINDOW_ROWS] = core::array::from_fn(|k| chunk(&cr, row_at(k), w));
+        for (x, ci) in c_row.chunks_exact_mut(SLOTS).enumerate() {
+            let b = band(y * w + x);
+            for (k, ck) in head_mut(ci, b.n()).iter_mut().enumerate() {
+                *ck = cost(&lrows, &rrows, w, x, b.first as usize + k);
             }
         }
     }
     // Each path: pixels in an order where the predecessor comes first.
     let mut sum = vec![0u32; w * h * SLOTS];
-    let pred: [&dyn Fn(usize, usize) -> Option<(usize, usize)>; 5] = [
+    type Pred<'a> = &'a dyn Fn(usize, usize) -> Option<(usize, usize)>;
+    let pred: [Pred<'_>; 5] = [
         &|x, y| (x > 0).then(|| (x - 1, y)),
         &|x, y| (x + 1 < w).then(|| (x + 1, y)),
         &|x, y| (y > 0).then(|| (x, y - 1)),
@@ -505,40 +549,44 @@ pub fn refine_image_plain(left: &ImageView<'_>, right: &ImageView<'_>, disparity
             for k in 0..w {
                 let x = if p == 1 { w - 1 - k } else { k };
                 let i = y * w + x;
-                let b = bands[i];
+                let b = band(i);
                 let mut out = [0u16; SLOTS];
                 match pred(x, y) {
-                    None => out[..b.n()].copy_from_slice(&c[i * SLOTS..i * SLOTS + b.n()]),
+                    None => copy_head(&mut out, chunk(&c, i, SLOTS), b.n()),
                     Some((qx, qy)) => {
                         let j = qy * w + qx;
-                        path_step(&l[j * SLOTS..(j + 1) * SLOTS], bands[j], &c[i * SLOTS..(i + 1) * SLOTS], b, penalty2(g[i], g[j]), &mut out);
+                        path_step(chunk(&l, j, SLOTS), band(j), chunk(&c, i, SLOTS), b, penalty2(grey_of(i), grey_of(j)), &mut out);
                     }
                 }
-                l[i * SLOTS..(i + 1) * SLOTS].copy_from_slice(&out);
-                for k in 0..b.n() {
-                    sum[i * SLOTS + k] += out[k] as u32;
+                copy_head(chunk_mut(&mut l, i, SLOTS), &out, SLOTS);
+                for (s, o) in chunk_mut(&mut sum, i, SLOTS).iter_mut().zip(&out).take(b.n()) {
+                    *s += *o as u32;
                 }
             }
         }
     }
     let mut decided = 0;
-    let dec: Vec<i16> = (0..w * h)
-        .map(|i| match decide(&sum[i * SLOTS..(i + 1) * SLOTS], bands[i]) {
+    let dec: Vec<i16> = disparity
+        .iter()
+        .take(w * h)
+        .enumerate()
+        .map(|(i, d0)| match decide(chunk(&sum, i, SLOTS), band(i)) {
             Some(d) => {
                 decided += 1;
                 d
             }
-            None => disparity[i],
+            None => *d0,
         })
         .collect();
-    for y in 0..h {
-        let at = |yy: usize| &dec[yy * w..(yy + 1) * w];
-        median_row([at(y.saturating_sub(1)), at(y), at((y + 1).min(h - 1))], &mut disparity[y * w..(y + 1) * w]);
+    for (y, out) in disparity.chunks_exact_mut(w).take(h).enumerate() {
+        let at = |yy: usize| chunk(&dec, yy, w);
+        median_row([at(y.saturating_sub(1)), at(y), at((y + 1).min(h - 1))], out);
     }
     decided
 }
 
 #[cfg(test)]
+#[allow(clippy::indexing_slicing)]
 mod tests {
     use super::*;
 

@@ -5,6 +5,12 @@
 //!
 //! Each family has a row (or pixel) kernel used by the streaming engine and a plain twin over whole
 //! tensors used by the reference engine (`crate::reference`); their tests check identical bits.
+//!
+//! No input reaches a panic: slices are walked by iterators or read with `get`, and a kernel
+//! given buffers shorter than its shapes say skips what does not fit (documented per kernel)
+//! instead of indexing out of bounds. `clippy::indexing_slicing` is denied in each kernel file
+//! that is free of it and on this file's items one by one: a module-wide deny here would also
+//! reach the files that still index (attention, dsp, mve, x86).
 
 /// Terms of an int8 x i16 dot product summed in one i32 before the sum moves to i64: every
 /// product is at most `128 * 32768 = 2^22` in magnitude, and `508 * 2^22 = 2,130,706,432 <
@@ -32,6 +38,7 @@ pub mod upsample;
 pub mod x86;
 
 /// Activation storage type: `i8`, `u8` or `i16`.
+#[deny(clippy::indexing_slicing)]
 pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + 'static {
     /// Storage width in bits.
     const BITS: u8;
@@ -81,7 +88,6 @@ pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + 'static {
             return d;
         }
         let n = w0.len().min(w1.len()).min(x.len() / 2);
-        let q4 = n / 4 * 4;
         let mut acc = [0i64; 4];
         let mut mac = |u: i8, v: i8, a: Self, b: Self| {
             let (u, v, a, b) = (u as i64, v as i64, a.to_i32() as i64, b.to_i32() as i64);
@@ -90,15 +96,23 @@ pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + 'static {
             acc[2] += u * b;
             acc[3] += v * b;
         };
-        for ((g0, g1), gx) in w0[..q4].chunks_exact(4).zip(w1[..q4].chunks_exact(4)).zip(x[..2 * q4].chunks_exact(8)) {
-            for t in 0..4 {
-                let s = if Self::PAIR_SWAP && (t == 1 || t == 2) { 3 - t } else { t };
-                mac(g0[t], g1[t], gx[s], gx[4 + s]);
+        // Groups of four weights against groups of eight activations (four of each patch), then
+        // the `n % 4` last values: `2 (n % 4) < 8` activations, those of `a` then those of `b`.
+        let (w0, w1, x) = (head(w0, n).chunks_exact(4), head(w1, n).chunks_exact(4), head(x, 2 * n).chunks_exact(8));
+        let (r0, r1, rx) = (w0.remainder(), w1.remainder(), x.remainder());
+        for ((g0, g1), gx) in w0.zip(w1).zip(x) {
+            if let (&[u0, u1, u2, u3], &[v0, v1, v2, v3], &[a0, a1, a2, a3, b0, b1, b2, b3]) = (g0, g1, gx) {
+                // With `PAIR_SWAP` each group of a patch is stored as values 0, 2, 1, 3.
+                let (a1, a2, b1, b2) = if Self::PAIR_SWAP { (a2, a1, b2, b1) } else { (a1, a2, b1, b2) };
+                mac(u0, v0, a0, b0);
+                mac(u1, v1, a1, b1);
+                mac(u2, v2, a2, b2);
+                mac(u3, v3, a3, b3);
             }
         }
-        let r = n - q4;
-        for t in 0..r {
-            mac(w0[q4 + t], w1[q4 + t], x[2 * q4 + t], x[2 * q4 + r + t]);
+        let (ra, rb) = rx.split_at(rx.len() / 2);
+        for (((u, v), a), b) in r0.iter().zip(r1).zip(ra).zip(rb) {
+            mac(*u, *v, *a, *b);
         }
         acc
     }
@@ -106,6 +120,7 @@ pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + 'static {
     fn as_out(d: &mut [Self]) -> OutRow<'_>;
 }
 
+#[deny(clippy::indexing_slicing)]
 impl Elem for i8 {
     const BITS: u8 = 8;
     const STORAGE: crate::arith::QFormat = crate::arith::QFormat::i8(0);
@@ -140,6 +155,7 @@ impl Elem for i8 {
     }
 }
 
+#[deny(clippy::indexing_slicing)]
 impl Elem for u8 {
     const BITS: u8 = 8;
     const STORAGE: crate::arith::QFormat = crate::arith::QFormat::u8(0);
@@ -196,6 +212,7 @@ impl Elem for u8 {
     }
 }
 
+#[deny(clippy::indexing_slicing)]
 impl Elem for i16 {
     const BITS: u8 = 16;
     const PAIR_SWAP: bool = true;
@@ -281,6 +298,7 @@ impl Elem for i16 {
 /// `swap` (16-bit activations) each group is stored as values 0, 2, 1, 3: the halfword pairs
 /// `SMLAD` takes against `SXTB16`-widened weights, loaded as words without re-packing.
 #[inline(always)]
+#[deny(clippy::indexing_slicing)]
 pub const fn pair_index(n: usize, j: usize, second: bool, swap: bool) -> usize {
     let q = n / 4 * 4;
     if j < q {
@@ -292,7 +310,47 @@ pub const fn pair_index(n: usize, j: usize, second: bool, swap: bool) -> usize {
     }
 }
 
+/// The first `n` values of `s` (all of them when it is shorter).
+#[inline(always)]
+#[deny(clippy::indexing_slicing)]
+pub(crate) fn head<T>(s: &[T], n: usize) -> &[T] {
+    s.get(..n).unwrap_or(s)
+}
+
+/// [`head`] of a mutable slice.
+#[inline(always)]
+#[deny(clippy::indexing_slicing)]
+pub(crate) fn head_mut<T>(s: &mut [T], n: usize) -> &mut [T] {
+    let n = n.min(s.len());
+    s.get_mut(..n).unwrap_or_default()
+}
+
+/// Values `i * len .. (i + 1) * len` of `t` (row `i` of rows of `len` values); empty when `t` is
+/// shorter.
+#[inline(always)]
+#[deny(clippy::indexing_slicing)]
+pub(crate) fn chunk<T>(t: &[T], i: usize, len: usize) -> &[T] {
+    t.get(i * len..(i + 1) * len).unwrap_or_default()
+}
+
+/// [`chunk`] of a mutable slice.
+#[inline(always)]
+#[deny(clippy::indexing_slicing)]
+pub(crate) fn chunk_mut<T>(t: &mut [T], i: usize, len: usize) -> &mut [T] {
+    t.get_mut(i * len..(i + 1) * len).unwrap_or_default()
+}
+
+/// `s[i] = v`, skipped when `i` is past the end.
+#[inline(always)]
+#[deny(clippy::indexing_slicing)]
+pub(crate) fn set_at<T>(s: &mut [T], i: usize, v: T) {
+    if let Some(o) = s.get_mut(i) {
+        *o = v;
+    }
+}
+
 /// Plain exact dot product (reference twin of [`Elem::dot`]).
+#[deny(clippy::indexing_slicing)]
 pub fn dot_plain<T: Elem>(w: &[i8], x: &[T]) -> i64 {
     w.iter().zip(x).map(|(a, b)| *a as i64 * b.to_i32() as i64).sum()
 }
@@ -307,14 +365,16 @@ pub enum OutRow<'a> {
     I16(&'a mut [i16]),
 }
 
+#[deny(clippy::indexing_slicing)]
 impl OutRow<'_> {
     /// Stores `v` (already saturated to the row's range by the caller's format) at `i`.
+    /// An `i` past the end is skipped (the kernels' callers size their rows to fit).
     #[inline(always)]
     pub fn set(&mut self, i: usize, v: i64) {
         match self {
-            OutRow::I8(r) => r[i] = crate::arith::sat_i8(v),
-            OutRow::U8(r) => r[i] = crate::arith::sat_u8(v),
-            OutRow::I16(r) => r[i] = crate::arith::sat_i16(v),
+            OutRow::I8(r) => set_at(r, i, crate::arith::sat_i8(v)),
+            OutRow::U8(r) => set_at(r, i, crate::arith::sat_u8(v)),
+            OutRow::I16(r) => set_at(r, i, crate::arith::sat_i16(v)),
         }
     }
     /// Length in elements.
@@ -355,6 +415,7 @@ pub(crate) mod testutil {
 }
 
 #[cfg(test)]
+#[allow(clippy::indexing_slicing)]
 mod tests {
     use super::testutil::Rng;
     use super::*;

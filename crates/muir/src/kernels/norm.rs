@@ -5,6 +5,7 @@
 //! `eps = shift_round(EPS_Q40, 2 f_in - 40)`, `sd = isqrt((var + eps) << 30)` (= sqrt * 2^15),
 //! `r = div_round(2^46, sd)`, and the output in `f_out` fraction bits is
 //! `rshift_round((x - mean) * r, 31 - f_out)`.
+#![deny(clippy::indexing_slicing)]
 
 use crate::arith::{div_round, isqrt_u64, rshift_round, shift_round};
 
@@ -22,6 +23,9 @@ pub struct ChannelNorm {
 
 /// Statistics of channel `ch` of an HWC tensor of `c` channels (`x.len() / c` pixels).
 pub fn channel_stats(x: &[i16], c: usize, ch: usize, f_in: i8) -> ChannelNorm {
+    if c == 0 {
+        return from_moments(0, 0, f_in); // no channels: the statistics of no values
+    }
     let n = (x.len() / c) as i64;
     let sum: i64 = x.iter().skip(ch).step_by(c).map(|v| *v as i64).sum();
     let mean = div_round(sum, n);
@@ -51,6 +55,7 @@ pub fn normalize(x: i16, s: ChannelNorm, f_out: i8) -> i64 {
 }
 
 #[cfg(test)]
+#[allow(clippy::indexing_slicing)]
 mod tests {
     use super::*;
 

@@ -1,4 +1,8 @@
 //! Pooling and resizing between the 1/8 and 1/16 grids.
+//!
+//! Reads past the end of a too-short `src` count as 0 and writes past the end of `out` are
+//! skipped (the engine's buffers always fit).
+#![deny(clippy::indexing_slicing)]
 
 use crate::arith::{div_round, sat_i16};
 
@@ -17,11 +21,13 @@ pub fn pool2x_row(src: &[i16], h: usize, w: usize, c: usize, y: usize, out: &mut
                 for dx in 0..3 {
                     let ix = (2 * ox + dx) as isize - 1;
                     if ix >= 0 && (ix as usize) < w {
-                        s += src[(iy as usize * w + ix as usize) * c + ch] as i64;
+                        s += src.get((iy as usize * w + ix as usize) * c + ch).map_or(0, |v| *v as i64);
                     }
                 }
             }
-            out[ox * c + ch] = sat_i16(div_round(s, 9));
+            if let Some(o) = out.get_mut(ox * c + ch) {
+                *o = sat_i16(div_round(s, 9));
+            }
         }
     }
 }
@@ -43,20 +49,23 @@ fn align_corners(i: usize, n_in: usize, n_out: usize) -> (usize, i64, i64) {
 #[allow(clippy::too_many_arguments)]
 pub fn interp_row(src: &[i16], h: usize, w: usize, c: usize, h_out: usize, w_out: usize, y: usize, out: &mut [i16]) {
     let (y0, ry, dy) = align_corners(y, h, h_out);
-    let y1 = (y0 + 1).min(h - 1);
+    let y1 = (y0 + 1).min(h.saturating_sub(1));
     for x in 0..w_out {
         let (x0, rx, dx) = align_corners(x, w, w_out);
-        let x1 = (x0 + 1).min(w - 1);
+        let x1 = (x0 + 1).min(w.saturating_sub(1));
         for ch in 0..c {
-            let at = |yy: usize, xx: usize| src[(yy * w + xx) * c + ch] as i64;
+            let at = |yy: usize, xx: usize| src.get((yy * w + xx) * c + ch).map_or(0, |v| *v as i64);
             let top = (dx - rx) * at(y0, x0) + rx * at(y0, x1);
             let bot = (dx - rx) * at(y1, x0) + rx * at(y1, x1);
-            out[x * c + ch] = sat_i16(div_round((dy - ry) * top + ry * bot, dy * dx));
+            if let Some(o) = out.get_mut(x * c + ch) {
+                *o = sat_i16(div_round((dy - ry) * top + ry * bot, dy * dx));
+            }
         }
     }
 }
 
 #[cfg(test)]
+#[allow(clippy::indexing_slicing)]
 mod tests {
     use super::*;
 
