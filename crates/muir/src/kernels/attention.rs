@@ -5,6 +5,7 @@
 //! iterations (query and key come from the context), so they are computed once per frame; each
 //! iteration then aggregates `glb_i = div_round(sum_j e_ij * v_j << shift, S_i)` in one pass over
 //! the keys. No N x N matrix exists; the plain twin builds it and must give the same bits.
+#![deny(clippy::indexing_slicing)]
 
 use crate::arith::{Multiplier, div_round, lut, requantize, rshift_round, sat_i16, shift_round};
 
@@ -12,15 +13,16 @@ use crate::arith::{Multiplier, div_round, lut, requantize, rshift_round, sat_i16
 /// pairs turns with the column `x`, the second with the row `y`). `phase[i]` is pair `i`'s phase
 /// step per pixel (`2^32` = one turn).
 pub fn rope_pixel(v: &mut [i16], x: usize, y: usize, phase: &[u32]) {
-    let pairs = v.len() / 2;
-    let n = pairs / 2;
-    for (i, inc) in phase.iter().enumerate().take(pairs) {
+    let n = v.len() / 2 / 2;
+    for (i, (pair, inc)) in v.chunks_exact_mut(2).zip(phase).enumerate() {
         let pos = if i < n { x } else { y } as u32;
         let ph = pos.wrapping_mul(*inc);
         let (c, s) = (lut::cos_phase(ph) as i64, lut::sin_phase(ph) as i64);
-        let (a, b) = (v[2 * i] as i64, v[2 * i + 1] as i64);
-        v[2 * i] = sat_i16(rshift_round(a * c - b * s, 15));
-        v[2 * i + 1] = sat_i16(rshift_round(a * s + b * c, 15));
+        if let [a, b] = pair {
+            let (p, q) = (*a as i64, *b as i64);
+            *a = sat_i16(rshift_round(p * c - q * s, 15));
+            *b = sat_i16(rshift_round(p * s + q * c, 15));
+        }
     }
 }
 
@@ -59,7 +61,9 @@ pub fn query_stats(q: &[i16], keys: &[i16], m: Multiplier) -> (i64, i64) {
 /// format shifted by `shift` fraction bits. `acc` is scratch of `cv` values.
 #[allow(clippy::too_many_arguments)]
 pub fn aggregate_query(q: &[i16], keys: &[i16], values: &[i16], cv: usize, stats: (i64, i64), m: Multiplier, shift: i8, acc: &mut [i64], out: &mut [i16]) {
-    let acc = &mut acc[..cv];
+    let Some(acc) = acc.get_mut(..cv) else {
+        return; // scratch shorter than the values (the engine's never is)
+    };
     acc.fill(0);
     #[cfg(all(target_arch = "x86_64", feature = "std"))]
     let done = super::x86::aggregate(q, keys, values, cv, stats.0, m, acc);
@@ -143,6 +147,7 @@ fn aggregate_blocked(q: &[i16], keys: &[i16], values: &[i16], cv: usize, max: i6
 
 /// Plain twin: builds the `n x n` weight matrix, then every output (host tests only).
 #[cfg(feature = "std")]
+#[allow(clippy::indexing_slicing)] // host-only specification, indexed as the formula reads
 pub fn attention_plain(queries: &[i16], keys: &[i16], values: &[i16], c: usize, cv: usize, m: Multiplier, shift: i8) -> Vec<i16> {
     let n = queries.len() / c;
     let logits: Vec<i64> = (0..n * n).map(|ij| logit(&queries[ij / n * c..][..c], &keys[ij % n * c..][..c])).collect();
@@ -161,6 +166,7 @@ pub fn attention_plain(queries: &[i16], keys: &[i16], values: &[i16], c: usize, 
 }
 
 #[cfg(all(test, feature = "std"))]
+#[allow(clippy::indexing_slicing)]
 mod tests {
     use super::super::testutil::Rng;
     use super::*;

@@ -355,9 +355,9 @@ pub fn dot<T: Quad>(w: &[i8], x: &[T]) -> i32 {
         acc = mac4(word(wb, i), T::quad(x, i), acc);
         i += 4;
     }
-    while i < n {
-        acc += w[i] as i32 * x[i].into();
-        i += 1;
+    // The last `n % 4` terms.
+    for (w, x) in w.iter().zip(x).take(n).skip(i) {
+        acc += *w as i32 * (*x).into();
     }
     acc
 }
@@ -376,10 +376,10 @@ pub fn dot2<T: Quad>(w0: &[i8], w1: &[i8], x: &[T]) -> (i32, i32) {
         a1 = mac4(word(b1, i), q, a1);
         i += 4;
     }
-    while i < n {
-        a0 += w0[i] as i32 * x[i].into();
-        a1 += w1[i] as i32 * x[i].into();
-        i += 1;
+    for ((w0, w1), x) in w0.iter().zip(w1).zip(x).take(n).skip(i) {
+        let x: i32 = (*x).into();
+        a0 += *w0 as i32 * x;
+        a1 += *w1 as i32 * x;
     }
     (a0, a1)
 }
@@ -411,13 +411,16 @@ pub fn dot2x2<T: Quad>(w0: &[i8], w1: &[i8], x: &[T]) -> [i32; 4] {
             a3 = smlad(w1h, qb.1, smlad(w1l, qb.0, a3));
         }
     }
+    // The last `r = n % 4` values of each patch: `a`'s at `2 q4`, then `b`'s (pair layout).
     let (q4, r) = (4 * q, n - 4 * q);
-    for j in 0..r {
-        let (xa, xb): (i32, i32) = (x[2 * q4 + j].into(), x[2 * q4 + r + j].into());
-        a0 += w0[q4 + j] as i32 * xa;
-        a1 += w1[q4 + j] as i32 * xa;
-        a2 += w0[q4 + j] as i32 * xb;
-        a3 += w1[q4 + j] as i32 * xb;
+    let (xa, xb) = x.get(2 * q4..).unwrap_or(&[]).split_at(r.min(x.len().saturating_sub(2 * q4)));
+    let ws = w0.iter().zip(w1).skip(q4);
+    for (((w0, w1), xa), xb) in ws.zip(xa).zip(xb) {
+        let (u, v, xa, xb) = (*w0 as i32, *w1 as i32, (*xa).into(), (*xb).into());
+        a0 += u * xa;
+        a1 += v * xa;
+        a2 += u * xb;
+        a3 += v * xb;
     }
     [a0, a1, a2, a3]
 }

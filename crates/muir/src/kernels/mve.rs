@@ -9,13 +9,11 @@
 //! are neither loaded nor added), so no scalar tail is needed for whole groups, and `LETP` resets
 //! `FPSCR.LTPSIZE` to 4 on exit (no predication leaks into compiler-generated vector code).
 //!
-//! [`dot2x2`] reads the two patches of the pair layout (`kernels::pair_index`: groups of four of
-//! patch `a`, then of patch `b`, alternating; 16-bit activations store each group as values 0, 2,
-//! 1, 3) with gather loads (`VLDRB.U16 Qd, [Rn, Qm]`, `VLDRH.U16 Qd, [Rn, Qm]`): the offset
-//! vectors pick two groups of `a` (and of `b`) into lanes 0..8 in natural order, undoing the
-//! 16-bit swap, so the weights are plain contiguous loads. Per 32 MACs: two gathers, two weight
-//! loads, four `VMLADAVA`, one pointer add and `LETP` (10 instructions; the `dsp` loop
-//! needs 56 for u8 activations). The `n % 4` values after the last whole group: plain Rust.
+//! [`dot2x2_split`] reads the two patches of the split pair layout (`Elem::SPLIT_PAIRS`: patch `a`'s
+//! values, then patch `b`'s) with contiguous write-back loads: per 32 MACs two activation loads,
+//! two widening weight loads, four `VMLADAVA` and `LETP` (9 instructions; the `dsp` loop needs 40
+//! for u8 activations), the tail included by predication. [`aggregate`] and [`dot_i16_i64`] are the
+//! MGA attention's sums, [`copy`] the gather's row copies.
 //!
 //! The results are the same integers as the portable loops in `kernels`: every product is exact
 //! in 32 bits and the accumulators are 32-bit, with the same bounds as there and in `dsp` (u8 and
@@ -31,14 +29,6 @@
 
 use core::arch::asm;
 
-/// Gather offsets (bytes) of one iteration of [`dot2x2`] over u8 activations: lanes 0..8 take
-/// groups `g` and `g + 1` of patch `a`, the second eight those of patch `b`.
-static PAIR_GATHER_U8: [u16; 16] = [0, 1, 2, 3, 8, 9, 10, 11, 4, 5, 6, 7, 12, 13, 14, 15];
-
-/// The same for i16 activations (bytes; each group is stored as values 0, 2, 1, 3, and the
-/// offsets put them back in order 0, 1, 2, 3).
-static PAIR_GATHER_I16: [u16; 16] = [0, 4, 2, 6, 16, 20, 18, 22, 8, 12, 10, 14, 24, 28, 26, 30];
-
 /// An activation type with a Helium kernel.
 pub trait Lanes: Copy + Into<i32> {
     /// `sum w[i] * x[i]` over `i < n`, `n >= 1`, `n <= w.len()`, `n <= x.len()`.
@@ -46,16 +36,6 @@ pub trait Lanes: Copy + Into<i32> {
     /// # Safety
     /// The bounds above.
     unsafe fn dot_n(w: &[i8], x: &[Self], n: usize) -> i32;
-}
-
-/// An activation type with a Helium [`dot2x2`] (the types of convolution inputs).
-pub trait PairLanes: Lanes {
-    /// The four products of [`dot2x2`] over the `q4 >= 4` (a multiple of 4) values of each patch
-    /// that sit in whole groups.
-    ///
-    /// # Safety
-    /// `q4 <= w0.len()`, `q4 <= w1.len()`, `2 * q4 <= x.len()`, `q4 % 4 == 0`, `q4 > 0`.
-    unsafe fn dot2x2_groups(w0: &[i8], w1: &[i8], x: &[Self], q4: usize) -> [i32; 4];
 }
 
 impl Lanes for u8 {
@@ -81,47 +61,6 @@ impl Lanes for u8 {
             );
         }
         acc
-    }
-}
-
-impl PairLanes for u8 {
-    #[inline(always)]
-    unsafe fn dot2x2_groups(w0: &[i8], w1: &[i8], x: &[u8], q4: usize) -> [i32; 4] {
-        let [mut a0, mut a1, mut a2, mut a3] = [0i32; 4];
-        // SAFETY: `q4` lanes (tail-predicated) of each weight row and the gathered groups of both
-        // patches, all inside the slices by the caller's bounds.
-        unsafe {
-            asm!(
-                "vldrh.u16 q3, [{offs}]",
-                "vldrh.u16 q4, [{offs}, #16]",
-                "dlstp.16 lr, {n}",
-                "2:",
-                "vldrb.u16 q0, [{x}, q3]",
-                "vldrb.u16 q1, [{x}, q4]",
-                "vldrb.s16 q2, [r1], #8",
-                "vmlava.s16 r0, q0, q2",
-                "vmlava.s16 r4, q1, q2",
-                "vldrb.s16 q2, [r3], #8",
-                "vmlava.s16 r2, q0, q2",
-                "vmlava.s16 r8, q1, q2",
-                "adds {x}, #16",
-                "letp lr, 2b",
-                offs = in(reg) PAIR_GATHER_U8.as_ptr(),
-                n = in(reg) q4,
-                x = inout(reg) x.as_ptr() => _,
-                inout("r1") w0.as_ptr() => _,
-                inout("r3") w1.as_ptr() => _,
-                inout("r0") a0,
-                inout("r2") a1,
-                inout("r4") a2,
-                inout("r8") a3,
-                out("lr") _,
-                out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _,
-                out("d6") _, out("d7") _, out("d8") _, out("d9") _,
-                options(nostack, readonly),
-            );
-        }
-        [a0, a1, a2, a3]
     }
 }
 
@@ -177,46 +116,6 @@ impl Lanes for i16 {
     }
 }
 
-impl PairLanes for i16 {
-    #[inline(always)]
-    unsafe fn dot2x2_groups(w0: &[i8], w1: &[i8], x: &[i16], q4: usize) -> [i32; 4] {
-        let [mut a0, mut a1, mut a2, mut a3] = [0i32; 4];
-        // SAFETY: as for u8 (halfword gathers at even byte offsets inside the slice).
-        unsafe {
-            asm!(
-                "vldrh.u16 q3, [{offs}]",
-                "vldrh.u16 q4, [{offs}, #16]",
-                "dlstp.16 lr, {n}",
-                "2:",
-                "vldrh.u16 q0, [{x}, q3]",
-                "vldrh.u16 q1, [{x}, q4]",
-                "vldrb.s16 q2, [r1], #8",
-                "vmlava.s16 r0, q0, q2",
-                "vmlava.s16 r4, q1, q2",
-                "vldrb.s16 q2, [r3], #8",
-                "vmlava.s16 r2, q0, q2",
-                "vmlava.s16 r8, q1, q2",
-                "adds {x}, #32",
-                "letp lr, 2b",
-                offs = in(reg) PAIR_GATHER_I16.as_ptr(),
-                n = in(reg) q4,
-                x = inout(reg) x.as_ptr() => _,
-                inout("r1") w0.as_ptr() => _,
-                inout("r3") w1.as_ptr() => _,
-                inout("r0") a0,
-                inout("r2") a1,
-                inout("r4") a2,
-                inout("r8") a3,
-                out("lr") _,
-                out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _,
-                out("d6") _, out("d7") _, out("d8") _, out("d9") _,
-                options(nostack, readonly),
-            );
-        }
-        [a0, a1, a2, a3]
-    }
-}
-
 /// `sum w[i] * x[i]` (int8 weights; u8, i8 or i16 activations). For i16 activations at most
 /// `kernels::I16_CHUNK` terms (the caller chunks, see the module doc).
 #[inline]
@@ -227,30 +126,6 @@ pub fn dot<T: Lanes>(w: &[i8], x: &[T]) -> i32 {
     }
     // SAFETY: 1 <= n <= both lengths.
     unsafe { T::dot_n(w, x, n) }
-}
-
-/// Four dot products, two output channels at two output pixels: `[w0 . a, w1 . a, w0 . b,
-/// w1 . b]` with the two patches in `x` in the pair layout (`kernels::pair_index`). Same
-/// chunking rule as [`dot`].
-#[inline]
-pub fn dot2x2<T: PairLanes>(w0: &[i8], w1: &[i8], x: &[T]) -> [i32; 4] {
-    let n = w0.len().min(w1.len()).min(x.len() / 2);
-    let q4 = n / 4 * 4;
-    let [mut a0, mut a1, mut a2, mut a3] = if q4 > 0 {
-        // SAFETY: q4 <= n <= the weight lengths, 2 q4 <= x.len(), a positive multiple of 4.
-        unsafe { T::dot2x2_groups(w0, w1, x, q4) }
-    } else {
-        [0; 4]
-    };
-    let r = n - q4;
-    for j in 0..r {
-        let (xa, xb): (i32, i32) = (x[2 * q4 + j].into(), x[2 * q4 + r + j].into());
-        a0 += w0[q4 + j] as i32 * xa;
-        a1 += w1[q4 + j] as i32 * xa;
-        a2 += w0[q4 + j] as i32 * xb;
-        a3 += w1[q4 + j] as i32 * xb;
-    }
-    [a0, a1, a2, a3]
 }
 
 /// `sum q[i] * k[i]` over `min(q.len(), k.len())` i16 values, exact in 64 bits (the MGA logits):
