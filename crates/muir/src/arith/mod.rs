@@ -266,7 +266,11 @@ pub const fn isqrt_u64(v: u64) -> u64 {
     // Newton iteration from an upper bound; monotone decreasing to floor(sqrt(v)).
     let mut x = 1u64 << ((64 - v.leading_zeros()).div_ceil(2));
     loop {
-        let y = (x + v / x) / 2;
+        // `x >= 1` throughout (it starts at a power of two and only decreases to floor(sqrt(v)) >= 1).
+        let y = match v.checked_div(x) {
+            Some(q) => (x + q) / 2,
+            None => return 0,
+        };
         if y >= x {
             return x;
         }

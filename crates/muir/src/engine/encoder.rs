@@ -32,12 +32,11 @@ pub struct Scratch<'a> {
     pub ds: &'a mut [i16],
 }
 
-/// Conv params of a layer the model is known to hold.
+/// Conv params of a layer the model is known to hold. `QuantModel::parse` checked that every
+/// layer the config computes is present, and the engine asks only for those; a missing one would
+/// be a layer without outputs ([`ConvParams::EMPTY`]: its rows stay as they are).
 pub fn conv<'m>(m: &'m QuantModel<'_>, id: ConvId) -> ConvParams<'m> {
-    // QuantModel::parse checked that every layer the config computes is present, and the engine
-    // asks only for those: unreachable from any blob that parsed.
-    #[allow(clippy::panic)]
-    m.conv(id).unwrap_or_else(|| panic!("layer {} missing", id.name()))
+    m.conv(id).unwrap_or(ConvParams::EMPTY)
 }
 
 /// Runs `conv_row` with the scratch patch typed as `T`.
@@ -360,6 +359,9 @@ fn layer4(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &FeatureHeadLayout, ring
 #[allow(clippy::too_many_arguments)]
 fn features(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &FeatureHeadLayout, rings: &mut [u8], patch: &mut [u8], norms: &mut [i64], f: &mut [i8]) {
     let d3 = m.config().backbone_dims[2];
+    if d3 == 0 {
+        return; // no feature channels (a parsed config has them): nothing to compute
+    }
     let (h, w) = (g.h8, g.w8);
     let n = (h * w) as i64;
     let src = Full { data: l3, h, w, c: d3 };
@@ -382,7 +384,7 @@ fn features(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &FeatureHeadLayout, ri
         let raw = first_n_mut(raw, row);
         run_conv(&p1, &[src.part_rows(r, 3, 1)], w, &mut OutRow::I16(raw), patch);
         for (i, (d, v)) in dst.iter_mut().zip(raw.iter()).enumerate() {
-            *d = sat_u8(normalize(*v, stat(stats1, i % d3), f_mid));
+            *d = sat_u8(normalize(*v, stat(stats1, i % d3.max(1)), f_mid));
         }
     };
     // Pass 2: statistics of conv2 over the normalised conv1 rows.
@@ -430,6 +432,9 @@ fn accumulate_stats(st: &mut [i64], c: usize, mut conv_row_fn: impl FnMut(usize,
 }
 
 fn add_sums(st: &mut [i64], c: usize, row: &[i16]) {
+    if c == 0 {
+        return; // no channels
+    }
     for (i, v) in row.iter().enumerate() {
         if let [sum, squares] = chunk_mut(st, i % c, 2) {
             *sum += *v as i64;

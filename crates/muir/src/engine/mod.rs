@@ -383,9 +383,13 @@ pub fn refine_ctx<'f, 'm, 'a>(m: &'m QuantModel<'a>, plan: &Plan, arena: &'f mut
     };
     let (patch, window, prefix, peaks_row) = (cv.raw(px.patch), cv.i32(px.window), cv.i64(px.prefix), cv.i32(px.peaks_row));
     let attn = cv.raw(px.attn);
-    let (acc, query) = attn.split_at_mut(8 * cfg.hidden_dim);
+    // Both splits lie inside their plan-sized buffers; a shorter buffer (never, for a checked
+    // arena) leaves the second part empty.
+    let split = 8 * cfg.hidden_dim;
+    let (acc, query) = if attn.len() >= split { attn.split_at_mut(split) } else { (attn, &mut [][..]) };
     let logits = cv.i16(px.logits);
-    let (logits, mask_px) = logits.split_at_mut(crate::model::layers::MASK_CHANNELS);
+    let split = crate::model::layers::MASK_CHANNELS;
+    let (logits, mask_px) = if logits.len() >= split { logits.split_at_mut(split) } else { (logits, &mut [][..]) };
     let st = refine::State {
         flow: cv.i16(r.flow),
         mask: cv.i16(r.mask),

@@ -610,7 +610,7 @@ pub fn upsample(c: &mut Ctx<'_, '_, '_>, width: usize, height: usize, disp: &mut
     let (p1, p2) = (conv(m, Mask1), conv(m, Mask2));
     let mask_frac = frac(m, Act::MaskLogit);
     // channel 0 of the disparity state (the only one with MUIR; RAFT's y is 0)
-    for (d, f) in flow0.iter_mut().zip(c.st.flow.chunks_exact(fc)) {
+    for (d, f) in flow0.iter_mut().zip(c.st.flow.chunks_exact(fc.max(1))) {
         if let Some(&f) = f.first() {
             *d = f;
         }

@@ -52,6 +52,9 @@ pub fn query_stats(q: &[i16], keys: &[i16], m: Multiplier) -> (i64, i64) {
         return s;
     }
     let c = q.len();
+    if c == 0 {
+        return (0, 0); // no query channels: no logits
+    }
     let max = keys.chunks_exact(c).map(|k| logit(q, k)).max().unwrap_or(0);
     let sum = keys.chunks_exact(c).map(|k| weight(logit(q, k), max, m) as i64).sum();
     (max, sum)
@@ -91,8 +94,10 @@ fn aggregate_blocked(q: &[i16], keys: &[i16], values: &[i16], cv: usize, max: i6
     if c == 0 || cv == 0 {
         return;
     }
+    // Non-zero chunk sizes (no zero-size chunking path; c, cv >= 1 here).
+    let (kstep, vstep) = (c.saturating_mul(KEY_BLOCK).max(1), cv.saturating_mul(KEY_BLOCK).max(1));
     let mut e = [0i32; KEY_BLOCK];
-    for (kb, vb) in keys.chunks(c * KEY_BLOCK).zip(values.chunks(cv * KEY_BLOCK)) {
+    for (kb, vb) in keys.chunks(kstep).zip(values.chunks(vstep)) {
         let mut any = false;
         let mut nb = 0;
         for (w, k) in e.iter_mut().zip(kb.chunks_exact(c)) {

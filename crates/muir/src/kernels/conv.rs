@@ -107,13 +107,17 @@ pub struct ConvParams<'a> {
 }
 
 impl ConvParams<'_> {
+    /// A convolution without inputs or outputs: every kernel does nothing with it.
+    pub const EMPTY: ConvParams<'static> =
+        ConvParams { k: 1, stride: 1, parts: &[], cout: 0, weights: &[], bias: BiasRef(&[]), mult: MultRef(&[]), post: PostOp::None };
     /// Patch length `k * k * sum(parts)`.
     pub fn patch_len(&self) -> usize {
         self.k * self.k * self.parts.iter().sum::<usize>()
     }
     /// Output width for an input of width `w_in`.
     pub fn out_width(&self, w_in: usize) -> usize {
-        (w_in + 2 * (self.k / 2) - self.k) / self.stride + 1
+        // No stride (never in a parsed model) gives no columns rather than a division by zero.
+        (w_in + 2 * (self.k / 2)).saturating_sub(self.k).checked_div(self.stride).map_or(0, |q| q + 1)
     }
 }
 
@@ -216,7 +220,8 @@ fn gather_part<T: Elem>(k: usize, stride: usize, rows: &PartRows<'_, T>, ch: usi
     }
     let pad = k / 2;
     let x0 = ox * stride; // the window covers input columns x0 - pad .. x0 - pad + k
-    for (d, row) in dst.chunks_exact_mut(k * ch).zip(rows.rows.iter()) {
+    // `k ch >= 1` here; `max` keeps the chunking free of a zero-size path.
+    for (d, row) in dst.chunks_exact_mut((k * ch).max(1)).zip(rows.rows.iter()) {
         match row {
             Some(r) if x0 >= pad && x0 - pad + k <= w_in => match r.get((x0 - pad) * ch..(x0 - pad + k) * ch) {
                 #[cfg(all(target_arch = "arm", feature = "mve"))]
@@ -229,7 +234,7 @@ fn gather_part<T: Elem>(k: usize, stride: usize, rows: &PartRows<'_, T>, ch: usi
                 for (kx, dc) in d.chunks_exact_mut(ch).enumerate() {
                     let ix = (x0 + kx).wrapping_sub(pad); // huge (outside) left of the image
                     match r.get(ix.saturating_mul(ch)..ix.saturating_mul(ch).saturating_add(ch)) {
-                        Some(s) if ix < w_in => dc.copy_from_slice(s),
+                        Some(s) if ix < w_in => dc.iter_mut().zip(s).for_each(|(d, s)| *d = *s),
                         _ => dc.fill(T::default()),
                     }
                 }
@@ -250,7 +255,9 @@ fn gather2_split<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: 
         let Some((block, tail)) = core::mem::take(&mut rest).split_at_mut_checked(2 * n) else {
             return;
         };
-        let (a, b) = block.split_at_mut(n);
+        let Some((a, b)) = block.split_at_mut_checked(n) else {
+            return;
+        };
         gather_part(k, p.stride, part, ch, w_in, ox, a);
         gather_part(k, p.stride, part, ch, w_in, ox + 1, b);
         rest = tail;
@@ -339,8 +346,10 @@ fn halves<T>(b: &[T]) -> (&[T], &[T]) {
 /// shorter; `kl` and the part count are not 0).
 #[inline(always)]
 fn channel_pairs<'a>(p: &ConvParams<'a>, kl: usize) -> impl Iterator<Item = ((&'a [i8], &'a [u8]), &'a [u8])> {
-    let weights = p.weights.chunks_exact(2 * kl);
-    weights.zip(p.mult.0.chunks_exact(16 * p.parts.len())).zip(p.bias.0.chunks_exact(16)).take(p.cout / 2)
+    // Chunk sizes of at least 1 (the empty shapes this rules out return before they get here):
+    // no zero-size chunking path.
+    let weights = p.weights.chunks_exact((2 * kl).max(1));
+    weights.zip(p.mult.0.chunks_exact((16 * p.parts.len()).max(1))).zip(p.bias.0.chunks_exact(16)).take(p.cout / 2)
 }
 
 /// Sums of the parts' contributions (before [`finish`]) of a channel pair at one pixel from its

@@ -105,7 +105,7 @@ pub fn census_row(img: &ImageView<'_>, y: isize, grey: &mut [u8], out: &mut [u64
     if w == 0 || img.height == 0 {
         return; // an empty image has no codes
     }
-    let clamp_y = |yy: isize| yy.clamp(0, img.height as isize - 1) as usize;
+    let clamp_y = |yy: isize| yy.clamp(0, (img.height as isize - 1).max(0)) as usize;
     // A row outside the image is the edge row's codes (the window replicates borders).
     let y = clamp_y(y) as isize;
     for (k, row) in grey.chunks_exact_mut(w).take(n).enumerate() {
@@ -128,7 +128,7 @@ pub fn census_row(img: &ImageView<'_>, y: isize, grey: &mut [u8], out: &mut [u64
                 if dy == CENSUS_RADIUS && dx == 0 {
                     continue;
                 }
-                let xx = (x as isize + dx).clamp(0, w as isize - 1) as usize;
+                let xx = (x as isize + dx).clamp(0, (w as isize - 1).max(0)) as usize;
                 c |= (row.get(xx).is_some_and(|g| *g < centre) as u64) << bit;
                 bit += 1;
             }
@@ -374,7 +374,9 @@ fn refine_rows(left: &ImageView<'_>, right: &ImageView<'_>, disparity: &mut [i16
     }
     // The buffers, carved from the scratch (shorter than `ScratchLen::new(w)`: nothing is done).
     let Scratch { mut census, mut grey, mut paths, mut rows } = scratch;
-    let sw = SLOTS * w;
+    // `w >= 1` here; `max` keeps the per-row chunking free of a zero-size path (an overflowing
+    // product).
+    let sw = (SLOTS * w).max(1);
     let (Some(ring_l), Some(ring_r)) = (take(&mut census, WINDOW_ROWS * w), take(&mut census, WINDOW_ROWS * w)) else {
         return 0;
     };
