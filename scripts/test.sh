@@ -73,9 +73,9 @@ if [ -x boards/build-check.sh ]; then
     boards/build-check.sh
 fi
 if [ -f boards/qemu-mps2/panic-sites.py ]; then
-    echo "== branches into panic paths in the firmware (measured, not a gate; issue #22)"
-    python3 boards/qemu-mps2/panic-sites.py
-    [ -d boards/qemu-mps3-m55 ] && python3 boards/qemu-mps2/panic-sites.py \
+    echo "== branches into panic paths in the firmware: none from muir's code (a gate; issue #22)"
+    python3 boards/qemu-mps2/panic-sites.py --max-muir 0
+    [ -d boards/qemu-mps3-m55 ] && python3 boards/qemu-mps2/panic-sites.py --max-muir 0 \
         boards/qemu-mps3-m55/target/thumbv8m.main-none-eabihf/release/stereo
 fi
 if [ -f boards/qemu-mps2/float-sites.py ]; then

@@ -6,6 +6,7 @@ or core/other crates). A measurement, not a gate: a panic on a camera module is 
 this shows how many are still reachable in the shipped code.
 
     python3 boards/qemu-mps2/panic-sites.py [ELF]   # default: the qemu-mps2 release build
+    python3 boards/qemu-mps2/panic-sites.py --max-muir 0 [ELF]   # CI: fails if muir's code has any
 
 Needs llvm-objdump (Debian `llvm`); prints a note and exits 0 without it.
 """
@@ -38,6 +39,9 @@ def kind_of(target: str):
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    max_muir = None
+    if argv[:1] == ["--max-muir"] and len(argv) >= 2:
+        max_muir, argv = int(argv[1]), argv[2:]
     got = disassembly("panic-sites", argv, "not counted")
     if isinstance(got, int):
         return got
@@ -61,6 +65,10 @@ def main(argv=None) -> int:
         print(f"  by kind: {k}: {n}")
     for o, n in by_owner.most_common():
         print(f"  by containing function: {o}: {n}")
+    muir = by_owner[names["muir"]]
+    if max_muir is not None and muir > max_muir:
+        print(f"panic-sites: FAILED: {muir} branches into panic paths from muir's code (at most {max_muir})")
+        return 1
     return 0
 
 
