@@ -274,17 +274,10 @@ impl Elem for i16 {
         return dsp::dot2x2_i16(w0, w1, x);
         #[cfg(feature = "mve")]
         {
-            // The split pair layout (`SPLIT_PAIRS`): both patches chunked alike.
+            // The split pair layout (`SPLIT_PAIRS`): patch `a`, then patch `b`.
             let n = w0.len().min(w1.len()).min(x.len() / 2);
             let (a, b) = x.split_at(n);
-            let mut acc = [0i64; 4];
-            let chunks = w0.chunks(I16_CHUNK).zip(w1.chunks(I16_CHUNK)).zip(a.chunks(I16_CHUNK).zip(b.chunks(I16_CHUNK)));
-            for ((c0, c1), (ca, cb)) in chunks {
-                for (acc, s) in acc.iter_mut().zip(mve::dot2x2_split(c0, c1, ca, cb)) {
-                    *acc += s as i64;
-                }
-            }
-            acc
+            mve::dot2x2_split_i16(w0, w1, a, b)
         }
     }
     fn as_out(d: &mut [i16]) -> OutRow<'_> {
