@@ -137,13 +137,54 @@ pub fn finish(p: &ConvParams<'_>, c: usize, sum: i64) -> i64 {
 /// [`finish`] with the channel's bias.
 #[inline(always)]
 fn finish_with(post: PostOp, bias: i64, sum: i64) -> i64 {
-    let v = crate::arith::rshift_round(sum.saturating_add(bias), EXTRA_BITS);
+    activate(post, crate::arith::rshift_round(sum.saturating_add(bias), EXTRA_BITS))
+}
+
+/// The activation of [`finish_with`] on the rounded value.
+#[inline(always)]
+fn activate(post: PostOp, v: i64) -> i64 {
     match post {
         PostOp::None => v,
         PostOp::Relu => v.max(0),
         PostOp::Sigmoid => lut::sigmoid_q12(crate::arith::sat_i16(v)) as i64,
         PostOp::Tanh => lut::tanh_q12(crate::arith::sat_i16(v)) as i64,
     }
+}
+
+/// Bias magnitude bound of the short epilogue ([`short_ok`]).
+const SHORT_MAX_BIAS: u64 = 1 << 40;
+
+/// Whether a (channel, part) multiplier allows the short epilogue: `8 <= shift <= 62` (the
+/// shipped blobs use 13 to 46). Then [`requantize_short`] of an `i32` sum is [`requantize`]'s
+/// integer, below `2^62 / 2^8 = 2^54` in magnitude; up to `MAX_PARTS` (6) such contributions, a
+/// bias below [`SHORT_MAX_BIAS`] and the rounding half sum far inside i64, so the plain adds of
+/// [`finish_short`] give [`finish_with`]'s integers. Anything else takes the saturating path.
+#[inline(always)]
+fn short_ok(m: Multiplier) -> bool {
+    (8..=62).contains(&m.shift)
+}
+
+/// [`requantize`] of an `i32` sum when [`short_ok`]: the same integers without its range checks
+/// (the `shift >= 33` case from the product's high word, as there).
+#[inline(always)]
+fn requantize_short(acc: i32, m: Multiplier) -> i64 {
+    let s = m.shift as u32;
+    let p = acc as i64 * m.m as i64;
+    if s >= 33 {
+        // |hi| <= 2^30 and the rounding half is at most 2^29: no i32 overflow.
+        let hi = (p >> 32) as i32;
+        ((hi + (1i32 << ((s - 33) & 31))) >> ((s - 32) & 31)) as i64
+    } else {
+        // |p| <= 2^62: adding 2^(s-1) <= 2^31 cannot overflow.
+        (p + (1i64 << ((s - 1) & 63))) >> (s & 63)
+    }
+}
+
+/// [`finish_with`] when every contribution to `sum` was short and `|bias| <` [`SHORT_MAX_BIAS`]:
+/// no saturation is possible, so plain adds and one shift.
+#[inline(always)]
+fn finish_short(post: PostOp, bias: i64, sum: i64) -> i64 {
+    activate(post, (sum + bias + (1i64 << (EXTRA_BITS - 1))) >> EXTRA_BITS)
 }
 
 /// The `k` input rows one output row reads from one part: `rows[ky]` is input row
@@ -416,34 +457,51 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
             for ((w, m), b) in channel_pairs(p, kl) {
                 let ((w0, w1), (m0, m1)) = (halves(w), halves(m));
                 let mut s = [0i64; 4];
-                if nparts == 1 {
-                    let d = T::dot2x2(w0, w1, pair);
-                    // Each channel's multiplier read once (`part_sum` here costs the M55 160x120
-                    // frame 8.4 M instructions more).
-                    let (m0, m1) = (mult_at(m0), mult_at(m1));
-                    s = [requantize(d[0], m0), requantize(d[1], m1), requantize(d[2], m0), requantize(d[3], m1)];
-                } else {
-                    let mut o = 0;
-                    for ((&ch, m0), m1) in p.parts.iter().zip(m0.chunks_exact(8)).zip(m1.chunks_exact(8)) {
-                        let n = ch * k * k;
+                let (b0, b1) = halves(b);
+                let (b0, b1) = (bias_at(b0), bias_at(b1));
+                // Whether every contribution came through `requantize_short` and both biases are
+                // small (`short_ok`): then no sum can saturate and plain adds give the same integers.
+                let mut short = b0.unsigned_abs() < SHORT_MAX_BIAS && b1.unsigned_abs() < SHORT_MAX_BIAS;
+                let mut o = 0;
+                for ((&ch, m0), m1) in p.parts.iter().zip(m0.chunks_exact(8)).zip(m1.chunks_exact(8)) {
+                    let n = ch * k * k;
+                    let d = if nparts == 1 {
+                        T::dot2x2(w0, w1, pair)
+                    } else {
                         let (Some(a), Some(b), Some(x)) = (w0.get(o..o + n), w1.get(o..o + n), pair.get(2 * o..2 * (o + n))) else {
                             break;
                         };
-                        let d = T::dot2x2(a, b, x);
-                        let (m0, m1) = (mult_at(m0), mult_at(m1));
-                        s[0] = s[0].saturating_add(requantize(d[0], m0));
-                        s[1] = s[1].saturating_add(requantize(d[1], m1));
-                        s[2] = s[2].saturating_add(requantize(d[2], m0));
-                        s[3] = s[3].saturating_add(requantize(d[3], m1));
-                        o += n;
+                        T::dot2x2(a, b, x)
+                    };
+                    let (m0, m1) = (mult_at(m0), mult_at(m1));
+                    match (short && short_ok(m0) && short_ok(m1), d.map(i32::try_from)) {
+                        (true, [Ok(a0), Ok(a1), Ok(a2), Ok(a3)]) => {
+                            s[0] += requantize_short(a0, m0);
+                            s[1] += requantize_short(a1, m1);
+                            s[2] += requantize_short(a2, m0);
+                            s[3] += requantize_short(a3, m1);
+                        }
+                        _ => {
+                            short = false;
+                            s[0] = s[0].saturating_add(requantize(d[0], m0));
+                            s[1] = s[1].saturating_add(requantize(d[1], m1));
+                            s[2] = s[2].saturating_add(requantize(d[2], m0));
+                            s[3] = s[3].saturating_add(requantize(d[3], m1));
+                        }
                     }
+                    o += n;
                 }
-                let (b0, b1) = halves(b);
-                let (b0, b1) = (bias_at(b0), bias_at(b1));
-                out.set(at_a + c, finish_with(p.post, b0, s[0]));
-                out.set(at_a + c + 1, finish_with(p.post, b1, s[1]));
-                out.set(at_b + c, finish_with(p.post, b0, s[2]));
-                out.set(at_b + c + 1, finish_with(p.post, b1, s[3]));
+                if short {
+                    out.set(at_a + c, finish_short(p.post, b0, s[0]));
+                    out.set(at_a + c + 1, finish_short(p.post, b1, s[1]));
+                    out.set(at_b + c, finish_short(p.post, b0, s[2]));
+                    out.set(at_b + c + 1, finish_short(p.post, b1, s[3]));
+                } else {
+                    out.set(at_a + c, finish_with(p.post, b0, s[0]));
+                    out.set(at_a + c + 1, finish_with(p.post, b1, s[1]));
+                    out.set(at_b + c, finish_with(p.post, b0, s[2]));
+                    out.set(at_b + c + 1, finish_with(p.post, b1, s[3]));
+                }
                 c += 2;
             }
             if c < p.cout {
