@@ -18,6 +18,10 @@
 //!
 //! `MUIR_X86_SIMD=0` in the environment (read once) keeps the portable loops, `MUIR_X86_SIMD=avx2`
 //! the AVX2 ones, for comparisons.
+//!
+//! No input reaches a panic: the slices are walked by iterators, `chunks_exact` and `get`, and the
+//! SIMD loads read through pointers whose bounds the loops prove (each `// SAFETY:` says how).
+#![deny(clippy::indexing_slicing)]
 
 use core::any::TypeId;
 use core::arch::x86_64::*;
@@ -175,11 +179,15 @@ pub fn query_stats(q: &[i16], keys: &[i16], m: Multiplier) -> Option<(i64, i64)>
 /// `false` (nothing done) where the portable loop should run.
 #[inline]
 pub fn aggregate(q: &[i16], keys: &[i16], values: &[i16], cv: usize, max: i64, m: Multiplier, acc: &mut [i64]) -> bool {
-    if !attention_ok(q.len()) || cv == 0 || acc.len() < cv || !has_avx2() {
+    if !attention_ok(q.len()) || cv == 0 || !has_avx2() {
         return false;
     }
-    // SAFETY: the CPU has AVX2 and `q.len()` is a multiple of 16 up to `MAX_QK` (checked above).
-    unsafe { avx2::aggregate(q, keys, values, cv, max, m, &mut acc[..cv]) };
+    let Some(acc) = acc.get_mut(..cv) else {
+        return false;
+    };
+    // SAFETY: the CPU has AVX2, `q.len()` is a multiple of 16 up to `MAX_QK` (checked above) and
+    // `acc.len() == cv > 0`.
+    unsafe { avx2::aggregate(q, keys, values, cv, max, m, acc) };
     true
 }
 
@@ -265,8 +273,11 @@ pub mod avx2 {
                 total += hsum(_mm256_add_epi32(a0, a1));
             }
         }
-        for j in i..n {
-            total += w[j] as i64 * x[j].to_i32() as i64;
+        // The last `n - i` values (the zip stops at `n`).
+        if i < n {
+            for (&a, b) in w.get(i..).unwrap_or_default().iter().zip(x.get(i..).unwrap_or_default()) {
+                total += a as i64 * b.to_i32() as i64;
+            }
         }
         total
     }
@@ -308,10 +319,14 @@ pub mod avx2 {
                 t1 += hsum(_mm256_add_epi32(b0, b1));
             }
         }
-        for j in i..n {
-            let v = x[j].to_i32() as i64;
-            t0 += w0[j] as i64 * v;
-            t1 += w1[j] as i64 * v;
+        // The last `n - i` values (the zip stops at `n`).
+        if i < n {
+            let (w0, w1, x) = (w0.get(i..).unwrap_or_default(), w1.get(i..).unwrap_or_default(), x.get(i..).unwrap_or_default());
+            for ((&a, &b), v) in w0.iter().zip(w1).zip(x) {
+                let v = v.to_i32() as i64;
+                t0 += a as i64 * v;
+                t1 += b as i64 * v;
+            }
         }
         (t0, t1)
     }
@@ -373,8 +388,12 @@ pub mod avx2 {
     /// The part of [`dot2x2`] from weight `i` (a multiple of 4) on, value by value: the whole
     /// groups left, then the `n % 4` last values of each patch.
     #[inline(always)]
-    pub(super) fn tail2x2<T: Elem>(w0: &[i8], w1: &[i8], x: &[T], n: usize, mut i: usize, acc: &mut [i64; 4]) {
+    pub(super) fn tail2x2<T: Elem>(w0: &[i8], w1: &[i8], x: &[T], n: usize, i: usize, acc: &mut [i64; 4]) {
         let q4 = n / 4 * 4;
+        if i >= q4 && q4 == n {
+            // Nothing left (the usual case: the SIMD loop took every value).
+            return;
+        }
         let mut mac = |u: i8, v: i8, a: T, b: T| {
             let (u, v, a, b) = (u as i64, v as i64, a.to_i32() as i64, b.to_i32() as i64);
             acc[0] += u * a;
@@ -382,16 +401,26 @@ pub mod avx2 {
             acc[2] += u * b;
             acc[3] += v * b;
         };
-        while i < q4 {
-            for t in 0..4 {
-                let s = if T::PAIR_SWAP && (t == 1 || t == 2) { 3 - t } else { t };
-                mac(w0[i + t], w1[i + t], x[2 * i + s], x[2 * i + 4 + s]);
+        // Whole groups `i..q4`: 4 weights of each row, then 8 activations `a[0..4] b[0..4]`, a
+        // group's values stored in the order 0, 2, 1, 3 when `T::PAIR_SWAP` (the weights are put
+        // in that order; the sums are exact, so the order of the additions does not matter).
+        if let (Some(u), Some(v), Some(xs)) = (w0.get(i..q4), w1.get(i..q4), x.get(2 * i..2 * q4)) {
+            for ((u, v), xs) in u.chunks_exact(4).zip(v.chunks_exact(4)).zip(xs.chunks_exact(8)) {
+                let (Some(&u), Some(&v), Some((a, b))) = (u.first_chunk::<4>(), v.first_chunk::<4>(), xs.split_first_chunk::<4>()) else {
+                    continue;
+                };
+                let (u, v) = if T::PAIR_SWAP { ([u[0], u[2], u[1], u[3]], [v[0], v[2], v[1], v[3]]) } else { (u, v) };
+                for (((&u, &v), &a), &b) in u.iter().zip(&v).zip(a).zip(b) {
+                    mac(u, v, a, b);
+                }
             }
-            i += 4;
         }
+        // The last `r = n % 4` values: `a[0..r]` then `b[0..r]`.
         let r = n - q4;
-        for t in 0..r {
-            mac(w0[q4 + t], w1[q4 + t], x[2 * q4 + t], x[2 * q4 + r + t]);
+        if let (Some(u), Some(v), Some((a, b))) = (w0.get(q4..n), w1.get(q4..n), x.get(2 * q4..2 * n).and_then(|xs| xs.split_at_checked(r))) {
+            for (((&u, &v), &a), &b) in u.iter().zip(v).zip(a).zip(b) {
+                mac(u, v, a, b);
+            }
         }
     }
 
@@ -407,8 +436,8 @@ pub mod avx2 {
     /// `c <= 128` values, `|sum qh k| <= 128 * 2^22 = 2^29` and `|sum ql k| < 128 * 2^23 = 2^30`,
     /// in any grouping, so they add in i32 and the logit is `256 sum(qh k) + sum(ql k)` in i64.
     pub struct Split {
-        h: [__m256i; MAX_QK / 16],
-        l: [__m256i; MAX_QK / 16],
+        /// `(qh, ql)` of each 16 values; the first `chunks` are the query's.
+        hl: [(__m256i, __m256i); MAX_QK / 16],
         chunks: usize,
     }
 
@@ -421,12 +450,11 @@ pub mod avx2 {
         pub unsafe fn new(q: &[i16]) -> Self {
             assert!(q.len() % 16 == 0 && q.len() <= MAX_QK);
             let z = _mm256_setzero_si256();
-            let mut s = Split { h: [z; MAX_QK / 16], l: [z; MAX_QK / 16], chunks: q.len() / 16 };
-            for i in 0..s.chunks {
-                // SAFETY: values `16 i..16 i + 16` of `q`.
-                let v = unsafe { _mm256_loadu_si256(q.as_ptr().add(16 * i).cast()) };
-                s.h[i] = _mm256_srai_epi16::<8>(v);
-                s.l[i] = _mm256_and_si256(v, _mm256_set1_epi16(0xFF));
+            let mut s = Split { hl: [(z, z); MAX_QK / 16], chunks: q.len() / 16 };
+            for (hl, v) in s.hl.iter_mut().zip(q.chunks_exact(16)) {
+                // SAFETY: the 16 values of `v`.
+                let v = unsafe { _mm256_loadu_si256(v.as_ptr().cast()) };
+                *hl = (_mm256_srai_epi16::<8>(v), _mm256_and_si256(v, _mm256_set1_epi16(0xFF)));
             }
             s
         }
@@ -437,10 +465,11 @@ pub mod avx2 {
             // SAFETY: the caller guarantees `16 chunks` readable values and AVX2.
             unsafe {
                 let (mut h, mut l) = (_mm256_setzero_si256(), _mm256_setzero_si256());
-                for i in 0..self.chunks {
+                // At most `MAX_QK / 16` chunks: over the array, the loop unrolls in full.
+                for (i, &(qh, ql)) in self.hl.iter().take(self.chunks).enumerate() {
                     let kv = _mm256_loadu_si256(k.add(16 * i).cast());
-                    h = _mm256_add_epi32(h, _mm256_madd_epi16(self.h[i], kv));
-                    l = _mm256_add_epi32(l, _mm256_madd_epi16(self.l[i], kv));
+                    h = _mm256_add_epi32(h, _mm256_madd_epi16(qh, kv));
+                    l = _mm256_add_epi32(l, _mm256_madd_epi16(ql, kv));
                 }
                 (h, l)
             }
@@ -466,25 +495,28 @@ pub mod avx2 {
     #[target_feature(enable = "avx2")]
     pub unsafe fn logits(s: &Split, keys: *const i16, out: &mut [i64]) {
         let c = 16 * s.chunks;
-        let mut j = 0;
-        // SAFETY: keys `j..j + 4` (or `j`) below `out.len()`, the caller's guarantee.
+        let mut quads = out.chunks_exact_mut(4);
+        // The key of the next logit.
+        let mut k = keys;
+        // SAFETY: `k` points at key `j` (of `out.len()`, the caller's guarantee) for the logits
+        // `j..j + 4` of `o` (or `j`); after the last, at most one past the keys.
         unsafe {
-            while j + 4 <= out.len() {
-                let (h0, l0) = s.parts(keys.add(j * c));
-                let (h1, l1) = s.parts(keys.add((j + 1) * c));
-                let (h2, l2) = s.parts(keys.add((j + 2) * c));
-                let (h3, l3) = s.parts(keys.add((j + 3) * c));
+            for o in &mut quads {
+                let (h0, l0) = s.parts(k);
+                let (h1, l1) = s.parts(k.add(c));
+                let (h2, l2) = s.parts(k.add(2 * c));
+                let (h3, l3) = s.parts(k.add(3 * c));
                 let h = _mm256_slli_epi64::<8>(_mm256_cvtepi32_epi64(hsum4(h0, h1, h2, h3)));
                 let l = _mm256_cvtepi32_epi64(hsum4(l0, l1, l2, l3));
-                _mm256_storeu_si256(out.as_mut_ptr().add(j).cast(), _mm256_add_epi64(h, l));
-                j += 4;
+                _mm256_storeu_si256(o.as_mut_ptr().cast(), _mm256_add_epi64(h, l));
+                k = k.add(4 * c);
             }
-            while j < out.len() {
-                let (h, l) = s.parts(keys.add(j * c));
+            for o in quads.into_remainder() {
+                let (h, l) = s.parts(k);
                 let z = _mm256_setzero_si256();
                 let v = hsum4(h, l, z, z);
-                out[j] = 256 * _mm_cvtsi128_si32(v) as i64 + _mm_extract_epi32::<1>(v) as i64;
-                j += 1;
+                *o = 256 * _mm_cvtsi128_si32(v) as i64 + _mm_extract_epi32::<1>(v) as i64;
+                k = k.add(c);
             }
         }
     }
@@ -507,9 +539,10 @@ pub mod avx2 {
     /// The CPU has AVX2.
     #[target_feature(enable = "avx2")]
     pub unsafe fn weights(l: &[i64], max: i64, m: Multiplier, e: &mut [i32]) {
-        let n = l.len().min(e.len());
-        let mut j = 0;
+        // Logits done 8 at a time: the whole groups of 8 of `min(l.len(), e.len())`, or none.
+        let mut done = 0;
         if (1..=62).contains(&m.shift) {
+            done = l.len().min(e.len()) / 8 * 8;
             let t = exp_knots();
             let (mx, mm) = (_mm256_set1_epi64x(max), _mm256_set1_epi64x(m.m as i64));
             let half = _mm256_set1_epi64x(1i64 << (m.shift - 1));
@@ -519,7 +552,7 @@ pub mod avx2 {
             let z = _mm256_setzero_si256();
             // Requantised and clamped differences of 4 logits, or `None` if one does not fit i32.
             let four = |p: *const i64| {
-                // SAFETY: 4 logits from `p` (below `n`, the loop's condition).
+                // SAFETY: 4 logits from `p` (half of a group of 8, the loop's chunk).
                 let d = _mm256_sub_epi64(unsafe { _mm256_loadu_si256(p.cast()) }, mx);
                 let out = _mm256_or_si256(_mm256_cmpgt_epi64(d, hi32), _mm256_cmpgt_epi64(lo32, d));
                 if _mm256_movemask_epi8(out) != 0 {
@@ -533,13 +566,12 @@ pub mod avx2 {
                 Some(_mm256_blendv_epi8(r, hi, _mm256_cmpgt_epi64(r, hi)))
             };
             let even = _mm256_setr_epi32(0, 2, 4, 6, 0, 2, 4, 6);
-            while j + 8 <= n {
-                // SAFETY: logits `j..j + 8` lie below `n`.
-                let (Some(a), Some(b)) = (four(unsafe { l.as_ptr().add(j) }), four(unsafe { l.as_ptr().add(j + 4) })) else {
-                    for k in j..j + 8 {
-                        e[k] = weight(l[k], max, m);
+            for (lc, ec) in l.chunks_exact(8).zip(e.chunks_exact_mut(8)) {
+                // SAFETY: `lc` holds 8 logits.
+                let (Some(a), Some(b)) = (four(lc.as_ptr()), four(unsafe { lc.as_ptr().add(4) })) else {
+                    for (ek, &lk) in ec.iter_mut().zip(lc) {
+                        *ek = weight(lk, max, m);
                     }
-                    j += 8;
                     continue;
                 };
                 // The 8 values (in [-32768, 0]) as i32 lanes.
@@ -550,13 +582,13 @@ pub mod avx2 {
                 // SAFETY: knots `i` and `i + 1` with `i <= 1023` lie in the 1025-entry table.
                 let (ka, kb) = unsafe { (_mm256_i32gather_epi32::<4>(t.as_ptr(), i), _mm256_i32gather_epi32::<4>(t.as_ptr().add(1), i)) };
                 let r = _mm256_srai_epi32::<5>(_mm256_add_epi32(_mm256_mullo_epi32(_mm256_sub_epi32(kb, ka), f), _mm256_set1_epi32(16)));
-                // SAFETY: `e` has room for values `j..j + 8` (`n <= e.len()`).
-                unsafe { _mm256_storeu_si256(e.as_mut_ptr().add(j).cast(), _mm256_add_epi32(ka, r)) };
-                j += 8;
+                // SAFETY: `ec` has room for 8 values.
+                unsafe { _mm256_storeu_si256(ec.as_mut_ptr().cast(), _mm256_add_epi32(ka, r)) };
             }
         }
-        for k in j..n {
-            e[k] = weight(l[k], max, m);
+        // The rest, up to `min(l.len(), e.len())` (the zip's end).
+        for (ek, &lk) in e.get_mut(done..).unwrap_or_default().iter_mut().zip(l.get(done..).unwrap_or_default()) {
+            *ek = weight(lk, max, m);
         }
     }
 
@@ -571,28 +603,31 @@ pub mod avx2 {
         let n = keys.len() / c;
         // SAFETY: the caller's guarantees.
         let s = unsafe { Split::new(q) };
+        // The `n` whole keys, in blocks of `KEYS` (`nb` each, fewer in the last).
+        let keys = keys.get(..n * c).unwrap_or_default();
         let (mut l, mut e) = ([0i64; KEYS], [0i32; KEYS]);
         let mut max = None;
-        let mut j0 = 0;
-        while j0 < n {
-            let nb = (n - j0).min(KEYS);
-            // SAFETY: keys `j0..j0 + nb` lie in `keys`.
-            unsafe { logits(&s, keys.as_ptr().add(j0 * c), &mut l[..nb]) };
-            let bm = l[..nb].iter().copied().max();
+        for kb in keys.chunks(KEYS * c) {
+            let Some(l) = l.get_mut(..kb.len() / c) else {
+                break;
+            };
+            // SAFETY: the `l.len()` keys of `kb`.
+            unsafe { logits(&s, kb.as_ptr(), l) };
+            let bm = l.iter().copied().max();
             max = max.max(bm);
-            j0 += nb;
         }
         let max = max.unwrap_or(0);
         let mut sum = 0i64;
-        j0 = 0;
-        while j0 < n {
-            let nb = (n - j0).min(KEYS);
+        for kb in keys.chunks(KEYS * c) {
+            let nb = kb.len() / c;
+            let (Some(l), Some(e)) = (l.get_mut(..nb), e.get_mut(..nb)) else {
+                break;
+            };
             // SAFETY: as above.
-            unsafe { logits(&s, keys.as_ptr().add(j0 * c), &mut l[..nb]) };
+            unsafe { logits(&s, kb.as_ptr(), l) };
             // SAFETY: the CPU has AVX2.
-            unsafe { weights(&l[..nb], max, m, &mut e[..nb]) };
-            sum += e[..nb].iter().map(|&v| v as i64).sum::<i64>();
-            j0 += nb;
+            unsafe { weights(l, max, m, e) };
+            sum += e.iter().map(|&v| v as i64).sum::<i64>();
         }
         (max, sum)
     }
@@ -617,82 +652,97 @@ pub mod avx2 {
     pub unsafe fn aggregate(q: &[i16], keys: &[i16], values: &[i16], cv: usize, max: i64, m: Multiplier, acc: &mut [i64]) {
         let c = q.len();
         let n = (keys.len() / c).min(values.len() / cv);
-        let acc = &mut acc[..cv];
         let cv16 = cv / 16 * 16;
+        // The channels taken 16 at a time, and the rest (nothing done if `acc` is short).
+        let Some(acc) = acc.get_mut(..cv) else {
+            return;
+        };
+        let Some((acc16, acc_tail)) = acc.split_at_mut_checked(cv16) else {
+            return;
+        };
         // SAFETY: the caller's guarantees.
         let s = unsafe { Split::new(q) };
         let in_range = |e: i32| (0..=32768).contains(&e);
         let (mut l, mut e) = ([0i64; KEYS], [0i32; KEYS]);
         // Per pair of keys: `(eh_j, eh_k)` and `(el_j, el_k)` as i16 pairs in an i32.
         let (mut wh, mut wl) = ([0i32; KEYS / 2], [0i32; KEYS / 2]);
-        let mut j0 = 0;
-        while j0 < n {
-            let nb = (n - j0).min(KEYS);
-            // SAFETY: keys `j0..j0 + nb` lie in `keys`.
-            unsafe { logits(&s, keys.as_ptr().add(j0 * c), &mut l[..nb]) };
+        // The `n` whole keys and their values, in blocks of `KEYS` (`nb` each, fewer in the last).
+        let (keys, values) = (keys.get(..n * c).unwrap_or_default(), values.get(..n * cv).unwrap_or_default());
+        for (kb, vals) in keys.chunks(KEYS * c).zip(values.chunks(KEYS * cv)) {
+            let nb = kb.len() / c;
+            let (Some(l), Some(e)) = (l.get_mut(..nb), e.get_mut(..nb)) else {
+                break;
+            };
+            // SAFETY: the `nb` keys of `kb`.
+            unsafe { logits(&s, kb.as_ptr(), l) };
             // SAFETY: the CPU has AVX2.
-            unsafe { weights(&l[..nb], max, m, &mut e[..nb]) };
-            let vals = &values[j0 * cv..(j0 + nb) * cv];
-            // An odd last key pairs with a zero weight.
-            let pairs = nb.div_ceil(2);
+            unsafe { weights(l, max, m, e) };
             let split = |e: i32| if in_range(e) { ((e >> 8) as u32, (e & 255) as u32) } else { (0, 0) };
-            for p in 0..pairs {
-                let (h0, l0) = split(e[2 * p]);
-                let (h1, l1) = if 2 * p + 1 < nb { split(e[2 * p + 1]) } else { (0, 0) };
-                wh[p] = (h0 | h1 << 16) as i32;
-                wl[p] = (l0 | l1 << 16) as i32;
+            let pack = |e0: i32, e1: i32| {
+                let ((h0, l0), (h1, l1)) = (split(e0), split(e1));
+                ((h0 | h1 << 16) as i32, (l0 | l1 << 16) as i32)
+            };
+            for ((h, w), ep) in wh.iter_mut().zip(wl.iter_mut()).zip(e.chunks_exact(2)) {
+                if let &[e0, e1] = ep {
+                    (*h, *w) = pack(e0, e1);
+                }
             }
-            if !e[..nb].iter().all(|&e| in_range(e)) {
-                for (j, &ej) in e[..nb].iter().enumerate().filter(|(_, e)| !in_range(**e)) {
-                    for (a, &v) in acc[..cv16].iter_mut().zip(&vals[j * cv..j * cv + cv16]) {
+            // An odd last key pairs with a zero weight.
+            if let (&[e0], Some(h), Some(w)) = (e.chunks_exact(2).remainder(), wh.get_mut(nb / 2), wl.get_mut(nb / 2)) {
+                (*h, *w) = pack(e0, 0);
+            }
+            if !e.iter().all(|&e| in_range(e)) {
+                for (&ej, row) in e.iter().zip(vals.chunks_exact(cv)).filter(|(e, _)| !in_range(**e)) {
+                    for (a, &v) in acc16.iter_mut().zip(row) {
                         *a += ej as i64 * v as i64;
                     }
                 }
             }
-            let full = nb / 2;
-            for c0 in (0..cv16).step_by(16) {
+            for (a16, c0) in acc16.chunks_exact_mut(16).zip((0..cv16).step_by(16)) {
                 let z = _mm256_setzero_si256();
                 // Channels 0-3 and 8-11 of the 16 (`lo`), then 4-7 and 12-15 (`hi`).
                 let (mut hlo, mut hhi, mut llo, mut lhi) = (z, z, z, z);
-                let mut pair = |vj: __m256i, vk: __m256i, p: usize| {
-                    let (h, l) = (_mm256_set1_epi32(wh[p]), _mm256_set1_epi32(wl[p]));
+                let mut pair = |vj: __m256i, vk: __m256i, wh: i32, wl: i32| {
+                    let (h, l) = (_mm256_set1_epi32(wh), _mm256_set1_epi32(wl));
                     let (lo, hi) = (_mm256_unpacklo_epi16(vj, vk), _mm256_unpackhi_epi16(vj, vk));
                     hlo = _mm256_add_epi32(hlo, _mm256_madd_epi16(lo, h));
                     hhi = _mm256_add_epi32(hhi, _mm256_madd_epi16(hi, h));
                     llo = _mm256_add_epi32(llo, _mm256_madd_epi16(lo, l));
                     lhi = _mm256_add_epi32(lhi, _mm256_madd_epi16(hi, l));
                 };
-                // SAFETY: channels `c0..c0 + 16 <= cv` of keys below `nb`, inside `vals`.
+                // Two keys (`2 cv` values) at a time, then the odd last key (`cv` values, or none).
+                let mut rows = vals.chunks_exact(2 * cv);
+                // SAFETY: channels `c0..c0 + 16 <= cv16 <= cv` of each key of `r`.
                 unsafe {
-                    let mut v = vals.as_ptr().add(c0);
-                    for p in 0..full {
-                        pair(_mm256_loadu_si256(v.cast()), _mm256_loadu_si256(v.add(cv).cast()), p);
-                        v = v.add(2 * cv);
-                    }
-                    if nb % 2 == 1 {
-                        pair(_mm256_loadu_si256(v.cast()), z, full);
+                    for (r, (&h, &l)) in (&mut rows).zip(wh.iter().zip(&wl)) {
+                        let v = r.as_ptr().add(c0);
+                        pair(_mm256_loadu_si256(v.cast()), _mm256_loadu_si256(v.add(cv).cast()), h, l);
                     }
                 }
-                let mut t = [[0i32; 8]; 4];
-                for (t, v) in t.iter_mut().zip([hlo, llo, hhi, lhi]) {
-                    // SAFETY: 32 bytes.
-                    unsafe { _mm256_storeu_si256(t.as_mut_ptr().cast(), v) };
+                if let (Some(v), Some(&h), Some(&l)) = (rows.remainder().get(c0..c0 + 16), wh.get(nb / 2), wl.get(nb / 2)) {
+                    // SAFETY: the 16 values of `v`.
+                    pair(unsafe { _mm256_loadu_si256(v.as_ptr().cast()) }, z, h, l);
                 }
-                // Lane `i` of the `lo` vectors is channel `c0 + LANE[i]`, of the `hi` ones 4 more.
-                const LANE: [usize; 8] = [0, 1, 2, 3, 8, 9, 10, 11];
-                for (i, &o) in LANE.iter().enumerate() {
-                    acc[c0 + o] += 256 * t[0][i] as i64 + t[1][i] as i64;
-                    acc[c0 + o + 4] += 256 * t[2][i] as i64 + t[3][i] as i64;
+                // The 128-bit halves back in channel order: channels 0-7, then 8-15.
+                let (mut th, mut tl) = ([0i32; 16], [0i32; 16]);
+                // SAFETY: `th` and `tl` hold 16 i32 each: 8 from element 0, 8 from element 8.
+                unsafe {
+                    _mm256_storeu_si256(th.as_mut_ptr().cast(), _mm256_permute2x128_si256::<0x20>(hlo, hhi));
+                    _mm256_storeu_si256(th.as_mut_ptr().add(8).cast(), _mm256_permute2x128_si256::<0x31>(hlo, hhi));
+                    _mm256_storeu_si256(tl.as_mut_ptr().cast(), _mm256_permute2x128_si256::<0x20>(llo, lhi));
+                    _mm256_storeu_si256(tl.as_mut_ptr().add(8).cast(), _mm256_permute2x128_si256::<0x31>(llo, lhi));
+                }
+                for ((a, &h), &l) in a16.iter_mut().zip(&th).zip(&tl) {
+                    *a += 256 * h as i64 + l as i64;
                 }
             }
-            if cv16 < cv {
-                for (j, &ej) in e[..nb].iter().enumerate() {
-                    for (a, &v) in acc[cv16..].iter_mut().zip(&vals[j * cv + cv16..(j + 1) * cv]) {
+            if !acc_tail.is_empty() {
+                for (&ej, row) in e.iter().zip(vals.chunks_exact(cv)) {
+                    for (a, &v) in acc_tail.iter_mut().zip(row.get(cv16..).unwrap_or_default()) {
                         *a += ej as i64 * v as i64;
                     }
                 }
             }
-            j0 += nb;
         }
     }
 }
@@ -761,11 +811,15 @@ pub mod vnni {
                 let (mut l0, mut l1) = ([0i32; 8], [0i32; 8]);
                 _mm256_storeu_si256(l0.as_mut_ptr().cast(), _mm256_add_epi32(a0, c0));
                 _mm256_storeu_si256(l1.as_mut_ptr().cast(), _mm256_add_epi32(a1, c1));
-                let lanes = |l: &[i32; 8], o: usize| l[o] as i64 + l[o + 2] as i64 + l[o + 4] as i64 + l[o + 6] as i64;
-                acc[0] += lanes(&l0, 0);
-                acc[1] += lanes(&l1, 0);
-                acc[2] += lanes(&l0, 1);
-                acc[3] += lanes(&l1, 1);
+                // The sums of the even lanes (patch `a`) and of the odd ones (patch `b`).
+                let lanes = |[v0, v1, v2, v3, v4, v5, v6, v7]: [i32; 8]| {
+                    (v0 as i64 + v2 as i64 + v4 as i64 + v6 as i64, v1 as i64 + v3 as i64 + v5 as i64 + v7 as i64)
+                };
+                let ((sa0, sb0), (sa1, sb1)) = (lanes(l0), lanes(l1));
+                acc[0] += sa0;
+                acc[1] += sa1;
+                acc[2] += sb0;
+                acc[3] += sb1;
             }
         }
         avx2::tail2x2(w0, w1, x, n, i, &mut acc);
@@ -774,6 +828,7 @@ pub mod vnni {
 }
 
 #[cfg(test)]
+#[allow(clippy::indexing_slicing)]
 mod tests {
     use super::super::testutil::Rng;
     use super::super::{dot_plain, pair_index};
