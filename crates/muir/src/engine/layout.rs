@@ -368,6 +368,125 @@ pub const fn refine_rings(cfg: &Config, g: &Grid) -> usize {
     if ab > cd { ab } else { cd }
 }
 
+// ------------------------------------------------------------------------------------------------
+// Streaming schedules of the refinement passes
+// ------------------------------------------------------------------------------------------------
+
+/// How a refinement pass streams: it runs steps `s = 0 .. rows + depth`; its stage `d` (0: the
+/// rows computed from whole tensors or the lookup; then each chained 3x3 convolution, one row
+/// behind the stage whose ring it reads, the kernel's radius) produces row `s - d` at step `s`.
+/// Each pass declares its stages here, next to its buffers, and its loop takes the step count and
+/// every stage's row from this declaration.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Schedule {
+    /// Steps beyond the tensor's rows (the deepest stage's lag, plus one where a stage writes
+    /// back a row late).
+    pub depth: usize,
+}
+
+impl Schedule {
+    /// Steps of the pass over a tensor of `rows` rows.
+    pub const fn steps(self, rows: usize) -> usize {
+        rows + self.depth
+    }
+    /// The row stage `lag` produces at step `s`, if any.
+    pub const fn row(self, s: usize, lag: usize, rows: usize) -> Option<usize> {
+        match s.checked_sub(lag) {
+            Some(r) if r < rows => Some(r),
+            _ => None,
+        }
+    }
+}
+
+/// UFI, initializer and decoder: lookup and disparity/correlation features (0), proposal features
+/// (1), candidate state or decoder hidden (2), gate and blend or decoder output (3; the blended
+/// row is written back one step later).
+pub mod ufi_stages {
+    /// Lookup, correlation and disparity features.
+    pub const LOOKUP: usize = 0;
+    /// Proposal features.
+    pub const FEATURES: usize = 1;
+    /// Candidate state (initializer) / decoder hidden layer.
+    pub const CANDIDATE: usize = 2;
+    /// Gate and blend (initializer) / decoder output and selection.
+    pub const GATE: usize = 3;
+    /// The schedule.
+    pub const SCHEDULE: super::Schedule = super::Schedule { depth: GATE + 1 };
+}
+
+/// MUD: lookup (0), two hidden convolutions (1, 2), mask and uncertainty heads (3).
+pub mod mud_stages {
+    /// Correlation lookup.
+    pub const LOOKUP: usize = 0;
+    /// First hidden convolution.
+    pub const HIDDEN1: usize = 1;
+    /// Second hidden convolution.
+    pub const HIDDEN2: usize = 2;
+    /// Mask and uncertainty outputs.
+    pub const OUT: usize = 3;
+    /// The schedule.
+    pub const SCHEDULE: super::Schedule = super::Schedule { depth: OUT };
+}
+
+/// MGA values: lookup (0), mask and value convolutions (1).
+pub mod mga_value_stages {
+    /// Correlation lookup.
+    pub const LOOKUP: usize = 0;
+    /// Mask and value rows.
+    pub const OUT: usize = 1;
+    /// The schedule.
+    pub const SCHEDULE: super::Schedule = super::Schedule { depth: OUT };
+}
+
+/// 1/16 ConvGRU: pooled state and context rows (0), gates (1), candidate and blend (2).
+pub mod gru16_stages {
+    /// Pooled 1/8 state and widened context.
+    pub const INPUTS: usize = 0;
+    /// Update and reset gates.
+    pub const GATES: usize = 1;
+    /// Candidate and blend.
+    pub const CANDIDATE: usize = 2;
+    /// The schedule.
+    pub const SCHEDULE: super::Schedule = super::Schedule { depth: CANDIDATE };
+}
+
+/// 1/8 ConvGRU with the motion encoder: lookup and first motion convolutions (0), second ones (1),
+/// motion features (2), gates with the 1/16 state, MGA and context rows (3), candidate and blend (4).
+pub mod gru08_stages {
+    /// Lookup and the first motion convolutions.
+    pub const LOOKUP: usize = 0;
+    /// Second motion convolutions.
+    pub const MOTION2: usize = 1;
+    /// Motion features.
+    pub const MOTION: usize = 2;
+    /// Update and reset gates (and their inputs: upsampled state, MGA output, context).
+    pub const GATES: usize = 3;
+    /// Candidate and blend.
+    pub const CANDIDATE: usize = 4;
+    /// The schedule.
+    pub const SCHEDULE: super::Schedule = super::Schedule { depth: CANDIDATE };
+}
+
+/// Disparity head: hidden convolution (0), update (1).
+pub mod flow_head_stages {
+    /// Hidden convolution.
+    pub const HIDDEN: usize = 0;
+    /// Disparity update.
+    pub const OUT: usize = 1;
+    /// The schedule.
+    pub const SCHEDULE: super::Schedule = super::Schedule { depth: OUT };
+}
+
+// Every stage runs within its pass's steps, and the stages are chained one row apart (each 3x3
+// convolution reads the ring of the stage before it, one row ahead).
+const _: () = assert!(ufi_stages::LOOKUP + 1 == ufi_stages::FEATURES && ufi_stages::FEATURES + 1 == ufi_stages::CANDIDATE);
+const _: () = assert!(ufi_stages::CANDIDATE + 1 == ufi_stages::GATE && ufi_stages::GATE < ufi_stages::SCHEDULE.depth);
+const _: () = assert!(mud_stages::HIDDEN1 == 1 && mud_stages::HIDDEN2 == 2 && mud_stages::OUT <= mud_stages::SCHEDULE.depth);
+const _: () = assert!(mga_value_stages::OUT == mga_value_stages::LOOKUP + 1 && mga_value_stages::OUT <= mga_value_stages::SCHEDULE.depth);
+const _: () = assert!(gru16_stages::GATES == 1 && gru16_stages::CANDIDATE == 2 && gru16_stages::CANDIDATE <= gru16_stages::SCHEDULE.depth);
+const _: () = assert!(gru08_stages::MOTION2 == 1 && gru08_stages::MOTION == 2 && gru08_stages::GATES == 3 && gru08_stages::CANDIDATE == 4);
+const _: () = assert!(gru08_stages::CANDIDATE <= gru08_stages::SCHEDULE.depth && flow_head_stages::OUT <= flow_head_stages::SCHEDULE.depth);
+
 #[cfg(test)]
 mod tests {
     use super::*;

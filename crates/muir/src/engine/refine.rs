@@ -14,7 +14,7 @@
 #![deny(clippy::indexing_slicing)]
 
 use super::encoder::{conv, run_conv};
-use super::layout::{FlowHeadLayout, GruLayout, MudLayout, UfiLayout};
+use super::layout::{FlowHeadLayout, GruLayout, MudLayout, UfiLayout, flow_head_stages, gru08_stages, gru16_stages, mga_value_stages, mud_stages, ufi_stages};
 use crate::model::grid::Grid;
 use super::ring::{Carver, Ring, chunk, chunk_mut, copy_row, first_n, first_n_mut, last_input_row};
 use crate::arith::{lut, sat_i16};
@@ -207,13 +207,12 @@ pub fn ufi(c: &mut Ctx<'_, '_, '_>, max_d8: usize) {
     macro_rules! feature_rows {
         ($s:expr, $rc:expr, $rf:expr, $rfeat:expr) => {{
             let s = $s;
-            if s < h8 {
+            if ufi_stages::SCHEDULE.row(s, ufi_stages::LOOKUP, h8).is_some() {
                 lookup_row(m, c.frame.f1, c.frame.f2, flow_k, fc, &g, s, c.px.window, c.px.prefix, corr);
                 conv16(&pc, &[full(corr, 1, w * cc, 0, 1)], w, $rc.push(), c.px.patch);
                 conv16(&pf, &[full(flow_k, h8, fl_row, s, 3)], w, $rf.push(), c.px.patch);
             }
-            if s >= 1 && s - 1 < h8 {
-                let r = s - 1;
+            if let Some(r) = ufi_stages::SCHEDULE.row(s, ufi_stages::FEATURES, h8) {
                 conv16(&pconv, &[rows(&$rc, r, 3), rows(&$rf, r, 3)], w, $rfeat.push(), c.px.patch);
             }
         }};
@@ -227,18 +226,16 @@ pub fn ufi(c: &mut Ctx<'_, '_, '_>, max_d8: usize) {
         let mut rinp = Ring::of(&mut b_inp[..], lay.inp, h8);
         let mut rpend = Ring::of(&mut pend[..], lay.pending, h8);
         let row = w * hd;
-        for s in 0..h8 + 4 {
+        for s in 0..ufi_stages::SCHEDULE.steps(h8) {
             // lag 0 and 1: corr, disparity and proposal features
             feature_rows!(s, rc, rf, rfeat);
             // lag 2: candidate state q = tanh(convq([feat, flow_k, ctx]))
-            if s >= 2 && s - 2 < h8 {
-                let r = s - 2;
+            if let Some(r) = ufi_stages::SCHEDULE.row(s, ufi_stages::CANDIDATE, h8) {
                 fill(&mut rinp, last_input_row(r, 3, 1, h8), |y, d| widen_row(chunk(c.frame.inp08, y, w * cfg.context_dim), d));
                 conv16(&pq, &[rows(&rfeat, r, 3), full(flow_k, h8, fl_row, r, 3), rows(&rinp, r, 3)], w, rq.push(), c.px.patch);
             }
             // lag 3: gate and blend (write-back one row later: the next gate row reads this one)
-            if s >= 3 && s - 3 < h8 {
-                let r = s - 3;
+            if let Some(r) = ufi_stages::SCHEDULE.row(s, ufi_stages::GATE, h8) {
                 conv16(&pz, &[full(c.frame.net08, h8, row, r, 3), rows(&rq, r, 3)], w, first_n_mut(z, row), c.px.patch);
                 let dst = rpend.push();
                 copy_row(dst, chunk(c.frame.net08, r, row));
@@ -258,14 +255,12 @@ pub fn ufi(c: &mut Ctx<'_, '_, '_>, max_d8: usize) {
         let mut rf = Ring::of(&mut b_f[..], lay.f, h8);
         let mut rfeat = Ring::of(&mut b_feat[..], lay.feat, h8);
         let mut rh1 = Ring::of(&mut b_h1[..], lay.h1, h8);
-        for s in 0..h8 + 4 {
+        for s in 0..ufi_stages::SCHEDULE.steps(h8) {
             feature_rows!(s, rc, rf, rfeat);
-            if s >= 2 && s - 2 < h8 {
-                let r = s - 2;
+            if let Some(r) = ufi_stages::SCHEDULE.row(s, ufi_stages::CANDIDATE, h8) {
                 conv16(&ph1, &[full(c.frame.net08, h8, w * hd, r, 3), rows(&rfeat, r, 3), full(flow_k, h8, fl_row, r, 3)], w, rh1.push(), c.px.patch);
             }
-            if s >= 3 && s - 3 < h8 {
-                let r = s - 3;
+            if let Some(r) = ufi_stages::SCHEDULE.row(s, ufi_stages::GATE, h8) {
                 let h2 = first_n_mut(h2, 2 * w);
                 conv16(&ph2, &[rows(&rh1, r, 3)], w, h2, c.px.patch);
                 for (x, (out, u)) in h2.chunks_exact(2).zip(chunk_mut(c.st.u, r, w)).enumerate() {
@@ -357,19 +352,17 @@ pub fn mud_pass(c: &mut Ctx<'_, '_, '_>) {
     let out = cv.i16(lay.mud3);
     let (p1, p2, p3) = (conv(m, Mud1), conv(m, Mud2), conv(m, Mud3));
     let table = m.u_table();
-    for s in 0..h8 + 3 {
-        if s < h8 {
+    for s in 0..mud_stages::SCHEDULE.steps(h8) {
+        if mud_stages::SCHEDULE.row(s, mud_stages::LOOKUP, h8).is_some() {
             lookup_row(m, c.frame.f1, c.frame.f2, c.st.flow, fc, &g, s, c.px.window, c.px.prefix, rcorr.push());
         }
-        if s >= 1 && s - 1 < h8 {
-            let r = s - 1;
+        if let Some(r) = mud_stages::SCHEDULE.row(s, mud_stages::HIDDEN1, h8) {
             conv16(&p1, &[full(c.frame.net08, h8, w * hd, r, 3), rows(&rcorr, r, 3), full(c.st.flow, h8, w * fc, r, 3)], w, r1.push(), c.px.patch);
         }
-        if s >= 2 && s - 2 < h8 {
-            conv16(&p2, &[rows(&r1, s - 2, 3)], w, r2.push(), c.px.patch);
+        if let Some(r) = mud_stages::SCHEDULE.row(s, mud_stages::HIDDEN2, h8) {
+            conv16(&p2, &[rows(&r1, r, 3)], w, r2.push(), c.px.patch);
         }
-        if s >= 3 && s - 3 < h8 {
-            let r = s - 3;
+        if let Some(r) = mud_stages::SCHEDULE.row(s, mud_stages::OUT, h8) {
             let out = first_n_mut(out, 2 * w);
             conv16(&p3, &[rows(&r2, r, 3)], w, out, c.px.patch);
             let (mask, u) = (chunk_mut(c.st.mask, r, w), chunk_mut(c.st.u, r, w));
@@ -396,12 +389,11 @@ pub fn mga_values(c: &mut Ctx<'_, '_, '_>) {
     let hm = cv.i16(lay.hm);
     let v = cv.i16(lay.v);
     let (pm, pv) = (conv(m, MgaMask), conv(m, MgaValue));
-    for s in 0..h8 + 1 {
-        if s < h8 {
+    for s in 0..mga_value_stages::SCHEDULE.steps(h8) {
+        if mga_value_stages::SCHEDULE.row(s, mga_value_stages::LOOKUP, h8).is_some() {
             lookup_row(m, c.frame.f1, c.frame.f2, c.st.flow, fc, &g, s, c.px.window, c.px.prefix, rcorr.push());
         }
-        if s >= 1 {
-            let r = s - 1;
+        if let Some(r) = mga_value_stages::SCHEDULE.row(s, mga_value_stages::OUT, h8) {
             let parts = [
                 full(c.frame.net08, h8, w * hd, r, 3),
                 rows(&rcorr, r, 3),
@@ -433,21 +425,19 @@ pub fn gru16(c: &mut Ctx<'_, '_, '_>) {
     let gate = cv.i16(lay.gate);
     let q = cv.i16(lay.q);
     let (pz, pr, pq) = (conv(m, Gru16Z), conv(m, Gru16R), conv(m, Gru16Q));
-    for s in 0..h + 2 {
-        if s < h {
+    for s in 0..gru16_stages::SCHEDULE.steps(h) {
+        if gru16_stages::SCHEDULE.row(s, gru16_stages::INPUTS, h).is_some() {
             pool2x_row(c.frame.net08, h8, w8, hd, s, pool.push());
             widen_row(chunk(c.frame.inp16, s, w * ctx), inp.push());
         }
-        if s >= 1 && s - 1 < h {
-            let r = s - 1;
+        if let Some(r) = gru16_stages::SCHEDULE.row(s, gru16_stages::GATES, h) {
             let parts = [full(c.frame.net16, h, row, r, 3), rows(&pool, r, 3), rows(&inp, r, 3)];
             conv16(&pz, &parts, w, rz.push(), c.px.patch);
             let gate = first_n_mut(gate, row);
             conv16(&pr, &parts, w, gate, c.px.patch);
             mul_q15(gate, chunk(c.frame.net16, r, row), rh.push());
         }
-        if s >= 2 {
-            let r = s - 2;
+        if let Some(r) = gru16_stages::SCHEDULE.row(s, gru16_stages::CANDIDATE, h) {
             let q = first_n_mut(q, row);
             conv16(&pq, &[rows(&rh, r, 3), rows(&pool, r, 3), rows(&inp, r, 3)], w, q, c.px.patch);
             blend_q15(chunk_mut(c.frame.net16, r, row), rz.row(r), q);
@@ -486,8 +476,8 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
     let phases = first_n(&phases, cfg.mga_qk_dim / 2);
     let (am, glb_shift) = (m.att_mult(), frac(m, Act::Glb) - frac(m, Act::MgaV));
     let row = w * hd;
-    for s in 0..h8 + 4 {
-        if s < h8 {
+    for s in 0..gru08_stages::SCHEDULE.steps(h8) {
+        if gru08_stages::SCHEDULE.row(s, gru08_stages::LOOKUP, h8).is_some() {
             lookup_row(m, c.frame.f1, c.frame.f2, c.st.flow, fc, &g, s, c.px.window, c.px.prefix, first_n_mut(corr, w * cc));
             // corr features: cat[C, C * m, m] with MUD (three parts), C alone without
             if cfg.mud {
@@ -499,17 +489,14 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
             }
             conv16(&pf1, &[full(c.st.flow, h8, w * fc, s, 7)], w, rf1.push(), c.px.patch);
         }
-        if s >= 1 && s - 1 < h8 {
-            let r = s - 1;
+        if let Some(r) = gru08_stages::SCHEDULE.row(s, gru08_stages::MOTION2, h8) {
             conv16(&pc2, &[rows(&rc1, r, 3)], w, rc2.push(), c.px.patch);
             conv16(&pf2, &[rows(&rf1, r, 3)], w, rf2.push(), c.px.patch);
         }
-        if s >= 2 && s - 2 < h8 {
-            let r = s - 2;
+        if let Some(r) = gru08_stages::SCHEDULE.row(s, gru08_stages::MOTION, h8) {
             conv16(&pmo, &[rows(&rc2, r, 3), rows(&rf2, r, 3)], w, rmo.push(), c.px.patch);
         }
-        if s >= 3 && s - 3 < h8 {
-            let r = s - 3;
+        if let Some(r) = gru08_stages::SCHEDULE.row(s, gru08_stages::GATES, h8) {
             let upto = last_input_row(r, 3, 1, h8);
             let (net16, w16, h16) = (&*c.frame.net16, g.w16, g.h16);
             fill(&mut rup, upto, |y, d| interp_row(net16, h16, w16, hd, h8, w, y, d));
@@ -543,8 +530,7 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
             conv16(&pr, first_n(&parts, n), w, gate, c.px.patch);
             mul_q15(gate, chunk(c.frame.net08, r, row), rrh.push());
         }
-        if s >= 4 {
-            let r = s - 4;
+        if let Some(r) = gru08_stages::SCHEDULE.row(s, gru08_stages::CANDIDATE, h8) {
             let fl = full(c.st.flow, h8, w * fc, r, 3);
             let mut parts = [rows(&rrh, r, 3), rows(&rmo, r, 3), fl, rows(&rup, r, 3), rows(&rinp, r, 3), rows(&rinp, r, 3)];
             let n = if cfg.mga {
@@ -574,12 +560,11 @@ pub fn flow_head(c: &mut Ctx<'_, '_, '_>, settled: u16) -> usize {
     let out = cv.i16(lay.head_out);
     let (p1, p2) = (conv(m, Flow1), conv(m, Flow2));
     let mut moved = 0usize;
-    for s in 0..h8 + 1 {
-        if s < h8 {
+    for s in 0..flow_head_stages::SCHEDULE.steps(h8) {
+        if flow_head_stages::SCHEDULE.row(s, flow_head_stages::HIDDEN, h8).is_some() {
             conv16(&p1, &[full(c.frame.net08, h8, w * hd, s, 3)], w, rh.push(), c.px.patch);
         }
-        if s >= 1 {
-            let r = s - 1;
+        if let Some(r) = flow_head_stages::SCHEDULE.row(s, flow_head_stages::OUT, h8) {
             let out = first_n_mut(out, w * fc);
             conv16(&p2, &[rows(&rh, r, 3)], w, out, c.px.patch);
             let flow = chunk_mut(c.st.flow, r, w * fc);
