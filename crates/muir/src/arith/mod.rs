@@ -231,16 +231,26 @@ impl Multiplier {
 #[inline(always)]
 pub const fn requantize(acc: i64, mult: Multiplier) -> i64 {
     if acc >= i32::MIN as i64 && acc <= i32::MAX as i64 && mult.shift <= 62 && mult.shift >= 1 {
-        let p = acc * mult.m as i64;
-        let s = mult.shift as u32;
-        if s >= 33 {
-            // |hi| <= 2^30 (|acc|, |m| <= 2^31), so the i32 sum cannot overflow.
-            let hi = (p >> 32) as i32;
-            return ((hi + (1i32 << (s - 33))) >> (s - 32)) as i64;
-        }
-        return (p + (1i64 << (s - 1))) >> s;
+        return requantize_i32(acc as i32, mult);
     }
     requantize_wide(acc, mult)
+}
+
+/// [`requantize`] of an `i32` accumulator for `1 <= mult.shift <= 62`: its 64-bit path without
+/// the range checks, for callers that know the range (the convolution epilogue checks the
+/// multiplier once per channel). Shifts are masked and adds wrap (neither can happen in the
+/// range), so a shift outside it gives an unspecified value, never a panic.
+#[inline(always)]
+pub const fn requantize_i32(acc: i32, mult: Multiplier) -> i64 {
+    let p = acc as i64 * mult.m as i64;
+    let s = mult.shift as u32;
+    if s >= 33 {
+        // |hi| <= 2^30 (|acc|, |m| <= 2^31) and the rounding half is at most 2^29: no i32 overflow.
+        let hi = (p >> 32) as i32;
+        return (hi.wrapping_add(1i32 << ((s - 33) & 31)) >> ((s - 32) & 31)) as i64;
+    }
+    // |p| <= 2^62: adding 2^(s-1) <= 2^31 cannot overflow.
+    p.wrapping_add(1i64 << (s.wrapping_sub(1) & 63)) >> (s & 63)
 }
 
 /// [`requantize`] for any operands, in 128-bit.

@@ -17,7 +17,7 @@
 #![deny(clippy::indexing_slicing)]
 
 use super::{Elem, OutRow, dot_plain, head_mut, pair_index, set_at};
-use crate::arith::{Multiplier, lut, requantize};
+use crate::arith::{Multiplier, lut, requantize, requantize_i32};
 use crate::model::graph::PostOp;
 
 /// Largest kernel size.
@@ -155,29 +155,13 @@ fn activate(post: PostOp, v: i64) -> i64 {
 const SHORT_MAX_BIAS: u64 = 1 << 40;
 
 /// Whether a (channel, part) multiplier allows the short epilogue: `8 <= shift <= 62` (the
-/// shipped blobs use 13 to 46). Then [`requantize_short`] of an `i32` sum is [`requantize`]'s
+/// shipped blobs use 13 to 46). Then [`requantize_i32`] of an `i32` sum is [`requantize`]'s
 /// integer, below `2^62 / 2^8 = 2^54` in magnitude; up to `MAX_PARTS` (6) such contributions, a
 /// bias below [`SHORT_MAX_BIAS`] and the rounding half sum far inside i64, so the plain adds of
 /// [`finish_short`] give [`finish_with`]'s integers. Anything else takes the saturating path.
 #[inline(always)]
 fn short_ok(m: Multiplier) -> bool {
     (8..=62).contains(&m.shift)
-}
-
-/// [`requantize`] of an `i32` sum when [`short_ok`]: the same integers without its range checks
-/// (the `shift >= 33` case from the product's high word, as there).
-#[inline(always)]
-fn requantize_short(acc: i32, m: Multiplier) -> i64 {
-    let s = m.shift as u32;
-    let p = acc as i64 * m.m as i64;
-    if s >= 33 {
-        // |hi| <= 2^30 and the rounding half is at most 2^29: no i32 overflow.
-        let hi = (p >> 32) as i32;
-        ((hi + (1i32 << ((s - 33) & 31))) >> ((s - 32) & 31)) as i64
-    } else {
-        // |p| <= 2^62: adding 2^(s-1) <= 2^31 cannot overflow.
-        (p + (1i64 << ((s - 1) & 63))) >> (s & 63)
-    }
 }
 
 /// [`finish_with`] when every contribution to `sum` was short and `|bias| <` [`SHORT_MAX_BIAS`]:
@@ -459,7 +443,7 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
                 let mut s = [0i64; 4];
                 let (b0, b1) = halves(b);
                 let (b0, b1) = (bias_at(b0), bias_at(b1));
-                // Whether every contribution came through `requantize_short` and both biases are
+                // Whether every contribution came through `requantize_i32` and both biases are
                 // small (`short_ok`): then no sum can saturate and plain adds give the same integers.
                 let mut short = b0.unsigned_abs() < SHORT_MAX_BIAS && b1.unsigned_abs() < SHORT_MAX_BIAS;
                 let mut o = 0;
@@ -476,10 +460,10 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
                     let (m0, m1) = (mult_at(m0), mult_at(m1));
                     match (short && short_ok(m0) && short_ok(m1), d.map(i32::try_from)) {
                         (true, [Ok(a0), Ok(a1), Ok(a2), Ok(a3)]) => {
-                            s[0] += requantize_short(a0, m0);
-                            s[1] += requantize_short(a1, m1);
-                            s[2] += requantize_short(a2, m0);
-                            s[3] += requantize_short(a3, m1);
+                            s[0] += requantize_i32(a0, m0);
+                            s[1] += requantize_i32(a1, m1);
+                            s[2] += requantize_i32(a2, m0);
+                            s[3] += requantize_i32(a3, m1);
                         }
                         _ => {
                             short = false;
