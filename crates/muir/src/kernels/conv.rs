@@ -210,28 +210,17 @@ fn column<T>(row: Option<&[T]>, ix: isize, w_in: usize, ch: usize) -> Option<&[T
     }
 }
 
-/// Gathers the patch of output column `ox`: `[part][ky][kx][c]`, zeros outside the input (stops
-/// at the end of a too-short `patch`).
+/// Gathers the patch of output column `ox`: `[part][ky][kx][c]`, zeros outside the input, part by
+/// part ([`gather_part`]; stops before a part a too-short `patch` cannot hold).
 #[inline]
 fn gather<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, ox: usize, patch: &mut [T]) {
-    let k = p.k;
-    let pad = (k / 2) as isize;
-    let mut o = 0;
+    let mut rest = patch;
     for (part, &ch) in inputs.iter().zip(p.parts) {
-        for ky in 0..k {
-            let row = part.row(ky);
-            for kx in 0..k {
-                let ix = (ox * p.stride + kx) as isize - pad;
-                let Some(dst) = patch.get_mut(o..o + ch) else {
-                    return;
-                };
-                match column(row, ix, w_in, ch) {
-                    Some(src) => dst.copy_from_slice(src),
-                    None => dst.fill(T::default()),
-                }
-                o += ch;
-            }
-        }
+        let Some((dst, tail)) = core::mem::take(&mut rest).split_at_mut_checked(p.k * p.k * ch) else {
+            return;
+        };
+        gather_part(p.k, p.stride, part, ch, w_in, ox, dst);
+        rest = tail;
     }
 }
 
@@ -251,16 +240,16 @@ fn gather_part<T: Elem>(k: usize, stride: usize, rows: &PartRows<'_, T>, ch: usi
             Some(r) if x0 >= pad && x0 - pad + k <= w_in => match r.get((x0 - pad) * ch..(x0 - pad + k) * ch) {
                 #[cfg(all(target_arch = "arm", feature = "mve"))]
                 Some(s) => super::mve::copy(d, s),
+                // (`get` gave exactly `k ch` values; the guard lets the compiler drop the length check.)
                 #[cfg(not(all(target_arch = "arm", feature = "mve")))]
-                Some(s) => d.copy_from_slice(s),
-                None => d.fill(T::default()), // a row shorter than `w_in` (never in the engine)
+                Some(s) if s.len() == d.len() => d.copy_from_slice(s),
+                _ => d.fill(T::default()), // a row shorter than `w_in` (never in the engine)
             },
             Some(r) => {
                 for (kx, dc) in d.chunks_exact_mut(ch).enumerate() {
-                    let ix = (x0 + kx).wrapping_sub(pad); // huge (outside) left of the image
-                    match r.get(ix.saturating_mul(ch)..ix.saturating_mul(ch).saturating_add(ch)) {
-                        Some(s) if ix < w_in => dc.iter_mut().zip(s).for_each(|(d, s)| *d = *s),
-                        _ => dc.fill(T::default()),
+                    match column(Some(r), (x0 + kx) as isize - pad as isize, w_in, ch) {
+                        Some(s) => dc.iter_mut().zip(s).for_each(|(d, s)| *d = *s),
+                        None => dc.fill(T::default()),
                     }
                 }
             }
