@@ -236,79 +236,52 @@ pub trait SplitLanes: Lanes {
     unsafe fn dot2x2_n(w0: &[i8], w1: &[i8], a: &[Self], b: &[Self], n: usize) -> [i32; 4];
 }
 
-impl SplitLanes for u8 {
-    #[inline(always)]
-    unsafe fn dot2x2_n(w0: &[i8], w1: &[i8], a: &[u8], b: &[u8], n: usize) -> [i32; 4] {
-        let [mut s0, mut s1, mut s2, mut s3] = [0i32; 4];
-        // SAFETY: `n` lanes (tail-predicated: disabled lanes are not loaded) of each slice, inside
-        // them by the caller's bounds. The widening loads need low base registers (r0-r3), the
-        // `VMLADAVA` sums even ones (r4, r8, r10, r12).
-        unsafe {
-            asm!(
-                "dlstp.16 lr, {n}",
-                "2:",
-                "vldrb.u16 q0, [r0], #8",
-                "vldrb.u16 q1, [r1], #8",
-                "vldrb.s16 q2, [r2], #8",
-                "vmlava.s16 r4, q0, q2",
-                "vmlava.s16 r8, q1, q2",
-                "vldrb.s16 q2, [r3], #8",
-                "vmlava.s16 r10, q0, q2",
-                "vmlava.s16 r12, q1, q2",
-                "letp lr, 2b",
-                n = in(reg) n,
-                inout("r0") a.as_ptr() => _,
-                inout("r1") b.as_ptr() => _,
-                inout("r2") w0.as_ptr() => _,
-                inout("r3") w1.as_ptr() => _,
-                inout("r4") s0,
-                inout("r10") s1,
-                inout("r8") s2,
-                inout("r12") s3,
-                out("lr") _,
-                out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _,
-                options(nostack, readonly),
-            );
+/// The [`SplitLanes`] loop of one activation type: `$load` reads eight activations into 16-bit
+/// lanes (`$step` bytes) from each patch; the rest is the same for u8 and i16. The widening u8
+/// loads need low base registers (r0-r3 here), the `VMLADAVA` sums even ones (r4, r8, r10, r12).
+macro_rules! split_lanes {
+    ($t:ty, $load:literal, $step:literal) => {
+        impl SplitLanes for $t {
+            #[inline(always)]
+            unsafe fn dot2x2_n(w0: &[i8], w1: &[i8], a: &[$t], b: &[$t], n: usize) -> [i32; 4] {
+                let [mut s0, mut s1, mut s2, mut s3] = [0i32; 4];
+                // SAFETY: `n` lanes (tail-predicated: disabled lanes are not loaded) of each slice,
+                // inside them by the caller's bounds; registers as the macro's doc says.
+                unsafe {
+                    asm!(
+                        "dlstp.16 lr, {n}",
+                        "2:",
+                        concat!($load, " q0, [r0], #", $step),
+                        concat!($load, " q1, [r1], #", $step),
+                        "vldrb.s16 q2, [r2], #8",
+                        "vmlava.s16 r4, q0, q2",
+                        "vmlava.s16 r8, q1, q2",
+                        "vldrb.s16 q2, [r3], #8",
+                        "vmlava.s16 r10, q0, q2",
+                        "vmlava.s16 r12, q1, q2",
+                        "letp lr, 2b",
+                        n = in(reg) n,
+                        inout("r0") a.as_ptr() => _,
+                        inout("r1") b.as_ptr() => _,
+                        inout("r2") w0.as_ptr() => _,
+                        inout("r3") w1.as_ptr() => _,
+                        inout("r4") s0,
+                        inout("r10") s1,
+                        inout("r8") s2,
+                        inout("r12") s3,
+                        out("lr") _,
+                        out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _,
+                        options(nostack, readonly),
+                    );
+                }
+                [s0, s1, s2, s3]
+            }
         }
-        [s0, s1, s2, s3]
-    }
+    };
 }
 
-impl SplitLanes for i16 {
-    #[inline(always)]
-    unsafe fn dot2x2_n(w0: &[i8], w1: &[i8], a: &[i16], b: &[i16], n: usize) -> [i32; 4] {
-        let [mut s0, mut s1, mut s2, mut s3] = [0i32; 4];
-        // SAFETY: as for u8 (16-bit activation loads take any base register).
-        unsafe {
-            asm!(
-                "dlstp.16 lr, {n}",
-                "2:",
-                "vldrh.u16 q0, [{a}], #16",
-                "vldrh.u16 q1, [{b}], #16",
-                "vldrb.s16 q2, [r2], #8",
-                "vmlava.s16 r4, q0, q2",
-                "vmlava.s16 r8, q1, q2",
-                "vldrb.s16 q2, [r3], #8",
-                "vmlava.s16 r10, q0, q2",
-                "vmlava.s16 r12, q1, q2",
-                "letp lr, 2b",
-                n = in(reg) n,
-                a = inout(reg) a.as_ptr() => _,
-                b = inout(reg) b.as_ptr() => _,
-                inout("r2") w0.as_ptr() => _,
-                inout("r3") w1.as_ptr() => _,
-                inout("r4") s0,
-                inout("r10") s1,
-                inout("r8") s2,
-                inout("r12") s3,
-                out("lr") _,
-                out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _,
-                options(nostack, readonly),
-            );
-        }
-        [s0, s1, s2, s3]
-    }
-}
+split_lanes!(u8, "vldrb.u16", 8);
+split_lanes!(i16, "vldrh.u16", 16);
 
 /// Four dot products, two output channels at two output pixels, with the two patches side by
 /// side (the Helium pair layout, `kernels::pair_index`: patch `a` then patch `b`):
