@@ -176,7 +176,7 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
     /// Binds a model and an arena (8-byte aligned; at least [`Plan::ram_bytes`] for the image
     /// size it will run on).
     pub fn new(model: &'m QuantModel<'a>, arena: &'w mut [u8]) -> Result<Self, EngineError> {
-        if arena.as_ptr() as usize % 8 != 0 {
+        if !(arena.as_ptr() as usize).is_multiple_of(8) {
             return Err(EngineError::ArenaAlignment);
         }
         Ok(Self {
@@ -294,10 +294,11 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
             refine::gru08(&mut c);
             let moved = refine::flow_head(&mut c, self.early_stop.map_or(0, |s| s.settled));
             used = it + 1;
-            if let Some(stop) = self.early_stop {
-                if used >= stop.min_iters && 1000 * moved as u64 <= stop.max_moving_per_mille as u64 * n8 {
-                    break;
-                }
+            if let Some(stop) = self.early_stop
+                && used >= stop.min_iters
+                && 1000 * moved as u64 <= stop.max_moving_per_mille as u64 * n8
+            {
+                break;
             }
         }
         self.last_iters = used;

@@ -143,10 +143,10 @@ pub const fn max_patch(cfg: &Config) -> usize {
     let mut m = 0;
     let mut ids = ConvId::ALL;
     while let [id, rest @ ..] = ids {
-        if let Some(q) = crate::model::graph::QLayer::of(*id, cfg) {
-            if let Some(s) = id.shape(cfg) {
-                m = max(m, s.k * s.k * q.cin());
-            }
+        if let Some(q) = crate::model::graph::QLayer::of(*id, cfg)
+            && let Some(s) = id.shape(cfg)
+        {
+            m = max(m, s.k * s.k * q.cin());
         }
         ids = rest;
     }

@@ -20,6 +20,10 @@ use super::{Elem, OutRow, dot_plain, head_mut, pair_index, set_at};
 use crate::arith::{Multiplier, lut, requantize, requantize_i32};
 use crate::model::graph::PostOp;
 
+#[cfg(all(target_arch = "x86_64", feature = "std"))]
+#[path = "conv_avx512.rs"]
+mod avx512;
+
 /// Largest kernel size.
 pub const MAX_K: usize = 7;
 
@@ -416,6 +420,10 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
     let k = p.k;
     let kl = p.patch_len();
     if kl == 0 {
+        return;
+    }
+    #[cfg(all(target_arch = "x86_64", feature = "std"))]
+    if avx512::conv_row(p, inputs, w_in, out) {
         return;
     }
     let w_out = p.out_width(w_in);

@@ -437,7 +437,7 @@ pub fn dot2x2_i16(w0: &[i8], w1: &[i8], x: &[i16]) -> [i64; 4] {
     let mut acc = [0i64; 4];
     // LDRD needs a word-aligned address: the engine's patch buffers are; a slice at an odd
     // element offset takes the Rust loop, chunk by chunk.
-    if q > 0 && x.as_ptr() as usize % 4 == 0 {
+    if q > 0 && (x.as_ptr() as usize).is_multiple_of(4) {
         // SAFETY: the loop reads `4 q <= n` bytes from each weight slice (unaligned word loads,
         // which Cortex-M4/M7 allow) and `8 q <= 2 n <= x.len()` values from the word-aligned
         // `x`, and adds into `acc`.

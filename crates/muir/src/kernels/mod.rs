@@ -20,7 +20,7 @@
 /// Helium (Cortex-M55 frame -1.1 %: fewer calls), 256 elsewhere (508 made the Cortex-M7 build's
 /// frame 1.3 % longer, by code generation).
 pub const I16_CHUNK: usize = if cfg!(all(target_arch = "arm", feature = "mve")) { 508 } else { 256 };
-const _: () = assert!((I16_CHUNK as u64) * (1 << 22) < (1u64 << 31) && I16_CHUNK % 4 == 0);
+const _: () = assert!((I16_CHUNK as u64) * (1 << 22) < (1u64 << 31) && I16_CHUNK.is_multiple_of(4));
 
 pub mod attention;
 pub mod conv;

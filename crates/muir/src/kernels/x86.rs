@@ -16,8 +16,11 @@
 //! Where the CPU also has AVX-512 VNNI (with VL), [`Elem::dot2x2`] of u8 activations takes
 //! `vpdpbusd` ([`vnni`]): u8 times i8 in groups of four straight into i32, no widening.
 //!
+//! Where it has AVX-512 F and BW as well, whole convolution rows are one matrix product on
+//! 512-bit vectors (`conv::avx512`).
+//!
 //! `MUIR_X86_SIMD=0` in the environment (read once) keeps the portable loops, `MUIR_X86_SIMD=avx2`
-//! the AVX2 ones, for comparisons.
+//! the AVX2 ones, `MUIR_X86_SIMD=vnni` everything but the 512-bit convolution, for comparisons.
 //!
 //! No input reaches a panic: the slices are walked by iterators, `chunks_exact` and `get`, and the
 //! SIMD loads read through pointers whose bounds the loops prove (each `// SAFETY:` says how).
@@ -36,6 +39,8 @@ const PORTABLE: u8 = 1;
 const AVX2: u8 = 2;
 /// AVX2, AVX-512 VNNI and AVX-512 VL (`vpdpbusd` on 256-bit vectors).
 const VNNI: u8 = 3;
+/// [`VNNI`] plus AVX-512 F and BW: the 512-bit row convolution (`conv::avx512`).
+const AVX512: u8 = 4;
 
 static LEVEL: AtomicU8 = AtomicU8::new(UNKNOWN);
 
@@ -59,16 +64,26 @@ pub fn has_vnni() -> bool {
     level() >= VNNI
 }
 
+/// Whether the 512-bit row convolution is taken (AVX-512 F, BW, VL and VNNI).
+#[inline(always)]
+pub fn has_avx512() -> bool {
+    level() >= AVX512
+}
+
 #[cold]
 #[inline(never)]
 fn detect() -> u8 {
     let var = std::env::var_os("MUIR_X86_SIMD");
     let l = if var.as_ref().is_some_and(|v| v == "0") || !std::is_x86_feature_detected!("avx2") {
         PORTABLE
-    } else if var.is_some_and(|v| v == "avx2") || !(std::is_x86_feature_detected!("avx512vnni") && std::is_x86_feature_detected!("avx512vl")) {
+    } else if var.as_ref().is_some_and(|v| v == "avx2") || !(std::is_x86_feature_detected!("avx512vnni") && std::is_x86_feature_detected!("avx512vl")) {
         AVX2
-    } else {
+    } else if var.as_ref().is_some_and(|v| v == "vnni")
+        || !(std::is_x86_feature_detected!("avx512f") && std::is_x86_feature_detected!("avx512bw"))
+    {
         VNNI
+    } else {
+        AVX512
     };
     LEVEL.store(l, Ordering::Relaxed);
     l
@@ -83,7 +98,7 @@ const MIN_LEN: usize = 16;
 
 /// `x` as a slice of `U` when `T` is `U`.
 #[inline(always)]
-fn cast<T: 'static, U: 'static>(x: &[T]) -> Option<&[U]> {
+pub(super) fn cast<T: 'static, U: 'static>(x: &[T]) -> Option<&[U]> {
     if TypeId::of::<T>() == TypeId::of::<U>() {
         // SAFETY: `T` and `U` are the same type.
         Some(unsafe { core::slice::from_raw_parts(x.as_ptr().cast::<U>(), x.len()) })
@@ -161,7 +176,7 @@ pub fn dot2x2<T: Elem>(w0: &[i8], w1: &[i8], x: &[T]) -> Option<[i64; 4]> {
 /// Query/key widths the AVX2 attention takes: whole 16-value vectors, at most [`avx2::MAX_QK`].
 #[inline(always)]
 fn attention_ok(c: usize) -> bool {
-    c != 0 && c % 16 == 0 && c <= avx2::MAX_QK
+    c != 0 && c.is_multiple_of(16) && c <= avx2::MAX_QK
 }
 
 /// [`super::attention::query_stats`] on AVX2; `None` where the portable loops should run.
@@ -448,7 +463,7 @@ pub mod avx2 {
         /// The CPU has AVX2.
         #[target_feature(enable = "avx2")]
         pub unsafe fn new(q: &[i16]) -> Self {
-            assert!(q.len() % 16 == 0 && q.len() <= MAX_QK);
+            assert!(q.len().is_multiple_of(16) && q.len() <= MAX_QK);
             let z = _mm256_setzero_si256();
             let mut s = Split { hl: [(z, z); MAX_QK / 16], chunks: q.len() / 16 };
             for (hl, v) in s.hl.iter_mut().zip(q.chunks_exact(16)) {

@@ -341,7 +341,7 @@ impl Config {
         if (self.mud || self.ufi || self.mga) && self.flow_channels != 1 {
             return Err(ConfigError::MuirFlowChannels);
         }
-        if self.mga && self.mga_qk_dim % 4 != 0 {
+        if self.mga && !self.mga_qk_dim.is_multiple_of(4) {
             return Err(ConfigError::QkDim);
         }
         if !(self.eps_min > 0.0 && self.eps_min < self.eps_max && self.eps_max.is_finite()) {

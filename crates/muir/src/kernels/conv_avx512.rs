@@ -1,0 +1,637 @@
+//! [`super::conv_row`] on AVX-512 VNNI (host, x86-64): a whole output row as one matrix product
+//! per input part, 16 output pixels per vector, instead of two pixels and two channels per call.
+//!
+//! Activations are packed in groups of 4 u8 (`vpdpbusd`, u8 x i8, four products a lane; i8
+//! activations as `x + 128`, with `128 sum(w)` taken off after) or 2 i16 (`vpdpwssd`, two
+//! products a lane; the part's i8 weights widened to i16 once per call), one group per i32, and
+//! laid out with output pixels along the vector. A weight group of one output channel is
+//! broadcast to all 16 lanes; 8 channels x 32 pixels stay in registers, so each activation
+//! vector is loaded once for 8 channels and each weight once for 32 pixels. The weights are read
+//! where the blob has them (`[c][part][ky][kx][c_in]`): the vectors run along pixels, not
+//! channels, so no re-layout is needed.
+//!
+//! Where to read a kernel tap's activations from ([`Tap`]):
+//! - parts of whole groups (the channels a multiple of 4 or 2; every wide layer): each of the `k`
+//!   input rows is transposed once (`[stride phase][group][column]`, zero columns on both sides),
+//!   and tap `(ky, kx)` of pixels `x .. x + 16` is one load at column offset `kx`: no patch is
+//!   gathered at all;
+//! - other parts (1 or 3 channels): the row's patches gathered value by value, transposed
+//!   (`[group][pixel]`), one tap per chunk of groups.
+//!
+//! Exactness: neither instruction saturates. A u8 lane adds at most `4 * 255 * 128 < 2^17` per
+//! group and a chunk at most [`U8_CHUNK`] groups (`< 2^30`); an i16 lane at most
+//! `2 * 2^15 * 2^7 = 2^23` per group, [`I16_CHUNK`] groups (`255 * 2^23 < 2^31`). Each chunk's
+//! i32 lanes are then added into i64 sums, so every part sum is the exact integer, and the
+//! epilogue is [`super::finish_with`] of the saturating sum of [`requantize`]d parts, the
+//! portable path's formula: the same integers for every input (the tests compare them).
+//!
+//! Layers whose tables or buffers are shorter than their parameters say are left to the portable
+//! path (the caller's fallback), which defines what happens then.
+#![deny(clippy::indexing_slicing)]
+
+use core::arch::x86_64::*;
+use core::cell::RefCell;
+
+use super::super::x86::{cast, has_avx512};
+use super::super::{Elem, OutRow};
+use super::{ConvParams, MAX_K, PartRows, finish_with, mult_at};
+use crate::arith::requantize;
+use crate::model::graph::PostOp;
+
+/// Pixels per vector.
+const LANES: usize = 16;
+/// Output channels per register block.
+const BLOCK_C: usize = 8;
+/// Most groups a u8 chunk sums in i32 lanes (see the module doc).
+const U8_CHUNK: usize = 8192;
+/// Most groups an i16 chunk sums in i32 lanes (see the module doc).
+const I16_CHUNK: usize = 255;
+
+/// Where a run of consecutive weight groups finds its activations: group `w + g` (`g < groups`)
+/// of pixel `x` is `xt[x + g gstride + x]`.
+#[derive(Clone, Copy, Debug)]
+struct Tap {
+    /// Offset of group `w`'s pixel 0 in the activation buffer.
+    x: usize,
+    /// Distance between consecutive groups.
+    gstride: usize,
+    /// Groups in this run (at most one chunk).
+    groups: usize,
+    /// First weight group.
+    w: usize,
+}
+
+/// Per-thread scratch, grown to the largest layer seen.
+#[derive(Default)]
+struct Scratch {
+    /// Activations (transposed rows or patches).
+    xt: Vec<i32>,
+    /// The part's taps.
+    taps: Vec<Tap>,
+    /// One part's i8 weights widened to i16, channels padded to whole pairs (i16 path).
+    wide: Vec<i16>,
+    /// One part's i8 weights with channels padded to whole groups of 4 (u8 path, when needed).
+    wpad: Vec<i8>,
+    /// One part's exact sums `[c][pixel]`.
+    part: Vec<i64>,
+    /// Sums of the parts' requantised contributions `[c][pixel]`.
+    sums: Vec<i64>,
+    /// Per channel: some contribution took the scalar path.
+    wild: Vec<bool>,
+    /// Finished outputs `[c][pixel]`, in the output type's range.
+    fin: Vec<i32>,
+}
+
+std::thread_local! {
+    static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
+}
+
+/// `v` resized to `n` elements (contents unspecified).
+fn sized<T: Copy + Default>(v: &mut Vec<T>, n: usize) -> &mut [T] {
+    if v.len() < n {
+        v.resize(n, T::default());
+    }
+    v.get_mut(..n).unwrap_or_default()
+}
+
+/// Activation kinds of the matrix product.
+#[derive(Clone, Copy, PartialEq)]
+enum Kind {
+    /// u8 (or i8) activations, `vpdpbusd`, 4 values a group.
+    U8,
+    /// i16 activations, `vpdpwssd`, 2 values a group.
+    I16,
+}
+
+impl Kind {
+    /// Values per group.
+    fn per(self) -> usize {
+        match self {
+            Kind::U8 => 4,
+            Kind::I16 => 2,
+        }
+    }
+    /// Most groups per chunk.
+    fn chunk(self) -> usize {
+        match self {
+            Kind::U8 => U8_CHUNK,
+            Kind::I16 => I16_CHUNK,
+        }
+    }
+}
+
+/// `T`'s values as bytes (`T` is u8, i8 or i16 here: [`conv_row`] checked).
+fn bytes_of<T: Elem>(v: &[T]) -> &[u8] {
+    if let Some(b) = cast::<T, u8>(v) {
+        b
+    } else if let Some(b) = cast::<T, i8>(v) {
+        bytemuck::cast_slice(b)
+    } else if let Some(b) = cast::<T, i16>(v) {
+        bytemuck::cast_slice(b)
+    } else {
+        &[]
+    }
+}
+
+/// [`super::conv_row`] when the CPU has AVX-512 VNNI and the layer's tables and output are as
+/// long as its parameters say; `false` (nothing written) otherwise.
+pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, out: &mut OutRow<'_>) -> bool {
+    let kind = if cast::<T, u8>(&[]).is_some() || cast::<T, i8>(&[]).is_some() {
+        Kind::U8
+    } else if cast::<T, i16>(&[]).is_some() {
+        Kind::I16
+    } else {
+        return false;
+    };
+    let (kl, np, w_out) = (p.patch_len(), p.parts.len(), p.out_width(w_in));
+    let whole = kl != 0
+        && p.cout != 0
+        && w_out != 0
+        && p.k <= MAX_K
+        && p.stride != 0
+        && inputs.len() >= np
+        && p.weights.len() >= p.cout * kl
+        && p.mult.0.len() >= 8 * p.cout * np
+        && p.bias.0.len() >= 8 * p.cout
+        && out.len() >= w_out * p.cout
+        && w_in < 1 << 20;
+    if !whole || !has_avx512() {
+        return false;
+    }
+    // SAFETY: the CPU has AVX-512 F/BW/VNNI (`has_avx512`); the layer passed the checks above.
+    SCRATCH.with_borrow_mut(|s| unsafe { run(p, inputs, w_in, w_out, kind, out, s) });
+    true
+}
+
+/// [`conv_row`]'s work, with the scratch.
+///
+/// # Safety
+/// The CPU has AVX-512 F, BW and VNNI; the layer passed [`conv_row`]'s checks.
+#[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, w_out: usize, kind: Kind, out: &mut OutRow<'_>, s: &mut Scratch) {
+    let (cout, kl, np) = (p.cout, p.patch_len(), p.parts.len());
+    let pixpad = w_out.div_ceil(LANES) * LANES;
+    let signed8 = cast::<T, i8>(&[]).is_some();
+    // Sums `[c][pixel]`; `wild[c]` once a contribution to channel `c` took the scalar path.
+    let sums = sized(&mut s.sums, cout * pixpad);
+    sums.fill(0);
+    let wild = sized(&mut s.wild, cout);
+    wild.fill(false);
+    let mut off = 0;
+    for (part, (rows, &ch)) in inputs.iter().zip(p.parts).enumerate() {
+        let n = p.k * p.k * ch;
+        // Channels padded to whole groups (zero activations against zero weights).
+        let chp = ch.next_multiple_of(kind.per());
+        let taps_n = p.k * p.k;
+        s.taps.clear();
+        // SAFETY: the CPU has AVX-512 F and BW (this function's contract).
+        unsafe { transpose_rows(p.k, p.stride, rows, ch, chp, w_in, pixpad, kind, &mut s.xt, &mut s.taps) };
+        let (xt, taps) = (&*s.xt, &*s.taps);
+        let sp = sized(&mut s.part, cout * pixpad);
+        sp.fill(0);
+        // Each channel's weights of this part, `[ky][kx][c]`: `chp` a tap, 4 bytes a group.
+        let (wbase, wrow): (*const u8, usize) = match kind {
+            Kind::U8 if ch == chp => (p.weights.get(off..).unwrap_or_default().as_ptr().cast(), kl),
+            Kind::U8 => {
+                let pad = sized(&mut s.wpad, cout * taps_n * chp);
+                for (c, dst) in pad.chunks_exact_mut(taps_n * chp).enumerate() {
+                    let w = p.weights.get(c * kl + off..c * kl + off + n).unwrap_or_default();
+                    for (d, w) in dst.chunks_exact_mut(chp).zip(w.chunks_exact(ch.max(1))) {
+                        let (head, rest) = d.split_at_mut(ch.min(d.len()));
+                        head.copy_from_slice(w.get(..head.len()).unwrap_or_default());
+                        rest.fill(0);
+                    }
+                }
+                (pad.as_ptr().cast(), taps_n * chp)
+            }
+            Kind::I16 => {
+                let wide = sized(&mut s.wide, cout * taps_n * chp);
+                for (c, dst) in wide.chunks_exact_mut(taps_n * chp).enumerate() {
+                    let w = p.weights.get(c * kl + off..c * kl + off + n).unwrap_or_default();
+                    for (d, w) in dst.chunks_exact_mut(chp).zip(w.chunks_exact(ch.max(1))) {
+                        let (head, rest) = d.split_at_mut(ch.min(d.len()));
+                        head.iter_mut().zip(w).for_each(|(d, w)| *d = *w as i16);
+                        rest.fill(0);
+                    }
+                }
+                (wide.as_ptr().cast(), 2 * taps_n * chp)
+            }
+        };
+        channels(cout, |c0, r| {
+            let mut wp = [core::ptr::null::<u8>(); BLOCK_C];
+            for (i, wp) in wp.iter_mut().enumerate().take(r) {
+                // SAFETY: channel `c0 + i < cout`'s row of the table `wbase` points into.
+                *wp = unsafe { wbase.add((c0 + i) * wrow) };
+            }
+            let sp = sp.get_mut(c0 * pixpad..).unwrap_or_default().as_mut_ptr();
+            // SAFETY: the CPU has AVX-512 F/BW/VNNI (this function's contract); each `wp` points at
+            // `taps_n chp` weights of its channel in the table (the blob's, `weights.len() >=
+            // cout kl` checked, or the padded copy), which the taps' groups cover; the taps lie
+            // inside `xt` for every pixel below `pixpad` (`transpose_rows`); `sp` holds `r`
+            // rows of `pixpad` from `c0` on.
+            unsafe {
+                match kind {
+                    Kind::U8 => block_dispatch::<true>(r, xt.as_ptr(), taps, pixpad, &wp, sp),
+                    Kind::I16 => block_dispatch::<false>(r, xt.as_ptr(), taps, pixpad, &wp, sp),
+                }
+            }
+        });
+        if signed8 {
+            // i8 activations were packed as `x + 128` (u8): take `128 sum(w)` back.
+            for (c, row) in sp.chunks_exact_mut(pixpad).enumerate() {
+                let w = p.weights.get(c * kl + off..c * kl + off + n).unwrap_or_default();
+                let bias = 128 * w.iter().map(|w| *w as i64).sum::<i64>();
+                row.iter_mut().for_each(|v| *v -= bias);
+            }
+        }
+        // The part's requantised contribution, as the portable path adds it.
+        for (c, ((acc, sum), wild)) in sp.chunks_exact(pixpad).zip(sums.chunks_exact_mut(pixpad)).zip(wild.iter_mut()).enumerate() {
+            let m = mult_at(p.mult.0.get(8 * (c * np + part)..).unwrap_or_default());
+            // SAFETY: the CPU has AVX-512 F (this function's contract).
+            *wild = unsafe { add_part(acc, sum, m, *wild) };
+        }
+        off += n;
+    }
+    // Bias, rounding, activation and the output type's saturation per channel (`fin[c][x]`),
+    // then the row written in its `[x][c]` order.
+    let (lo, hi) = match out {
+        OutRow::I8(_) => (i8::MIN as i32, i8::MAX as i32),
+        OutRow::U8(_) => (0, u8::MAX as i32),
+        OutRow::I16(_) => (i16::MIN as i32, i16::MAX as i32),
+    };
+    let fin = sized(&mut s.fin, cout * pixpad);
+    for (c, ((sum, fin), wild)) in sums.chunks_exact(pixpad).zip(fin.chunks_exact_mut(pixpad)).zip(wild.iter()).enumerate() {
+        let bias = p.bias.get(c);
+        // SAFETY: the CPU has AVX-512 F (this function's contract).
+        unsafe { finish_channel(p.post, bias, *wild, sum, fin, lo, hi) };
+    }
+    let fin = &*fin;
+    macro_rules! write_out {
+        ($o:ident, $t:ty) => {
+            for (x, px) in $o.chunks_exact_mut(cout).take(w_out).enumerate() {
+                for (c, d) in px.iter_mut().enumerate() {
+                    // (In range: `finish_channel` saturated it.)
+                    *d = fin.get(c * pixpad + x).copied().unwrap_or_default() as $t;
+                }
+            }
+        };
+    }
+    match out {
+        OutRow::I8(o) => write_out!(o, i8),
+        OutRow::U8(o) => write_out!(o, u8),
+        OutRow::I16(o) => write_out!(o, i16),
+    }
+}
+
+/// `fin[x] = clamp(finish_with(post, bias, sum[x]), lo, hi)` for every pixel (`lo..=hi` the output
+/// type's range, as [`OutRow::set`] saturates). Sixteen pixels at a time for `None` and `Relu`
+/// when the sums are small (`!wild`, see [`add_part`]) and `|bias| <` [`super::SHORT_MAX_BIAS`]:
+/// then `sum + bias + 2^7` cannot overflow, so `>> 8` of it is [`finish_with`]'s rounding.
+///
+/// # Safety
+/// The CPU has AVX-512 F.
+#[target_feature(enable = "avx512f")]
+unsafe fn finish_channel(post: PostOp, bias: i64, wild: bool, sum: &[i64], fin: &mut [i32], lo: i32, hi: i32) {
+    let fast = !wild && bias.unsigned_abs() < super::SHORT_MAX_BIAS && matches!(post, PostOp::None | PostOp::Relu);
+    let lo = if post == PostOp::Relu { lo.max(0) } else { lo };
+    let (b, l, h) = (_mm512_set1_epi64(bias + (1 << (super::EXTRA_BITS - 1))), _mm512_set1_epi64(lo as i64), _mm512_set1_epi64(hi as i64));
+    for (s, f) in sum.chunks(8).zip(fin.chunks_mut(8)) {
+        if let (Ok(s8), Ok(f8), true) = (<&[i64; 8]>::try_from(s), <&mut [i32; 8]>::try_from(&mut *f), fast) {
+            // SAFETY: `s8` is 8 i64, `f8` 8 i32; the CPU has AVX-512 F.
+            unsafe {
+                let v = _mm512_srai_epi64::<{ super::EXTRA_BITS }>(_mm512_add_epi64(_mm512_loadu_si512(s8.as_ptr().cast()), b));
+                let v = _mm512_min_epi64(_mm512_max_epi64(v, l), h);
+                _mm256_storeu_si256(f8.as_mut_ptr().cast(), _mm512_cvtepi64_epi32(v));
+            }
+            continue;
+        }
+        for (s, f) in s.iter().zip(f.iter_mut()) {
+            *f = finish_with(post, bias, *s).clamp(lo as i64, hi as i64) as i32;
+        }
+    }
+}
+
+/// `sum[x] = sum[x].saturating_add(requantize(acc[x], m))` for every pixel; returns whether a
+/// sum may now be large (`wild`: some contribution took the scalar path).
+///
+/// Eight pixels at a time when `m` is short ([`super::short_ok`]), the eight accumulators fit in
+/// i32 and no earlier contribution to this channel was wild: then `requantize` is
+/// `(acc m + 2^(s-1)) >> s` in i64 (`vpmuldq`, an add, `vpsraq`), below `2^54` in magnitude, and
+/// the sums stay below `2^63` for up to 511 parts, so a plain add is the saturating one.
+///
+/// # Safety
+/// The CPU has AVX-512 F.
+#[target_feature(enable = "avx512f")]
+unsafe fn add_part(acc: &[i64], sum: &mut [i64], m: crate::arith::Multiplier, mut wild: bool) -> bool {
+    let short = super::short_ok(m);
+    let (mv, half, count) = (_mm512_set1_epi64(m.m as i64), _mm512_set1_epi64(1i64 << (m.shift.clamp(1, 63) - 1)), _mm_cvtsi64_si128(m.shift as i64));
+    for (a, s) in acc.chunks(8).zip(sum.chunks_mut(8)) {
+        if let (Ok(a8), Ok(s8), true, false) = (<&[i64; 8]>::try_from(a), <&mut [i64; 8]>::try_from(&mut *s), short, wild) {
+            // SAFETY: `a8` and `s8` are 8 i64 each; the CPU has AVX-512 F.
+            let (v, t) = unsafe { (_mm512_loadu_si512(a8.as_ptr().cast()), _mm512_loadu_si512(s8.as_ptr().cast())) };
+            if _mm512_cmpeq_epi64_mask(v, _mm512_cvtepi32_epi64(_mm512_cvtepi64_epi32(v))) == 0xFF {
+                let r = _mm512_sra_epi64(_mm512_add_epi64(_mm512_mul_epi32(v, mv), half), count);
+                // SAFETY: as above.
+                unsafe { _mm512_storeu_si512(s8.as_mut_ptr().cast(), _mm512_add_epi64(t, r)) };
+                continue;
+            }
+        }
+        for (a, s) in a.iter().zip(s.iter_mut()) {
+            let r = requantize(*a, m);
+            wild |= !short || *a != *a as i32 as i64;
+            *s = s.saturating_add(r);
+        }
+    }
+    wild
+}
+
+/// Calls `f(c0, r)` for the channel blocks `c0 .. c0 + r` covering `0..cout` (`r <= BLOCK_C`).
+fn channels(cout: usize, mut f: impl FnMut(usize, usize)) {
+    let mut c0 = 0;
+    while c0 < cout {
+        let r = (cout - c0).min(BLOCK_C);
+        f(c0, r);
+        c0 += r;
+    }
+}
+
+/// [`block`] for `r` channels (1 to [`BLOCK_C`]).
+///
+/// # Safety
+/// As [`block`], for the first `r` pointers of `w`.
+#[inline]
+unsafe fn block_dispatch<const U8: bool>(r: usize, xt: *const i32, taps: &[Tap], pixpad: usize, w: &[*const u8; BLOCK_C], s: *mut i64) {
+    // SAFETY: forwarded.
+    unsafe {
+        match r {
+            8 => block::<8, U8>(xt, taps, pixpad, w, s),
+            4..=7 => {
+                block::<4, U8>(xt, taps, pixpad, w, s);
+                block_dispatch::<U8>(r - 4, xt, taps, pixpad, &shifted(w, 4), s.add(4 * pixpad));
+            }
+            2 | 3 => {
+                block::<2, U8>(xt, taps, pixpad, w, s);
+                block_dispatch::<U8>(r - 2, xt, taps, pixpad, &shifted(w, 2), s.add(2 * pixpad));
+            }
+            1 => block::<1, U8>(xt, taps, pixpad, w, s),
+            _ => {}
+        }
+    }
+}
+
+/// `a` from element `by` on (the rest repeated from the start; never read).
+fn shifted<T: Copy>(a: &[T; BLOCK_C], by: usize) -> [T; BLOCK_C] {
+    let mut b = *a;
+    b.rotate_left(by.min(BLOCK_C));
+    b
+}
+
+/// Exact sums of `R` output channels over all `pixpad` pixels: for channel `i`, `s[i pixpad + x]`
+/// gets the dot products of its weight groups `w_i[t.w + g]` with activations
+/// `xt[t.x + g t.gstride + x]` over every tap `t`, four u8 x i8 products a
+/// group (`U8`) or two i16 x i16.
+///
+/// # Safety
+/// The CPU has AVX-512 F, BW and VNNI; `pixpad` is a multiple of 16; every tap's activations for
+/// pixels below `pixpad` lie in `xt`; `w[i]` for `i < R` points at
+/// `4 (t.w + t.groups)` readable bytes for every tap `t`; each tap has at most one chunk of
+/// groups; `s` points at `R pixpad` i64.
+#[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+unsafe fn block<const R: usize, const U8: bool>(xt: *const i32, taps: &[Tap], pixpad: usize, w: &[*const u8; BLOCK_C], s: *mut i64) {
+    let mut x = 0;
+    // SAFETY: the function's contract, for pixels `x .. x + 16 P <= pixpad`.
+    unsafe {
+        while x + 2 * LANES <= pixpad {
+            tile::<R, 2, U8>(xt, taps, pixpad, x, w, s);
+            x += 2 * LANES;
+        }
+        if x < pixpad {
+            tile::<R, 1, U8>(xt, taps, pixpad, x, w, s);
+        }
+    }
+}
+
+/// [`block`] for pixels `x .. x + 16 P`.
+#[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+#[inline]
+unsafe fn tile<const R: usize, const P: usize, const U8: bool>(xt: *const i32, taps: &[Tap], pixpad: usize, x: usize, w: &[*const u8; BLOCK_C], s: *mut i64) {
+    let chunk = if U8 { U8_CHUNK } else { I16_CHUNK };
+    // SAFETY: see `block`. (Macros, not closures: a closure does not inherit the target
+    // features, and its intrinsics would become calls.)
+    unsafe {
+        macro_rules! step {
+            ($acc:ident, $at:expr, $wv:ident) => {
+                let mut xs = [_mm512_setzero_si512(); P];
+                for (v, xv) in xs.iter_mut().enumerate() {
+                    *xv = _mm512_loadu_si512(xt.add($at + LANES * v).cast());
+                }
+                for (a, wv) in $acc.iter_mut().zip($wv) {
+                    let wv = _mm512_set1_epi32(wv);
+                    for (a, xv) in a.iter_mut().zip(xs) {
+                        *a = if U8 { _mm512_dpbusd_epi32(*a, xv, wv) } else { _mm512_dpwssd_epi32(*a, xv, wv) };
+                    }
+                }
+            };
+        }
+        macro_rules! flush {
+            ($acc:ident) => {
+                for (i, a) in $acc.iter().enumerate() {
+                    for (v, a) in a.iter().enumerate() {
+                        let d = s.add(i * pixpad + x + LANES * v);
+                        let lo = _mm512_cvtepi32_epi64(_mm512_castsi512_si256(*a));
+                        let hi = _mm512_cvtepi32_epi64(_mm512_extracti64x4_epi64::<1>(*a));
+                        _mm512_storeu_si512(d.cast(), _mm512_add_epi64(_mm512_loadu_si512(d.cast()), lo));
+                        _mm512_storeu_si512(d.add(8).cast(), _mm512_add_epi64(_mm512_loadu_si512(d.add(8).cast()), hi));
+                    }
+                }
+            };
+        }
+        let mut acc = [[_mm512_setzero_si512(); P]; R];
+        let mut count = 0;
+        for t in taps {
+            if count + t.groups > chunk {
+                flush!(acc);
+                acc = [[_mm512_setzero_si512(); P]; R];
+                count = 0;
+            }
+            let base = t.x + x;
+            for g in 0..t.groups {
+                let mut wv = [0i32; R];
+                for (i, wv) in wv.iter_mut().enumerate() {
+                    *wv = w.as_ptr().add(i).read().add(4 * (t.w + g)).cast::<i32>().read_unaligned();
+                }
+                step!(acc, base + g * t.gstride, wv);
+            }
+            count += t.groups;
+        }
+        flush!(acc);
+    }
+}
+
+/// The `k` input rows of the output row transposed, and the [`Tap`]s that read them. A column's
+/// `ch` values, padded with zeros to `chp` (a multiple of the group size), make `cg = chp / per`
+/// groups. For stride `s` and `lead` zero columns in front (`pad` rounded up to a multiple of
+/// `s`), padded column `pc = col + lead` goes to phase `pc % s`, index `pc / s`; output pixel `x`
+/// of tap `kx` reads padded column `s x + d` (`d = kx + lead - pad`): phase `d % s`, index
+/// `x + d / s`. So `xt[((ky s + phase) cg + g) tw + i]` (`tw` indices a plane, zeros where no
+/// real column is), and tap `(ky, kx)` starts at index `d / s` of its plane: for every pixel
+/// below `pixpad`, `x + d / s < tw`. Taps of more than one chunk of groups are split.
+///
+/// # Safety
+/// The CPU has AVX-512 F and BW (for the compiler's vectorisation only).
+#[target_feature(enable = "avx512f,avx512bw")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn transpose_rows<T: Elem>(
+    k: usize,
+    stride: usize,
+    rows: &PartRows<'_, T>,
+    ch: usize,
+    chp: usize,
+    w_in: usize,
+    pixpad: usize,
+    kind: Kind,
+    xt: &mut Vec<i32>,
+    taps: &mut Vec<Tap>,
+) {
+    let (per, pad) = (kind.per(), k / 2);
+    let cg = chp / per;
+    let lead = pad.div_ceil(stride) * stride;
+    let tw = pixpad + (k - 1 + lead - pad) / stride + 1;
+    let flip = if cast::<T, i8>(&[]).is_some() { 0x8080_8080u32 } else { 0 };
+    let xt = sized(xt, k * stride * cg * tw);
+    xt.fill(flip as i32);
+    let cb = ch * core::mem::size_of::<T>(); // bytes a column
+    for ky in 0..k {
+        let Some(row) = rows.rows.get(ky).copied().flatten() else {
+            continue;
+        };
+        for (col, src) in bytes_of(row).chunks_exact(cb.max(1)).take(w_in).enumerate() {
+            let pc = col + lead;
+            let (phase, i) = (pc % stride, pc / stride);
+            if i >= tw {
+                break;
+            }
+            let Some(plane) = xt.get_mut((ky * stride + phase) * cg * tw..(ky * stride + phase + 1) * cg * tw) else {
+                continue;
+            };
+            let dst = plane.iter_mut().skip(i).step_by(tw);
+            if cb.is_multiple_of(4) {
+                for (d, v) in dst.zip(src.chunks_exact(4)) {
+                    if let &[a, b, c, e] = v {
+                        *d = (u32::from_le_bytes([a, b, c, e]) ^ flip) as i32;
+                    }
+                }
+            } else {
+                // A last group past the column's values: zero bytes there.
+                for (d, v) in dst.zip(src.chunks(4)) {
+                    let mut b = [0u8; 4];
+                    b.iter_mut().zip(v).for_each(|(b, v)| *b = *v);
+                    *d = (u32::from_le_bytes(b) ^ flip) as i32;
+                }
+            }
+        }
+    }
+    for ky in 0..k {
+        for kx in 0..k {
+            let d = kx + lead - pad;
+            let (phase, q) = (d % stride, d / stride);
+            let (x, w) = ((ky * stride + phase) * cg * tw + q, (ky * k + kx) * cg);
+            let mut g = 0;
+            while g < cg {
+                let groups = (cg - g).min(kind.chunk());
+                taps.push(Tap { x: x + g * tw, gstride: tw, groups, w: w + g });
+                g += groups;
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::indexing_slicing)]
+mod tests {
+    use super::super::super::testutil::Rng;
+    use super::super::{BiasRef, MultRef, conv_plain, encode_bias, encode_mults};
+    use super::*;
+    use crate::arith::Multiplier;
+    use crate::model::graph::PostOp;
+
+    /// The matrix product against the plain twin on random and extreme layers: u8, i8 and i16
+    /// activations, parts of whole and partial groups, strides 1 and 2, odd channel counts,
+    /// patches long enough for several i16 chunks.
+    fn check<T: Elem>(seed: u64, make: &dyn Fn(&mut Rng) -> T, k: usize, stride: usize, parts: &[usize], cout: usize, post: PostOp, w: usize, extreme: bool) {
+        let mut r = Rng(seed);
+        let h = 5;
+        let kl = k * k * parts.iter().sum::<usize>();
+        let wts: Vec<i8> = (0..cout * kl).map(|_| if extreme { -128 } else { r.i8() }).collect();
+        let b: Vec<i64> = (0..cout).map(|_| (r.next() as i64) >> 44).collect();
+        let m: Vec<Multiplier> =
+            (0..cout * parts.len()).map(|_| Multiplier { m: (1 << 30) + (r.below(1 << 30) as i32), shift: 20 + r.below(20) as u8 }).collect();
+        let (bias, mult) = (encode_bias(&b), encode_mults(&m));
+        let p = ConvParams { k, stride, parts, cout, weights: &wts, bias: BiasRef(&bias), mult: MultRef(&mult), post };
+        let tensors: Vec<Vec<T>> = parts.iter().map(|&c| (0..h * w * c).map(|_| make(&mut r)).collect()).collect();
+        let refs: Vec<&[T]> = tensors.iter().map(|t| t.as_slice()).collect();
+        let (ho, wo) = ((h + 2 * (k / 2) - k) / stride + 1, p.out_width(w));
+        // Each output type (its saturation): i16, i8, u8.
+        macro_rules! each_type {
+            ($t:ty, $variant:ident) => {{
+                let len = ho * wo * cout;
+                let (mut want, mut got) = (vec![<$t>::default(); len], vec![<$t>::default(); len]);
+                conv_plain(&p, &refs, h, w, &mut OutRow::$variant(&mut want));
+                for (oy, o) in got.chunks_exact_mut(wo * cout).enumerate() {
+                    let rows: Vec<PartRows<T>> =
+                        tensors.iter().zip(parts).map(|(t, &c)| PartRows::of_tensor(t, h, w * c, oy, k, stride)).collect();
+                    assert!(conv_row(&p, &rows, w, &mut OutRow::$variant(o)), "path not taken");
+                }
+                let what = format!("k {k} s {stride} parts {parts:?} cout {cout} w {w} extreme {extreme} {post:?} {}", stringify!($t));
+                assert_eq!(want, got, "{what}");
+                want.iter().any(|v| *v != 0)
+            }};
+        }
+        let nonzero = [each_type!(i16, I16), each_type!(i8, I8), each_type!(u8, U8)];
+        assert!(nonzero.iter().any(|n| *n), "all zero");
+    }
+
+    #[test]
+    fn matrix_product_matches_plain_twin() {
+        if !has_avx512() {
+            eprintln!("no AVX-512 VNNI: the 512-bit convolution is not taken on this CPU");
+            return;
+        }
+        let u8s = |r: &mut Rng| r.i8() as u8;
+        let i8s = |r: &mut Rng| r.i8();
+        let i16s = |r: &mut Rng| r.i16();
+        let mut seed = 1;
+        for post in [PostOp::None, PostOp::Relu, PostOp::Tanh] {
+            for w in [1, 9, 16, 33, 57] {
+                for (k, stride, parts, cout) in
+                    [
+                    (3, 1, &[8, 1, 16][..], 5),
+                    (3, 2, &[6][..], 9),
+                    (1, 1, &[12][..], 17),
+                    (7, 2, &[3][..], 4),
+                    (3, 1, &[64, 4][..], 24),
+                    (3, 2, &[8, 4][..], 7),
+                    (1, 2, &[16][..], 5),
+                    (5, 2, &[12, 2][..], 3),
+                ]
+                {
+                    seed += 1;
+                    check(seed, &u8s, k, stride, parts, cout, post, w, false);
+                    check(seed, &i8s, k, stride, parts, cout, post, w, false);
+                    check(seed, &i16s, k, stride, parts, cout, post, w, false);
+                }
+            }
+        }
+        // Extremes: every weight -128, activations at their most negative (i16: the products'
+        // largest magnitude, 2^22) and largest, over patches of several i16 chunks (3 3 128).
+        for w in [7, 40] {
+            check(7, &|_| i16::MIN, 3, 1, &[128], 8, PostOp::None, w, true);
+            check(8, &|r: &mut Rng| if r.next() % 2 == 0 { i16::MIN } else { i16::MAX }, 3, 1, &[128, 2], 3, PostOp::None, w, true);
+            check(9, &|_| u8::MAX, 3, 1, &[128], 8, PostOp::None, w, true);
+            check(10, &|_| i8::MIN, 3, 1, &[64], 11, PostOp::None, w, true);
+            // One tap of more than an i16 chunk (520 / 2 = 260 groups > 255).
+            check(11, &|_| i16::MIN, 1, 1, &[520], 4, PostOp::None, w, true);
+        }
+    }
+}
