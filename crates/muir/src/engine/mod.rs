@@ -23,6 +23,8 @@ pub mod encoder;
 mod encoder;
 #[cfg(feature = "hal")]
 pub mod hal;
+#[cfg(feature = "std")]
+mod host_mga;
 #[cfg(feature = "internals")]
 pub mod layout;
 #[cfg(not(feature = "internals"))]
@@ -194,7 +196,9 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
     /// Threads for a frame (host builds, feature `std`; default 1): with 2 or more the right
     /// image's encoder runs on a second thread beside the left one's, with its own scratch (the
     /// encoder's line buffers and patch, allocated per frame: the one allocation of a host frame;
-    /// the firmware path has none). The same integers for any count.
+    /// the firmware path has none), and the kernels split their work over the process-wide
+    /// worker pool ([`crate::kernels::pool`], sized to this count when a frame starts). The
+    /// same integers for any count.
     #[cfg(feature = "std")]
     pub fn set_threads(&mut self, n: usize) {
         self.threads = n.max(1);
@@ -259,9 +263,12 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
             Some(u) if u.len() != n => return Err(EngineError::OutputSize { needed: n, given: u.len() }),
             _ => {}
         }
+        // The kernels' threads (host): this engine's count.
+        #[cfg(feature = "std")]
+        crate::kernels::pool::set_threads(self.threads);
         // Encoder: right image first (features only), then the left (features and context).
         #[cfg(feature = "std")]
-        let threaded = self.threads > 1;
+        let threaded = self.threads > 1 && std::env::var_os("MUIR_NO_ENC_THREAD").is_none();
         #[cfg(not(feature = "std"))]
         let threaded = false;
         if threaded {

@@ -322,6 +322,13 @@ pub fn mga_setup(c: &mut Ctx<'_, '_, '_>) {
     }
     let am = m.att_mult();
     for y in 0..h8 {
+        #[cfg(feature = "std")]
+        {
+            // Host: the row's queries at once, its pixels on the kernel pool.
+            super::host_mga::stats_row(&pq, c.frame.inp08, ctx, y, w, phases, c.st.keys, am, chunk_mut(c.st.stats, y, 2 * w));
+            continue;
+        }
+        #[allow(unreachable_code)]
         for x in 0..w {
             let p = y * w + x;
             qk_pixel(&pq, c.frame.inp08, ctx, x, y, w, phases, c.px.patch, c.px.query);
@@ -505,6 +512,14 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
                 let st = &c.st;
                 let px = &mut c.px;
                 fill(&mut rglb, upto, |y, d| {
+                    #[cfg(feature = "std")]
+                    {
+                        // Host: the row's queries at once, its pixels on the kernel pool.
+                        let stats = chunk(st.stats, y, 2 * w);
+                        super::host_mga::aggregate_row(pqy, c.frame.inp08, ctx, y, w, phases, st.keys, st.values, hd, stats, am, glb_shift, d);
+                        return;
+                    }
+                    #[allow(unreachable_code)]
                     for x in 0..w {
                         let p = y * w + x;
                         qk_pixel(pqy, c.frame.inp08, ctx, x, y, w, phases, px.patch, px.query);

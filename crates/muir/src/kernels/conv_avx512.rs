@@ -32,6 +32,7 @@
 use core::arch::x86_64::*;
 use core::cell::RefCell;
 
+use super::super::pool::{self, Shared};
 use super::super::x86::{cast, has_avx512};
 use super::super::{Elem, OutRow};
 use super::{ConvParams, MAX_K, PartRows, finish_with, mult_at};
@@ -46,6 +47,8 @@ const BLOCK_C: usize = 8;
 const U8_CHUNK: usize = 8192;
 /// Most groups an i16 chunk sums in i32 lanes (see the module doc).
 const I16_CHUNK: usize = 255;
+/// Layers of fewer multiply-accumulates per row stay on the calling thread.
+const PARALLEL_MACS: usize = 1 << 16;
 
 /// Where a run of consecutive weight groups finds its activations: group `w + g` (`g < groups`)
 /// of pixel `x` is `xt[x + g gstride + x]`.
@@ -68,10 +71,6 @@ struct Scratch {
     xt: Vec<i32>,
     /// The part's taps.
     taps: Vec<Tap>,
-    /// One part's i8 weights widened to i16, channels padded to whole pairs (i16 path).
-    wide: Vec<i16>,
-    /// One part's i8 weights with channels padded to whole groups of 4 (u8 path, when needed).
-    wpad: Vec<i8>,
     /// One part's exact sums `[c][pixel]`.
     part: Vec<i64>,
     /// Sums of the parts' requantised contributions `[c][pixel]`.
@@ -84,6 +83,8 @@ struct Scratch {
 
 std::thread_local! {
     static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
+    /// A task's weights (padded or widened), on the thread that runs it.
+    static WEIGHTS: RefCell<Vec<i16>> = const { RefCell::new(Vec::new()) };
 }
 
 /// `v` resized to `n` elements (contents unspecified).
@@ -178,6 +179,13 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
     sums.fill(0);
     let wild = sized(&mut s.wild, cout);
     wild.fill(false);
+    // The output type's range (`OutRow::set` saturates to it) and the finished outputs `[c][x]`.
+    let (lo, hi) = match out {
+        OutRow::I8(_) => (i8::MIN as i32, i8::MAX as i32),
+        OutRow::U8(_) => (0, u8::MAX as i32),
+        OutRow::I16(_) => (i16::MIN as i32, i16::MAX as i32),
+    };
+    let fin = sized(&mut s.fin, cout * pixpad);
     let mut off = 0;
     for (part, (rows, &ch)) in inputs.iter().zip(p.parts).enumerate() {
         let n = p.k * p.k * ch;
@@ -189,83 +197,76 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
         unsafe { transpose_rows(p.k, p.stride, rows, ch, chp, w_in, pixpad, kind, &mut s.xt, &mut s.taps) };
         let (xt, taps) = (&*s.xt, &*s.taps);
         let sp = sized(&mut s.part, cout * pixpad);
-        sp.fill(0);
-        // Each channel's weights of this part, `[ky][kx][c]`: `chp` a tap, 4 bytes a group.
-        let (wbase, wrow): (*const u8, usize) = match kind {
-            Kind::U8 if ch == chp => (p.weights.get(off..).unwrap_or_default().as_ptr().cast(), kl),
-            Kind::U8 => {
-                let pad = sized(&mut s.wpad, cout * taps_n * chp);
-                for (c, dst) in pad.chunks_exact_mut(taps_n * chp).enumerate() {
-                    let w = p.weights.get(c * kl + off..c * kl + off + n).unwrap_or_default();
-                    for (d, w) in dst.chunks_exact_mut(chp).zip(w.chunks_exact(ch.max(1))) {
-                        let (head, rest) = d.split_at_mut(ch.min(d.len()));
-                        head.copy_from_slice(w.get(..head.len()).unwrap_or_default());
-                        rest.fill(0);
+        // Per block of `BLOCK_C` channels (a task; the blocks run on the pool's threads when
+        // the layer is large enough): the exact sums, the i8 correction, the requantised
+        // contribution and, after the last part, the finished outputs.
+        let last = part + 1 == np;
+        let xtp = xt.as_ptr() as usize;
+        let (spp, sump, wildp, finp) = (Shared(sp.as_mut_ptr()), Shared(sums.as_mut_ptr()), Shared(wild.as_mut_ptr()), Shared(fin.as_mut_ptr()));
+        let task = |b: usize| {
+            let c0 = b * BLOCK_C;
+            let r = cout.saturating_sub(c0).min(BLOCK_C);
+            // SAFETY: block `b`'s `r` channel rows (or entries) of `sp`, `sums`, `fin` (each
+            // `cout pixpad` long) and `wild` (`cout`), touched by no other task.
+            let (sp, sums, fin, wild) = unsafe { (spp.slice(c0 * pixpad, r * pixpad), sump.slice(c0 * pixpad, r * pixpad), finp.slice(c0 * pixpad, r * pixpad), wildp.slice(c0, r)) };
+            // The block's weights of this part, `[ky][kx][c]` with `chp` values a tap (4 bytes a
+            // group): the blob's own (u8 of whole groups), else a copy with the channels padded
+            // (u8) or widened to i16, in this thread's buffer.
+            WEIGHTS.with_borrow_mut(|buf| {
+                let mut wp = [core::ptr::null::<u8>(); BLOCK_C];
+                if kind == Kind::U8 && ch == chp {
+                    for (i, wp) in wp.iter_mut().enumerate().take(r) {
+                        *wp = p.weights.get((c0 + i) * kl + off..).unwrap_or_default().as_ptr().cast();
+                    }
+                } else {
+                    let w = p.weights.get(c0 * kl..).unwrap_or_default();
+                    // SAFETY: the CPU has AVX-512 F and BW (this function's contract).
+                    let wrow = unsafe { copy_weights(w, kl, off, ch, chp, taps_n, r, kind, buf) };
+                    let bytes: &[u8] = bytemuck::cast_slice(buf.as_slice());
+                    for (i, wp) in wp.iter_mut().enumerate().take(r) {
+                        *wp = bytes.get(i * wrow..).unwrap_or_default().as_ptr();
                     }
                 }
-                (pad.as_ptr().cast(), taps_n * chp)
-            }
-            Kind::I16 => {
-                let wide = sized(&mut s.wide, cout * taps_n * chp);
-                for (c, dst) in wide.chunks_exact_mut(taps_n * chp).enumerate() {
-                    let w = p.weights.get(c * kl + off..c * kl + off + n).unwrap_or_default();
-                    for (d, w) in dst.chunks_exact_mut(chp).zip(w.chunks_exact(ch.max(1))) {
-                        let (head, rest) = d.split_at_mut(ch.min(d.len()));
-                        head.iter_mut().zip(w).for_each(|(d, w)| *d = *w as i16);
-                        rest.fill(0);
+                // SAFETY: the CPU has AVX-512 F/BW/VNNI (this function's contract); each `wp`
+                // points at `taps_n chp` weights of its channel (the blob's, `weights.len() >=
+                // cout kl` checked, or this thread's copy), which the taps' groups cover; the
+                // taps lie inside `xt` for every pixel below `pixpad` (`transpose_rows`); `sp`
+                // holds `r` rows of `pixpad`.
+                unsafe {
+                    match kind {
+                        Kind::U8 => block_dispatch::<true>(r, xtp as *const i32, taps, pixpad, &wp, sp.as_mut_ptr()),
+                        Kind::I16 => block_dispatch::<false>(r, xtp as *const i32, taps, pixpad, &wp, sp.as_mut_ptr()),
                     }
                 }
-                (wide.as_ptr().cast(), 2 * taps_n * chp)
+            });
+            for (i, (((acc, sum), wild), fin)) in sp.chunks_exact_mut(pixpad).zip(sums.chunks_exact_mut(pixpad)).zip(wild.iter_mut()).zip(fin.chunks_exact_mut(pixpad)).enumerate() {
+                let c = c0 + i;
+                if signed8 {
+                    // i8 activations were packed as `x + 128` (u8): take `128 sum(w)` back.
+                    let w = p.weights.get(c * kl + off..c * kl + off + n).unwrap_or_default();
+                    let bias = 128 * w.iter().map(|w| *w as i64).sum::<i64>();
+                    acc.iter_mut().for_each(|v| *v -= bias);
+                }
+                // The part's requantised contribution, as the portable path adds it.
+                let m = mult_at(p.mult.0.get(8 * (c * np + part)..).unwrap_or_default());
+                // SAFETY: the CPU has AVX-512 F (this function's contract).
+                *wild = unsafe { add_part(acc, sum, m, *wild) };
+                if last {
+                    // Bias, rounding, activation and the output type's saturation (`fin[c][x]`).
+                    // SAFETY: as above.
+                    unsafe { finish_channel(p.post, p.bias.get(c), *wild, sum, fin, lo, hi) };
+                }
             }
         };
-        channels(cout, |c0, r| {
-            let mut wp = [core::ptr::null::<u8>(); BLOCK_C];
-            for (i, wp) in wp.iter_mut().enumerate().take(r) {
-                // SAFETY: channel `c0 + i < cout`'s row of the table `wbase` points into.
-                *wp = unsafe { wbase.add((c0 + i) * wrow) };
-            }
-            let sp = sp.get_mut(c0 * pixpad..).unwrap_or_default().as_mut_ptr();
-            // SAFETY: the CPU has AVX-512 F/BW/VNNI (this function's contract); each `wp` points at
-            // `taps_n chp` weights of its channel in the table (the blob's, `weights.len() >=
-            // cout kl` checked, or the padded copy), which the taps' groups cover; the taps lie
-            // inside `xt` for every pixel below `pixpad` (`transpose_rows`); `sp` holds `r`
-            // rows of `pixpad` from `c0` on.
-            unsafe {
-                match kind {
-                    Kind::U8 => block_dispatch::<true>(r, xt.as_ptr(), taps, pixpad, &wp, sp),
-                    Kind::I16 => block_dispatch::<false>(r, xt.as_ptr(), taps, pixpad, &wp, sp),
-                }
-            }
-        });
-        if signed8 {
-            // i8 activations were packed as `x + 128` (u8): take `128 sum(w)` back.
-            for (c, row) in sp.chunks_exact_mut(pixpad).enumerate() {
-                let w = p.weights.get(c * kl + off..c * kl + off + n).unwrap_or_default();
-                let bias = 128 * w.iter().map(|w| *w as i64).sum::<i64>();
-                row.iter_mut().for_each(|v| *v -= bias);
-            }
-        }
-        // The part's requantised contribution, as the portable path adds it.
-        for (c, ((acc, sum), wild)) in sp.chunks_exact(pixpad).zip(sums.chunks_exact_mut(pixpad)).zip(wild.iter_mut()).enumerate() {
-            let m = mult_at(p.mult.0.get(8 * (c * np + part)..).unwrap_or_default());
-            // SAFETY: the CPU has AVX-512 F (this function's contract).
-            *wild = unsafe { add_part(acc, sum, m, *wild) };
+        let blocks = cout.div_ceil(BLOCK_C);
+        if blocks > 1 && w_out * cout * n >= PARALLEL_MACS {
+            pool::run(blocks, &task);
+        } else {
+            (0..blocks).for_each(task);
         }
         off += n;
     }
-    // Bias, rounding, activation and the output type's saturation per channel (`fin[c][x]`),
-    // then the row written in its `[x][c]` order.
-    let (lo, hi) = match out {
-        OutRow::I8(_) => (i8::MIN as i32, i8::MAX as i32),
-        OutRow::U8(_) => (0, u8::MAX as i32),
-        OutRow::I16(_) => (i16::MIN as i32, i16::MAX as i32),
-    };
-    let fin = sized(&mut s.fin, cout * pixpad);
-    for (c, ((sum, fin), wild)) in sums.chunks_exact(pixpad).zip(fin.chunks_exact_mut(pixpad)).zip(wild.iter()).enumerate() {
-        let bias = p.bias.get(c);
-        // SAFETY: the CPU has AVX-512 F (this function's contract).
-        unsafe { finish_channel(p.post, bias, *wild, sum, fin, lo, hi) };
-    }
+    // The row in its `[x][c]` order.
     let fin = &*fin;
     macro_rules! write_out {
         ($o:ident, $t:ty) => {
@@ -282,6 +283,45 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
         OutRow::U8(o) => write_out!(o, u8),
         OutRow::I16(o) => write_out!(o, i16),
     }
+}
+
+/// Copies the weights of `r` channels (rows of `kl` from `w`, this part's `ch` a tap from `off`)
+/// into `buf`, `[c][ky][kx][chp]` with the channels past `ch` zero: i8 (u8 path; the first half of
+/// each channel's row) or i16 (i16 path). Returns the bytes per channel.
+///
+/// # Safety
+/// The CPU has AVX-512 F and BW (for the compiler's vectorisation only).
+#[target_feature(enable = "avx512f,avx512bw")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn copy_weights(w: &[i8], kl: usize, off: usize, ch: usize, chp: usize, taps: usize, r: usize, kind: Kind, buf: &mut Vec<i16>) -> usize {
+    let row = taps * chp; // values per channel
+    let dst = sized(buf, r * row);
+    let rows = w.chunks(kl.max(1)).zip(dst.chunks_exact_mut(row.max(1)));
+    match kind {
+        Kind::U8 => {
+            // Bytes: `row` of them at the start of each channel's `2 row`.
+            for (src, dst) in rows {
+                let src = src.get(off..off + taps * ch).unwrap_or_default();
+                let dst: &mut [i8] = bytemuck::cast_slice_mut(dst);
+                for (s, d) in src.chunks_exact(ch.max(1)).zip(dst.chunks_exact_mut(chp.max(1))) {
+                    let (head, rest) = d.split_at_mut(ch.min(d.len()));
+                    head.copy_from_slice(s.get(..head.len()).unwrap_or_default());
+                    rest.fill(0);
+                }
+            }
+        }
+        Kind::I16 => {
+            for (src, dst) in rows {
+                let src = src.get(off..off + taps * ch).unwrap_or_default();
+                for (s, d) in src.chunks_exact(ch.max(1)).zip(dst.chunks_exact_mut(chp.max(1))) {
+                    let (head, rest) = d.split_at_mut(ch.min(d.len()));
+                    head.iter_mut().zip(s).for_each(|(d, s)| *d = *s as i16);
+                    rest.fill(0);
+                }
+            }
+        }
+    }
+    2 * row
 }
 
 /// `fin[x] = clamp(finish_with(post, bias, sum[x]), lo, hi)` for every pixel (`lo..=hi` the output
@@ -346,16 +386,6 @@ unsafe fn add_part(acc: &[i64], sum: &mut [i64], m: crate::arith::Multiplier, mu
     wild
 }
 
-/// Calls `f(c0, r)` for the channel blocks `c0 .. c0 + r` covering `0..cout` (`r <= BLOCK_C`).
-fn channels(cout: usize, mut f: impl FnMut(usize, usize)) {
-    let mut c0 = 0;
-    while c0 < cout {
-        let r = (cout - c0).min(BLOCK_C);
-        f(c0, r);
-        c0 += r;
-    }
-}
-
 /// [`block`] for `r` channels (1 to [`BLOCK_C`]).
 ///
 /// # Safety
@@ -388,7 +418,7 @@ fn shifted<T: Copy>(a: &[T; BLOCK_C], by: usize) -> [T; BLOCK_C] {
 }
 
 /// Exact sums of `R` output channels over all `pixpad` pixels: for channel `i`, `s[i pixpad + x]`
-/// gets the dot products of its weight groups `w_i[t.w + g]` with activations
+/// is set to the dot products of its weight groups `w_i[t.w + g]` with activations
 /// `xt[t.x + g t.gstride + x]` over every tap `t`, four u8 x i8 products a
 /// group (`U8`) or two i16 x i16.
 ///
@@ -415,6 +445,7 @@ unsafe fn block<const R: usize, const U8: bool>(xt: *const i32, taps: &[Tap], pi
 /// [`block`] for pixels `x .. x + 16 P`.
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
 #[inline]
+#[allow(unused_assignments)] // the last flush sets `first` for nothing
 unsafe fn tile<const R: usize, const P: usize, const U8: bool>(xt: *const i32, taps: &[Tap], pixpad: usize, x: usize, w: &[*const u8; BLOCK_C], s: *mut i64) {
     let chunk = if U8 { U8_CHUNK } else { I16_CHUNK };
     // SAFETY: see `block`. (Macros, not closures: a closure does not inherit the target
@@ -434,17 +465,24 @@ unsafe fn tile<const R: usize, const P: usize, const U8: bool>(xt: *const i32, t
                 }
             };
         }
+        // The first flush stores, later ones add (the sums need no zeroing first).
+        let mut first = true;
         macro_rules! flush {
             ($acc:ident) => {
                 for (i, a) in $acc.iter().enumerate() {
                     for (v, a) in a.iter().enumerate() {
                         let d = s.add(i * pixpad + x + LANES * v);
-                        let lo = _mm512_cvtepi32_epi64(_mm512_castsi512_si256(*a));
-                        let hi = _mm512_cvtepi32_epi64(_mm512_extracti64x4_epi64::<1>(*a));
-                        _mm512_storeu_si512(d.cast(), _mm512_add_epi64(_mm512_loadu_si512(d.cast()), lo));
-                        _mm512_storeu_si512(d.add(8).cast(), _mm512_add_epi64(_mm512_loadu_si512(d.add(8).cast()), hi));
+                        let mut lo = _mm512_cvtepi32_epi64(_mm512_castsi512_si256(*a));
+                        let mut hi = _mm512_cvtepi32_epi64(_mm512_extracti64x4_epi64::<1>(*a));
+                        if !first {
+                            lo = _mm512_add_epi64(_mm512_loadu_si512(d.cast()), lo);
+                            hi = _mm512_add_epi64(_mm512_loadu_si512(d.add(8).cast()), hi);
+                        }
+                        _mm512_storeu_si512(d.cast(), lo);
+                        _mm512_storeu_si512(d.add(8).cast(), hi);
                     }
                 }
+                first = false;
             };
         }
         let mut acc = [[_mm512_setzero_si512(); P]; R];
@@ -588,7 +626,13 @@ mod tests {
                 want.iter().any(|v| *v != 0)
             }};
         }
-        let nonzero = [each_type!(i16, I16), each_type!(i8, I8), each_type!(u8, U8)];
+        // One thread, then several (the channel blocks as tasks): the same integers.
+        let mut nonzero = vec![];
+        for threads in [1, 3] {
+            pool::set_threads(threads);
+            nonzero.extend([each_type!(i16, I16), each_type!(i8, I8), each_type!(u8, U8)]);
+        }
+        pool::set_threads(1);
         assert!(nonzero.iter().any(|n| *n), "all zero");
     }
 

@@ -32,6 +32,8 @@ pub mod fullres;
 #[cfg(all(target_arch = "arm", feature = "mve"))]
 pub mod mve;
 pub mod norm;
+#[cfg(feature = "std")]
+pub mod pool;
 pub mod resample;
 pub mod upsample;
 #[cfg(all(target_arch = "x86_64", feature = "std"))]

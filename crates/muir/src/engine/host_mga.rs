@@ -1,0 +1,109 @@
+//! Host forms (feature `std`) of the MGA passes' per-pixel loops: a row's queries by one
+//! convolution call (the 1x1 query conv over the whole context row, the same integers as one
+//! pixel at a time), then the row's pixels as tasks on the kernel pool
+//! ([`crate::kernels::pool`]), each with this thread's own scratch. The firmware keeps the
+//! pixel-by-pixel loops in `refine`, in the plan's memory; the firmware tests compare both.
+#![deny(clippy::indexing_slicing)]
+
+use core::cell::RefCell;
+
+use super::encoder::run_conv;
+use crate::arith::Multiplier;
+use crate::kernels::OutRow;
+use crate::kernels::attention::{aggregate_query, query_stats, rope_pixel};
+use crate::kernels::conv::{ConvParams, MAX_K, PartRows};
+use crate::kernels::pool::{self, Shared};
+
+/// Pixels per task.
+const PIXELS: usize = 4;
+
+std::thread_local! {
+    /// A row's queries and the conv's patch scratch (on the calling thread).
+    static ROW: RefCell<(Vec<i16>, Vec<u8>)> = const { RefCell::new((Vec::new(), Vec::new())) };
+    /// A task's accumulator (on the thread that runs it).
+    static ACC: RefCell<Vec<i64>> = const { RefCell::new(Vec::new()) };
+}
+
+/// `v` resized to `n` elements (contents unspecified).
+fn sized<T: Copy + Default>(v: &mut Vec<T>, n: usize) -> &mut [T] {
+    if v.len() < n {
+        v.resize(n, T::default());
+    }
+    v.get_mut(..n).unwrap_or_default()
+}
+
+/// Queries of row `y` (after RoPE) into `q` (`w qk` values): the 1x1 conv over the row's context.
+#[allow(clippy::too_many_arguments)]
+fn queries(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, y: usize, w: usize, phases: &[u32], q: &mut Vec<i16>, patch: &mut Vec<u8>) -> usize {
+    let qk = p.cout;
+    let q = sized(q, w * qk);
+    let patch = sized(patch, 4 * p.patch_len().max(1));
+    let mut rows = [None; MAX_K];
+    if let Some(r) = rows.first_mut() {
+        *r = inp08.get(y * w * ctx..(y + 1) * w * ctx);
+    }
+    run_conv(p, &[PartRows { rows }], w, &mut OutRow::I16(q), patch);
+    for (x, q) in q.chunks_exact_mut(qk.max(1)).enumerate() {
+        rope_pixel(q, x, y, phases);
+    }
+    qk
+}
+
+/// Softmax statistics (`max`, `sum`) of every query of row `y` into `stats` (`2 w`).
+#[allow(clippy::too_many_arguments)]
+pub fn stats_row(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, y: usize, w: usize, phases: &[u32], keys: &[i16], m: Multiplier, stats: &mut [i64]) {
+    ROW.with_borrow_mut(|(q, patch)| {
+        let qk = queries(p, inp08, ctx, y, w, phases, q, patch);
+        let (q, out) = (&*q, Shared(stats.as_mut_ptr()));
+        let n = w.min(stats.len() / 2);
+        pool::run(n.div_ceil(PIXELS), &|t| {
+            for x in t * PIXELS..((t + 1) * PIXELS).min(n) {
+                let st = query_stats(q.get(x * qk..(x + 1) * qk).unwrap_or_default(), keys, m);
+                // SAFETY: entries `2x, 2x + 1 < stats.len()`, this task's pixels only.
+                let o = unsafe { out.slice(2 * x, 2) };
+                if let [a, b] = o {
+                    (*a, *b) = st;
+                }
+            }
+        });
+    });
+}
+
+/// The aggregated values of every query of row `y` into `d` (`w cv`); `stats` are the row's
+/// softmax statistics (`2 w`).
+#[allow(clippy::too_many_arguments)]
+pub fn aggregate_row(
+    p: &ConvParams<'_>,
+    inp08: &[u8],
+    ctx: usize,
+    y: usize,
+    w: usize,
+    phases: &[u32],
+    keys: &[i16],
+    values: &[i16],
+    cv: usize,
+    stats: &[i64],
+    m: Multiplier,
+    shift: i8,
+    d: &mut [i16],
+) {
+    ROW.with_borrow_mut(|(q, patch)| {
+        let qk = queries(p, inp08, ctx, y, w, phases, q, patch);
+        let (q, out) = (&*q, Shared(d.as_mut_ptr()));
+        let n = w.min(d.len() / cv.max(1)).min(stats.len() / 2);
+        pool::run(n.div_ceil(PIXELS), &|t| {
+            ACC.with_borrow_mut(|acc| {
+                let acc = sized(acc, cv);
+                for x in t * PIXELS..((t + 1) * PIXELS).min(n) {
+                    let st = match stats.get(2 * x..2 * x + 2) {
+                        Some(&[a, b]) => (a, b),
+                        _ => (0, 0),
+                    };
+                    // SAFETY: values `x cv .. (x + 1) cv <= d.len()`, this task's pixels only.
+                    let o = unsafe { out.slice(x * cv, cv) };
+                    aggregate_query(q.get(x * qk..(x + 1) * qk).unwrap_or_default(), keys, values, cv, st, m, shift, acc, o);
+                }
+            });
+        });
+    });
+}

@@ -1,0 +1,205 @@
+//! Worker threads for the host kernels (feature `std`; a firmware build has none of this).
+//!
+//! [`run`] splits a kernel's work into numbered tasks that write disjoint parts of its output;
+//! the calling thread and the workers take task numbers from one atomic counter until none are
+//! left. Which thread computes a task never changes what it computes, so results are the same
+//! integers for any thread count (the engine tests compare 1 and several).
+//!
+//! The pool is process-wide: [`set_threads`] (called by `Engine::set_threads`) sets how many
+//! threads the kernels use, the caller included, and starts the workers that are missing. A
+//! worker waits for the next job by spinning briefly (kernel calls come back to back within a
+//! frame) and then sleeps on a condition variable. One job runs at a time: a caller that finds
+//! the pool busy (another thread's kernel, or a nested call) runs its tasks itself.
+#![deny(clippy::indexing_slicing)]
+
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Condvar, Mutex, OnceLock};
+
+/// Most threads (caller included).
+pub const MAX_THREADS: usize = 64;
+
+/// Spins (about a microsecond each) a worker waits for the next job before it sleeps.
+const SPINS: usize = 200;
+
+/// Threads the kernels use, the caller included.
+static THREADS: AtomicUsize = AtomicUsize::new(1);
+
+/// A job: `tasks` calls of `f`, each number taken once.
+struct Job {
+    /// The tasks (lifetime erased: [`run`] does not return before no worker can reach it).
+    f: *const (dyn Fn(usize) + Sync),
+    tasks: usize,
+    next: AtomicUsize,
+    done: AtomicUsize,
+    /// Workers inside the job.
+    active: AtomicUsize,
+    /// A task panicked on a worker.
+    panicked: AtomicBool,
+}
+
+/// The posted job: epoch (bumped per job) and its address (0 when none).
+struct Pool {
+    slot: Mutex<(u64, usize)>,
+    wake: Condvar,
+    epoch: AtomicU64,
+    busy: AtomicBool,
+    workers: Mutex<usize>,
+}
+
+fn pool() -> &'static Pool {
+    static P: OnceLock<Pool> = OnceLock::new();
+    P.get_or_init(|| Pool { slot: Mutex::new((0, 0)), wake: Condvar::new(), epoch: AtomicU64::new(0), busy: AtomicBool::new(false), workers: Mutex::new(0) })
+}
+
+/// Sets the threads the kernels use (1 to [`MAX_THREADS`], the caller included) and starts the
+/// missing workers. Workers are never stopped; with fewer threads set they sleep.
+pub fn set_threads(n: usize) {
+    let n = n.clamp(1, MAX_THREADS);
+    let p = pool();
+    if let Ok(mut w) = p.workers.lock() {
+        while *w + 1 < n {
+            if std::thread::Builder::new().name(format!("muir-kernel-{}", *w + 1)).spawn(worker).is_err() {
+                break;
+            }
+            *w += 1;
+        }
+        THREADS.store(n.min(*w + 1), Ordering::Relaxed);
+    }
+}
+
+/// Threads the kernels use, the caller included.
+pub fn threads() -> usize {
+    THREADS.load(Ordering::Relaxed)
+}
+
+/// Runs `f(0) .. f(tasks - 1)`, on the pool's threads when there are several and the pool is
+/// free, else on the caller; returns when all have run. Each task must write only its own part
+/// of the output.
+pub fn run(tasks: usize, f: &(dyn Fn(usize) + Sync)) {
+    let p = pool();
+    if tasks <= 1 || threads() <= 1 || p.busy.swap(true, Ordering::Acquire) {
+        (0..tasks).for_each(f);
+        return;
+    }
+    // SAFETY (lifetime erasure): `job` and `f` outlive every use: this function waits until all
+    // tasks are done and no worker is inside the job before it returns.
+    let f: *const (dyn Fn(usize) + Sync) = unsafe { core::mem::transmute::<&(dyn Fn(usize) + Sync), &'static (dyn Fn(usize) + Sync)>(f) };
+    let job = Job { f, tasks, next: AtomicUsize::new(0), done: AtomicUsize::new(0), active: AtomicUsize::new(0), panicked: AtomicBool::new(false) };
+    if let Ok(mut s) = p.slot.lock() {
+        s.0 += 1;
+        s.1 = &job as *const Job as usize;
+        p.epoch.store(s.0, Ordering::Release);
+    }
+    p.wake.notify_all();
+    work(&job);
+    while job.done.load(Ordering::Acquire) < tasks {
+        std::hint::spin_loop();
+    }
+    // No worker can enter the job once it is unposted; wait for those inside to leave.
+    if let Ok(mut s) = p.slot.lock() {
+        s.1 = 0;
+    }
+    while job.active.load(Ordering::Acquire) != 0 {
+        std::hint::spin_loop();
+    }
+    p.busy.store(false, Ordering::Release);
+    if job.panicked.load(Ordering::Relaxed) {
+        #[allow(clippy::panic)] // a bug in a task, not a consequence of input: report it where it ran
+        {
+            panic!("a kernel task panicked on a worker thread");
+        }
+    }
+}
+
+/// Takes and runs task numbers until none are left.
+fn work(job: &Job) {
+    loop {
+        let i = job.next.fetch_add(1, Ordering::Relaxed);
+        if i >= job.tasks {
+            return;
+        }
+        // SAFETY: `run` keeps `f` alive until every task is done.
+        let f = unsafe { &*job.f };
+        if std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(i))).is_err() {
+            job.panicked.store(true, Ordering::Relaxed);
+        }
+        job.done.fetch_add(1, Ordering::Release);
+    }
+}
+
+fn worker() {
+    let p = pool();
+    let mut seen = p.epoch.load(Ordering::Acquire);
+    loop {
+        let mut spins = 0;
+        while p.epoch.load(Ordering::Acquire) == seen && spins < SPINS {
+            for _ in 0..64 {
+                std::hint::spin_loop();
+            }
+            spins += 1;
+        }
+        let Ok(mut s) = p.slot.lock() else {
+            return;
+        };
+        while s.0 == seen {
+            s = match p.wake.wait(s) {
+                Ok(s) => s,
+                Err(_) => return,
+            };
+        }
+        seen = s.0;
+        if s.1 == 0 {
+            continue;
+        }
+        // SAFETY: a posted job is alive until `run` unposts it (under this lock) and then sees
+        // `active` back at 0.
+        let job = unsafe { &*(s.1 as *const Job) };
+        job.active.fetch_add(1, Ordering::AcqRel);
+        drop(s);
+        work(job);
+        job.active.fetch_sub(1, Ordering::Release);
+    }
+}
+
+/// A raw pointer that tasks on several threads may hold; each task touches only its own
+/// elements (the caller's guarantee).
+#[derive(Clone, Copy)]
+pub struct Shared<T>(pub *mut T);
+// SAFETY: see the type's doc: tasks write disjoint elements.
+unsafe impl<T> Sync for Shared<T> {}
+// SAFETY: as above.
+unsafe impl<T> Send for Shared<T> {}
+
+impl<T> Shared<T> {
+    /// Elements `at .. at + len`.
+    ///
+    /// # Safety
+    /// They lie in the buffer, and no other task touches them while the slice lives.
+    #[allow(clippy::mut_from_ref)]
+    pub unsafe fn slice(&self, at: usize, len: usize) -> &mut [T] {
+        // SAFETY: the caller's guarantee.
+        unsafe { core::slice::from_raw_parts_mut(self.0.add(at), len) }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_task_runs_once_for_any_thread_count() {
+        for n in [1, 2, 3] {
+            set_threads(n);
+            for tasks in [0, 1, 2, 7, 100] {
+                let hits: Vec<AtomicUsize> = (0..tasks).map(|_| AtomicUsize::new(0)).collect();
+                run(tasks, &|i| {
+                    if let Some(h) = hits.get(i) {
+                        h.fetch_add(1, Ordering::Relaxed);
+                    }
+                });
+                assert!(hits.iter().all(|h| h.load(Ordering::Relaxed) == 1), "{n} threads, {tasks} tasks");
+            }
+        }
+        set_threads(1);
+    }
+}
