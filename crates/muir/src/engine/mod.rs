@@ -24,7 +24,7 @@ mod encoder;
 #[cfg(feature = "hal")]
 pub mod hal;
 #[cfg(feature = "std")]
-mod host_mga;
+mod host_rows;
 #[cfg(feature = "internals")]
 pub mod layout;
 #[cfg(not(feature = "internals"))]

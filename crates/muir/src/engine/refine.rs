@@ -315,6 +315,13 @@ pub fn mga_setup(c: &mut Ctx<'_, '_, '_>) {
     let phases = first_n(&phases, qk / 2);
     let (pq, pk) = (conv(m, MgaQuery), conv(m, MgaKey));
     for y in 0..h8 {
+        #[cfg(feature = "std")]
+        {
+            // Host: the row's keys by one conv call.
+            super::host_rows::keys_row(&pk, c.frame.inp08, ctx, y, w, phases, chunk_mut(c.st.keys, y, w * qk));
+            continue;
+        }
+        #[allow(unreachable_code)]
         for x in 0..w {
             let p = y * w + x;
             qk_pixel(&pk, c.frame.inp08, ctx, x, y, w, phases, c.px.patch, chunk_mut(c.st.keys, p, qk));
@@ -325,7 +332,7 @@ pub fn mga_setup(c: &mut Ctx<'_, '_, '_>) {
         #[cfg(feature = "std")]
         {
             // Host: the row's queries at once, its pixels on the kernel pool.
-            super::host_mga::stats_row(&pq, c.frame.inp08, ctx, y, w, phases, c.st.keys, am, chunk_mut(c.st.stats, y, 2 * w));
+            super::host_rows::stats_row(&pq, c.frame.inp08, ctx, y, w, phases, c.st.keys, am, chunk_mut(c.st.stats, y, 2 * w));
             continue;
         }
         #[allow(unreachable_code)]
@@ -516,7 +523,7 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
                     {
                         // Host: the row's queries at once, its pixels on the kernel pool.
                         let stats = chunk(st.stats, y, 2 * w);
-                        super::host_mga::aggregate_row(pqy, c.frame.inp08, ctx, y, w, phases, st.keys, st.values, hd, stats, am, glb_shift, d);
+                        super::host_rows::aggregate_row(pqy, c.frame.inp08, ctx, y, w, phases, st.keys, st.values, hd, stats, am, glb_shift, d);
                         return;
                     }
                     #[allow(unreachable_code)]
@@ -622,11 +629,7 @@ pub fn upsample(c: &mut Ctx<'_, '_, '_>, width: usize, height: usize, disp: &mut
     let mid = first_n_mut(mid, w * mh);
     for y in 0..h8 {
         conv16(&p1, &[full(c.frame.net08, h8, w * hd, y, 3)], w, mid, c.px.patch);
-        for x in 0..w {
-            let mut r = [None; MAX_K];
-            r[0] = Some(chunk(mid, x, mh));
-            let logits = first_n_mut(c.px.logits, MASK_CHANNELS);
-            conv16(&p2, &[PartRows { rows: r }], 1, logits, c.px.patch);
+        let mut pixel = |x: usize, logits: &mut [i16]| {
             upsample_pixel(logits, mask_frac, flow0, u_src, h8, w, y, x, &mut dblk, u_src.map(|_| &mut ublk[..]), UP);
             // The UP x UP block, cropped to the output: `cols` columns from `UP x` on.
             let cols = width.saturating_sub(UP * x).min(UP);
@@ -643,6 +646,17 @@ pub fn upsample(c: &mut Ctx<'_, '_, '_>, width: usize, height: usize, disp: &mut
                     u.iter_mut().zip(ub).for_each(|(u, s)| *u = *s);
                 }
             }
+        };
+        // Host: the row's logits by one conv call; firmware: pixel by pixel in the plan's memory.
+        #[cfg(feature = "std")]
+        super::host_rows::mask_logits_row(&p2, mid, w, mh, &mut pixel);
+        #[cfg(not(feature = "std"))]
+        for x in 0..w {
+            let mut r = [None; MAX_K];
+            r[0] = Some(chunk(mid, x, mh));
+            let logits = first_n_mut(c.px.logits, MASK_CHANNELS);
+            conv16(&p2, &[PartRows { rows: r }], 1, logits, c.px.patch);
+            pixel(x, logits);
         }
     }
 }

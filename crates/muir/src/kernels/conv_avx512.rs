@@ -296,6 +296,10 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
 unsafe fn copy_weights(w: &[i8], kl: usize, off: usize, ch: usize, chp: usize, taps: usize, r: usize, kind: Kind, buf: &mut Vec<i16>) -> usize {
     let row = taps * chp; // values per channel
     let dst = sized(buf, r * row);
+    if ch != chp {
+        // The padding channels' zeros, in one go (the copies below fill the rest).
+        dst.fill(0);
+    }
     let rows = w.chunks(kl.max(1)).zip(dst.chunks_exact_mut(row.max(1)));
     match kind {
         Kind::U8 => {
@@ -304,9 +308,8 @@ unsafe fn copy_weights(w: &[i8], kl: usize, off: usize, ch: usize, chp: usize, t
                 let src = src.get(off..off + taps * ch).unwrap_or_default();
                 let dst: &mut [i8] = bytemuck::cast_slice_mut(dst);
                 for (s, d) in src.chunks_exact(ch.max(1)).zip(dst.chunks_exact_mut(chp.max(1))) {
-                    let (head, rest) = d.split_at_mut(ch.min(d.len()));
+                    let head = d.get_mut(..ch).unwrap_or_default();
                     head.copy_from_slice(s.get(..head.len()).unwrap_or_default());
-                    rest.fill(0);
                 }
             }
         }
@@ -314,9 +317,7 @@ unsafe fn copy_weights(w: &[i8], kl: usize, off: usize, ch: usize, chp: usize, t
             for (src, dst) in rows {
                 let src = src.get(off..off + taps * ch).unwrap_or_default();
                 for (s, d) in src.chunks_exact(ch.max(1)).zip(dst.chunks_exact_mut(chp.max(1))) {
-                    let (head, rest) = d.split_at_mut(ch.min(d.len()));
-                    head.iter_mut().zip(s).for_each(|(d, s)| *d = *s as i16);
-                    rest.fill(0);
+                    d.iter_mut().zip(s).for_each(|(d, s)| *d = *s as i16);
                 }
             }
         }

@@ -1,8 +1,9 @@
-//! Host forms (feature `std`) of the MGA passes' per-pixel loops: a row's queries by one
-//! convolution call (the 1x1 query conv over the whole context row, the same integers as one
-//! pixel at a time), then the row's pixels as tasks on the kernel pool
-//! ([`crate::kernels::pool`]), each with this thread's own scratch. The firmware keeps the
-//! pixel-by-pixel loops in `refine`, in the plan's memory; the firmware tests compare both.
+//! Host forms (feature `std`) of the refinement's per-pixel 1x1 convolutions: a row's outputs by
+//! one convolution call over the whole row (the same integers as one pixel at a time, and a
+//! matrix product wide enough for the SIMD kernels), in this thread's scratch rather than the
+//! plan's memory. The MGA passes then run the row's pixels as tasks on the kernel pool
+//! ([`crate::kernels::pool`]), each with its thread's own scratch. The firmware keeps the
+//! pixel-by-pixel loops in `refine`; the firmware tests compare both.
 #![deny(clippy::indexing_slicing)]
 
 use core::cell::RefCell;
@@ -20,6 +21,8 @@ const PIXELS: usize = 4;
 std::thread_local! {
     /// A row's queries and the conv's patch scratch (on the calling thread).
     static ROW: RefCell<(Vec<i16>, Vec<u8>)> = const { RefCell::new((Vec::new(), Vec::new())) };
+    /// A row of upsampling-mask logits.
+    static LOGITS: RefCell<Vec<i16>> = const { RefCell::new(Vec::new()) };
     /// A task's accumulator (on the thread that runs it).
     static ACC: RefCell<Vec<i64>> = const { RefCell::new(Vec::new()) };
 }
@@ -32,21 +35,32 @@ fn sized<T: Copy + Default>(v: &mut Vec<T>, n: usize) -> &mut [T] {
     v.get_mut(..n).unwrap_or_default()
 }
 
-/// Queries of row `y` (after RoPE) into `q` (`w qk` values): the 1x1 conv over the row's context.
+/// Queries (or keys) of row `y` (after RoPE) into `q` (`w qk` values): the 1x1 conv `p` over the
+/// row's context.
 #[allow(clippy::too_many_arguments)]
 fn queries(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, y: usize, w: usize, phases: &[u32], q: &mut Vec<i16>, patch: &mut Vec<u8>) -> usize {
     let qk = p.cout;
-    let q = sized(q, w * qk);
+    qk_row(p, inp08, ctx, y, w, phases, sized(q, w * qk), patch);
+    qk
+}
+
+/// [`queries`] into `out` (`w qk` values).
+#[allow(clippy::too_many_arguments)]
+fn qk_row(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, y: usize, w: usize, phases: &[u32], out: &mut [i16], patch: &mut Vec<u8>) {
     let patch = sized(patch, 4 * p.patch_len().max(1));
     let mut rows = [None; MAX_K];
     if let Some(r) = rows.first_mut() {
         *r = inp08.get(y * w * ctx..(y + 1) * w * ctx);
     }
-    run_conv(p, &[PartRows { rows }], w, &mut OutRow::I16(q), patch);
-    for (x, q) in q.chunks_exact_mut(qk.max(1)).enumerate() {
+    run_conv(p, &[PartRows { rows }], w, &mut OutRow::I16(out), patch);
+    for (x, q) in out.chunks_exact_mut(p.cout.max(1)).enumerate() {
         rope_pixel(q, x, y, phases);
     }
-    qk
+}
+
+/// The keys of row `y` (after RoPE) into `keys` (`w qk`).
+pub fn keys_row(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, y: usize, w: usize, phases: &[u32], keys: &mut [i16]) {
+    ROW.with_borrow_mut(|(_, patch)| qk_row(p, inp08, ctx, y, w, phases, keys, patch));
 }
 
 /// Softmax statistics (`max`, `sum`) of every query of row `y` into `stats` (`2 w`).
@@ -104,6 +118,26 @@ pub fn aggregate_row(
                     aggregate_query(q.get(x * qk..(x + 1) * qk).unwrap_or_default(), keys, values, cv, st, m, shift, acc, o);
                 }
             });
+        });
+    });
+}
+
+/// The upsampling mask's logits of a row: the 1x1 conv `p` over `mid` (`w` pixels of `mh`), then
+/// `pixel(x, logits of x)` for each pixel in order.
+pub fn mask_logits_row(p: &ConvParams<'_>, mid: &[i16], w: usize, mh: usize, mut pixel: impl FnMut(usize, &mut [i16])) {
+    ROW.with_borrow_mut(|(_, patch)| {
+        LOGITS.with_borrow_mut(|logits| {
+            let n = p.cout;
+            let logits = sized(logits, w * n);
+            let patch = sized(patch, 4 * p.patch_len().max(1));
+            let mut rows = [None; MAX_K];
+            if let Some(r) = rows.first_mut() {
+                *r = mid.get(..w * mh);
+            }
+            run_conv(p, &[PartRows { rows }], w, &mut OutRow::I16(logits), patch);
+            for (x, l) in logits.chunks_exact_mut(n.max(1)).enumerate() {
+                pixel(x, l);
+            }
         });
     });
 }
