@@ -13,6 +13,7 @@ use crate::arith::Multiplier;
 use crate::kernels::OutRow;
 use crate::kernels::attention::{aggregate_query, query_stats, rope_pixel};
 use crate::kernels::conv::{ConvParams, MAX_K, PartRows};
+use crate::kernels::corr::{LookupParams, LookupScratch, lookup_pixel};
 use crate::kernels::pool::{self, Shared};
 
 /// Pixels per task.
@@ -25,6 +26,8 @@ std::thread_local! {
     static LOGITS: RefCell<Vec<i16>> = const { RefCell::new(Vec::new()) };
     /// A task's accumulator (on the thread that runs it).
     static ACC: RefCell<Vec<i64>> = const { RefCell::new(Vec::new()) };
+    /// A task's correlation window and its prefix sums (on the thread that runs it).
+    static WINDOW: RefCell<(Vec<i32>, Vec<i64>)> = const { RefCell::new((Vec::new(), Vec::new())) };
 }
 
 /// `v` resized to `n` elements (contents unspecified).
@@ -137,6 +140,27 @@ pub fn mask_logits_row(p: &ConvParams<'_>, mid: &[i16], w: usize, mh: usize, mut
             run_conv(p, &[PartRows { rows }], w, &mut OutRow::I16(logits), patch);
             for (x, l) in logits.chunks_exact_mut(n.max(1)).enumerate() {
                 pixel(x, l);
+            }
+        });
+    });
+}
+
+/// The correlation lookup of row `y` into `out` (`w cc`): `f1` the left features (`fd` a pixel),
+/// `f2row` the right features' row, `flow` the disparity state (`fc` a pixel); `scratch` the
+/// lengths of the engine's window and prefix buffers.
+#[allow(clippy::too_many_arguments)]
+pub fn lookup_row(p: &LookupParams<'_>, f1: &[i8], f2row: &[i8], flow: &[i16], fc: usize, w: usize, y: usize, fd: usize, cc: usize, scratch: (usize, usize), out: &mut [i16]) {
+    let out_p = Shared(out.as_mut_ptr());
+    let n = w.min(out.len() / cc.max(1));
+    pool::run(n.div_ceil(PIXELS), &|t| {
+        WINDOW.with_borrow_mut(|(win, pre)| {
+            let mut s = LookupScratch { window: sized(win, scratch.0), prefix: sized(pre, scratch.1) };
+            for x in t * PIXELS..((t + 1) * PIXELS).min(n) {
+                let px = y * w + x;
+                let d = flow.get(px * fc).copied().unwrap_or(0);
+                // SAFETY: values `x cc .. (x + 1) cc <= out.len()`, this task's pixels only.
+                let o = unsafe { out_p.slice(x * cc, cc) };
+                lookup_pixel(p, f1.get(px * fd..(px + 1) * fd).unwrap_or_default(), f2row, w, x, d, &mut s, o);
             }
         });
     });

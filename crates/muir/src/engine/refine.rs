@@ -118,6 +118,13 @@ fn lookup_row(m: &QuantModel<'_>, f1: &[i8], f2: &[i8], flow: &[i16], fc: usize,
     let p = LookupParams { levels: cfg.corr_levels, radius: cfg.corr_radius, post_pool: cfg.post_pool, mults: &mults };
     let (w, fd, cc) = (g.w8, cfg.fmap_dim, cfg.corr_channels());
     let f2row = chunk(f2, y, w * fd);
+    #[cfg(feature = "std")]
+    {
+        // Host: the row's pixels as tasks on the kernel pool, scratch per thread.
+        super::host_rows::lookup_row(&p, f1, f2row, flow, fc, w, y, fd, cc, (win.len(), pre.len()), out);
+        return;
+    }
+    #[allow(unreachable_code)]
     let mut s = LookupScratch { window: win, prefix: pre };
     for x in 0..w {
         let px = y * w + x;
