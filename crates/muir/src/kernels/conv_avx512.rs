@@ -36,6 +36,7 @@ use super::super::pool::{self, Shared};
 use super::super::x86::{cast, has_avx512};
 use super::super::{Elem, OutRow};
 use super::{ConvParams, MAX_K, PartRows, finish_with, mult_at};
+use crate::model::graph::MAX_PARTS;
 use crate::arith::requantize;
 use crate::model::graph::PostOp;
 
@@ -75,8 +76,6 @@ struct Scratch {
     part: Vec<i64>,
     /// Sums of the parts' requantised contributions `[c][pixel]`.
     sums: Vec<i64>,
-    /// Per channel: some contribution took the scalar path.
-    wild: Vec<bool>,
     /// Finished outputs `[c][pixel]`, in the output type's range.
     fin: Vec<i32>,
 }
@@ -164,51 +163,120 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
     true
 }
 
-/// [`conv_row`]'s work, with the scratch.
+/// One input part's place in the row's work.
+#[derive(Clone, Copy, Debug, Default)]
+struct PartPlan {
+    /// Channels, and channels padded to whole groups.
+    ch: usize,
+    chp: usize,
+    /// Offset of the part's weights in a channel's row.
+    off: usize,
+    /// Offset of the part's transposed rows in the activation buffer, and indices a plane.
+    xt_at: usize,
+    tw: usize,
+    /// The part's taps in the tap list.
+    taps: (usize, usize),
+    /// Its first transposition task, and how many it has (planes x index chunks).
+    task0: usize,
+    tasks: usize,
+}
+
+/// Indices of a plane per transposition task.
+const INDICES: usize = 64;
+
+/// Runs `f(0) .. f(tasks - 1)` on the pool when the layer is large enough, else here.
+fn par(big: bool, tasks: usize, f: &(dyn Fn(usize) + Sync)) {
+    if big {
+        pool::run(tasks, f);
+    } else {
+        (0..tasks).for_each(f);
+    }
+}
+
+/// [`conv_row`]'s work, with the scratch: the input rows transposed (tasks over planes and
+/// column ranges), the matrix products and epilogue (tasks over channel blocks, every part in
+/// turn), the row written in its `[x][c]` order (tasks over pixel ranges).
 ///
 /// # Safety
 /// The CPU has AVX-512 F, BW and VNNI; the layer passed [`conv_row`]'s checks.
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
 #[allow(clippy::too_many_arguments)]
 unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, w_out: usize, kind: Kind, out: &mut OutRow<'_>, s: &mut Scratch) {
-    let (cout, kl, np) = (p.cout, p.patch_len(), p.parts.len());
+    let (cout, kl, np, k, stride) = (p.cout, p.patch_len(), p.parts.len(), p.k, p.stride);
     let pixpad = w_out.div_ceil(LANES) * LANES;
     let signed8 = cast::<T, i8>(&[]).is_some();
-    // Sums `[c][pixel]`; `wild[c]` once a contribution to channel `c` took the scalar path.
-    let sums = sized(&mut s.sums, cout * pixpad);
-    sums.fill(0);
-    let wild = sized(&mut s.wild, cout);
-    wild.fill(false);
-    // The output type's range (`OutRow::set` saturates to it) and the finished outputs `[c][x]`.
+    let flip = if signed8 { 0x8080_8080u32 as i32 } else { 0 };
+    let big = w_out * cout * kl >= PARALLEL_MACS;
+    // The parts' layout: transposed rows (see `transpose_task`) and taps.
+    let (pad, lead) = (k / 2, (k / 2).div_ceil(stride) * stride);
+    let mut plans = [PartPlan::default(); MAX_PARTS];
+    s.taps.clear();
+    let (mut off, mut xt_len, mut tasks) = (0, 0, 0);
+    for (plan, &ch) in plans.iter_mut().zip(p.parts) {
+        let chp = ch.next_multiple_of(kind.per());
+        let cg = chp / kind.per();
+        let tw = pixpad + (k - 1 + lead - pad) / stride + 1;
+        let t0 = s.taps.len();
+        for ky in 0..k {
+            for kx in 0..k {
+                let d = kx + lead - pad;
+                let (phase, q) = (d % stride, d / stride);
+                let (x, w) = (xt_len + (ky * stride + phase) * cg * tw + q, (ky * k + kx) * cg);
+                let mut g = 0;
+                while g < cg {
+                    let groups = (cg - g).min(kind.chunk());
+                    s.taps.push(Tap { x: x + g * tw, gstride: tw, groups, w: w + g });
+                    g += groups;
+                }
+            }
+        }
+        let part_tasks = k * stride * tw.div_ceil(INDICES);
+        *plan = PartPlan { ch, chp, off, xt_at: xt_len, tw, taps: (t0, s.taps.len()), task0: tasks, tasks: part_tasks };
+        off += k * k * ch;
+        xt_len += k * stride * cg * tw;
+        tasks += part_tasks;
+    }
+    let plans = plans.get(..np).unwrap_or_default();
+    let xt = sized(&mut s.xt, xt_len);
+    // 1. The input rows, transposed.
+    let xtp = Shared(xt.as_mut_ptr());
+    par(big, tasks, &|t| {
+        let Some((part, plan)) = plans.iter().enumerate().find(|(_, pl)| (pl.task0..pl.task0 + pl.tasks).contains(&t)) else {
+            return;
+        };
+        let chunks = plan.tw.div_ceil(INDICES);
+        let (plane, chunk) = ((t - plan.task0) / chunks, (t - plan.task0) % chunks);
+        let (i0, i1) = (chunk * INDICES, ((chunk + 1) * INDICES).min(plan.tw));
+        let row = inputs.get(part).and_then(|r| r.rows.get(plane / stride)).copied().flatten();
+        // SAFETY: this task's entries only (plane `plane`, indices `i0..i1` of every group); the
+        // CPU has AVX-512 F and BW (this function's contract).
+        unsafe { transpose_task(row, plan, kind, stride, lead, w_in, plane, i0, i1, flip, &xtp) };
+    });
+    let (xt, taps) = (&*xt, &*s.taps);
+    // 2. The exact sums per part, their requantised contributions and the finished outputs, per
+    // block of `BLOCK_C` channels.
     let (lo, hi) = match out {
         OutRow::I8(_) => (i8::MIN as i32, i8::MAX as i32),
         OutRow::U8(_) => (0, u8::MAX as i32),
         OutRow::I16(_) => (i16::MIN as i32, i16::MAX as i32),
     };
+    let sp = sized(&mut s.part, cout * pixpad);
+    let sums = sized(&mut s.sums, cout * pixpad);
     let fin = sized(&mut s.fin, cout * pixpad);
-    let mut off = 0;
-    for (part, (rows, &ch)) in inputs.iter().zip(p.parts).enumerate() {
-        let n = p.k * p.k * ch;
-        // Channels padded to whole groups (zero activations against zero weights).
-        let chp = ch.next_multiple_of(kind.per());
-        let taps_n = p.k * p.k;
-        s.taps.clear();
-        // SAFETY: the CPU has AVX-512 F and BW (this function's contract).
-        unsafe { transpose_rows(p.k, p.stride, rows, ch, chp, w_in, pixpad, kind, &mut s.xt, &mut s.taps) };
-        let (xt, taps) = (&*s.xt, &*s.taps);
-        let sp = sized(&mut s.part, cout * pixpad);
-        // Per block of `BLOCK_C` channels (a task; the blocks run on the pool's threads when
-        // the layer is large enough): the exact sums, the i8 correction, the requantised
-        // contribution and, after the last part, the finished outputs.
-        let last = part + 1 == np;
-        let xtp = xt.as_ptr() as usize;
-        let (spp, sump, wildp, finp) = (Shared(sp.as_mut_ptr()), Shared(sums.as_mut_ptr()), Shared(wild.as_mut_ptr()), Shared(fin.as_mut_ptr()));
-        let task = |b: usize| {
-            let c0 = b * BLOCK_C;
-            let r = cout.saturating_sub(c0).min(BLOCK_C);
-            // SAFETY: block `b`'s `r` channel rows (or entries) of `sp`, `sums`, `fin` (each
-            // `cout pixpad` long) and `wild` (`cout`), touched by no other task.
-            let (sp, sums, fin, wild) = unsafe { (spp.slice(c0 * pixpad, r * pixpad), sump.slice(c0 * pixpad, r * pixpad), finp.slice(c0 * pixpad, r * pixpad), wildp.slice(c0, r)) };
+    let (spp, sump, finp) = (Shared(sp.as_mut_ptr()), Shared(sums.as_mut_ptr()), Shared(fin.as_mut_ptr()));
+    let xtp = xt.as_ptr() as usize;
+    par(big, cout.div_ceil(BLOCK_C), &|b| {
+        let c0 = b * BLOCK_C;
+        let r = cout.saturating_sub(c0).min(BLOCK_C);
+        // SAFETY: block `b`'s `r` channel rows of `sp`, `sums`, `fin` (each `cout pixpad` long),
+        // touched by no other task.
+        let (sp, sums, fin) = unsafe { (spp.slice(c0 * pixpad, r * pixpad), sump.slice(c0 * pixpad, r * pixpad), finp.slice(c0 * pixpad, r * pixpad)) };
+        // Per channel: some contribution took the scalar path (see `add_part`).
+        let mut wild = [false; BLOCK_C];
+        for (part, plan) in plans.iter().enumerate() {
+            let (ch, chp, off) = (plan.ch, plan.chp, plan.off);
+            let n = k * k * ch;
+            let taps = taps.get(plan.taps.0..plan.taps.1).unwrap_or_default();
             // The block's weights of this part, `[ky][kx][c]` with `chp` values a tap (4 bytes a
             // group): the blob's own (u8 of whole groups), else a copy with the channels padded
             // (u8) or widened to i16, in this thread's buffer.
@@ -221,17 +289,17 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
                 } else {
                     let w = p.weights.get(c0 * kl..).unwrap_or_default();
                     // SAFETY: the CPU has AVX-512 F and BW (this function's contract).
-                    let wrow = unsafe { copy_weights(w, kl, off, ch, chp, taps_n, r, kind, buf) };
+                    let wrow = unsafe { copy_weights(w, kl, off, ch, chp, k * k, r, kind, buf) };
                     let bytes: &[u8] = bytemuck::cast_slice(buf.as_slice());
                     for (i, wp) in wp.iter_mut().enumerate().take(r) {
                         *wp = bytes.get(i * wrow..).unwrap_or_default().as_ptr();
                     }
                 }
                 // SAFETY: the CPU has AVX-512 F/BW/VNNI (this function's contract); each `wp`
-                // points at `taps_n chp` weights of its channel (the blob's, `weights.len() >=
+                // points at `k k chp` weights of its channel (the blob's, `weights.len() >=
                 // cout kl` checked, or this thread's copy), which the taps' groups cover; the
-                // taps lie inside `xt` for every pixel below `pixpad` (`transpose_rows`); `sp`
-                // holds `r` rows of `pixpad`.
+                // taps lie inside `xt` for every pixel below `pixpad` (see `transpose_task`);
+                // `sp` holds `r` rows of `pixpad`.
                 unsafe {
                     match kind {
                         Kind::U8 => block_dispatch::<true>(r, xtp as *const i32, taps, pixpad, &wp, sp.as_mut_ptr()),
@@ -239,7 +307,7 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
                     }
                 }
             });
-            for (i, (((acc, sum), wild), fin)) in sp.chunks_exact_mut(pixpad).zip(sums.chunks_exact_mut(pixpad)).zip(wild.iter_mut()).zip(fin.chunks_exact_mut(pixpad)).enumerate() {
+            for (i, ((acc, sum), wild)) in sp.chunks_exact_mut(pixpad).zip(sums.chunks_exact_mut(pixpad)).zip(wild.iter_mut()).enumerate() {
                 let c = c0 + i;
                 if signed8 {
                     // i8 activations were packed as `x + 128` (u8): take `128 sum(w)` back.
@@ -250,33 +318,34 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
                 // The part's requantised contribution, as the portable path adds it.
                 let m = mult_at(p.mult.0.get(8 * (c * np + part)..).unwrap_or_default());
                 // SAFETY: the CPU has AVX-512 F (this function's contract).
-                *wild = unsafe { add_part(acc, sum, m, *wild) };
-                if last {
-                    // Bias, rounding, activation and the output type's saturation (`fin[c][x]`).
-                    // SAFETY: as above.
-                    unsafe { finish_channel(p.post, p.bias.get(c), *wild, sum, fin, lo, hi) };
-                }
+                *wild = unsafe { add_part(acc, sum, m, *wild, part == 0) };
             }
-        };
-        let blocks = cout.div_ceil(BLOCK_C);
-        if blocks > 1 && w_out * cout * n >= PARALLEL_MACS {
-            pool::run(blocks, &task);
-        } else {
-            (0..blocks).for_each(task);
         }
-        off += n;
-    }
-    // The row in its `[x][c]` order.
+        for (i, ((sum, fin), wild)) in sums.chunks_exact(pixpad).zip(fin.chunks_exact_mut(pixpad)).zip(wild).enumerate() {
+            // Bias, rounding, activation and the output type's saturation (`fin[c][x]`).
+            // SAFETY: as above.
+            unsafe { finish_channel(p.post, p.bias.get(c0 + i), wild, sum, fin, lo, hi) };
+        }
+    });
+    // 3. The row in its `[x][c]` order, per range of pixels.
     let fin = &*fin;
     macro_rules! write_out {
-        ($o:ident, $t:ty) => {
-            for (x, px) in $o.chunks_exact_mut(cout).take(w_out).enumerate() {
-                for (c, d) in px.iter_mut().enumerate() {
-                    // (In range: `finish_channel` saturated it.)
-                    *d = fin.get(c * pixpad + x).copied().unwrap_or_default() as $t;
+        ($o:ident, $t:ty) => {{
+            let op = Shared($o.as_mut_ptr());
+            par(big, w_out.div_ceil(LANES), &|t| {
+                let x0 = t * LANES;
+                let nx = w_out.saturating_sub(x0).min(LANES);
+                // SAFETY: pixels `x0 .. x0 + nx <= w_out` of the row (`w_out cout <= len`,
+                // checked by `conv_row`), this task's only.
+                let o = unsafe { op.slice(x0 * cout, nx * cout) };
+                for (x, px) in (x0..).zip(o.chunks_exact_mut(cout)) {
+                    for (c, d) in px.iter_mut().enumerate() {
+                        // (In range: `finish_channel` saturated it.)
+                        *d = fin.get(c * pixpad + x).copied().unwrap_or_default() as $t;
+                    }
                 }
-            }
-        };
+            });
+        }};
     }
     match out {
         OutRow::I8(o) => write_out!(o, i8),
@@ -353,8 +422,9 @@ unsafe fn finish_channel(post: PostOp, bias: i64, wild: bool, sum: &[i64], fin: 
     }
 }
 
-/// `sum[x] = sum[x].saturating_add(requantize(acc[x], m))` for every pixel; returns whether a
-/// sum may now be large (`wild`: some contribution took the scalar path).
+/// `sum[x] = sum[x].saturating_add(requantize(acc[x], m))` for every pixel (`sum[x] =
+/// requantize(acc[x], m)` for the `first` part: the sums need no zeroing); returns whether a sum
+/// may now be large (`wild`: some contribution took the scalar path).
 ///
 /// Eight pixels at a time when `m` is short ([`super::short_ok`]), the eight accumulators fit in
 /// i32 and no earlier contribution to this channel was wild: then `requantize` is
@@ -364,7 +434,7 @@ unsafe fn finish_channel(post: PostOp, bias: i64, wild: bool, sum: &[i64], fin: 
 /// # Safety
 /// The CPU has AVX-512 F.
 #[target_feature(enable = "avx512f")]
-unsafe fn add_part(acc: &[i64], sum: &mut [i64], m: crate::arith::Multiplier, mut wild: bool) -> bool {
+unsafe fn add_part(acc: &[i64], sum: &mut [i64], m: crate::arith::Multiplier, mut wild: bool, first: bool) -> bool {
     let short = super::short_ok(m);
     let (mv, half, count) = (_mm512_set1_epi64(m.m as i64), _mm512_set1_epi64(1i64 << (m.shift.clamp(1, 63) - 1)), _mm_cvtsi64_si128(m.shift as i64));
     for (a, s) in acc.chunks(8).zip(sum.chunks_mut(8)) {
@@ -374,14 +444,14 @@ unsafe fn add_part(acc: &[i64], sum: &mut [i64], m: crate::arith::Multiplier, mu
             if _mm512_cmpeq_epi64_mask(v, _mm512_cvtepi32_epi64(_mm512_cvtepi64_epi32(v))) == 0xFF {
                 let r = _mm512_sra_epi64(_mm512_add_epi64(_mm512_mul_epi32(v, mv), half), count);
                 // SAFETY: as above.
-                unsafe { _mm512_storeu_si512(s8.as_mut_ptr().cast(), _mm512_add_epi64(t, r)) };
+                unsafe { _mm512_storeu_si512(s8.as_mut_ptr().cast(), if first { r } else { _mm512_add_epi64(t, r) }) };
                 continue;
             }
         }
         for (a, s) in a.iter().zip(s.iter_mut()) {
             let r = requantize(*a, m);
             wild |= !short || *a != *a as i32 as i64;
-            *s = s.saturating_add(r);
+            *s = if first { r } else { s.saturating_add(r) };
         }
     }
     wild
@@ -508,79 +578,56 @@ unsafe fn tile<const R: usize, const P: usize, const U8: bool>(xt: *const i32, t
     }
 }
 
-/// The `k` input rows of the output row transposed, and the [`Tap`]s that read them. A column's
-/// `ch` values, padded with zeros to `chp` (a multiple of the group size), make `cg = chp / per`
-/// groups. For stride `s` and `lead` zero columns in front (`pad` rounded up to a multiple of
-/// `s`), padded column `pc = col + lead` goes to phase `pc % s`, index `pc / s`; output pixel `x`
-/// of tap `kx` reads padded column `s x + d` (`d = kx + lead - pad`): phase `d % s`, index
-/// `x + d / s`. So `xt[((ky s + phase) cg + g) tw + i]` (`tw` indices a plane, zeros where no
-/// real column is), and tap `(ky, kx)` starts at index `d / s` of its plane: for every pixel
-/// below `pixpad`, `x + d / s < tw`. Taps of more than one chunk of groups are split.
+/// One transposition task: indices `i0..i1` of plane `plane` (`ky stride + phase`) of a part's
+/// transposed rows. A column's `ch` values, padded with zeros to `chp` (a multiple of the group
+/// size), make `cg = chp / per` groups. With `lead` zero columns in front (`pad` rounded up to a
+/// multiple of the stride `s`), padded column `pc = col + lead` goes to phase `pc % s`, index
+/// `pc / s`; output pixel `x` of tap `kx` reads padded column `s x + d` (`d = kx + lead - pad`):
+/// phase `d % s`, index `x + d / s`. So group `g` of index `i` is at
+/// `xt_at + (plane cg + g) tw + i` (zeros where no real column is), and tap `(ky, kx)` starts at
+/// index `d / s` of its plane: `x + d / s < tw` for every pixel below `pixpad` ([`run`]).
 ///
 /// # Safety
-/// The CPU has AVX-512 F and BW (for the compiler's vectorisation only).
+/// The CPU has AVX-512 F and BW (for the compiler's vectorisation only); the entries lie in the
+/// buffer behind `xt` and no other task touches them.
 #[target_feature(enable = "avx512f,avx512bw")]
 #[allow(clippy::too_many_arguments)]
-unsafe fn transpose_rows<T: Elem>(
-    k: usize,
-    stride: usize,
-    rows: &PartRows<'_, T>,
-    ch: usize,
-    chp: usize,
-    w_in: usize,
-    pixpad: usize,
-    kind: Kind,
-    xt: &mut Vec<i32>,
-    taps: &mut Vec<Tap>,
-) {
-    let (per, pad) = (kind.per(), k / 2);
-    let cg = chp / per;
-    let lead = pad.div_ceil(stride) * stride;
-    let tw = pixpad + (k - 1 + lead - pad) / stride + 1;
-    let flip = if cast::<T, i8>(&[]).is_some() { 0x8080_8080u32 } else { 0 };
-    let xt = sized(xt, k * stride * cg * tw);
-    xt.fill(flip as i32);
+unsafe fn transpose_task<T: Elem>(row: Option<&[T]>, plan: &PartPlan, kind: Kind, stride: usize, lead: usize, w_in: usize, plane: usize, i0: usize, i1: usize, zero: i32, xt: &Shared<i32>) {
+    let (ch, tw) = (plan.ch, plan.tw);
+    let cg = plan.chp / kind.per();
+    let phase = plane % stride;
+    let base = plan.xt_at + plane * cg * tw;
+    let n = i1.saturating_sub(i0);
+    for g in 0..cg {
+        // SAFETY: the caller's guarantee.
+        unsafe { xt.slice(base + g * tw + i0, n) }.fill(zero);
+    }
+    let Some(row) = row else {
+        return;
+    };
     let cb = ch * core::mem::size_of::<T>(); // bytes a column
-    for ky in 0..k {
-        let Some(row) = rows.rows.get(ky).copied().flatten() else {
+    let bytes = bytes_of(row);
+    let cols = w_in.min(bytes.len() / cb.max(1));
+    for i in i0..i1 {
+        let pc = i * stride + phase;
+        let Some(col) = pc.checked_sub(lead).filter(|c| *c < cols) else {
             continue;
         };
-        for (col, src) in bytes_of(row).chunks_exact(cb.max(1)).take(w_in).enumerate() {
-            let pc = col + lead;
-            let (phase, i) = (pc % stride, pc / stride);
-            if i >= tw {
-                break;
-            }
-            let Some(plane) = xt.get_mut((ky * stride + phase) * cg * tw..(ky * stride + phase + 1) * cg * tw) else {
-                continue;
-            };
-            let dst = plane.iter_mut().skip(i).step_by(tw);
-            if cb.is_multiple_of(4) {
-                for (d, v) in dst.zip(src.chunks_exact(4)) {
-                    if let &[a, b, c, e] = v {
-                        *d = (u32::from_le_bytes([a, b, c, e]) ^ flip) as i32;
-                    }
-                }
-            } else {
-                // A last group past the column's values: zero bytes there.
-                for (d, v) in dst.zip(src.chunks(4)) {
-                    let mut b = [0u8; 4];
-                    b.iter_mut().zip(v).for_each(|(b, v)| *b = *v);
-                    *d = (u32::from_le_bytes(b) ^ flip) as i32;
+        let src = bytes.get(col * cb..(col + 1) * cb).unwrap_or_default();
+        // SAFETY: the caller's guarantee (group `g < cg` of index `i`).
+        let put = |g: usize, v: u32| unsafe { xt.0.add(base + g * tw + i).write((v ^ zero as u32) as i32) };
+        if cb.is_multiple_of(4) {
+            for (g, v) in src.chunks_exact(4).enumerate().take(cg) {
+                if let &[a, b, c, e] = v {
+                    put(g, u32::from_le_bytes([a, b, c, e]));
                 }
             }
-        }
-    }
-    for ky in 0..k {
-        for kx in 0..k {
-            let d = kx + lead - pad;
-            let (phase, q) = (d % stride, d / stride);
-            let (x, w) = ((ky * stride + phase) * cg * tw + q, (ky * k + kx) * cg);
-            let mut g = 0;
-            while g < cg {
-                let groups = (cg - g).min(kind.chunk());
-                taps.push(Tap { x: x + g * tw, gstride: tw, groups, w: w + g });
-                g += groups;
+        } else {
+            // A last group past the column's values: zero bytes there.
+            for (g, v) in src.chunks(4).enumerate().take(cg) {
+                let mut b = [0u8; 4];
+                b.iter_mut().zip(v).for_each(|(b, v)| *b = *v);
+                put(g, u32::from_le_bytes(b));
             }
         }
     }

@@ -41,7 +41,7 @@ pub mod x86;
 
 /// Activation storage type: `i8`, `u8` or `i16`.
 #[deny(clippy::indexing_slicing)]
-pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + 'static {
+pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + Send + Sync + 'static {
     /// Storage width in bits.
     const BITS: u8;
     /// Storage format with 0 fraction bits (`QFormat::{i8, u8, i16}(0)`).
