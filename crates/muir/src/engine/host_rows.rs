@@ -12,6 +12,8 @@ use super::encoder::run_conv;
 use crate::arith::Multiplier;
 use crate::kernels::OutRow;
 use crate::kernels::attention::{aggregate_query, query_stats, rope_pixel};
+#[cfg(target_arch = "x86_64")]
+use crate::kernels::attention::avx512::Prepared;
 use crate::kernels::conv::{ConvParams, MAX_K, PartRows};
 use crate::kernels::corr::{LookupParams, LookupScratch, lookup_pixel};
 use crate::kernels::pool::{self, Shared};
@@ -24,6 +26,9 @@ std::thread_local! {
     static ROW: RefCell<(Vec<i16>, Vec<u8>)> = const { RefCell::new((Vec::new(), Vec::new())) };
     /// A row of upsampling-mask logits.
     static LOGITS: RefCell<Vec<i16>> = const { RefCell::new(Vec::new()) };
+    /// Keys and values laid out for the batched attention (on the calling thread).
+    #[cfg(target_arch = "x86_64")]
+    static PREPARED: RefCell<Prepared> = const { RefCell::new(Prepared::new()) };
     /// A task's accumulator (on the thread that runs it).
     static ACC: RefCell<Vec<i64>> = const { RefCell::new(Vec::new()) };
     /// A task's correlation window and its prefix sums (on the thread that runs it).
@@ -108,6 +113,26 @@ pub fn aggregate_row(
         let qk = queries(p, inp08, ctx, y, w, phases, q, patch);
         let (q, out) = (&*q, Shared(d.as_mut_ptr()));
         let n = w.min(d.len() / cv.max(1)).min(stats.len() / 2);
+        #[cfg(target_arch = "x86_64")]
+        let batched = PREPARED.with_borrow_mut(|prep| {
+            if !prep.fill(keys, values, qk, cv) {
+                return false;
+            }
+            let prep = &*prep;
+            // Four queries a task, two at a time in the kernel.
+            pool::run(n.div_ceil(PIXELS), &|t| {
+                let (x0, x1) = (t * PIXELS, ((t + 1) * PIXELS).min(n));
+                // SAFETY: values `x0 cv .. x1 cv <= d.len()`, this task's pixels only.
+                let o = unsafe { out.slice(x0 * cv, (x1 - x0) * cv) };
+                prep.aggregate(q.get(x0 * qk..x1 * qk).unwrap_or_default(), stats.get(2 * x0..2 * x1).unwrap_or_default(), m, shift, o);
+            });
+            true
+        });
+        #[cfg(not(target_arch = "x86_64"))]
+        let batched = false;
+        if batched {
+            return;
+        }
         pool::run(n.div_ceil(PIXELS), &|t| {
             ACC.with_borrow_mut(|acc| {
                 let acc = sized(acc, cv);

@@ -9,6 +9,11 @@
 
 use crate::arith::{Multiplier, div_round, lut, requantize, rshift_round, sat_i16, shift_round};
 
+/// Many queries at once on AVX-512 VNNI (host).
+#[cfg(all(target_arch = "x86_64", feature = "std"))]
+#[path = "attention_avx512.rs"]
+pub mod avx512;
+
 /// 2D RoPE of one pixel's query or key (`v`: channel pairs `(2i, 2i+1)`; the first half of the
 /// pairs turns with the column `x`, the second with the row `y`). `phase[i]` is pair `i`'s phase
 /// step per pixel (`2^32` = one turn).

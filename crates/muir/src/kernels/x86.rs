@@ -538,7 +538,7 @@ pub mod avx2 {
 
     /// `exp_q11` at the table's knots, as i32: entry `i` is `EXP[i]` of `arith` (the input
     /// `32 i - 32768` falls on knot `i`, where the interpolation returns the entry itself).
-    fn exp_knots() -> &'static [i32; 1025] {
+    pub(crate) fn exp_knots() -> &'static [i32; 1025] {
         static T: std::sync::OnceLock<[i32; 1025]> = std::sync::OnceLock::new();
         T.get_or_init(|| core::array::from_fn(|i| crate::arith::lut::exp_q11(32 * i as i32 - 32768)))
     }

@@ -1,0 +1,414 @@
+//! [`super::aggregate_query`] for many queries at once on AVX-512 VNNI (host, x86-64): the
+//! aggregation of one row of queries against every key, two queries at a time.
+//!
+//! Per call, the keys are transposed into channel pairs along keys (`kt[g][j]`: channels
+//! `2g, 2g+1` of key `j`, one i32) and the values into key pairs along channels (`vt[p][ch]`:
+//! channel `ch` of keys `2p, 2p+1`). Then, per block of [`KEYS`] keys and pair of queries:
+//! - logits of 16 keys by `vpdpwssd` of `kt` against the query's channel pairs, the query split
+//!   as `256 qh + ql` (`qh = q >> 8`, `ql = q & 255`): every lane sums products below `2^22`, at
+//!   most `2 * 128` of them (`c <=` [`MAX_C`]), so `256 h + l` is the exact logit;
+//! - the weights `e = exp_q11(clamp(requantize(l - max, m), -32768, 0))` 16 at a time, as
+//!   [`super::weight`] computes them (the 64-bit `requantize` path when `l - max` fits in i32 and
+//!   `1 <= shift <= 62`, else [`super::weight`] itself; `exp_q11`'s knots by `vpgatherdd`);
+//! - the values by `vpdpwssd` of `vt` against the weight pairs, each weight split as
+//!   `256 eh + el` (`eh <= 128`, `el <= 255`): a lane sums at most `2 * KEYS / 2` products below
+//!   `2^23` per block (`< 2^31`), then `256 h + l` goes into the query's i64 sums.
+//!
+//! So the sums are the exact `sum_j e_j v_j` and the outputs [`super::aggregate_query`]'s
+//! integers (the tests compare them).
+#![deny(clippy::indexing_slicing)]
+
+use core::arch::x86_64::*;
+use core::cell::RefCell;
+
+use super::weight;
+use crate::arith::{Multiplier, div_round, sat_i16, shift_round};
+use crate::kernels::x86::has_avx512;
+
+/// Keys per block (even; `KEYS / 2 <= 255` key pairs keep the value lanes exact).
+const KEYS: usize = 256;
+/// Most query/key channels (see the module doc).
+pub const MAX_C: usize = 256;
+/// Queries per pass.
+const R: usize = 2;
+
+/// Per-thread scratch.
+#[derive(Default)]
+struct Scratch {
+    /// Weights of a block, `[query][key]`.
+    e: Vec<i32>,
+    /// Their high and low parts as key pairs, `[query][pair]`.
+    eh: Vec<i32>,
+    el: Vec<i32>,
+    /// The queries' i64 sums, `[query][cv]`.
+    acc: Vec<i64>,
+}
+
+std::thread_local! {
+    static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
+}
+
+/// `exp_q11`'s knots as `a + (b - a) << 16` for knot pairs `(a, b)` = entries `i, i + 1` of its
+/// table (`i <= 1023`; the input 0 falls on knot 1023 at fraction 32: `a + (b - a) = b`). Both
+/// parts fit in 16 bits (the table is in `[0, 32768]` and rises).
+fn exp_knots() -> &'static [i32; 1024] {
+    static T: std::sync::OnceLock<[i32; 1024]> = std::sync::OnceLock::new();
+    T.get_or_init(|| {
+        let k = |i: usize| crate::arith::lut::exp_q11(32 * i as i32 - 32768);
+        core::array::from_fn(|i| k(i) + ((k(i + 1) - k(i)) << 16))
+    })
+}
+
+/// `v` resized to `n` elements (contents unspecified).
+fn sized<T: Copy + Default>(v: &mut Vec<T>, n: usize) -> &mut [T] {
+    if v.len() < n {
+        v.resize(n, T::default());
+    }
+    v.get_mut(..n).unwrap_or_default()
+}
+
+/// Keys and values laid out for [`Prepared::aggregate`] (see the module doc).
+pub struct Prepared {
+    kt: Vec<i32>,
+    vt: Vec<i32>,
+    /// Keys, and keys rounded up to a whole block.
+    n: usize,
+    npad: usize,
+    c: usize,
+    cv: usize,
+}
+
+impl Default for Prepared {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Prepared {
+    /// An empty layout (fill it with [`Prepared::fill`]).
+    pub const fn new() -> Self {
+        Prepared { kt: Vec::new(), vt: Vec::new(), n: 0, npad: 0, c: 0, cv: 0 }
+    }
+
+    /// Lays out `keys` (`n x c`) and `values` (`n x cv`), `n` the whole keys of both, reusing the
+    /// buffers; `false` where this path does not apply (no AVX-512 VNNI, `c` odd or above
+    /// [`MAX_C`], `cv` not a multiple of 16, no keys).
+    pub fn fill(&mut self, keys: &[i16], values: &[i16], c: usize, cv: usize) -> bool {
+        if !has_avx512() || c == 0 || c % 2 != 0 || c > MAX_C || cv == 0 || cv % 16 != 0 {
+            return false;
+        }
+        let n = (keys.len() / c).min(values.len() / cv);
+        if n == 0 {
+            return false;
+        }
+        let npad = n.next_multiple_of(KEYS);
+        let kt = sized(&mut self.kt, c / 2 * npad);
+        kt.fill(0);
+        for (j, k) in keys.chunks_exact(c).take(n).enumerate() {
+            for (g, pair) in k.chunks_exact(2).enumerate() {
+                if let (Some(d), &[a, b]) = (kt.get_mut(g * npad + j), pair) {
+                    *d = (a as u16 as u32 | (b as u16 as u32) << 16) as i32;
+                }
+            }
+        }
+        let vt = sized(&mut self.vt, npad / 2 * cv);
+        vt.fill(0);
+        for (p, pair) in values.get(..n * cv).unwrap_or_default().chunks(2 * cv).enumerate() {
+            let (a, b) = pair.split_at(cv.min(pair.len()));
+            for (ch, d) in vt.get_mut(p * cv..(p + 1) * cv).unwrap_or_default().iter_mut().enumerate() {
+                let (x, y) = (a.get(ch).copied().unwrap_or(0), b.get(ch).copied().unwrap_or(0));
+                *d = (x as u16 as u32 | (y as u16 as u32) << 16) as i32;
+            }
+        }
+        (self.n, self.npad, self.c, self.cv) = (n, npad, c, cv);
+        true
+    }
+
+    /// [`super::aggregate_query`] of the queries `qs` (`c` values each) with their statistics
+    /// `stats` (`max, sum` per query) into `out` (`cv` per query).
+    pub fn aggregate(&self, qs: &[i16], stats: &[i64], m: Multiplier, shift: i8, out: &mut [i16]) {
+        let (c, cv) = (self.c, self.cv);
+        let nq = (qs.len() / c).min(stats.len() / 2).min(out.len() / cv);
+        SCRATCH.with_borrow_mut(|s| {
+            let mut i = 0;
+            while i < nq {
+                let r = (nq - i).min(R);
+                let acc = sized(&mut s.acc, R * cv);
+                acc.fill(0);
+                let (e, eh, el) = (sized(&mut s.e, R * KEYS), sized(&mut s.eh, R * KEYS / 2), sized(&mut s.el, R * KEYS / 2));
+                let q = qs.get(i * c..(i + r) * c).unwrap_or_default();
+                let st = stats.get(2 * i..2 * (i + r)).unwrap_or_default();
+                // SAFETY: the CPU has AVX-512 F/BW/VNNI (`new` checked); the buffers have the
+                // sizes `block` needs.
+                unsafe { self.queries(q, r, st, m, e, eh, el, acc) };
+                for ((o, a), st) in out.get_mut(i * cv..(i + r) * cv).unwrap_or_default().chunks_exact_mut(cv).zip(acc.chunks_exact(cv)).zip(st.chunks_exact(2)) {
+                    let sum = st.get(1).copied().unwrap_or(0);
+                    for (o, a) in o.iter_mut().zip(a) {
+                        *o = sat_i16(div_round(shift_round(*a, shift as i32), sum));
+                    }
+                }
+                i += r;
+            }
+        });
+    }
+
+    /// The sums of `r <= R` queries over every key into `acc` (`R cv`).
+    ///
+    /// # Safety
+    /// The CPU has AVX-512 F, BW and VNNI; `e` holds `R KEYS` values, `eh` and `el` `R KEYS / 2`,
+    /// `acc` `R cv`.
+    #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn queries(&self, q: &[i16], r: usize, stats: &[i64], m: Multiplier, e: &mut [i32], eh: &mut [i32], el: &mut [i32], acc: &mut [i64]) {
+        let (c, cv, npad, n) = (self.c, self.cv, self.npad, self.n);
+        let g_n = c / 2;
+        // The queries' channel pairs split as `256 qh + ql` (`[g][query]`, an absent second
+        // query all zero), and their maxima.
+        let mut qh = [[0i32; R]; MAX_C / 2];
+        let mut ql = [[0i32; R]; MAX_C / 2];
+        let mut max = [0i64; R];
+        for (qi, (qv, st)) in q.chunks_exact(c).zip(stats.chunks_exact(2)).take(r).enumerate() {
+            for (pair, (h, l)) in qv.chunks_exact(2).zip(qh.iter_mut().zip(ql.iter_mut())) {
+                if let (&[a, b], Some(h), Some(l)) = (pair, h.get_mut(qi), l.get_mut(qi)) {
+                    *h = ((a >> 8) as u16 as u32 | ((b >> 8) as u16 as u32) << 16) as i32;
+                    *l = ((a & 255) as u32 | ((b & 255) as u32) << 16) as i32;
+                }
+            }
+            if let (Some(mx), Some(&v)) = (max.get_mut(qi), st.first()) {
+                *mx = v;
+            }
+        }
+        let fast = (1..=62).contains(&m.shift);
+        let knots = exp_knots();
+        let (mm, half, count) = (_mm512_set1_epi64(m.m as i64), _mm512_set1_epi64(1i64 << (m.shift.clamp(1, 63) - 1)), _mm_cvtsi64_si128(m.shift as i64));
+        let (lo32, hi32) = (_mm512_set1_epi64(i32::MIN as i64), _mm512_set1_epi64(i32::MAX as i64));
+        let (kt, vt) = (self.kt.as_ptr(), self.vt.as_ptr());
+        let (qhp, qlp) = (qh.as_ptr().cast::<i32>(), ql.as_ptr().cast::<i32>());
+        let (ep, ehp, elp) = (e.as_mut_ptr(), eh.as_mut_ptr(), el.as_mut_ptr());
+        let cbs = cv / 16;
+        let mut j0 = 0;
+        while j0 < npad {
+            // 1. Logits and weights of the block's keys, 16 at a time, both queries together.
+            for jv in (0..KEYS).step_by(16) {
+                let j = j0 + jv;
+                let z = _mm512_setzero_si512();
+                let (mut ah, mut al) = ([z; R], [z; R]);
+                for g in 0..g_n {
+                    // SAFETY: `kt` holds `c / 2` rows of `npad >= j + 16` keys; `qh`, `ql` hold
+                    // `MAX_C / 2 >= c / 2` rows of `R`.
+                    unsafe {
+                        let k = _mm512_loadu_si512(kt.add(g * npad + j).cast());
+                        for t in 0..R {
+                            ah[t] = _mm512_dpwssd_epi32(ah[t], k, _mm512_set1_epi32(*qhp.add(g * R + t)));
+                            al[t] = _mm512_dpwssd_epi32(al[t], k, _mm512_set1_epi32(*qlp.add(g * R + t)));
+                        }
+                    }
+                }
+                for t in 0..r.min(R) {
+                    let mxs = max[t];
+                    let mx = _mm512_set1_epi64(mxs);
+                    // Logits minus the maximum, 8 + 8 keys as i64. (Macros, not closures: a
+                    // closure does not inherit the target features.)
+                    macro_rules! diff {
+                        ($h:expr, $l:expr) => {
+                            _mm512_sub_epi64(_mm512_add_epi64(_mm512_slli_epi64::<8>(_mm512_cvtepi32_epi64($h)), _mm512_cvtepi32_epi64($l)), mx)
+                        };
+                    }
+                    macro_rules! inside {
+                        ($d:expr) => {
+                            _mm512_cmpge_epi64_mask($d, lo32) & _mm512_cmple_epi64_mask($d, hi32)
+                        };
+                    }
+                    let d0 = diff!(_mm512_castsi512_si256(ah[t]), _mm512_castsi512_si256(al[t]));
+                    let d1 = diff!(_mm512_extracti64x4_epi64::<1>(ah[t]), _mm512_extracti64x4_epi64::<1>(al[t]));
+                    // SAFETY: `e` holds `R KEYS` values; `t < R`, `jv + 16 <= KEYS`.
+                    let dst = unsafe { ep.add(t * KEYS + jv) };
+                    if fast && inside!(d0) == 0xFF && inside!(d1) == 0xFF {
+                        macro_rules! rq {
+                            ($d:expr) => {
+                                _mm512_cvtepi64_epi32(_mm512_min_epi64(
+                                    _mm512_max_epi64(_mm512_sra_epi64(_mm512_add_epi64(_mm512_mul_epi32($d, mm), half), count), _mm512_set1_epi64(-32768)),
+                                    _mm512_setzero_si512(),
+                                ))
+                            };
+                        }
+                        let d = _mm512_inserti64x4::<1>(_mm512_castsi256_si512(rq!(d0)), rq!(d1));
+                        let u = _mm512_add_epi32(d, _mm512_set1_epi32(32768));
+                        let i = _mm512_min_epi32(_mm512_srli_epi32::<5>(u), _mm512_set1_epi32(1023));
+                        let f = _mm512_sub_epi32(u, _mm512_slli_epi32::<5>(i));
+                        // SAFETY: knot `i <= 1023` of the table (`a + (b - a) << 16`, 1024 entries).
+                        let ab = unsafe { _mm512_i32gather_epi32::<4>(i, knots.as_ptr().cast()) };
+                        let (ka, kd) = (_mm512_and_si512(ab, _mm512_set1_epi32(0xFFFF)), _mm512_srli_epi32::<16>(ab));
+                        let w = _mm512_add_epi32(ka, _mm512_srai_epi32::<5>(_mm512_add_epi32(_mm512_mullo_epi32(kd, f), _mm512_set1_epi32(16))));
+                        // SAFETY: 16 i32 at `dst` (above).
+                        unsafe { _mm512_storeu_si512(dst.cast(), w) };
+                    } else {
+                        let (mut l0, mut l1) = ([0i64; 8], [0i64; 8]);
+                        // SAFETY: 8 i64 each; 16 i32 at `dst`.
+                        unsafe {
+                            _mm512_storeu_si512(l0.as_mut_ptr().cast(), _mm512_add_epi64(d0, mx));
+                            _mm512_storeu_si512(l1.as_mut_ptr().cast(), _mm512_add_epi64(d1, mx));
+                            for (k, l) in l0.iter().chain(&l1).enumerate() {
+                                dst.add(k).write(weight(*l, mxs, m));
+                            }
+                        }
+                    }
+                }
+            }
+            // Keys past the last weigh nothing (their values are zero too; kept for clarity of
+            // the weights' own checks below).
+            for t in 0..r.min(R) {
+                for k in n.saturating_sub(j0).min(KEYS)..KEYS {
+                    // SAFETY: `t KEYS + k < R KEYS`.
+                    unsafe { ep.add(t * KEYS + k).write(0) };
+                }
+            }
+            // 2. Weight pairs split as `256 eh + el`, `[pair][query]` (a weight outside
+            // [0, 32768], which `exp_q11` never gives, is added on its own below).
+            let mut odd = false;
+            for t in 0..R {
+                for pk in 0..KEYS / 2 {
+                    // SAFETY: `e` holds `R KEYS`, `eh` and `el` `R KEYS / 2` (contract).
+                    unsafe {
+                        let (a, b) = if t < r { (*ep.add(t * KEYS + 2 * pk), *ep.add(t * KEYS + 2 * pk + 1)) } else { (0, 0) };
+                        let ok = |v: i32| (0..=32768).contains(&v);
+                        odd |= !ok(a) || !ok(b);
+                        let (a, b) = (if ok(a) { a } else { 0 }, if ok(b) { b } else { 0 });
+                        ehp.add(pk * R + t).write(((a >> 8) as u32 | ((b >> 8) as u32) << 16) as i32);
+                        elp.add(pk * R + t).write(((a & 255) as u32 | ((b & 255) as u32) << 16) as i32);
+                    }
+                }
+            }
+            // 3. Values: four channel blocks at a time (then one), both queries' high and low sums.
+            let mut cb = 0;
+            while cb < cbs {
+                // SAFETY: channel blocks `cb .. cb + NB <= cv / 16`; the rest as `values` says.
+                unsafe {
+                    if cb + 4 <= cbs {
+                        values::<4>(vt, j0, cv, cb, ehp, elp, r, acc);
+                        cb += 4;
+                    } else {
+                        values::<1>(vt, j0, cv, cb, ehp, elp, r, acc);
+                        cb += 1;
+                    }
+                }
+            }
+            if odd {
+                for t in 0..r.min(R) {
+                    for (k, &w) in e.get(t * KEYS..(t + 1) * KEYS).unwrap_or_default().iter().enumerate() {
+                        if (0..=32768).contains(&w) {
+                            continue;
+                        }
+                        let key = j0 + k;
+                        for (ch, a) in acc.get_mut(t * cv..(t + 1) * cv).unwrap_or_default().iter_mut().enumerate() {
+                            let pair = self.vt.get((key / 2) * cv + ch).copied().unwrap_or(0) as u32;
+                            let v = if key % 2 == 0 { pair as u16 as i16 } else { (pair >> 16) as u16 as i16 };
+                            *a += w as i64 * v as i64;
+                        }
+                    }
+                }
+            }
+            j0 += KEYS;
+        }
+    }
+}
+
+/// Adds `256 h + l` of the block's key pairs into channel blocks `cb .. cb + NB` of the `r`
+/// queries' sums `acc` (`R cv`): `h`, `l` the sums of the values `vt` against the weight pairs'
+/// high (`eh`) and low (`el`) parts, `[pair][query]`.
+///
+/// # Safety
+/// The CPU has AVX-512 F, BW and VNNI; `vt` holds the key pairs `j0 / 2 .. (j0 + KEYS) / 2` of
+/// `cv` values, `cb + NB <= cv / 16`; `eh` and `el` hold `KEYS / 2` rows of `R`.
+#[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+#[inline]
+#[allow(clippy::too_many_arguments)]
+unsafe fn values<const NB: usize>(vt: *const i32, j0: usize, cv: usize, cb: usize, eh: *const i32, el: *const i32, r: usize, acc: &mut [i64]) {
+    let z = _mm512_setzero_si512();
+    let (mut h, mut l) = ([[z; NB]; R], [[z; NB]; R]);
+    for pk in 0..KEYS / 2 {
+        // SAFETY: the function's contract.
+        unsafe {
+            let row = vt.add((j0 / 2 + pk) * cv + 16 * cb);
+            let mut v = [z; NB];
+            for (b, v) in v.iter_mut().enumerate() {
+                *v = _mm512_loadu_si512(row.add(16 * b).cast());
+            }
+            for t in 0..R {
+                let (bh, bl) = (_mm512_set1_epi32(*eh.add(pk * R + t)), _mm512_set1_epi32(*el.add(pk * R + t)));
+                for b in 0..NB {
+                    h[t][b] = _mm512_dpwssd_epi32(h[t][b], v[b], bh);
+                    l[t][b] = _mm512_dpwssd_epi32(l[t][b], v[b], bl);
+                }
+            }
+        }
+    }
+    for t in 0..r.min(R) {
+        for b in 0..NB {
+            let Some(a) = acc.get_mut(t * cv + 16 * (cb + b)..t * cv + 16 * (cb + b + 1)) else {
+                continue;
+            };
+            let (hv, lv) = (h[t][b], l[t][b]);
+            // 256 h + l in i64, 8 + 8 channels.
+            let lo = _mm512_add_epi64(_mm512_slli_epi64::<8>(_mm512_cvtepi32_epi64(_mm512_castsi512_si256(hv))), _mm512_cvtepi32_epi64(_mm512_castsi512_si256(lv)));
+            let hi =
+                _mm512_add_epi64(_mm512_slli_epi64::<8>(_mm512_cvtepi32_epi64(_mm512_extracti64x4_epi64::<1>(hv))), _mm512_cvtepi32_epi64(_mm512_extracti64x4_epi64::<1>(lv)));
+            // SAFETY: `a` is 16 i64.
+            unsafe {
+                _mm512_storeu_si512(a.as_mut_ptr().cast(), _mm512_add_epi64(_mm512_loadu_si512(a.as_ptr().cast()), lo));
+                _mm512_storeu_si512(a.as_mut_ptr().add(8).cast(), _mm512_add_epi64(_mm512_loadu_si512(a.as_ptr().add(8).cast()), hi));
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::indexing_slicing)]
+mod tests {
+    use super::super::super::testutil::Rng;
+    use super::*;
+
+    /// The packed knots interpolate to `exp_q11` at every input.
+    #[test]
+    fn packed_knots_give_exp_q11() {
+        let t = exp_knots();
+        for x in -32768..=0i32 {
+            let u = x + 32768;
+            let i = ((u >> 5) as usize).min(1023);
+            let f = u - 32 * i as i32;
+            let (a, d) = (t[i] & 0xFFFF, t[i] >> 16);
+            assert_eq!(a + ((d * f + 16) >> 5), crate::arith::lut::exp_q11(x), "{x}");
+        }
+    }
+
+    #[test]
+    fn many_queries_give_aggregate_query_integers() {
+        if !has_avx512() {
+            eprintln!("no AVX-512 VNNI: the batched attention is not taken on this CPU");
+            return;
+        }
+        let mut r = Rng(77);
+        for (n, c, cv, nq, big) in [(37, 32, 64, 5, false), (300, 32, 16, 4, true), (513, 16, 32, 3, false), (1, 2, 16, 1, true), (260, 64, 64, 2, true)] {
+            let val = |r: &mut Rng| if big { if r.next() % 2 == 0 { i16::MIN } else { i16::MAX } } else { r.i16() >> 3 };
+            let keys: Vec<i16> = (0..n * c).map(|_| val(&mut r)).collect();
+            let values: Vec<i16> = (0..n * cv).map(|_| r.i16()).collect();
+            let qs: Vec<i16> = (0..nq * c).map(|_| val(&mut r)).collect();
+            for m in [Multiplier { m: 1 << 30, shift: 40 }, Multiplier { m: 1_500_000_000, shift: 20 }, Multiplier { m: 1 << 30, shift: 70 }] {
+                let mut stats = vec![];
+                let mut want = vec![0i16; nq * cv];
+                let mut acc = vec![0i64; cv];
+                for (q, o) in qs.chunks_exact(c).zip(want.chunks_exact_mut(cv)) {
+                    let st = super::super::query_stats(q, &keys, m);
+                    stats.extend([st.0, st.1]);
+                    super::super::aggregate_query(q, &keys, &values, cv, st, m, 3, &mut acc, o);
+                }
+                let mut prep = Prepared::new();
+                assert!(prep.fill(&keys, &values, c, cv));
+                let mut got = vec![0i16; nq * cv];
+                prep.aggregate(&qs, &stats, m, 3, &mut got);
+                assert_eq!(want, got, "n {n} c {c} cv {cv} {m:?}");
+                assert!(want.iter().any(|v| *v != 0));
+            }
+        }
+    }
+}
