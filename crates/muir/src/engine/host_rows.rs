@@ -15,7 +15,7 @@ use crate::kernels::attention::{aggregate_query, query_stats, rope_pixel};
 #[cfg(target_arch = "x86_64")]
 use crate::kernels::attention::avx512::Prepared;
 use crate::kernels::conv::{ConvParams, MAX_K, PartRows};
-use crate::kernels::corr::{LookupParams, LookupScratch, lookup_pixel};
+use crate::kernels::corr::{LookupParams, LookupScratch, lookup_with, window};
 use crate::kernels::pool::{self, Shared};
 
 /// Pixels per task.
@@ -31,6 +31,11 @@ std::thread_local! {
     static PREPARED: RefCell<Prepared> = const { RefCell::new(Prepared::new()) };
     /// A task's accumulator (on the thread that runs it).
     static ACC: RefCell<Vec<i64>> = const { RefCell::new(Vec::new()) };
+    /// The right feature row laid out for the AVX-512 windows (on the calling thread).
+    #[cfg(target_arch = "x86_64")]
+    static F2: RefCell<crate::kernels::corr::avx512::Row> = const { RefCell::new(crate::kernels::corr::avx512::Row::new()) };
+    #[cfg(not(target_arch = "x86_64"))]
+    static F2: RefCell<()> = const { RefCell::new(()) };
     /// A task's correlation window and its prefix sums (on the thread that runs it).
     static WINDOW: RefCell<(Vec<i32>, Vec<i64>)> = const { RefCell::new((Vec::new(), Vec::new())) };
 }
@@ -177,16 +182,33 @@ pub fn mask_logits_row(p: &ConvParams<'_>, mid: &[i16], w: usize, mh: usize, mut
 pub fn lookup_row(p: &LookupParams<'_>, f1: &[i8], f2row: &[i8], flow: &[i16], fc: usize, w: usize, y: usize, fd: usize, cc: usize, scratch: (usize, usize), out: &mut [i16]) {
     let out_p = Shared(out.as_mut_ptr());
     let n = w.min(out.len() / cc.max(1));
-    pool::run(n.div_ceil(PIXELS), &|t| {
-        WINDOW.with_borrow_mut(|(win, pre)| {
-            let mut s = LookupScratch { window: sized(win, scratch.0), prefix: sized(pre, scratch.1) };
-            for x in t * PIXELS..((t + 1) * PIXELS).min(n) {
-                let px = y * w + x;
-                let d = flow.get(px * fc).copied().unwrap_or(0);
-                // SAFETY: values `x cc .. (x + 1) cc <= out.len()`, this task's pixels only.
-                let o = unsafe { out_p.slice(x * cc, cc) };
-                lookup_pixel(p, f1.get(px * fd..(px + 1) * fd).unwrap_or_default(), f2row, w, x, d, &mut s, o);
-            }
+    F2.with_borrow_mut(|row| {
+        // The right row transposed once for the AVX-512 windows (x86-64 with AVX-512 VNNI).
+        #[cfg(target_arch = "x86_64")]
+        let row = row.fill(f2row, w, fd).then_some(&*row);
+        #[cfg(not(target_arch = "x86_64"))]
+        let row: Option<&()> = {
+            let _ = row;
+            None
+        };
+        pool::run(n.div_ceil(PIXELS), &|t| {
+            WINDOW.with_borrow_mut(|(win, pre)| {
+                let mut s = LookupScratch { window: sized(win, scratch.0), prefix: sized(pre, scratch.1) };
+                for x in t * PIXELS..((t + 1) * PIXELS).min(n) {
+                    let px = y * w + x;
+                    let d = flow.get(px * fc).copied().unwrap_or(0);
+                    let f1 = f1.get(px * fd..(px + 1) * fd).unwrap_or_default();
+                    // SAFETY: values `x cc .. (x + 1) cc <= out.len()`, this task's pixels only.
+                    let o = unsafe { out_p.slice(x * cc, cc) };
+                    lookup_with(p, w, x, d, &mut s, o, |lo, win| {
+                        #[cfg(target_arch = "x86_64")]
+                        if row.is_some_and(|r| r.window(f1, lo, win)) {
+                            return;
+                        }
+                        window(f1, f2row, w, lo, win);
+                    });
+                }
+            });
         });
     });
 }

@@ -21,6 +21,11 @@
 
 use crate::arith::{MAX_PROPOSAL_D8, Multiplier, requantize, sat_i16};
 
+/// Window correlations on AVX-512 VNNI (host).
+#[cfg(all(target_arch = "x86_64", feature = "std"))]
+#[path = "corr_avx512.rs"]
+pub mod avx512;
+
 /// Parameters of a lookup.
 #[derive(Clone, Copy, Debug)]
 pub struct LookupParams<'a> {
@@ -94,16 +99,30 @@ fn corr_at(f1: &[i8], f2: &[i8], c: usize, w: usize, col: i64) -> i32 {
 /// without room in `out` are skipped).
 #[allow(clippy::too_many_arguments)]
 pub fn lookup_pixel(p: &LookupParams<'_>, f1: &[i8], f2: &[i8], w: usize, x: usize, flow: i16, s: &mut LookupScratch<'_>, out: &mut [i16]) {
+    lookup_with(p, w, x, flow, s, out, |lo, win| window(f1, f2, w, lo, win));
+}
+
+/// `win[i]` = the correlation of `f1` with column `lo + i` of the feature row `f2` (`w` columns
+/// of `f1.len()` values; 0 outside them).
+pub fn window(f1: &[i8], f2: &[i8], w: usize, lo: i64, win: &mut [i32]) {
     let c = f1.len();
+    for (i, v) in win.iter_mut().enumerate() {
+        *v = corr_at(f1, f2, c, w, lo + i as i64);
+    }
+}
+
+/// [`lookup_pixel`] with the window's correlations from `window(lo, win)`: `win[i]` must be the
+/// correlation with column `lo + i` (0 outside the row's `w` columns).
+#[allow(clippy::too_many_arguments)]
+#[inline]
+pub fn lookup_with(p: &LookupParams<'_>, w: usize, x: usize, flow: i16, s: &mut LookupScratch<'_>, out: &mut [i16], window: impl FnOnce(i64, &mut [i32])) {
     let centre = ((x as i64) << 8) + flow as i64;
     let (lo, hi) = span(p, centre);
     let n = (hi - lo) as usize;
     let (Some(win), Some(pre)) = (s.window.get_mut(..n), s.prefix.get_mut(..n + 1)) else {
         return;
     };
-    for (i, v) in win.iter_mut().enumerate() {
-        *v = corr_at(f1, f2, c, w, lo + i as i64);
-    }
+    window(lo, win);
     // pre[i] = sum of win[..i].
     let mut acc = 0i64;
     if let Some((first, rest)) = pre.split_first_mut() {
