@@ -27,8 +27,9 @@ std::thread_local! {
     /// A row of upsampling-mask logits.
     static LOGITS: RefCell<Vec<i16>> = const { RefCell::new(Vec::new()) };
     /// Keys and values laid out for the batched attention (on the calling thread).
+    /// `true` while it holds this pass's keys and values.
     #[cfg(target_arch = "x86_64")]
-    static PREPARED: RefCell<Prepared> = const { RefCell::new(Prepared::new()) };
+    static PREPARED: RefCell<(Prepared, bool)> = const { RefCell::new((Prepared::new(), false)) };
     /// A task's accumulator (on the thread that runs it).
     static ACC: RefCell<Vec<i64>> = const { RefCell::new(Vec::new()) };
     /// The right feature row laid out for the AVX-512 windows (on the calling thread).
@@ -96,8 +97,15 @@ pub fn stats_row(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, y: usize, w: usiz
     });
 }
 
+/// Starts a pass of [`aggregate_row`] calls over keys and values that stay as they are until the
+/// next call of this function (the GRU pass: values are written before it, keys once a frame).
+pub fn new_values() {
+    #[cfg(target_arch = "x86_64")]
+    PREPARED.with_borrow_mut(|(_, fresh)| *fresh = false);
+}
+
 /// The aggregated values of every query of row `y` into `d` (`w cv`); `stats` are the row's
-/// softmax statistics (`2 w`).
+/// softmax statistics (`2 w`). Call [`new_values`] before each pass.
 #[allow(clippy::too_many_arguments)]
 pub fn aggregate_row(
     p: &ConvParams<'_>,
@@ -119,9 +127,13 @@ pub fn aggregate_row(
         let (q, out) = (&*q, Shared(d.as_mut_ptr()));
         let n = w.min(d.len() / cv.max(1)).min(stats.len() / 2);
         #[cfg(target_arch = "x86_64")]
-        let batched = PREPARED.with_borrow_mut(|prep| {
-            if !prep.fill(keys, values, qk, cv) {
-                return false;
+        let batched = PREPARED.with_borrow_mut(|(prep, fresh)| {
+            // Laid out once per pass (`new_values`): the keys and values do not change in it.
+            if !*fresh {
+                if !prep.fill(keys, values, qk, cv) {
+                    return false;
+                }
+                *fresh = true;
             }
             let prep = &*prep;
             // Four queries a task, two at a time in the kernel.

@@ -475,6 +475,9 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
     let g = c.g;
     let (w, h8, hd, fc, cc, ctx) = (g.w8, g.h8, cfg.hidden_dim, cfg.flow_channels, cfg.corr_channels(), cfg.context_dim);
     let lay = GruLayout::new(&cfg, &g);
+    // Host: this pass's MGA values are final (written by `mga_values`).
+    #[cfg(feature = "std")]
+    super::host_rows::new_values();
     let mut cv = Carver::new(c.rings);
     let corr = cv.i16(lay.corr);
     let corr_m = cv.i16(lay.corr_m);

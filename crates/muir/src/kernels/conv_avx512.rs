@@ -338,10 +338,12 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
                 // SAFETY: pixels `x0 .. x0 + nx <= w_out` of the row (`w_out cout <= len`,
                 // checked by `conv_row`), this task's only.
                 let o = unsafe { op.slice(x0 * cout, nx * cout) };
+                let f = fin.as_ptr();
                 for (x, px) in (x0..).zip(o.chunks_exact_mut(cout)) {
                     for (c, d) in px.iter_mut().enumerate() {
-                        // (In range: `finish_channel` saturated it.)
-                        *d = fin.get(c * pixpad + x).copied().unwrap_or_default() as $t;
+                        // SAFETY: `c < cout`, `x < w_out <= pixpad`: inside `fin` (`cout pixpad`).
+                        // (In range of the type: `finish_channel` saturated it.)
+                        *d = unsafe { *f.add(c * pixpad + x) } as $t;
                     }
                 }
             });
