@@ -8,11 +8,12 @@
 //! The pool is process-wide: [`set_threads`] (called by `Engine::set_threads`) sets how many
 //! threads the kernels use, the caller included, and starts the workers that are missing. A
 //! worker waits for the next job by spinning briefly (kernel calls come back to back within a
-//! frame) and then sleeps on a condition variable. One job runs at a time: a caller that finds
+//! frame) and then sleeps on a condition variable; posting a job takes no lock unless a worker
+//! sleeps. One job runs at a time: a caller that finds
 //! the pool busy (another thread's kernel, or a nested call) runs its tasks itself.
 #![deny(clippy::indexing_slicing)]
 
-use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicPtr, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Condvar, Mutex, OnceLock};
 
 /// Most threads (caller included).
@@ -31,24 +32,40 @@ struct Job {
     tasks: usize,
     next: AtomicUsize,
     done: AtomicUsize,
-    /// Workers inside the job.
-    active: AtomicUsize,
     /// A task panicked on a worker.
     panicked: AtomicBool,
 }
 
-/// The posted job: epoch (bumped per job) and its address (0 when none).
+/// The pool's shared state. A job is posted by storing its address in `job` and bumping
+/// `epoch`; a worker announces itself in `active` before it reads `job`, so a caller that has
+/// unposted its job (`job` = null) and then sees `active` at 0 knows no worker holds it (all
+/// sequentially consistent: a worker that increments `active` after the caller's check reads the
+/// null). Workers spin on `epoch`, then sleep on `wake`; a caller takes the lock to notify only
+/// when `sleepers` says someone sleeps (the same ordering argument: the worker counts itself and
+/// then rechecks `epoch` under the lock).
 struct Pool {
-    slot: Mutex<(u64, usize)>,
-    wake: Condvar,
+    job: AtomicPtr<Job>,
     epoch: AtomicU64,
+    active: AtomicUsize,
+    sleepers: AtomicUsize,
+    lock: Mutex<()>,
+    wake: Condvar,
     busy: AtomicBool,
     workers: Mutex<usize>,
 }
 
 fn pool() -> &'static Pool {
     static P: OnceLock<Pool> = OnceLock::new();
-    P.get_or_init(|| Pool { slot: Mutex::new((0, 0)), wake: Condvar::new(), epoch: AtomicU64::new(0), busy: AtomicBool::new(false), workers: Mutex::new(0) })
+    P.get_or_init(|| Pool {
+        job: AtomicPtr::new(core::ptr::null_mut()),
+        epoch: AtomicU64::new(0),
+        active: AtomicUsize::new(0),
+        sleepers: AtomicUsize::new(0),
+        lock: Mutex::new(()),
+        wake: Condvar::new(),
+        busy: AtomicBool::new(false),
+        workers: Mutex::new(0),
+    })
 }
 
 /// Sets the threads the kernels use (1 to [`MAX_THREADS`], the caller included) and starts the
@@ -82,24 +99,22 @@ pub fn run(tasks: usize, f: &(dyn Fn(usize) + Sync)) {
         return;
     }
     // SAFETY (lifetime erasure): `job` and `f` outlive every use: this function waits until all
-    // tasks are done and no worker is inside the job before it returns.
+    // tasks are done and no worker holds the job before it returns.
     let f: *const (dyn Fn(usize) + Sync) = unsafe { core::mem::transmute::<&(dyn Fn(usize) + Sync), &'static (dyn Fn(usize) + Sync)>(f) };
-    let job = Job { f, tasks, next: AtomicUsize::new(0), done: AtomicUsize::new(0), active: AtomicUsize::new(0), panicked: AtomicBool::new(false) };
-    if let Ok(mut s) = p.slot.lock() {
-        s.0 += 1;
-        s.1 = &job as *const Job as usize;
-        p.epoch.store(s.0, Ordering::Release);
+    let job = Job { f, tasks, next: AtomicUsize::new(0), done: AtomicUsize::new(0), panicked: AtomicBool::new(false) };
+    p.job.store(&job as *const Job as *mut Job, Ordering::SeqCst);
+    p.epoch.fetch_add(1, Ordering::SeqCst);
+    if p.sleepers.load(Ordering::SeqCst) > 0 {
+        let _g = p.lock.lock();
+        p.wake.notify_all();
     }
-    p.wake.notify_all();
     work(&job);
     while job.done.load(Ordering::Acquire) < tasks {
         std::hint::spin_loop();
     }
-    // No worker can enter the job once it is unposted; wait for those inside to leave.
-    if let Ok(mut s) = p.slot.lock() {
-        s.1 = 0;
-    }
-    while job.active.load(Ordering::Acquire) != 0 {
+    // Unpost, then wait for the workers that may still hold it (see `Pool`).
+    p.job.store(core::ptr::null_mut(), Ordering::SeqCst);
+    while p.active.load(Ordering::SeqCst) != 0 {
         std::hint::spin_loop();
     }
     p.busy.store(false, Ordering::Release);
@@ -129,35 +144,39 @@ fn work(job: &Job) {
 
 fn worker() {
     let p = pool();
-    let mut seen = p.epoch.load(Ordering::Acquire);
+    let mut seen = p.epoch.load(Ordering::SeqCst);
     loop {
         let mut spins = 0;
-        while p.epoch.load(Ordering::Acquire) == seen && spins < SPINS {
-            for _ in 0..64 {
-                std::hint::spin_loop();
+        while p.epoch.load(Ordering::SeqCst) == seen {
+            if spins < SPINS {
+                for _ in 0..64 {
+                    std::hint::spin_loop();
+                }
+                spins += 1;
+                continue;
             }
-            spins += 1;
-        }
-        let Ok(mut s) = p.slot.lock() else {
-            return;
-        };
-        while s.0 == seen {
-            s = match p.wake.wait(s) {
-                Ok(s) => s,
-                Err(_) => return,
+            // Sleep until the next job (counted first, then the epoch rechecked under the lock).
+            let Ok(mut g) = p.lock.lock() else {
+                return;
             };
+            p.sleepers.fetch_add(1, Ordering::SeqCst);
+            while p.epoch.load(Ordering::SeqCst) == seen {
+                g = match p.wake.wait(g) {
+                    Ok(g) => g,
+                    Err(_) => return,
+                };
+            }
+            p.sleepers.fetch_sub(1, Ordering::SeqCst);
         }
-        seen = s.0;
-        if s.1 == 0 {
-            continue;
+        seen = p.epoch.load(Ordering::SeqCst);
+        p.active.fetch_add(1, Ordering::SeqCst);
+        let job = p.job.load(Ordering::SeqCst);
+        if !job.is_null() {
+            // SAFETY: a posted job is alive until `run` unposts it and then sees `active` at 0;
+            // this worker counted itself in `active` before reading the pointer.
+            work(unsafe { &*job });
         }
-        // SAFETY: a posted job is alive until `run` unposts it (under this lock) and then sees
-        // `active` back at 0.
-        let job = unsafe { &*(s.1 as *const Job) };
-        job.active.fetch_add(1, Ordering::AcqRel);
-        drop(s);
-        work(job);
-        job.active.fetch_sub(1, Ordering::Release);
+        p.active.fetch_sub(1, Ordering::SeqCst);
     }
 }
 
