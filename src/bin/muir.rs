@@ -89,11 +89,14 @@ impl ModelArgs {
         })
     }
 
-    /// The engine asked for, else the one the model file is for (`.muirq`: fixed), else float.
+    /// The engine asked for, else the one the model file is for (`.muirq`: fixed, any other
+    /// file: float), else (no model file) the fixed-point engine: the device's integers, and on a
+    /// host with AVX-512 VNNI the faster of the two (docs/performance.md).
     fn engine(&self, asked: Option<Engine>) -> Engine {
         asked.unwrap_or(match &self.model {
             Some(p) if p.extension().is_some_and(|e| e == "muirq") => Engine::Fixed,
-            _ => Engine::Float,
+            Some(_) => Engine::Float,
+            None => Engine::Fixed,
         })
     }
 }
@@ -121,7 +124,8 @@ struct RunArgs {
     /// Update iterations (default: the config's).
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1000))]
     iters: Option<u32>,
-    /// Engine computing the network (default: from the model file, fixed for .muirq, else float).
+    /// Engine computing the network (default: from the model file, fixed for .muirq, float for
+    /// .safetensors; fixed without a model file).
     #[arg(long, value_enum)]
     engine: Option<Engine>,
     /// Skips the full-resolution refinement (integer semi-global matching in a band around the
@@ -135,7 +139,8 @@ struct RunArgs {
     #[arg(long, value_name = "PX", default_value_t = MaxDisparity::DEFAULT, value_parser = parse_max_disparity)]
     max_disparity: MaxDisparity,
     /// Threads (1 to 4; the results are the same bits for any count): the float engine's matrix
-    /// products; the fixed-point engine's two image encoders side by side (2 or more).
+    /// products; the fixed-point engine's kernels (convolution rows, attention, correlation
+    /// lookup split over a worker pool) and its two image encoders side by side.
     #[arg(long, value_name = "N", default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=4))]
     threads: u8,
     /// Fixed engine: adaptive iterations, stop once at most P per mille of the 1/8-grid pixels

@@ -268,7 +268,9 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
         crate::kernels::pool::set_threads(self.threads);
         // Encoder: right image first (features only), then the left (features and context).
         #[cfg(feature = "std")]
-        let threaded = self.threads > 1 && std::env::var_os("MUIR_NO_ENC_THREAD").is_none();
+        // Both encoders side by side where the convolutions cannot use the pool themselves (no
+        // AVX-512 VNNI); otherwise one after the other, each on every thread.
+        let threaded = self.threads > 1 && !crate::kernels::conv::pooled();
         #[cfg(not(feature = "std"))]
         let threaded = false;
         if threaded {

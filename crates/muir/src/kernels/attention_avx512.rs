@@ -94,7 +94,7 @@ impl Prepared {
     /// buffers; `false` where this path does not apply (no AVX-512 VNNI, `c` odd or above
     /// [`MAX_C`], `cv` not a multiple of 16, no keys).
     pub fn fill(&mut self, keys: &[i16], values: &[i16], c: usize, cv: usize) -> bool {
-        if !has_avx512() || c == 0 || c % 2 != 0 || c > MAX_C || cv == 0 || cv % 16 != 0 {
+        if !has_avx512() || c == 0 || !c.is_multiple_of(2) || c > MAX_C || cv == 0 || !cv.is_multiple_of(16) {
             return false;
         }
         let n = (keys.len() / c).min(values.len() / cv);
@@ -198,14 +198,13 @@ impl Prepared {
                     // `MAX_C / 2 >= c / 2` rows of `R`.
                     unsafe {
                         let k = _mm512_loadu_si512(kt.add(g * npad + j).cast());
-                        for t in 0..R {
-                            ah[t] = _mm512_dpwssd_epi32(ah[t], k, _mm512_set1_epi32(*qhp.add(g * R + t)));
-                            al[t] = _mm512_dpwssd_epi32(al[t], k, _mm512_set1_epi32(*qlp.add(g * R + t)));
+                        for (t, (ah, al)) in ah.iter_mut().zip(al.iter_mut()).enumerate() {
+                            *ah = _mm512_dpwssd_epi32(*ah, k, _mm512_set1_epi32(*qhp.add(g * R + t)));
+                            *al = _mm512_dpwssd_epi32(*al, k, _mm512_set1_epi32(*qlp.add(g * R + t)));
                         }
                     }
                 }
-                for t in 0..r.min(R) {
-                    let mxs = max[t];
+                for (t, ((&ah, &al), &mxs)) in ah.iter().zip(al.iter()).zip(max.iter()).enumerate().take(r) {
                     let mx = _mm512_set1_epi64(mxs);
                     // Logits minus the maximum, 8 + 8 keys as i64. (Macros, not closures: a
                     // closure does not inherit the target features.)
@@ -219,8 +218,8 @@ impl Prepared {
                             _mm512_cmpge_epi64_mask($d, lo32) & _mm512_cmple_epi64_mask($d, hi32)
                         };
                     }
-                    let d0 = diff!(_mm512_castsi512_si256(ah[t]), _mm512_castsi512_si256(al[t]));
-                    let d1 = diff!(_mm512_extracti64x4_epi64::<1>(ah[t]), _mm512_extracti64x4_epi64::<1>(al[t]));
+                    let d0 = diff!(_mm512_castsi512_si256(ah), _mm512_castsi512_si256(al));
+                    let d1 = diff!(_mm512_extracti64x4_epi64::<1>(ah), _mm512_extracti64x4_epi64::<1>(al));
                     // SAFETY: `e` holds `R KEYS` values; `t < R`, `jv + 16 <= KEYS`.
                     let dst = unsafe { ep.add(t * KEYS + jv) };
                     if fast && inside!(d0) == 0xFF && inside!(d1) == 0xFF {
@@ -334,21 +333,20 @@ unsafe fn values<const NB: usize>(vt: *const i32, j0: usize, cv: usize, cb: usiz
             for (b, v) in v.iter_mut().enumerate() {
                 *v = _mm512_loadu_si512(row.add(16 * b).cast());
             }
-            for t in 0..R {
+            for (t, (h, l)) in h.iter_mut().zip(l.iter_mut()).enumerate() {
                 let (bh, bl) = (_mm512_set1_epi32(*eh.add(pk * R + t)), _mm512_set1_epi32(*el.add(pk * R + t)));
-                for b in 0..NB {
-                    h[t][b] = _mm512_dpwssd_epi32(h[t][b], v[b], bh);
-                    l[t][b] = _mm512_dpwssd_epi32(l[t][b], v[b], bl);
+                for ((h, l), &v) in h.iter_mut().zip(l.iter_mut()).zip(v.iter()) {
+                    *h = _mm512_dpwssd_epi32(*h, v, bh);
+                    *l = _mm512_dpwssd_epi32(*l, v, bl);
                 }
             }
         }
     }
-    for t in 0..r.min(R) {
-        for b in 0..NB {
+    for (t, (h, l)) in h.iter().zip(l.iter()).enumerate().take(r) {
+        for (b, (&hv, &lv)) in h.iter().zip(l.iter()).enumerate() {
             let Some(a) = acc.get_mut(t * cv + 16 * (cb + b)..t * cv + 16 * (cb + b + 1)) else {
                 continue;
             };
-            let (hv, lv) = (h[t][b], l[t][b]);
             // 256 h + l in i64, 8 + 8 channels.
             let lo = _mm512_add_epi64(_mm512_slli_epi64::<8>(_mm512_cvtepi32_epi64(_mm512_castsi512_si256(hv))), _mm512_cvtepi32_epi64(_mm512_castsi512_si256(lv)));
             let hi =

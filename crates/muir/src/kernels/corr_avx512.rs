@@ -40,7 +40,7 @@ impl Row {
     /// Lays out `f2` (`w` columns of `c` values), reusing the buffer; `false` where this path does
     /// not apply (no AVX-512 VNNI, `c` not a multiple of 4, a row shorter than `w c`).
     pub fn fill(&mut self, f2: &[i8], w: usize, c: usize) -> bool {
-        if !has_avx512() || c == 0 || c % 4 != 0 || f2.len() < w * c {
+        if !has_avx512() || c == 0 || !c.is_multiple_of(4) || f2.len() < w * c {
             return false;
         }
         let (groups, stride) = (c / 4, (w + 2 * MARGIN + 16).next_multiple_of(16));

@@ -26,6 +26,7 @@ const SPINS: usize = 200;
 static THREADS: AtomicUsize = AtomicUsize::new(1);
 
 /// A job: `tasks` calls of `f`, each number taken once.
+#[repr(align(128))]
 struct Job {
     /// The tasks (lifetime erased: [`run`] does not return before no worker can reach it).
     f: *const (dyn Fn(usize) + Sync),
@@ -44,23 +45,35 @@ struct Job {
 /// when `sleepers` says someone sleeps (the same ordering argument: the worker counts itself and
 /// then rechecks `epoch` under the lock).
 struct Pool {
-    job: AtomicPtr<Job>,
-    epoch: AtomicU64,
-    active: AtomicUsize,
-    sleepers: AtomicUsize,
+    job: Line<AtomicPtr<Job>>,
+    epoch: Line<AtomicU64>,
+    active: Line<AtomicUsize>,
+    sleepers: Line<AtomicUsize>,
     lock: Mutex<()>,
     wake: Condvar,
     busy: AtomicBool,
     workers: Mutex<usize>,
 }
 
+/// A value on a cache line (pair) of its own: a worker polling `epoch` must not miss on every
+/// write the caller makes to the pool's other fields.
+#[repr(align(128))]
+struct Line<T>(T);
+
+impl<T> core::ops::Deref for Line<T> {
+    type Target = T;
+    fn deref(&self) -> &T {
+        &self.0
+    }
+}
+
 fn pool() -> &'static Pool {
     static P: OnceLock<Pool> = OnceLock::new();
     P.get_or_init(|| Pool {
-        job: AtomicPtr::new(core::ptr::null_mut()),
-        epoch: AtomicU64::new(0),
-        active: AtomicUsize::new(0),
-        sleepers: AtomicUsize::new(0),
+        job: Line(AtomicPtr::new(core::ptr::null_mut())),
+        epoch: Line(AtomicU64::new(0)),
+        active: Line(AtomicUsize::new(0)),
+        sleepers: Line(AtomicUsize::new(0)),
         lock: Mutex::new(()),
         wake: Condvar::new(),
         busy: AtomicBool::new(false),
