@@ -10,7 +10,8 @@ median seconds and the ratios of the medians; the Rust times are the CLI's own `
                              [--blob models/muir-slim.muirq] [--threads N]
 
 `--threads N` (default 1): PyTorch's intra-op threads and `muir run --threads N` (the float
-engine's matrix products; the fixed-point engine runs on one thread whatever N is).
+engine's matrix products; the fixed-point engine's kernel pool: convolution rows, attention,
+correlation lookup).
 
 Needs a release build (`cargo build --release --bin muir`) and the twin (python/README.md).
 """

@@ -27,6 +27,9 @@ std::thread_local! {
     /// A row of upsampling-mask logits.
     static LOGITS: RefCell<Vec<i16>> = const { RefCell::new(Vec::new()) };
     /// Keys and values laid out for the batched attention (on the calling thread).
+    /// The keys laid out for the batched statistics, `true` while they are this frame's.
+    #[cfg(target_arch = "x86_64")]
+    static KEYS_T: RefCell<(Prepared, bool)> = const { RefCell::new((Prepared::new(), false)) };
     /// `true` while it holds this pass's keys and values.
     #[cfg(target_arch = "x86_64")]
     static PREPARED: RefCell<(Prepared, bool)> = const { RefCell::new((Prepared::new(), false)) };
@@ -77,13 +80,43 @@ pub fn keys_row(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, y: usize, w: usize
     ROW.with_borrow_mut(|(_, patch)| qk_row(p, inp08, ctx, y, w, phases, keys, patch));
 }
 
-/// Softmax statistics (`max`, `sum`) of every query of row `y` into `stats` (`2 w`).
+/// Starts a frame's [`stats_row`] calls: the keys are final (written just before).
+pub fn new_keys() {
+    #[cfg(target_arch = "x86_64")]
+    KEYS_T.with_borrow_mut(|(_, fresh)| *fresh = false);
+}
+
+/// Softmax statistics (`max`, `sum`) of every query of row `y` into `stats` (`2 w`). Call
+/// [`new_keys`] once the keys are written.
 #[allow(clippy::too_many_arguments)]
 pub fn stats_row(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, y: usize, w: usize, phases: &[u32], keys: &[i16], m: Multiplier, stats: &mut [i64]) {
     ROW.with_borrow_mut(|(q, patch)| {
         let qk = queries(p, inp08, ctx, y, w, phases, q, patch);
         let (q, out) = (&*q, Shared(stats.as_mut_ptr()));
         let n = w.min(stats.len() / 2);
+        #[cfg(target_arch = "x86_64")]
+        let batched = KEYS_T.with_borrow_mut(|(prep, fresh)| {
+            // Laid out once per frame (`new_keys`).
+            if !*fresh {
+                if !prep.fill_keys(keys, qk) {
+                    return false;
+                }
+                *fresh = true;
+            }
+            let prep = &*prep;
+            pool::run(n.div_ceil(PIXELS), &|t| {
+                let (x0, x1) = (t * PIXELS, ((t + 1) * PIXELS).min(n));
+                // SAFETY: entries `2 x0 .. 2 x1 <= stats.len()`, this task's pixels only.
+                let o = unsafe { out.slice(2 * x0, 2 * (x1 - x0)) };
+                prep.stats(q.get(x0 * qk..x1 * qk).unwrap_or_default(), m, o);
+            });
+            true
+        });
+        #[cfg(not(target_arch = "x86_64"))]
+        let batched = false;
+        if batched {
+            return;
+        }
         pool::run(n.div_ceil(PIXELS), &|t| {
             for x in t * PIXELS..((t + 1) * PIXELS).min(n) {
                 let st = query_stats(q.get(x * qk..(x + 1) * qk).unwrap_or_default(), keys, m);

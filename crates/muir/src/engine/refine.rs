@@ -335,6 +335,9 @@ pub fn mga_setup(c: &mut Ctx<'_, '_, '_>) {
         }
     }
     let am = m.att_mult();
+    // Host: the keys are final.
+    #[cfg(feature = "std")]
+    super::host_rows::new_keys();
     for y in 0..h8 {
         #[cfg(feature = "std")]
         {

@@ -124,6 +124,103 @@ impl Prepared {
         true
     }
 
+    /// Lays out `keys` (`n x c`) alone, for [`Prepared::stats`]; `false` where this path does not
+    /// apply (as [`Prepared::fill`]).
+    pub fn fill_keys(&mut self, keys: &[i16], c: usize) -> bool {
+        if !has_avx512() || c == 0 || !c.is_multiple_of(2) || c > MAX_C {
+            return false;
+        }
+        let n = keys.len() / c;
+        if n == 0 {
+            return false;
+        }
+        let npad = n.next_multiple_of(KEYS);
+        let kt = sized(&mut self.kt, c / 2 * npad);
+        kt.fill(0);
+        for (j, k) in keys.chunks_exact(c).take(n).enumerate() {
+            for (g, pair) in k.chunks_exact(2).enumerate() {
+                if let (Some(d), &[a, b]) = (kt.get_mut(g * npad + j), pair) {
+                    *d = (a as u16 as u32 | (b as u16 as u32) << 16) as i32;
+                }
+            }
+        }
+        (self.n, self.npad, self.c, self.cv) = (n, npad, c, 0);
+        true
+    }
+
+    /// [`super::query_stats`] of the queries `qs` (`c` values each) into `out` (`max, sum` per
+    /// query): the maxima of the exact logits, then the sums of the weights.
+    pub fn stats(&self, qs: &[i16], m: Multiplier, out: &mut [i64]) {
+        let c = self.c;
+        let nq = (qs.len() / c.max(1)).min(out.len() / 2);
+        let mut i = 0;
+        while i < nq {
+            let r = (nq - i).min(R);
+            let (qh, ql) = split_queries(qs.get(i * c..(i + r) * c).unwrap_or_default(), c);
+            // SAFETY: the CPU has AVX-512 F/BW/VNNI (`fill_keys` checked).
+            let st = unsafe { self.stats_avx512(&qh, &ql, r, m) };
+            for (o, (mx, sum)) in out.get_mut(2 * i..2 * (i + r)).unwrap_or_default().chunks_exact_mut(2).zip(st) {
+                if let [a, b] = o {
+                    (*a, *b) = (mx, sum);
+                }
+            }
+            i += r;
+        }
+    }
+
+    /// `(max, sum)` of `r <= R` split queries.
+    ///
+    /// # Safety
+    /// The CPU has AVX-512 F, BW and VNNI.
+    #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+    unsafe fn stats_avx512(&self, qh: &[[i32; R]; MAX_C / 2], ql: &[[i32; R]; MAX_C / 2], r: usize, m: Multiplier) -> [(i64, i64); R] {
+        let (npad, n, g_n) = (self.npad, self.n, self.c / 2);
+        let (kt, qhp, qlp) = (self.kt.as_ptr(), qh.as_ptr().cast::<i32>(), ql.as_ptr().cast::<i32>());
+        let lanes = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+        // Keys `j .. j + 16` that exist, as 16 lanes and as two halves of 8.
+        let live = |j: usize| _mm512_cmplt_epi32_mask(_mm512_add_epi32(_mm512_set1_epi32(j as i32), lanes), _mm512_set1_epi32(n as i32));
+        // 1. The maxima.
+        let mut mx = [_mm512_set1_epi64(i64::MIN); R];
+        for j in (0..npad).step_by(16) {
+            let k = live(j);
+            if k == 0 {
+                break;
+            }
+            // SAFETY: `kt` holds `c / 2` rows of `npad >= j + 16`; `qh`, `ql` `MAX_C / 2` rows.
+            let (ah, al) = unsafe { logits16(kt, npad, j, g_n, qhp, qlp) };
+            for ((mx, ah), al) in mx.iter_mut().zip(ah).zip(al) {
+                let lo = _mm512_add_epi64(_mm512_slli_epi64::<8>(_mm512_cvtepi32_epi64(_mm512_castsi512_si256(ah))), _mm512_cvtepi32_epi64(_mm512_castsi512_si256(al)));
+                let hi = _mm512_add_epi64(
+                    _mm512_slli_epi64::<8>(_mm512_cvtepi32_epi64(_mm512_extracti64x4_epi64::<1>(ah))),
+                    _mm512_cvtepi32_epi64(_mm512_extracti64x4_epi64::<1>(al)),
+                );
+                *mx = _mm512_mask_max_epi64(*mx, k as u8, *mx, lo);
+                *mx = _mm512_mask_max_epi64(*mx, (k >> 8) as u8, *mx, hi);
+            }
+        }
+        let mut out = [(0i64, 0i64); R];
+        for (o, mx) in out.iter_mut().zip(mx) {
+            o.0 = _mm512_reduce_max_epi64(mx);
+        }
+        // 2. The sums of the weights.
+        let knots = exp_knots();
+        let mut e = [0i32; 16];
+        for j in (0..npad).step_by(16) {
+            let k = live(j);
+            if k == 0 {
+                break;
+            }
+            // SAFETY: as above.
+            let (ah, al) = unsafe { logits16(kt, npad, j, g_n, qhp, qlp) };
+            for ((o, ah), al) in out.iter_mut().zip(ah).zip(al).take(r) {
+                // SAFETY: `e` is 16 i32.
+                unsafe { weights16(ah, al, o.0, m, knots, e.as_mut_ptr()) };
+                o.1 += e.iter().take(n - j).map(|&v| v as i64).sum::<i64>();
+            }
+        }
+        out
+    }
+
     /// [`super::aggregate_query`] of the queries `qs` (`c` values each) with their statistics
     /// `stats` (`max, sum` per query) into `out` (`cv` per query).
     pub fn aggregate(&self, qs: &[i16], stats: &[i64], m: Multiplier, shift: i8, out: &mut [i16]) {
@@ -162,26 +259,13 @@ impl Prepared {
     unsafe fn queries(&self, q: &[i16], r: usize, stats: &[i64], m: Multiplier, e: &mut [i32], eh: &mut [i32], el: &mut [i32], acc: &mut [i64]) {
         let (c, cv, npad, n) = (self.c, self.cv, self.npad, self.n);
         let g_n = c / 2;
-        // The queries' channel pairs split as `256 qh + ql` (`[g][query]`, an absent second
-        // query all zero), and their maxima.
-        let mut qh = [[0i32; R]; MAX_C / 2];
-        let mut ql = [[0i32; R]; MAX_C / 2];
+        // The queries' channel pairs split as `256 qh + ql`, and their maxima.
+        let (qh, ql) = split_queries(q.get(..r * c).unwrap_or_default(), c);
         let mut max = [0i64; R];
-        for (qi, (qv, st)) in q.chunks_exact(c).zip(stats.chunks_exact(2)).take(r).enumerate() {
-            for (pair, (h, l)) in qv.chunks_exact(2).zip(qh.iter_mut().zip(ql.iter_mut())) {
-                if let (&[a, b], Some(h), Some(l)) = (pair, h.get_mut(qi), l.get_mut(qi)) {
-                    *h = ((a >> 8) as u16 as u32 | ((b >> 8) as u16 as u32) << 16) as i32;
-                    *l = ((a & 255) as u32 | ((b & 255) as u32) << 16) as i32;
-                }
-            }
-            if let (Some(mx), Some(&v)) = (max.get_mut(qi), st.first()) {
-                *mx = v;
-            }
+        for (mx, st) in max.iter_mut().zip(stats.chunks_exact(2)).take(r) {
+            *mx = st.first().copied().unwrap_or(0);
         }
-        let fast = (1..=62).contains(&m.shift);
         let knots = exp_knots();
-        let (mm, half, count) = (_mm512_set1_epi64(m.m as i64), _mm512_set1_epi64(1i64 << (m.shift.clamp(1, 63) - 1)), _mm_cvtsi64_si128(m.shift as i64));
-        let (lo32, hi32) = (_mm512_set1_epi64(i32::MIN as i64), _mm512_set1_epi64(i32::MAX as i64));
         let (kt, vt) = (self.kt.as_ptr(), self.vt.as_ptr());
         let (qhp, qlp) = (qh.as_ptr().cast::<i32>(), ql.as_ptr().cast::<i32>());
         let (ep, ehp, elp) = (e.as_mut_ptr(), eh.as_mut_ptr(), el.as_mut_ptr());
@@ -191,67 +275,13 @@ impl Prepared {
             // 1. Logits and weights of the block's keys, 16 at a time, both queries together.
             for jv in (0..KEYS).step_by(16) {
                 let j = j0 + jv;
-                let z = _mm512_setzero_si512();
-                let (mut ah, mut al) = ([z; R], [z; R]);
-                for g in 0..g_n {
-                    // SAFETY: `kt` holds `c / 2` rows of `npad >= j + 16` keys; `qh`, `ql` hold
-                    // `MAX_C / 2 >= c / 2` rows of `R`.
-                    unsafe {
-                        let k = _mm512_loadu_si512(kt.add(g * npad + j).cast());
-                        for (t, (ah, al)) in ah.iter_mut().zip(al.iter_mut()).enumerate() {
-                            *ah = _mm512_dpwssd_epi32(*ah, k, _mm512_set1_epi32(*qhp.add(g * R + t)));
-                            *al = _mm512_dpwssd_epi32(*al, k, _mm512_set1_epi32(*qlp.add(g * R + t)));
-                        }
-                    }
-                }
+                // SAFETY: `kt` holds `c / 2` rows of `npad >= j + 16` keys; `qh`, `ql` hold
+                // `MAX_C / 2 >= c / 2` rows of `R`.
+                let (ah, al) = unsafe { logits16(kt, npad, j, g_n, qhp, qlp) };
                 for (t, ((&ah, &al), &mxs)) in ah.iter().zip(al.iter()).zip(max.iter()).enumerate().take(r) {
-                    let mx = _mm512_set1_epi64(mxs);
-                    // Logits minus the maximum, 8 + 8 keys as i64. (Macros, not closures: a
-                    // closure does not inherit the target features.)
-                    macro_rules! diff {
-                        ($h:expr, $l:expr) => {
-                            _mm512_sub_epi64(_mm512_add_epi64(_mm512_slli_epi64::<8>(_mm512_cvtepi32_epi64($h)), _mm512_cvtepi32_epi64($l)), mx)
-                        };
-                    }
-                    macro_rules! inside {
-                        ($d:expr) => {
-                            _mm512_cmpge_epi64_mask($d, lo32) & _mm512_cmple_epi64_mask($d, hi32)
-                        };
-                    }
-                    let d0 = diff!(_mm512_castsi512_si256(ah), _mm512_castsi512_si256(al));
-                    let d1 = diff!(_mm512_extracti64x4_epi64::<1>(ah), _mm512_extracti64x4_epi64::<1>(al));
-                    // SAFETY: `e` holds `R KEYS` values; `t < R`, `jv + 16 <= KEYS`.
-                    let dst = unsafe { ep.add(t * KEYS + jv) };
-                    if fast && inside!(d0) == 0xFF && inside!(d1) == 0xFF {
-                        macro_rules! rq {
-                            ($d:expr) => {
-                                _mm512_cvtepi64_epi32(_mm512_min_epi64(
-                                    _mm512_max_epi64(_mm512_sra_epi64(_mm512_add_epi64(_mm512_mul_epi32($d, mm), half), count), _mm512_set1_epi64(-32768)),
-                                    _mm512_setzero_si512(),
-                                ))
-                            };
-                        }
-                        let d = _mm512_inserti64x4::<1>(_mm512_castsi256_si512(rq!(d0)), rq!(d1));
-                        let u = _mm512_add_epi32(d, _mm512_set1_epi32(32768));
-                        let i = _mm512_min_epi32(_mm512_srli_epi32::<5>(u), _mm512_set1_epi32(1023));
-                        let f = _mm512_sub_epi32(u, _mm512_slli_epi32::<5>(i));
-                        // SAFETY: knot `i <= 1023` of the table (`a + (b - a) << 16`, 1024 entries).
-                        let ab = unsafe { _mm512_i32gather_epi32::<4>(i, knots.as_ptr().cast()) };
-                        let (ka, kd) = (_mm512_and_si512(ab, _mm512_set1_epi32(0xFFFF)), _mm512_srli_epi32::<16>(ab));
-                        let w = _mm512_add_epi32(ka, _mm512_srai_epi32::<5>(_mm512_add_epi32(_mm512_mullo_epi32(kd, f), _mm512_set1_epi32(16))));
-                        // SAFETY: 16 i32 at `dst` (above).
-                        unsafe { _mm512_storeu_si512(dst.cast(), w) };
-                    } else {
-                        let (mut l0, mut l1) = ([0i64; 8], [0i64; 8]);
-                        // SAFETY: 8 i64 each; 16 i32 at `dst`.
-                        unsafe {
-                            _mm512_storeu_si512(l0.as_mut_ptr().cast(), _mm512_add_epi64(d0, mx));
-                            _mm512_storeu_si512(l1.as_mut_ptr().cast(), _mm512_add_epi64(d1, mx));
-                            for (k, l) in l0.iter().chain(&l1).enumerate() {
-                                dst.add(k).write(weight(*l, mxs, m));
-                            }
-                        }
-                    }
+                    // SAFETY: `e` holds `R KEYS` values; `t < R`, `jv + 16 <= KEYS`; the CPU has
+                    // AVX-512 (this function's contract).
+                    unsafe { weights16(ah, al, mxs, m, knots, ep.add(t * KEYS + jv)) };
                 }
             }
             // Keys past the last weigh nothing (their values are zero too; kept for clarity of
@@ -310,6 +340,106 @@ impl Prepared {
             j0 += KEYS;
         }
     }
+}
+
+/// The channel pairs of up to `R` queries (`c` values each) split as `256 qh + ql`, as
+/// `[g][query]` i32 pairs (an absent query all zero).
+#[allow(clippy::type_complexity)]
+fn split_queries(q: &[i16], c: usize) -> ([[i32; R]; MAX_C / 2], [[i32; R]; MAX_C / 2]) {
+    let mut qh = [[0i32; R]; MAX_C / 2];
+    let mut ql = [[0i32; R]; MAX_C / 2];
+    for (qi, qv) in q.chunks_exact(c.max(1)).take(R).enumerate() {
+        for (pair, (h, l)) in qv.chunks_exact(2).zip(qh.iter_mut().zip(ql.iter_mut())) {
+            if let (&[a, b], Some(h), Some(l)) = (pair, h.get_mut(qi), l.get_mut(qi)) {
+                *h = ((a >> 8) as u16 as u32 | ((b >> 8) as u16 as u32) << 16) as i32;
+                *l = ((a & 255) as u32 | ((b & 255) as u32) << 16) as i32;
+            }
+        }
+    }
+    (qh, ql)
+}
+
+/// The weights [`weight`]`(l, max, m)` of 16 keys into `out`, their logits `256 h + l` given as
+/// the i32 lanes `ah` (`h`) and `al` (`l`): the 64-bit `requantize` path and one gather of the
+/// packed knots where every `l - max` fits in i32 and `1 <= shift <= 62`, else [`weight`].
+///
+/// # Safety
+/// The CPU has AVX-512 F, BW and VNNI; `out` points at 16 writable i32.
+#[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+#[inline]
+unsafe fn weights16(ah: __m512i, al: __m512i, max: i64, m: Multiplier, knots: &[i32; 1024], out: *mut i32) {
+    let mx = _mm512_set1_epi64(max);
+    let (lo32, hi32) = (_mm512_set1_epi64(i32::MIN as i64), _mm512_set1_epi64(i32::MAX as i64));
+    // Logits minus the maximum, 8 + 8 keys as i64. (Macros, not closures: a closure does not
+    // inherit the target features.)
+    macro_rules! diff {
+        ($h:expr, $l:expr) => {
+            _mm512_sub_epi64(_mm512_add_epi64(_mm512_slli_epi64::<8>(_mm512_cvtepi32_epi64($h)), _mm512_cvtepi32_epi64($l)), mx)
+        };
+    }
+    macro_rules! inside {
+        ($d:expr) => {
+            _mm512_cmpge_epi64_mask($d, lo32) & _mm512_cmple_epi64_mask($d, hi32)
+        };
+    }
+    let d0 = diff!(_mm512_castsi512_si256(ah), _mm512_castsi512_si256(al));
+    let d1 = diff!(_mm512_extracti64x4_epi64::<1>(ah), _mm512_extracti64x4_epi64::<1>(al));
+    if (1..=62).contains(&m.shift) && inside!(d0) == 0xFF && inside!(d1) == 0xFF {
+        let (mm, half, count) = (_mm512_set1_epi64(m.m as i64), _mm512_set1_epi64(1i64 << (m.shift - 1)), _mm_cvtsi64_si128(m.shift as i64));
+        macro_rules! rq {
+            ($d:expr) => {
+                _mm512_cvtepi64_epi32(_mm512_min_epi64(
+                    _mm512_max_epi64(_mm512_sra_epi64(_mm512_add_epi64(_mm512_mul_epi32($d, mm), half), count), _mm512_set1_epi64(-32768)),
+                    _mm512_setzero_si512(),
+                ))
+            };
+        }
+        let d = _mm512_inserti64x4::<1>(_mm512_castsi256_si512(rq!(d0)), rq!(d1));
+        let u = _mm512_add_epi32(d, _mm512_set1_epi32(32768));
+        let i = _mm512_min_epi32(_mm512_srli_epi32::<5>(u), _mm512_set1_epi32(1023));
+        let f = _mm512_sub_epi32(u, _mm512_slli_epi32::<5>(i));
+        // SAFETY: knot `i <= 1023` of the table (`a + (b - a) << 16`, 1024 entries).
+        let ab = unsafe { _mm512_i32gather_epi32::<4>(i, knots.as_ptr().cast()) };
+        let (ka, kd) = (_mm512_and_si512(ab, _mm512_set1_epi32(0xFFFF)), _mm512_srli_epi32::<16>(ab));
+        let w = _mm512_add_epi32(ka, _mm512_srai_epi32::<5>(_mm512_add_epi32(_mm512_mullo_epi32(kd, f), _mm512_set1_epi32(16))));
+        // SAFETY: 16 i32 at `out` (the contract).
+        unsafe { _mm512_storeu_si512(out.cast(), w) };
+    } else {
+        let (mut l0, mut l1) = ([0i64; 8], [0i64; 8]);
+        // SAFETY: 8 i64 each; 16 i32 at `out`.
+        unsafe {
+            _mm512_storeu_si512(l0.as_mut_ptr().cast(), _mm512_add_epi64(d0, mx));
+            _mm512_storeu_si512(l1.as_mut_ptr().cast(), _mm512_add_epi64(d1, mx));
+            for (k, l) in l0.iter().chain(&l1).enumerate() {
+                out.add(k).write(weight(*l, max, m));
+            }
+        }
+    }
+}
+
+/// Logits of `R` queries (channel pairs split as `256 qh + ql`, `[g][query]`) with keys
+/// `j .. j + 16` of `kt` (`g_n` rows of `npad`): per query the lanes `h` and `l` of
+/// [`weights16`].
+///
+/// # Safety
+/// The CPU has AVX-512 F, BW and VNNI; `kt` holds `g_n` rows of `npad >= j + 16`; `qh`, `ql`
+/// `g_n` rows of `R`.
+#[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+#[inline]
+unsafe fn logits16(kt: *const i32, npad: usize, j: usize, g_n: usize, qh: *const i32, ql: *const i32) -> ([__m512i; R], [__m512i; R]) {
+    let z = _mm512_setzero_si512();
+    let (mut ah, mut al) = ([z; R], [z; R]);
+    for g in 0..g_n {
+        // SAFETY: the contract.
+        unsafe {
+            let k = _mm512_loadu_si512(kt.add(g * npad + j).cast());
+            for (t, (ah, al)) in ah.iter_mut().zip(al.iter_mut()).enumerate() {
+                *ah = _mm512_dpwssd_epi32(*ah, k, _mm512_set1_epi32(*qh.add(g * R + t)));
+                *al = _mm512_dpwssd_epi32(*al, k, _mm512_set1_epi32(*ql.add(g * R + t)));
+            }
+        }
+    }
+    (ah, al)
 }
 
 /// Adds `256 h + l` of the block's key pairs into channel blocks `cb .. cb + NB` of the `r`
@@ -401,6 +531,10 @@ mod tests {
                     super::super::aggregate_query(q, &keys, &values, cv, st, m, 3, &mut acc, o);
                 }
                 let mut prep = Prepared::new();
+                assert!(prep.fill_keys(&keys, c));
+                let mut got_stats = vec![0i64; 2 * nq];
+                prep.stats(&qs, m, &mut got_stats);
+                assert_eq!(stats, got_stats, "stats: n {n} c {c} {m:?}");
                 assert!(prep.fill(&keys, &values, c, cv));
                 let mut got = vec![0i16; nq * cv];
                 prep.aggregate(&qs, &stats, m, 3, &mut got);
