@@ -196,9 +196,10 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
     /// Threads for a frame (host builds, feature `std`; default 1): with 2 or more the right
     /// image's encoder runs on a second thread beside the left one's, with its own scratch (the
     /// encoder's line buffers and patch, allocated per frame: the one allocation of a host frame;
-    /// the firmware path has none), and the kernels split their work over the process-wide
-    /// worker pool ([`crate::kernels::pool`], sized to this count when a frame starts). The
-    /// same integers for any count.
+    /// the firmware path has none; the kernel pool is held meanwhile, so each encoder's kernels
+    /// run on its own thread), and the refinement's kernels split their work over the
+    /// process-wide worker pool ([`crate::kernels::pool`], sized to this count when a frame
+    /// starts). The same integers for any count.
     #[cfg(feature = "std")]
     pub fn set_threads(&mut self, n: usize) {
         self.threads = n.max(1);
@@ -268,14 +269,14 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
         crate::kernels::pool::set_threads(self.threads);
         // Encoder: right image first (features only), then the left (features and context).
         #[cfg(feature = "std")]
-        // Both encoders side by side where the convolutions cannot use the pool themselves (no
-        // AVX-512 VNNI); otherwise one after the other, each on every thread.
-        let threaded = self.threads > 1 && !crate::kernels::conv::pooled();
+        // With threads, both encoders side by side (the kernel pool held meanwhile: each
+        // encoder's kernels run on its own thread).
+        let threaded = self.threads > 1;
         #[cfg(not(feature = "std"))]
         let threaded = false;
         if threaded {
             #[cfg(feature = "std")]
-            encode_pair_threaded(m, &plan, self.arena, left, right);
+            crate::kernels::pool::inline_while(|| encode_pair_threaded(m, &plan, self.arena, left, right));
         } else {
             encode_image(m, &plan, self.arena, right, false);
             encode_image(m, &plan, self.arena, left, true);

@@ -24,16 +24,6 @@ use crate::model::graph::PostOp;
 #[path = "conv_avx512.rs"]
 mod avx512;
 
-/// Whether [`conv_row`] splits its work over the kernel pool ([`super::pool`]): on a host
-/// with AVX-512 VNNI.
-#[cfg(feature = "std")]
-pub fn pooled() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    return super::x86::has_avx512();
-    #[allow(unreachable_code)]
-    false
-}
-
 /// Largest kernel size.
 pub const MAX_K: usize = 7;
 

@@ -139,6 +139,19 @@ pub fn run(tasks: usize, f: &(dyn Fn(usize) + Sync)) {
     }
 }
 
+/// Runs `f` with the pool held: every [`run`] meanwhile, on any thread, runs its tasks on its
+/// caller. For work that is split coarsely already (the two image encoders on two threads): the
+/// pool's workers would only compete with it for the cores.
+pub fn inline_while<R>(f: impl FnOnce() -> R) -> R {
+    let p = pool();
+    let held = !p.busy.swap(true, Ordering::Acquire);
+    let r = f();
+    if held {
+        p.busy.store(false, Ordering::Release);
+    }
+    r
+}
+
 /// Takes and runs task numbers until none are left.
 fn work(job: &Job) {
     loop {
