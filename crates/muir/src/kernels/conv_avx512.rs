@@ -327,10 +327,10 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
             unsafe { finish_channel(p.post, p.bias.get(c0 + i), wild, sum, fin, lo, hi) };
         }
     });
-    // 3. The row in its `[x][c]` order, per range of pixels.
+    // 3. The row in its `[x][c]` order, per range of 16 pixels.
     let fin = &*fin;
     macro_rules! write_out {
-        ($o:ident, $t:ty) => {{
+        ($o:ident, $t:ty, $kind:expr) => {{
             let op = Shared($o.as_mut_ptr());
             par(big, w_out.div_ceil(LANES), &|t| {
                 let x0 = t * LANES;
@@ -338,21 +338,92 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
                 // SAFETY: pixels `x0 .. x0 + nx <= w_out` of the row (`w_out cout <= len`,
                 // checked by `conv_row`), this task's only.
                 let o = unsafe { op.slice(x0 * cout, nx * cout) };
-                let f = fin.as_ptr();
-                for (x, px) in (x0..).zip(o.chunks_exact_mut(cout)) {
-                    for (c, d) in px.iter_mut().enumerate() {
-                        // SAFETY: `c < cout`, `x < w_out <= pixpad`: inside `fin` (`cout pixpad`).
-                        // (In range of the type: `finish_channel` saturated it.)
-                        *d = unsafe { *f.add(c * pixpad + x) } as $t;
-                    }
-                }
+                // SAFETY: `fin` holds `cout` rows of `pixpad >= x0 + 16`; the CPU has AVX-512 F
+                // and BW (this function's contract).
+                unsafe { transpose_out(fin, pixpad, cout, x0, nx, o.as_mut_ptr().cast(), $kind) };
             });
         }};
     }
     match out {
-        OutRow::I8(o) => write_out!(o, i8),
-        OutRow::U8(o) => write_out!(o, u8),
-        OutRow::I16(o) => write_out!(o, i16),
+        OutRow::I8(o) => write_out!(o, i8, 1),
+        OutRow::U8(o) => write_out!(o, u8, 1),
+        OutRow::I16(o) => write_out!(o, i16, 2),
+    }
+}
+
+/// Writes pixels `x0 .. x0 + nx` (`nx <= 16`) of the finished outputs `fin` (`[c][pixel]`,
+/// `pixpad` a row, already in the output type's range) to `out` in `[x][c]` order, `size` bytes
+/// an element (1: i8/u8, 2: i16): 16 channels at a time by a 16 x 16 transposition in registers
+/// (unpacks of 32 and 64 bits, then two rounds of 128-bit lane shuffles) and a narrowing store,
+/// the channels past the last multiple of 16 one by one.
+///
+/// # Safety
+/// The CPU has AVX-512 F and BW; `fin` holds `cout` rows of `pixpad >= x0 + 16` values; `out`
+/// points at `nx cout` writable elements of `size` bytes.
+#[target_feature(enable = "avx512f,avx512bw")]
+unsafe fn transpose_out(fin: &[i32], pixpad: usize, cout: usize, x0: usize, nx: usize, out: *mut u8, size: usize) {
+    let f = fin.as_ptr();
+    let mut c0 = 0;
+    // SAFETY (whole body): reads of `fin` rows `c0 .. c0 + 16 <= cout` at pixels `x0 .. x0 + 16
+    // <= pixpad`, writes of elements `x cout + c < nx cout` (the contract).
+    unsafe {
+        while c0 + 16 <= cout {
+            let mut r = [_mm512_setzero_si512(); 16];
+            for (i, r) in r.iter_mut().enumerate() {
+                *r = _mm512_loadu_si512(f.add((c0 + i) * pixpad + x0).cast());
+            }
+            let mut t = [_mm512_setzero_si512(); 16];
+            for (rs, ts) in r.chunks_exact(4).zip(t.chunks_exact_mut(4)) {
+                if let (&[a, b, c, d], [t0, t1, t2, t3]) = (rs, ts) {
+                    let (ab_lo, ab_hi, cd_lo, cd_hi) = (_mm512_unpacklo_epi32(a, b), _mm512_unpackhi_epi32(a, b), _mm512_unpacklo_epi32(c, d), _mm512_unpackhi_epi32(c, d));
+                    // Column `4L + k` of these four rows in 128-bit lane `L` of `tk`.
+                    *t0 = _mm512_unpacklo_epi64(ab_lo, cd_lo);
+                    *t1 = _mm512_unpackhi_epi64(ab_lo, cd_lo);
+                    *t2 = _mm512_unpacklo_epi64(ab_hi, cd_hi);
+                    *t3 = _mm512_unpackhi_epi64(ab_hi, cd_hi);
+                }
+            }
+            let [t0, t1, t2, t3, t4, t5, t6, t7, t8, t9, t10, t11, t12, t13, t14, t15] = t;
+            // Columns `k`, `4 + k`, `8 + k`, `12 + k`: lane `L` of the four row groups' `t`.
+            macro_rules! columns {
+                ($a:expr, $b:expr, $c:expr, $d:expr) => {{
+                    let (lo02, lo13) = (_mm512_shuffle_i32x4::<0x88>($a, $b), _mm512_shuffle_i32x4::<0xDD>($a, $b));
+                    let (hi02, hi13) = (_mm512_shuffle_i32x4::<0x88>($c, $d), _mm512_shuffle_i32x4::<0xDD>($c, $d));
+                    (
+                        _mm512_shuffle_i32x4::<0x88>(lo02, hi02),
+                        _mm512_shuffle_i32x4::<0x88>(lo13, hi13),
+                        _mm512_shuffle_i32x4::<0xDD>(lo02, hi02),
+                        _mm512_shuffle_i32x4::<0xDD>(lo13, hi13),
+                    )
+                }};
+            }
+            let (p0, p4, p8, p12) = columns!(t0, t4, t8, t12);
+            let (p1, p5, p9, p13) = columns!(t1, t5, t9, t13);
+            let (p2, p6, p10, p14) = columns!(t2, t6, t10, t14);
+            let (p3, p7, p11, p15) = columns!(t3, t7, t11, t15);
+            // Pixel `j`'s 16 channels.
+            let px = [p0, p1, p2, p3, p4, p5, p6, p7, p8, p9, p10, p11, p12, p13, p14, p15];
+            for (j, v) in px.iter().enumerate().take(nx) {
+                let d = out.add((j * cout + c0) * size);
+                if size == 2 {
+                    _mm256_storeu_si256(d.cast(), _mm512_cvtepi32_epi16(*v));
+                } else {
+                    _mm_storeu_si128(d.cast(), _mm512_cvtepi32_epi8(*v));
+                }
+            }
+            c0 += 16;
+        }
+        for c in c0..cout {
+            for j in 0..nx {
+                let v = *f.add(c * pixpad + x0 + j);
+                let d = out.add((j * cout + c) * size);
+                if size == 2 {
+                    d.cast::<i16>().write_unaligned(v as i16);
+                } else {
+                    d.write(v as u8);
+                }
+            }
+        }
     }
 }
 
