@@ -351,6 +351,43 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
     }
 }
 
+/// The 16 x 16 transposition of `r` (16 rows of 16 i32): unpacks of 32 and 64 bits, then two
+/// rounds of 128-bit lane shuffles.
+#[target_feature(enable = "avx512f")]
+#[inline]
+fn transpose16(r: [__m512i; 16]) -> [__m512i; 16] {
+    let mut t = [_mm512_setzero_si512(); 16];
+    for (rs, ts) in r.chunks_exact(4).zip(t.chunks_exact_mut(4)) {
+        if let (&[a, b, c, d], [t0, t1, t2, t3]) = (rs, ts) {
+            let (ab_lo, ab_hi, cd_lo, cd_hi) = (_mm512_unpacklo_epi32(a, b), _mm512_unpackhi_epi32(a, b), _mm512_unpacklo_epi32(c, d), _mm512_unpackhi_epi32(c, d));
+            // Column `4L + k` of these four rows in 128-bit lane `L` of `tk`.
+            *t0 = _mm512_unpacklo_epi64(ab_lo, cd_lo);
+            *t1 = _mm512_unpackhi_epi64(ab_lo, cd_lo);
+            *t2 = _mm512_unpacklo_epi64(ab_hi, cd_hi);
+            *t3 = _mm512_unpackhi_epi64(ab_hi, cd_hi);
+        }
+    }
+    let [t0, t1, t2, t3, t4, t5, t6, t7, t8, t9, t10, t11, t12, t13, t14, t15] = t;
+    // Columns `k`, `4 + k`, `8 + k`, `12 + k`: lane `L` of the four row groups' `t`.
+    macro_rules! columns {
+        ($a:expr, $b:expr, $c:expr, $d:expr) => {{
+            let (lo02, lo13) = (_mm512_shuffle_i32x4::<0x88>($a, $b), _mm512_shuffle_i32x4::<0xDD>($a, $b));
+            let (hi02, hi13) = (_mm512_shuffle_i32x4::<0x88>($c, $d), _mm512_shuffle_i32x4::<0xDD>($c, $d));
+            (
+                _mm512_shuffle_i32x4::<0x88>(lo02, hi02),
+                _mm512_shuffle_i32x4::<0x88>(lo13, hi13),
+                _mm512_shuffle_i32x4::<0xDD>(lo02, hi02),
+                _mm512_shuffle_i32x4::<0xDD>(lo13, hi13),
+            )
+        }};
+    }
+    let (p0, p4, p8, p12) = columns!(t0, t4, t8, t12);
+    let (p1, p5, p9, p13) = columns!(t1, t5, t9, t13);
+    let (p2, p6, p10, p14) = columns!(t2, t6, t10, t14);
+    let (p3, p7, p11, p15) = columns!(t3, t7, t11, t15);
+    [p0, p1, p2, p3, p4, p5, p6, p7, p8, p9, p10, p11, p12, p13, p14, p15]
+}
+
 /// Writes pixels `x0 .. x0 + nx` (`nx <= 16`) of the finished outputs `fin` (`[c][pixel]`,
 /// `pixpad` a row, already in the output type's range) to `out` in `[x][c]` order, `size` bytes
 /// an element (1: i8/u8, 2: i16): 16 channels at a time by a 16 x 16 transposition in registers
@@ -372,37 +409,8 @@ unsafe fn transpose_out(fin: &[i32], pixpad: usize, cout: usize, x0: usize, nx: 
             for (i, r) in r.iter_mut().enumerate() {
                 *r = _mm512_loadu_si512(f.add((c0 + i) * pixpad + x0).cast());
             }
-            let mut t = [_mm512_setzero_si512(); 16];
-            for (rs, ts) in r.chunks_exact(4).zip(t.chunks_exact_mut(4)) {
-                if let (&[a, b, c, d], [t0, t1, t2, t3]) = (rs, ts) {
-                    let (ab_lo, ab_hi, cd_lo, cd_hi) = (_mm512_unpacklo_epi32(a, b), _mm512_unpackhi_epi32(a, b), _mm512_unpacklo_epi32(c, d), _mm512_unpackhi_epi32(c, d));
-                    // Column `4L + k` of these four rows in 128-bit lane `L` of `tk`.
-                    *t0 = _mm512_unpacklo_epi64(ab_lo, cd_lo);
-                    *t1 = _mm512_unpackhi_epi64(ab_lo, cd_lo);
-                    *t2 = _mm512_unpacklo_epi64(ab_hi, cd_hi);
-                    *t3 = _mm512_unpackhi_epi64(ab_hi, cd_hi);
-                }
-            }
-            let [t0, t1, t2, t3, t4, t5, t6, t7, t8, t9, t10, t11, t12, t13, t14, t15] = t;
-            // Columns `k`, `4 + k`, `8 + k`, `12 + k`: lane `L` of the four row groups' `t`.
-            macro_rules! columns {
-                ($a:expr, $b:expr, $c:expr, $d:expr) => {{
-                    let (lo02, lo13) = (_mm512_shuffle_i32x4::<0x88>($a, $b), _mm512_shuffle_i32x4::<0xDD>($a, $b));
-                    let (hi02, hi13) = (_mm512_shuffle_i32x4::<0x88>($c, $d), _mm512_shuffle_i32x4::<0xDD>($c, $d));
-                    (
-                        _mm512_shuffle_i32x4::<0x88>(lo02, hi02),
-                        _mm512_shuffle_i32x4::<0x88>(lo13, hi13),
-                        _mm512_shuffle_i32x4::<0xDD>(lo02, hi02),
-                        _mm512_shuffle_i32x4::<0xDD>(lo13, hi13),
-                    )
-                }};
-            }
-            let (p0, p4, p8, p12) = columns!(t0, t4, t8, t12);
-            let (p1, p5, p9, p13) = columns!(t1, t5, t9, t13);
-            let (p2, p6, p10, p14) = columns!(t2, t6, t10, t14);
-            let (p3, p7, p11, p15) = columns!(t3, t7, t11, t15);
             // Pixel `j`'s 16 channels.
-            let px = [p0, p1, p2, p3, p4, p5, p6, p7, p8, p9, p10, p11, p12, p13, p14, p15];
+            let px = transpose16(r);
             for (j, v) in px.iter().enumerate().take(nx) {
                 let d = out.add((j * cout + c0) * size);
                 if size == 2 {
@@ -665,6 +673,7 @@ unsafe fn tile<const R: usize, const P: usize, const U8: bool>(xt: *const i32, t
 /// buffer behind `xt` and no other task touches them.
 #[target_feature(enable = "avx512f,avx512bw")]
 #[allow(clippy::too_many_arguments)]
+#[inline(never)]
 unsafe fn transpose_task<T: Elem>(row: Option<&[T]>, plan: &PartPlan, kind: Kind, stride: usize, lead: usize, w_in: usize, plane: usize, i0: usize, i1: usize, zero: i32, xt: &Shared<i32>) {
     let (ch, tw) = (plan.ch, plan.tw);
     let cg = plan.chp / kind.per();
@@ -681,28 +690,69 @@ unsafe fn transpose_task<T: Elem>(row: Option<&[T]>, plan: &PartPlan, kind: Kind
     let cb = ch * core::mem::size_of::<T>(); // bytes a column
     let bytes = bytes_of(row);
     let cols = w_in.min(bytes.len() / cb.max(1));
-    for i in i0..i1 {
-        let pc = i * stride + phase;
-        let Some(col) = pc.checked_sub(lead).filter(|c| *c < cols) else {
-            continue;
-        };
-        let src = bytes.get(col * cb..(col + 1) * cb).unwrap_or_default();
-        // SAFETY: the caller's guarantee (group `g < cg` of index `i`).
-        let put = |g: usize, v: u32| unsafe { xt.0.add(base + g * tw + i).write((v ^ zero as u32) as i32) };
-        if cb.is_multiple_of(4) {
-            for (g, v) in src.chunks_exact(4).enumerate().take(cg) {
-                if let &[a, b, c, e] = v {
-                    put(g, u32::from_le_bytes([a, b, c, e]));
+    // Column of index `i` (`None` in the padding).
+    let col_of = |i: usize| (i * stride + phase).checked_sub(lead).filter(|c| *c < cols);
+    // Blocks of 16 indices whose columns are all real, 16 whole groups at a time: 16 columns
+    // loaded, transposed in registers, one store per group.
+    let vector = cb == 4 * cg;
+    let mut i = i0;
+    while i < i1 {
+        let blk = (i1 - i).min(16);
+        if vector && blk == 16 && col_of(i).is_some() && col_of(i + 15).is_some() {
+            let mut gb = 0;
+            while gb + 16 <= cg {
+                let mut r = [_mm512_setzero_si512(); 16];
+                for (j, r) in r.iter_mut().enumerate() {
+                    let at = col_of(i + j).unwrap_or(0) * cb + 4 * gb;
+                    if let Some(src) = bytes.get(at..at + 64) {
+                        // SAFETY: 64 readable bytes.
+                        *r = _mm512_xor_si512(unsafe { _mm512_loadu_si512(src.as_ptr().cast()) }, _mm512_set1_epi32(zero));
+                    }
+                }
+                for (g, v) in transpose16(r).iter().enumerate() {
+                    // SAFETY: group `gb + g < cg`, indices `i .. i + 16 <= i1`: this task's entries.
+                    unsafe { _mm512_storeu_si512(xt.0.add(base + (gb + g) * tw + i).cast(), *v) };
+                }
+                gb += 16;
+            }
+            // The groups past the last multiple of 16, index by index.
+            for ii in i..i + 16 {
+                let Some(col) = col_of(ii) else {
+                    continue;
+                };
+                let src = bytes.get(col * cb + 4 * gb..(col + 1) * cb).unwrap_or_default();
+                for (g, v) in (gb..).zip(src.chunks_exact(4)) {
+                    if let &[a, b, c, e] = v {
+                        // SAFETY: group `g < cg` of index `ii`: this task's entry.
+                        unsafe { xt.0.add(base + g * tw + ii).write((u32::from_le_bytes([a, b, c, e]) ^ zero as u32) as i32) };
+                    }
                 }
             }
         } else {
-            // A last group past the column's values: zero bytes there.
-            for (g, v) in src.chunks(4).enumerate().take(cg) {
-                let mut b = [0u8; 4];
-                b.iter_mut().zip(v).for_each(|(b, v)| *b = *v);
-                put(g, u32::from_le_bytes(b));
+            for i in i..i + blk {
+                let Some(col) = col_of(i) else {
+                    continue;
+                };
+                let src = bytes.get(col * cb..(col + 1) * cb).unwrap_or_default();
+                // SAFETY: the caller's guarantee (group `g < cg` of index `i`).
+                let put = |g: usize, v: u32| unsafe { xt.0.add(base + g * tw + i).write((v ^ zero as u32) as i32) };
+                if cb.is_multiple_of(4) {
+                    for (g, v) in src.chunks_exact(4).enumerate().take(cg) {
+                        if let &[a, b, c, e] = v {
+                            put(g, u32::from_le_bytes([a, b, c, e]));
+                        }
+                    }
+                } else {
+                    // A last group past the column's values: zero bytes there.
+                    for (g, v) in src.chunks(4).enumerate().take(cg) {
+                        let mut b = [0u8; 4];
+                        b.iter_mut().zip(v).for_each(|(b, v)| *b = *v);
+                        put(g, u32::from_le_bytes(b));
+                    }
+                }
             }
         }
+        i += blk;
     }
 }
 
@@ -777,6 +827,7 @@ mod tests {
                     (7, 2, &[3][..], 4),
                     (3, 1, &[64, 4][..], 24),
                     (3, 2, &[8, 4][..], 7),
+                    (3, 2, &[64, 36][..], 9),
                     (1, 2, &[16][..], 5),
                     (5, 2, &[12, 2][..], 3),
                 ]
