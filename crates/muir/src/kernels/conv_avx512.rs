@@ -3,20 +3,24 @@
 //!
 //! Activations are packed in groups of 4 u8 (`vpdpbusd`, u8 x i8, four products a lane; i8
 //! activations as `x + 128`, with `128 sum(w)` taken off after) or 2 i16 (`vpdpwssd`, two
-//! products a lane; the part's i8 weights widened to i16 once per call), one group per i32, and
-//! laid out with output pixels along the vector. A weight group of one output channel is
+//! products a lane; the i8 weights of a block of channels widened to i16 per call), one group per
+//! i32, and laid out with output pixels along the vector. A weight group of one output channel is
 //! broadcast to all 16 lanes; 8 channels x 32 pixels stay in registers, so each activation
-//! vector is loaded once for 8 channels and each weight once for 32 pixels. The weights are read
-//! where the blob has them (`[c][part][ky][kx][c_in]`): the vectors run along pixels, not
-//! channels, so no re-layout is needed.
+//! vector is loaded once for 8 channels and each weight once for 32 pixels. The u8 path reads the
+//! weights where the blob has them (`[c][part][ky][kx][c_in]`): the vectors run along pixels, not
+//! channels, so no re-layout is needed (a part whose channels are not a multiple of 4 gets a
+//! copy padded with zero weights).
 //!
-//! Where to read a kernel tap's activations from ([`Tap`]):
-//! - parts of whole groups (the channels a multiple of 4 or 2; every wide layer): each of the `k`
-//!   input rows is transposed once (`[stride phase][group][column]`, zero columns on both sides),
-//!   and tap `(ky, kx)` of pixels `x .. x + 16` is one load at column offset `kx`: no patch is
-//!   gathered at all;
-//! - other parts (1 or 3 channels): the row's patches gathered value by value, transposed
-//!   (`[group][pixel]`), one tap per chunk of groups.
+//! The activations: each of a part's `k` input rows is transposed once per call (`[stride
+//! phase][group][column]`, 16 columns x 16 groups at a time in registers, zero columns on both
+//! sides, channels padded with zeros to whole groups), so tap `(ky, kx)` of pixels `x .. x + 16`
+//! is one load at column offset `kx` ([`Tap`]): no patch is gathered at all.
+//!
+//! One call is three jobs of numbered tasks on the kernel pool ([`super::super::pool`]) when the
+//! layer is large enough: the transposition (planes x column ranges), the matrix products with
+//! their epilogue (blocks of 8 output channels, every part in turn), the write-out in `[x][c]`
+//! order (16 pixels a task, a 16 x 16 transposition in registers). Each task writes its own
+//! entries only, so the thread count changes no result.
 //!
 //! Exactness: neither instruction saturates. A u8 lane adds at most `4 * 255 * 128 < 2^17` per
 //! group and a chunk at most [`U8_CHUNK`] groups (`< 2^30`); an i16 lane at most
@@ -68,9 +72,9 @@ struct Tap {
 /// Per-thread scratch, grown to the largest layer seen.
 #[derive(Default)]
 struct Scratch {
-    /// Activations (transposed rows or patches).
+    /// Every part's transposed input rows.
     xt: Vec<i32>,
-    /// The part's taps.
+    /// Every part's taps.
     taps: Vec<Tap>,
     /// One part's exact sums `[c][pixel]`.
     part: Vec<i64>,
@@ -174,7 +178,7 @@ struct PartPlan {
     /// Offset of the part's transposed rows in the activation buffer, and indices a plane.
     xt_at: usize,
     tw: usize,
-    /// The part's taps in the tap list.
+    /// Every part's taps.in the tap list.
     taps: (usize, usize),
     /// Its first transposition task, and how many it has (planes x index chunks).
     task0: usize,
