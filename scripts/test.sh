@@ -3,8 +3,9 @@
 # machine, then runs every test.
 #   1. host tests (unit, parity with the PyTorch twin's golden files, fixed vs float on real pairs,
 #      streaming vs plain fixed-point engine, model files, CLI), optimised ([profile.test]);
-#   2. the core crate (crates/muir) without std for thumbv7em-none-eabihf (Cortex-M4F/M7), and what
-#      its published package would hold;
+#   2. the aarch64 host build (the core's tests and the engine tests under qemu-aarch64), and the
+#      core crate (crates/muir) without std for thumbv7em-none-eabihf (Cortex-M4F/M7), and what its
+#      published package would hold;
 #   3. the PyTorch twin's own tests (python/tests: the split, the refinement's integer helpers, ONNX export vs the twin, a
 #      data-parallel training step under torchrun against the single-process step);
 #   4. the QEMU firmware in boards/ (bit-exact with the host), u8 and wide-trunk blobs: Cortex-M7
@@ -28,6 +29,15 @@ if [ -d boards/qemu-mps2 ] && ! command -v qemu-system-arm >/dev/null 2>&1; then
     need_root apt-get update -qq
     need_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq qemu-system-arm >/dev/null
 fi
+if ! rustup target list --installed | grep -q '^aarch64-unknown-linux-gnu$'; then
+    echo "== installing rust target aarch64-unknown-linux-gnu"
+    rustup target add aarch64-unknown-linux-gnu
+fi
+if ! command -v qemu-aarch64 >/dev/null 2>&1 || ! command -v aarch64-linux-gnu-gcc >/dev/null 2>&1; then
+    echo "== installing qemu-user and the aarch64 cross linker (the aarch64 host build's tests)"
+    need_root apt-get update -qq
+    need_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq qemu-user gcc-aarch64-linux-gnu libc6-dev-arm64-cross >/dev/null
+fi
 if [ -d boards/qemu-mps2 ] && ! command -v llvm-objdump >/dev/null 2>&1; then
     echo "== installing llvm (llvm-objdump: panic and float sites of the firmware)"
     need_root apt-get update -qq
@@ -42,6 +52,15 @@ python3 -m pip install -q --disable-pip-version-check "torch>=2.2" "numpy>=1.24"
 echo "== host tests"
 cargo test --workspace --all-targets --no-fail-fast 2>&1 | tee /tmp/muir-test.log
 cargo test --workspace --doc
+
+echo "== aarch64 host build (Linux-class Arm modules): the core's tests and the engine tests under qemu-aarch64"
+# The portable kernels and the kernel pool without the x86 paths (host_rows' per-row forms, threads).
+(
+    export CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_LINKER=aarch64-linux-gnu-gcc
+    export CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_RUNNER="qemu-aarch64 -L /usr/aarch64-linux-gnu"
+    cargo test -q --release --target aarch64-unknown-linux-gnu -p muir --features std,internals --lib
+    cargo test -q --release --target aarch64-unknown-linux-gnu --test engine
+)
 
 echo "== no_std build of the core (crates/muir) for thumbv7em-none-eabihf, and its package (no model files, < 10 MiB)"
 cargo build -p muir --lib --target thumbv7em-none-eabihf

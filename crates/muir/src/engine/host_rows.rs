@@ -232,10 +232,7 @@ pub fn lookup_row(p: &LookupParams<'_>, f1: &[i8], f2row: &[i8], flow: &[i16], f
         #[cfg(target_arch = "x86_64")]
         let row = row.fill(f2row, w, fd).then_some(&*row);
         #[cfg(not(target_arch = "x86_64"))]
-        let row: Option<&()> = {
-            let _ = row;
-            None
-        };
+        let _ = row;
         pool::run(n.div_ceil(PIXELS), &|t| {
             WINDOW.with_borrow_mut(|(win, pre)| {
                 let mut s = LookupScratch { window: sized(win, scratch.0), prefix: sized(pre, scratch.1) };
