@@ -9,7 +9,6 @@
 
 use crate::arith::{Multiplier, div_round, lut, requantize, rshift_round, sat_i16, shift_round};
 
-/// Many queries at once on AVX-512 VNNI (host).
 #[cfg(all(target_arch = "x86_64", feature = "std"))]
 #[path = "attention_avx512.rs"]
 pub mod avx512;

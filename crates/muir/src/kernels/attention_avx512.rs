@@ -3,7 +3,7 @@
 //!
 //! Per call, the keys are transposed into channel pairs along keys (`kt[g][j]`: channels
 //! `2g, 2g+1` of key `j`, one i32) and the values into key pairs along channels (`vt[p][ch]`:
-//! channel `ch` of keys `2p, 2p+1`). Then, per block of [`KEYS`] keys and pair of queries:
+//! channel `ch` of keys `2p, 2p+1`). Then, per block of `KEYS` (256) keys and pair of queries:
 //! - logits of 16 keys by `vpdpwssd` of `kt` against the query's channel pairs, the query split
 //!   as `256 qh + ql` (`qh = q >> 8`, `ql = q & 255`): every lane sums products below `2^22`, at
 //!   most `2 * 128` of them (`c <=` [`MAX_C`]), so `256 h + l` is the exact logit;

@@ -21,7 +21,6 @@
 
 use crate::arith::{MAX_PROPOSAL_D8, Multiplier, requantize, sat_i16};
 
-/// Window correlations on AVX-512 VNNI (host).
 #[cfg(all(target_arch = "x86_64", feature = "std"))]
 #[path = "corr_avx512.rs"]
 pub mod avx512;
