@@ -71,6 +71,10 @@ rustup component list --installed 2>/dev/null | grep -q '^clippy' || rustup comp
 cargo clippy -q -p muir --lib --target thumbv7em-none-eabihf --features dsp
 cargo clippy -q -p muir --lib --features std,internals
 
+echo "== the core's API docs build without warnings (broken or private intra-doc links)"
+RUSTDOCFLAGS="-D warnings" cargo doc -q -p muir --no-deps
+RUSTDOCFLAGS="-D warnings" cargo doc -q -p muir --features std,internals --no-deps
+
 echo "== Python twin tests (split, refinement helpers, one DDP step = one single-process step)"
 (cd python && PYTHONPATH=. python3 -m pytest -q)
 

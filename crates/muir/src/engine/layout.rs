@@ -5,7 +5,7 @@
 //! and row length written once). `const fn` throughout, so a firmware's `static` arena is sized at
 //! compile time.
 //!
-//! This module sits below [`super::plan`], [`super::encoder`] and [`super::refine`]: the plan uses
+//! This module sits below `plan`, [`super::encoder`] and [`super::refine`]: the plan uses
 //! the declarations without depending on the phases that run them.
 #![deny(clippy::indexing_slicing)]
 

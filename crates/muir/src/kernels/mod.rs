@@ -65,7 +65,7 @@ pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + Send + Sync + 's
     /// Whether the pair layout stores groups as values 0, 2, 1, 3 ([`pair_index`]).
     const PAIR_SWAP: bool = false;
     /// Whether this type's pair layout on this target is split: patch `a`'s `n` values, then
-    /// patch `b`'s (Helium, u8 and i16: both read by contiguous loads, [`mve::dot2x2_split`], and
+    /// patch `b`'s (Helium, u8 and i16: both read by contiguous loads, `mve::dot2x2_split`, and
     /// gathered by whole runs of the input rows); otherwise the interleaved groups of
     /// [`pair_index`].
     const SPLIT_PAIRS: bool = false;

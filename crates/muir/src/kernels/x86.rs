@@ -651,7 +651,7 @@ pub mod avx2 {
     /// `sum_j e_j v_j` into `acc` (`cv` values), `e_j = weight(q . k_j, max, m)`, over the keys in
     /// `keys` (`q.len()` values each) and their values in `values` (`cv` each).
     ///
-    /// Keys go in blocks of [`KEYS`]: their logits ([`logits`]) and weights (the scalar
+    /// Keys go in blocks of `KEYS`: their logits ([`logits`]) and weights (the scalar
     /// [`weight`], so the same integers) first, then each 16 value channels over the block's keys
     /// two at a time. A weight `e` in `[0, 32768]` (all that `exp_q11` gives) is split as
     /// `256 eh + el` (`eh <= 128`, `el <= 255`); `vpmaddwd` of the interleaved values `(v_j, v_k)`
