@@ -482,7 +482,10 @@ impl FloatModel {
         iters: Option<usize>,
     ) -> Result<Prediction, InputError> {
         let iters = iters.unwrap_or(self.config().iters);
-        let out = self.trace_pair(left, right, iters, &mut NoTrace)?;
+        let out = self.trace_pair(left, right, iters, &mut NoTrace);
+        // The convolutions' scratch is kept for one frame, not beyond it.
+        super::ops::release_scratch();
+        let out = out?;
         let crop = |t: &Tensor| {
             let mut v = Vec::with_capacity(left.width * left.height);
             for y in 0..left.height {

@@ -20,13 +20,37 @@ pub fn conv2d(x: &Tensor, conv: &FloatConv) -> Tensor {
     let (ho, wo) = (conv_out(x.h, k, st), conv_out(x.w, k, st));
     let n = ho * wo;
     let kk = s.cin * k * k;
-    let owned;
-    let cols: &[f32] = if k == 1 && st == 1 {
-        &x.data
-    } else {
-        owned = im2col(x, k, st, pad, ho, wo);
-        &owned
-    };
+    COLS.with_borrow_mut(|buf| {
+        let cols: &[f32] = if k == 1 && st == 1 {
+            &x.data
+        } else {
+            let need = x.c * k * k * n;
+            if buf.len() < need {
+                buf.resize(need, 0.0);
+            }
+            let cols = &mut buf[..need];
+            im2col(x, k, st, pad, ho, wo, cols);
+            cols
+        };
+        gemm(conv, cols, ho, wo, kk, n)
+    })
+}
+
+std::thread_local! {
+    /// The im2col matrix, reused from call to call within a frame (a fresh allocation per
+    /// convolution cost a page fault per page of it every time: Teddy's float frame 1.68 -> 1.36
+    /// s, docs/performance.md); [`release_scratch`] frees it.
+    static COLS: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// Frees this thread's convolution scratch (`FloatModel::predict` does at the end of a frame).
+pub fn release_scratch() {
+    COLS.with_borrow_mut(|b| *b = Vec::new());
+}
+
+/// The convolution's matrix product over the im2col matrix `cols` (`kk x n`), bias and batch norm.
+fn gemm(conv: &FloatConv, cols: &[f32], ho: usize, wo: usize, kk: usize, n: usize) -> Tensor {
+    let s = &conv.shape;
     let mut out = Tensor::zeros(s.cout, ho, wo);
     for (o, ch) in out.data.chunks_mut(n).enumerate() {
         ch.fill(conv.bias[o]);
@@ -60,9 +84,11 @@ pub fn conv2d(x: &Tensor, conv: &FloatConv) -> Tensor {
     out
 }
 
-fn im2col(x: &Tensor, k: usize, st: usize, pad: usize, ho: usize, wo: usize) -> Vec<f32> {
+/// `cols` (`c k k x ho wo`, row `(c, ky, kx)`) = the input samples of every output pixel, zeros in
+/// the padding. Stride 1 copies each row's valid run at once.
+fn im2col(x: &Tensor, k: usize, st: usize, pad: usize, ho: usize, wo: usize, cols: &mut [f32]) {
     let n = ho * wo;
-    let mut cols = vec![0.0f32; x.c * k * k * n];
+    cols.fill(0.0);
     for c in 0..x.c {
         let src = x.channel(c);
         for ky in 0..k {
@@ -75,6 +101,14 @@ fn im2col(x: &Tensor, k: usize, st: usize, pad: usize, ho: usize, wo: usize) -> 
                     }
                     let srow = &src[iy as usize * x.w..][..x.w];
                     let drow = &mut row[oy * wo..][..wo];
+                    if st == 1 {
+                        // ix = ox + kx - pad in [0, w): ox in [pad - kx, w + pad - kx), within wo.
+                        let lo = pad.saturating_sub(kx).min(wo);
+                        let hi = (x.w + pad).saturating_sub(kx).min(wo).max(lo);
+                        let s0 = lo + kx - pad;
+                        drow[lo..hi].copy_from_slice(&srow[s0..s0 + (hi - lo)]);
+                        continue;
+                    }
                     for (ox, d) in drow.iter_mut().enumerate() {
                         let ix = (ox * st + kx) as isize - pad as isize;
                         if ix >= 0 && ix < x.w as isize {
@@ -85,7 +119,6 @@ fn im2col(x: &Tensor, k: usize, st: usize, pad: usize, ho: usize, wo: usize) -> 
             }
         }
     }
-    cols
 }
 
 /// `nn.InstanceNorm2d` without affine parameters: per channel, biased variance, eps 1e-5.
