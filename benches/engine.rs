@@ -354,6 +354,27 @@ fn kernels(c: &mut Criterion, fast: &Model, att: Option<&Attention>) {
             black_box(&o);
         })
     });
+    // The same row with the AVX-512 VNNI window (x86-64 hosts that have it): the right row laid
+    // out once, then every pixel's window 16 columns at a time.
+    #[cfg(target_arch = "x86_64")]
+    if muir::kernels::x86::has_avx512() {
+        let mut row = muir::kernels::corr::avx512::Row::new();
+        g.bench_function(format!("lookup_with AVX-512 window (row of {w})"), |b| {
+            b.iter(|| {
+                row.fill(&f2, w, fd);
+                let mut s = LookupScratch { window: &mut win, prefix: &mut pre };
+                for x in 0..w {
+                    let f1x = &f1[x * fd..(x + 1) * fd];
+                    muir::kernels::corr::lookup_with(&lp, w, x, flow, &mut s, &mut o[x * cc..(x + 1) * cc], |lo, wv| {
+                        if !row.window(f1x, lo, wv) {
+                            muir::kernels::corr::window(f1x, &f2, w, lo, wv);
+                        }
+                    });
+                }
+                black_box(&o);
+            })
+        });
+    }
     g.bench_function(format!("lookup_pixel_plain (row of {w})"), |b| {
         b.iter(|| {
             for x in 0..w {
@@ -375,6 +396,24 @@ fn kernels(c: &mut Criterion, fast: &Model, att: Option<&Attention>) {
                 black_box(&glb);
             })
         });
+        // Sixteen queries at once with the AVX-512 VNNI kernel (the query repeated; keys and
+        // values laid out once, as once per pass in the engine).
+        #[cfg(target_arch = "x86_64")]
+        {
+            let mut prep = muir::kernels::attention::avx512::Prepared::new();
+            if prep.fill(&a.keys, &a.values, qk, hd) {
+                let qs: Vec<i16> = (0..16).flat_map(|_| a.query.iter().copied()).collect();
+                let stats: Vec<i64> = (0..16).flat_map(|_| [a.stats.0, a.stats.1]).collect();
+                let mut out = vec![0i16; 16 * hd];
+                g.throughput(Throughput::Elements((16 * n * (qk + hd)) as u64));
+                g.bench_function(format!("aggregate AVX-512 (16 queries, {n} keys, qk {qk}, values {hd})"), |b| {
+                    b.iter(|| {
+                        prep.aggregate(&qs, &stats, am, a.shift, &mut out);
+                        black_box(&out);
+                    })
+                });
+            }
+        }
     }
     g.finish();
 }
