@@ -16,7 +16,7 @@ use crate::kernels::attention::{aggregate_query, query_stats, rope_pixel};
 use crate::kernels::attention::avx512::Prepared;
 use crate::kernels::conv::{ConvParams, MAX_K, PartRows};
 use crate::kernels::corr::{LookupParams, LookupScratch, lookup_with, window};
-use crate::kernels::pool::{self, Shared};
+use crate::kernels::pool::{self, Shared, scratch};
 
 /// Pixels per task.
 const PIXELS: usize = 4;
@@ -44,27 +44,19 @@ std::thread_local! {
     static WINDOW: RefCell<(Vec<i32>, Vec<i64>)> = const { RefCell::new((Vec::new(), Vec::new())) };
 }
 
-/// `v` resized to `n` elements (contents unspecified).
-fn sized<T: Copy + Default>(v: &mut Vec<T>, n: usize) -> &mut [T] {
-    if v.len() < n {
-        v.resize(n, T::default());
-    }
-    v.get_mut(..n).unwrap_or_default()
-}
-
 /// Queries (or keys) of row `y` (after RoPE) into `q` (`w qk` values): the 1x1 conv `p` over the
 /// row's context.
 #[allow(clippy::too_many_arguments)]
 fn queries(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, y: usize, w: usize, phases: &[u32], q: &mut Vec<i16>, patch: &mut Vec<u8>) -> usize {
     let qk = p.cout;
-    qk_row(p, inp08, ctx, y, w, phases, sized(q, w * qk), patch);
+    qk_row(p, inp08, ctx, y, w, phases, scratch(q, w * qk), patch);
     qk
 }
 
 /// [`queries`] into `out` (`w qk` values).
 #[allow(clippy::too_many_arguments)]
 fn qk_row(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, y: usize, w: usize, phases: &[u32], out: &mut [i16], patch: &mut Vec<u8>) {
-    let patch = sized(patch, 4 * p.patch_len().max(1));
+    let patch = scratch(patch, 4 * p.patch_len().max(1));
     let mut rows = [None; MAX_K];
     if let Some(r) = rows.first_mut() {
         *r = inp08.get(y * w * ctx..(y + 1) * w * ctx);
@@ -185,7 +177,7 @@ pub fn aggregate_row(
         }
         pool::run(n.div_ceil(PIXELS), &|t| {
             ACC.with_borrow_mut(|acc| {
-                let acc = sized(acc, cv);
+                let acc = scratch(acc, cv);
                 for x in t * PIXELS..((t + 1) * PIXELS).min(n) {
                     let st = match stats.get(2 * x..2 * x + 2) {
                         Some(&[a, b]) => (a, b),
@@ -206,8 +198,8 @@ pub fn mask_logits_row(p: &ConvParams<'_>, mid: &[i16], w: usize, mh: usize, mut
     ROW.with_borrow_mut(|(_, patch)| {
         LOGITS.with_borrow_mut(|logits| {
             let n = p.cout;
-            let logits = sized(logits, w * n);
-            let patch = sized(patch, 4 * p.patch_len().max(1));
+            let logits = scratch(logits, w * n);
+            let patch = scratch(patch, 4 * p.patch_len().max(1));
             let mut rows = [None; MAX_K];
             if let Some(r) = rows.first_mut() {
                 *r = mid.get(..w * mh);
@@ -221,10 +213,10 @@ pub fn mask_logits_row(p: &ConvParams<'_>, mid: &[i16], w: usize, mh: usize, mut
 }
 
 /// The correlation lookup of row `y` into `out` (`w cc`): `f1` the left features (`fd` a pixel),
-/// `f2row` the right features' row, `flow` the disparity state (`fc` a pixel); `scratch` the
+/// `f2row` the right features' row, `flow` the disparity state (`fc` a pixel); `lens` the
 /// lengths of the engine's window and prefix buffers.
 #[allow(clippy::too_many_arguments)]
-pub fn lookup_row(p: &LookupParams<'_>, f1: &[i8], f2row: &[i8], flow: &[i16], fc: usize, w: usize, y: usize, fd: usize, cc: usize, scratch: (usize, usize), out: &mut [i16]) {
+pub fn lookup_row(p: &LookupParams<'_>, f1: &[i8], f2row: &[i8], flow: &[i16], fc: usize, w: usize, y: usize, fd: usize, cc: usize, lens: (usize, usize), out: &mut [i16]) {
     let out_p = Shared(out.as_mut_ptr());
     let n = w.min(out.len() / cc.max(1));
     F2.with_borrow_mut(|row| {
@@ -235,7 +227,7 @@ pub fn lookup_row(p: &LookupParams<'_>, f1: &[i8], f2row: &[i8], flow: &[i16], f
         let _ = row;
         pool::run(n.div_ceil(PIXELS), &|t| {
             WINDOW.with_borrow_mut(|(win, pre)| {
-                let mut s = LookupScratch { window: sized(win, scratch.0), prefix: sized(pre, scratch.1) };
+                let mut s = LookupScratch { window: scratch(win, lens.0), prefix: scratch(pre, lens.1) };
                 for x in t * PIXELS..((t + 1) * PIXELS).min(n) {
                     let px = y * w + x;
                     let d = flow.get(px * fc).copied().unwrap_or(0);

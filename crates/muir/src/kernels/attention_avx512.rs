@@ -23,6 +23,7 @@ use core::cell::RefCell;
 
 use super::weight;
 use crate::arith::{Multiplier, div_round, sat_i16, shift_round};
+use crate::kernels::pool::scratch;
 use crate::kernels::x86::has_avx512;
 
 /// Keys per block (even; `KEYS / 2 <= 255` key pairs keep the value lanes exact).
@@ -57,14 +58,6 @@ fn exp_knots() -> &'static [i32; 1024] {
         let k = |i: usize| crate::arith::lut::exp_q11(32 * i as i32 - 32768);
         core::array::from_fn(|i| k(i) + ((k(i + 1) - k(i)) << 16))
     })
-}
-
-/// `v` resized to `n` elements (contents unspecified).
-fn sized<T: Copy + Default>(v: &mut Vec<T>, n: usize) -> &mut [T] {
-    if v.len() < n {
-        v.resize(n, T::default());
-    }
-    v.get_mut(..n).unwrap_or_default()
 }
 
 /// Keys and values laid out for [`Prepared::aggregate`] (see the module doc).
@@ -102,7 +95,7 @@ impl Prepared {
             return false;
         }
         let npad = n.next_multiple_of(KEYS);
-        let kt = sized(&mut self.kt, c / 2 * npad);
+        let kt = scratch(&mut self.kt, c / 2 * npad);
         kt.fill(0);
         for (j, k) in keys.chunks_exact(c).take(n).enumerate() {
             for (g, pair) in k.chunks_exact(2).enumerate() {
@@ -111,7 +104,7 @@ impl Prepared {
                 }
             }
         }
-        let vt = sized(&mut self.vt, npad / 2 * cv);
+        let vt = scratch(&mut self.vt, npad / 2 * cv);
         vt.fill(0);
         for (p, pair) in values.get(..n * cv).unwrap_or_default().chunks(2 * cv).enumerate() {
             let (a, b) = pair.split_at(cv.min(pair.len()));
@@ -135,7 +128,7 @@ impl Prepared {
             return false;
         }
         let npad = n.next_multiple_of(KEYS);
-        let kt = sized(&mut self.kt, c / 2 * npad);
+        let kt = scratch(&mut self.kt, c / 2 * npad);
         kt.fill(0);
         for (j, k) in keys.chunks_exact(c).take(n).enumerate() {
             for (g, pair) in k.chunks_exact(2).enumerate() {
@@ -230,9 +223,9 @@ impl Prepared {
             let mut i = 0;
             while i < nq {
                 let r = (nq - i).min(R);
-                let acc = sized(&mut s.acc, R * cv);
+                let acc = scratch(&mut s.acc, R * cv);
                 acc.fill(0);
-                let (e, eh, el) = (sized(&mut s.e, R * KEYS), sized(&mut s.eh, R * KEYS / 2), sized(&mut s.el, R * KEYS / 2));
+                let (e, eh, el) = (scratch(&mut s.e, R * KEYS), scratch(&mut s.eh, R * KEYS / 2), scratch(&mut s.el, R * KEYS / 2));
                 let q = qs.get(i * c..(i + r) * c).unwrap_or_default();
                 let st = stats.get(2 * i..2 * (i + r)).unwrap_or_default();
                 // SAFETY: the CPU has AVX-512 F/BW/VNNI (`new` checked); the buffers have the

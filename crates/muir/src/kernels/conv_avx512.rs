@@ -36,7 +36,7 @@
 use core::arch::x86_64::*;
 use core::cell::RefCell;
 
-use super::super::pool::{self, Shared};
+use super::super::pool::{self, Shared, scratch};
 use super::super::x86::{cast, has_avx512};
 use super::super::{Elem, OutRow};
 use super::{ConvParams, MAX_K, PartRows, finish_with, mult_at};
@@ -88,14 +88,6 @@ std::thread_local! {
     static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
     /// A task's weights (padded or widened), on the thread that runs it.
     static WEIGHTS: RefCell<Vec<i16>> = const { RefCell::new(Vec::new()) };
-}
-
-/// `v` resized to `n` elements (contents unspecified).
-fn sized<T: Copy + Default>(v: &mut Vec<T>, n: usize) -> &mut [T] {
-    if v.len() < n {
-        v.resize(n, T::default());
-    }
-    v.get_mut(..n).unwrap_or_default()
 }
 
 /// Activation kinds of the matrix product.
@@ -241,7 +233,7 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
         tasks += part_tasks;
     }
     let plans = plans.get(..np).unwrap_or_default();
-    let xt = sized(&mut s.xt, xt_len);
+    let xt = scratch(&mut s.xt, xt_len);
     // 1. The input rows, transposed.
     let xtp = Shared(xt.as_mut_ptr());
     par(big, tasks, &|t| {
@@ -264,9 +256,9 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
         OutRow::U8(_) => (0, u8::MAX as i32),
         OutRow::I16(_) => (i16::MIN as i32, i16::MAX as i32),
     };
-    let sp = sized(&mut s.part, cout * pixpad);
-    let sums = sized(&mut s.sums, cout * pixpad);
-    let fin = sized(&mut s.fin, cout * pixpad);
+    let sp = scratch(&mut s.part, cout * pixpad);
+    let sums = scratch(&mut s.sums, cout * pixpad);
+    let fin = scratch(&mut s.fin, cout * pixpad);
     let (spp, sump, finp) = (Shared(sp.as_mut_ptr()), Shared(sums.as_mut_ptr()), Shared(fin.as_mut_ptr()));
     let xtp = xt.as_ptr() as usize;
     par(big, cout.div_ceil(BLOCK_C), &|b| {
@@ -449,7 +441,7 @@ unsafe fn transpose_out(fin: &[i32], pixpad: usize, cout: usize, x0: usize, nx: 
 #[allow(clippy::too_many_arguments)]
 unsafe fn copy_weights(w: &[i8], kl: usize, off: usize, ch: usize, chp: usize, taps: usize, r: usize, kind: Kind, buf: &mut Vec<i16>) -> usize {
     let row = taps * chp; // values per channel
-    let dst = sized(buf, r * row);
+    let dst = scratch(buf, r * row);
     if ch != chp {
         // The padding channels' zeros, in one go (the copies below fill the rest).
         dst.fill(0);

@@ -10,6 +10,7 @@
 
 use core::arch::x86_64::*;
 
+use crate::kernels::pool::scratch;
 use crate::kernels::x86::has_avx512;
 
 /// Columns of zeros on each side: more than any window reaches past the row
@@ -44,10 +45,7 @@ impl Row {
             return false;
         }
         let (groups, stride) = (c / 4, (w + 2 * MARGIN + 16).next_multiple_of(16));
-        if self.t.len() < groups * stride {
-            self.t.resize(groups * stride, 0);
-        }
-        let t = self.t.get_mut(..groups * stride).unwrap_or_default();
+        let t = scratch(&mut self.t, groups * stride);
         t.fill(0x8080_8080u32 as i32);
         for (col, v) in f2.chunks_exact(c).take(w).enumerate() {
             for (g, q) in v.chunks_exact(4).enumerate() {

@@ -206,6 +206,15 @@ fn worker() {
     }
 }
 
+/// `v` grown to at least `n` elements (never shrunk), its first `n` as a slice (contents
+/// unspecified): the host kernels' per-thread scratch.
+pub fn scratch<T: Copy + Default>(v: &mut Vec<T>, n: usize) -> &mut [T] {
+    if v.len() < n {
+        v.resize(n, T::default());
+    }
+    v.get_mut(..n).unwrap_or_default()
+}
+
 /// A raw pointer that tasks on several threads may hold; each task touches only its own
 /// elements (the caller's guarantee).
 #[derive(Clone, Copy)]
