@@ -87,33 +87,24 @@ impl Prepared {
     /// buffers; `false` where this path does not apply (no AVX-512 VNNI, `c` odd or above
     /// [`MAX_C`], `cv` not a multiple of 16, no keys).
     pub fn fill(&mut self, keys: &[i16], values: &[i16], c: usize, cv: usize) -> bool {
-        if !has_avx512() || c == 0 || !c.is_multiple_of(2) || c > MAX_C || cv == 0 || !cv.is_multiple_of(16) {
+        if cv == 0 || !cv.is_multiple_of(16) {
             return false;
         }
-        let n = (keys.len() / c).min(values.len() / cv);
-        if n == 0 {
+        // The keys that have values: `n` of both.
+        let with_values = keys.get(..values.len() / cv * c).unwrap_or(keys);
+        if !self.fill_keys(with_values, c) {
             return false;
         }
-        let npad = n.next_multiple_of(KEYS);
-        let kt = scratch(&mut self.kt, c / 2 * npad);
-        kt.fill(0);
-        for (j, k) in keys.chunks_exact(c).take(n).enumerate() {
-            for (g, pair) in k.chunks_exact(2).enumerate() {
-                if let (Some(d), &[a, b]) = (kt.get_mut(g * npad + j), pair) {
-                    *d = (a as u16 as u32 | (b as u16 as u32) << 16) as i32;
-                }
-            }
-        }
+        let (n, npad) = (self.n, self.npad);
         let vt = scratch(&mut self.vt, npad / 2 * cv);
         vt.fill(0);
         for (p, pair) in values.get(..n * cv).unwrap_or_default().chunks(2 * cv).enumerate() {
             let (a, b) = pair.split_at(cv.min(pair.len()));
             for (ch, d) in vt.get_mut(p * cv..(p + 1) * cv).unwrap_or_default().iter_mut().enumerate() {
-                let (x, y) = (a.get(ch).copied().unwrap_or(0), b.get(ch).copied().unwrap_or(0));
-                *d = (x as u16 as u32 | (y as u16 as u32) << 16) as i32;
+                *d = pack(a.get(ch).copied().unwrap_or(0), b.get(ch).copied().unwrap_or(0));
             }
         }
-        (self.n, self.npad, self.c, self.cv) = (n, npad, c, cv);
+        self.cv = cv;
         true
     }
 
@@ -133,7 +124,7 @@ impl Prepared {
         for (j, k) in keys.chunks_exact(c).take(n).enumerate() {
             for (g, pair) in k.chunks_exact(2).enumerate() {
                 if let (Some(d), &[a, b]) = (kt.get_mut(g * npad + j), pair) {
-                    *d = (a as u16 as u32 | (b as u16 as u32) << 16) as i32;
+                    *d = pack(a, b);
                 }
             }
         }
@@ -335,6 +326,12 @@ impl Prepared {
     }
 }
 
+/// Two i16 as the i32 lane `vpdpwssd` reads as a pair: `a` in the low half, `b` in the high.
+#[inline(always)]
+fn pack(a: i16, b: i16) -> i32 {
+    (a as u16 as u32 | (b as u16 as u32) << 16) as i32
+}
+
 /// The channel pairs of up to `R` queries (`c` values each) split as `256 qh + ql`, as
 /// `[g][query]` i32 pairs (an absent query all zero).
 #[allow(clippy::type_complexity)]
@@ -344,8 +341,7 @@ fn split_queries(q: &[i16], c: usize) -> ([[i32; R]; MAX_C / 2], [[i32; R]; MAX_
     for (qi, qv) in q.chunks_exact(c.max(1)).take(R).enumerate() {
         for (pair, (h, l)) in qv.chunks_exact(2).zip(qh.iter_mut().zip(ql.iter_mut())) {
             if let (&[a, b], Some(h), Some(l)) = (pair, h.get_mut(qi), l.get_mut(qi)) {
-                *h = ((a >> 8) as u16 as u32 | ((b >> 8) as u16 as u32) << 16) as i32;
-                *l = ((a & 255) as u32 | ((b & 255) as u32) << 16) as i32;
+                (*h, *l) = (pack(a >> 8, b >> 8), pack(a & 255, b & 255));
             }
         }
     }
