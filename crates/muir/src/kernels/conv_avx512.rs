@@ -675,12 +675,15 @@ unsafe fn transpose_task<T: Elem>(row: Option<&[T]>, plan: &PartPlan, kind: Kind
     let cg = plan.chp / kind.per();
     let phase = plane % stride;
     let base = plan.xt_at + plane * cg * tw;
-    let n = i1.saturating_sub(i0);
-    for g in 0..cg {
-        // SAFETY: the caller's guarantee.
-        unsafe { xt.slice(base + g * tw + i0, n) }.fill(zero);
-    }
+    // Zeros for indices `a .. b` of every group (padding columns and a missing row).
+    let zeros = |a: usize, b: usize| {
+        for g in 0..cg {
+            // SAFETY: the caller's guarantee (`i0 <= a <= b <= i1`).
+            unsafe { xt.slice(base + g * tw + a, b - a) }.fill(zero);
+        }
+    };
     let Some(row) = row else {
+        zeros(i0, i1);
         return;
     };
     let cb = ch * core::mem::size_of::<T>(); // bytes a column
@@ -694,6 +697,7 @@ unsafe fn transpose_task<T: Elem>(row: Option<&[T]>, plan: &PartPlan, kind: Kind
     let mut i = i0;
     while i < i1 {
         let blk = (i1 - i).min(16);
+        // (A vector block writes every entry it covers: 16 real columns, all `cg` groups.)
         if vector && blk == 16 && col_of(i).is_some() && col_of(i + 15).is_some() {
             let mut gb = 0;
             while gb + 16 <= cg {
@@ -725,6 +729,7 @@ unsafe fn transpose_task<T: Elem>(row: Option<&[T]>, plan: &PartPlan, kind: Kind
                 }
             }
         } else {
+            zeros(i, i + blk);
             for i in i..i + blk {
                 let Some(col) = col_of(i) else {
                     continue;
