@@ -21,6 +21,11 @@ use crate::kernels::pool::{self, Shared, scratch};
 /// Pixels per task.
 const PIXELS: usize = 4;
 
+/// Runs `f(pixels)` for the tasks' ranges of `PIXELS` pixels covering `0..n`, on the kernel pool.
+fn per_pixels(n: usize, f: &(dyn Fn(core::ops::Range<usize>) + Sync)) {
+    pool::run(n.div_ceil(PIXELS), &|t| f(t * PIXELS..((t + 1) * PIXELS).min(n)));
+}
+
 std::thread_local! {
     /// A row's queries and the conv's patch scratch (on the calling thread).
     static ROW: RefCell<(Vec<i16>, Vec<u8>)> = const { RefCell::new((Vec::new(), Vec::new())) };
@@ -96,8 +101,8 @@ pub fn stats_row(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, y: usize, w: usiz
                 *fresh = true;
             }
             let prep = &*prep;
-            pool::run(n.div_ceil(PIXELS), &|t| {
-                let (x0, x1) = (t * PIXELS, ((t + 1) * PIXELS).min(n));
+            per_pixels(n, &|px| {
+                let (x0, x1) = (px.start, px.end);
                 // SAFETY: entries `2 x0 .. 2 x1 <= stats.len()`, this task's pixels only.
                 let o = unsafe { out.slice(2 * x0, 2 * (x1 - x0)) };
                 prep.stats(q.get(x0 * qk..x1 * qk).unwrap_or_default(), m, o);
@@ -109,8 +114,8 @@ pub fn stats_row(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, y: usize, w: usiz
         if batched {
             return;
         }
-        pool::run(n.div_ceil(PIXELS), &|t| {
-            for x in t * PIXELS..((t + 1) * PIXELS).min(n) {
+        per_pixels(n, &|px| {
+            for x in px {
                 let st = query_stats(q.get(x * qk..(x + 1) * qk).unwrap_or_default(), keys, m);
                 // SAFETY: entries `2x, 2x + 1 < stats.len()`, this task's pixels only.
                 let o = unsafe { out.slice(2 * x, 2) };
@@ -162,8 +167,8 @@ pub fn aggregate_row(
             }
             let prep = &*prep;
             // Four queries a task, two at a time in the kernel.
-            pool::run(n.div_ceil(PIXELS), &|t| {
-                let (x0, x1) = (t * PIXELS, ((t + 1) * PIXELS).min(n));
+            per_pixels(n, &|px| {
+                let (x0, x1) = (px.start, px.end);
                 // SAFETY: values `x0 cv .. x1 cv <= d.len()`, this task's pixels only.
                 let o = unsafe { out.slice(x0 * cv, (x1 - x0) * cv) };
                 prep.aggregate(q.get(x0 * qk..x1 * qk).unwrap_or_default(), stats.get(2 * x0..2 * x1).unwrap_or_default(), m, shift, o);
@@ -175,10 +180,10 @@ pub fn aggregate_row(
         if batched {
             return;
         }
-        pool::run(n.div_ceil(PIXELS), &|t| {
+        per_pixels(n, &|px| {
             ACC.with_borrow_mut(|acc| {
                 let acc = scratch(acc, cv);
-                for x in t * PIXELS..((t + 1) * PIXELS).min(n) {
+                for x in px {
                     let st = match stats.get(2 * x..2 * x + 2) {
                         Some(&[a, b]) => (a, b),
                         _ => (0, 0),
@@ -225,10 +230,10 @@ pub fn lookup_row(p: &LookupParams<'_>, f1: &[i8], f2row: &[i8], flow: &[i16], f
         let row = row.fill(f2row, w, fd).then_some(&*row);
         #[cfg(not(target_arch = "x86_64"))]
         let _ = row;
-        pool::run(n.div_ceil(PIXELS), &|t| {
+        per_pixels(n, &|xs| {
             WINDOW.with_borrow_mut(|(win, pre)| {
                 let mut s = LookupScratch { window: scratch(win, lens.0), prefix: scratch(pre, lens.1) };
-                for x in t * PIXELS..((t + 1) * PIXELS).min(n) {
+                for x in xs {
                     let px = y * w + x;
                     let d = flow.get(px * fc).copied().unwrap_or(0);
                     let f1 = f1.get(px * fd..(px + 1) * fd).unwrap_or_default();
