@@ -69,6 +69,7 @@ python3 scripts/package-size.py
 echo "== clippy on the core: no unwrap / expect / panic! outside tests (crate-level deny), target and host builds"
 rustup component list --installed 2>/dev/null | grep -q '^clippy' || rustup component add clippy
 cargo clippy -q -p muir --lib --target thumbv7em-none-eabihf --features dsp
+CARGO_TARGET_THUMBV8M_MAIN_NONE_EABIHF_RUSTFLAGS="-C target-cpu=cortex-m55" cargo clippy -q -p muir --lib --target thumbv8m.main-none-eabihf --features mve
 cargo clippy -q -p muir --lib --features std,internals
 
 echo "== the core's API docs build without warnings (broken or private intra-doc links)"

@@ -1,7 +1,9 @@
 //! The dot-product kernels of this build (Helium with feature `mve`, else the DSP ones) against
 //! the plain integer loops, on the target: random and extreme weights and activations (u8, i8,
 //! i16), lengths 0..=40 and around the 256-term chunks and the 8-lane vectors, both patches of the
-//! pair layout. The host cannot run these kernels, so `run-tests.sh` runs this before the frame.
+//! pair layout; with Helium also the MGA sums and the convolution epilogue (`mve::requant4`); whole
+//! convolution rows through the engine's entry against the plain twin. The host cannot run these
+//! kernels, so `run-tests.sh` runs this before the frame.
 //!
 //! Prints `MUIR-KERNELS ok cases=N` and exits 0, or prints the first mismatch and exits 1.
 
@@ -188,6 +190,282 @@ fn check_attention(q: &mut [i16; MAX_N], k: &mut [i16; MAX_N], r: &mut Rng) -> u
     cases
 }
 
+/// Multiplier and bias tables of one block of four channels, aligned as the blob's are.
+#[cfg(feature = "mve")]
+#[repr(C, align(8))]
+struct Tables {
+    mult: [u8; 8 * 4 * 6],
+    bias: [u8; 32],
+}
+
+/// The Helium convolution epilogue (`mve::requant4`, four channels of one pixel on 32-bit lanes)
+/// against the portable formula (`rshift_round(bias + sum_p requantize_i32(d, m), 8)`, clamped):
+/// 1 to 6 parts, shifts 8 to 62, random and extreme dot products, multipliers and biases, every
+/// output type. Where `FPSCR.QC` reports a saturation the engine recomputes the block, so only
+/// the unsaturated results must match; both kinds of case must occur (counted), and small
+/// operands must never report one.
+#[cfg(feature = "mve")]
+fn check_requant(r: &mut Rng) -> usize {
+    use muir::arith::{Multiplier, requantize_i32, rshift_round};
+    use muir::kernels::mve::{self, Requant4};
+    let mut t = Tables { mult: [0; 8 * 4 * 6], bias: [0; 32] };
+    let (mut exact, mut saturated) = (0usize, 0usize);
+    let _ = mve::take_qc();
+    for case in 0..6000u32 {
+        let np = 1 + (case % 6) as usize;
+        let kind = (case / 6) % 5;
+        let mut d = [0i32; 48];
+        let mut ms = [Multiplier { m: 0, shift: 8 }; 24];
+        for ch in 0..4 {
+            for p in 0..np {
+                let shift = 8 + (r.next() % 55) as u8;
+                let m = match kind {
+                    0 => i32::MIN,
+                    1 => i32::MAX,
+                    _ => (r.next() >> 32) as i32,
+                };
+                ms[ch * np + p] = Multiplier { m, shift };
+                let e = &mut t.mult[8 * (ch * np + p)..8 * (ch * np + p + 1)];
+                e[..4].copy_from_slice(&m.to_le_bytes());
+                e[4] = shift;
+                e[5..].fill(0);
+                d[8 * p + ch] = match kind {
+                    0 | 1 => if r.next() % 2 == 0 { i32::MIN } else { i32::MAX },
+                    2 => ((r.next() >> 32) as i32) >> 12,
+                    3 => (r.next() % 2001) as i32 - 1000,
+                    _ => (r.next() >> 32) as i32,
+                };
+            }
+            let b = ((r.next() >> 33) as i64) - (1 << 30) + 1;
+            let b = if kind == 3 { b >> 12 } else { b };
+            t.bias[8 * ch..8 * ch + 8].copy_from_slice(&b.to_le_bytes());
+        }
+        // Small operands (kind 3): products below 2^31, shifts >= 8, nothing can saturate.
+        if kind == 3 {
+            for ch in 0..4 {
+                for p in 0..np {
+                    ms[ch * np + p].m >>= 12;
+                    let m = ms[ch * np + p].m;
+                    t.mult[8 * (ch * np + p)..8 * (ch * np + p) + 4].copy_from_slice(&m.to_le_bytes());
+                }
+            }
+        }
+        let (lo, hi) = [(0, 255), (-128, 127), (-32768, 32767), (0, 32767)][(case % 4) as usize];
+        let mut want = [0i64; 4];
+        for (ch, w) in want.iter_mut().enumerate() {
+            let s: i64 = (0..np).map(|p| requantize_i32(d[8 * p + ch], ms[ch * np + p])).sum();
+            let b = i64::from_le_bytes(t.bias[8 * ch..8 * ch + 8].try_into().unwrap_or_default());
+            *w = rshift_round(s + b, 8).clamp(lo as i64, hi as i64);
+        }
+        let k = Requant4::new(np, lo, hi);
+        let got: [i64; 4] = match lo {
+            -128 => {
+                let mut o = [0i8; 4];
+                // SAFETY: `d` holds 48 values, the tables 4 channels of `np` parts, `o` four.
+                unsafe { mve::requant4(d.as_ptr(), t.mult.as_ptr(), &k, np, t.bias.as_ptr(), o.as_mut_ptr()) };
+                o.map(i64::from)
+            }
+            0 if hi == 255 => {
+                let mut o = [0u8; 4];
+                // SAFETY: as above.
+                unsafe { mve::requant4(d.as_ptr(), t.mult.as_ptr(), &k, np, t.bias.as_ptr(), o.as_mut_ptr()) };
+                o.map(i64::from)
+            }
+            _ => {
+                let mut o = [0i16; 4];
+                // SAFETY: as above.
+                unsafe { mve::requant4(d.as_ptr(), t.mult.as_ptr(), &k, np, t.bias.as_ptr(), o.as_mut_ptr()) };
+                o.map(i64::from)
+            }
+        };
+        if mve::take_qc() {
+            if kind == 3 {
+                println!("MUIR-KERNELS FAILED requant4 case {case}: saturation reported for small operands");
+                process::exit(1);
+            }
+            saturated += 1;
+        } else {
+            if got != want {
+                fail("requant4", case as usize, &got, &want);
+            }
+            exact += 1;
+        }
+    }
+    if exact < 1000 || saturated < 100 {
+        println!("MUIR-KERNELS FAILED requant4: {exact} exact and {saturated} saturated cases (both kinds must occur)");
+        process::exit(1);
+    }
+    exact + saturated
+}
+
+/// Largest patch of the convolution-row check (`k * k * sum(parts)`).
+const CONV_KL: usize = 9 * 72;
+/// Largest input part (`h x w x ch`) and output (`h x w x cout`) of the convolution-row check.
+const CONV_IN: usize = 5 * 13 * 24;
+const CONV_OUT: usize = 5 * 13 * 13;
+
+/// The tables and buffers of the convolution-row check, aligned as the engine's are.
+#[repr(C, align(8))]
+struct ConvBufs {
+    weights: [i8; 13 * CONV_KL],
+    mult: [u8; 8 * 13 * 3],
+    bias: [u8; 8 * 13],
+    x8: [[u8; CONV_IN]; 3],
+    x16: [[i16; CONV_IN]; 3],
+    want: [i16; CONV_OUT],
+    got: [i16; CONV_OUT],
+    scratch: [u8; 8 * CONV_KL],
+}
+
+static mut CONV: ConvBufs = ConvBufs {
+    weights: [0; 13 * CONV_KL],
+    mult: [0; 8 * 13 * 3],
+    bias: [0; 8 * 13],
+    x8: [[0; CONV_IN]; 3],
+    x16: [[0; CONV_IN]; 3],
+    want: [0; CONV_OUT],
+    got: [0; CONV_OUT],
+    scratch: [0; 8 * CONV_KL],
+};
+
+/// Whole convolutions row by row through the engine's entry (`engine::encoder::run_conv`: with
+/// Helium the vector epilogue of `conv`, on the DSP build the u8 rows widened once to the i16
+/// loop) against the plain twin `conv_plain`: random layers of 1 to 3 parts (channel counts with
+/// and without whole groups of four), kernels 1, 3 and 7, strides 1 and 2, odd and even widths
+/// and channel counts, u8 and i16 inputs, every output type and activation, shifts inside and
+/// outside the vector path's range, large biases, and extreme operands that saturate the vector
+/// lanes (the recomputed blocks).
+fn check_conv(r: &mut Rng) -> usize {
+    use muir::engine::encoder::run_conv;
+    use muir::kernels::OutRow;
+    use muir::kernels::conv::{BiasRef, ConvParams, MultRef, PartRows, conv_plain};
+    use muir::model::graph::PostOp;
+    // SAFETY: called once, the only user of `CONV`.
+    let b = unsafe { &mut *core::ptr::addr_of_mut!(CONV) };
+    let mut cases = 0;
+    for case in 0..600u32 {
+        let wide = case % 2 == 1;
+        let np = 1 + (r.next() % 3) as usize;
+        let mut parts = [0usize; 3];
+        for ch in parts.iter_mut().take(np) {
+            *ch = match r.next() % 4 {
+                0 => 4 * (1 + (r.next() % 6) as usize),
+                _ => 1 + (r.next() % 24) as usize,
+            };
+        }
+        let cin: usize = parts.iter().sum();
+        let k = match r.next() % 3 {
+            0 => 1,
+            1 if cin <= 8 => 7,
+            _ => 3,
+        };
+        let stride = 1 + (r.next() % 2) as usize;
+        let (h, w) = (1 + (r.next() % 5) as usize, 1 + (r.next() % 13) as usize);
+        let cout = 1 + (r.next() % 13) as usize;
+        let kl = k * k * cin;
+        let extreme = case % 5 == 4;
+        for v in b.weights.iter_mut().take(cout * kl) {
+            *v = if extreme { if r.next() % 2 == 0 { i8::MIN } else { i8::MAX } } else { (r.next() >> 56) as i8 };
+        }
+        // Shifts: mostly the vector path's 8..=62; some layers one outside it (the portable path).
+        let odd_shift = match case % 7 {
+            3 => Some(5u8),
+            5 => Some(63u8),
+            _ => None,
+        };
+        for (i, e) in b.mult.chunks_exact_mut(8).take(cout * np).enumerate() {
+            let shift = match odd_shift {
+                Some(s) if i == cout * np / 2 => s,
+                _ if extreme => 8 + (r.next() % 6) as u8,
+                _ => 20 + (r.next() % 20) as u8,
+            };
+            let m = if extreme { i32::MAX - (r.next() % 2) as i32 } else { (r.next() >> 33) as i32 + (1 << 29) };
+            e[..4].copy_from_slice(&m.to_le_bytes());
+            e[4] = shift;
+            e[5..].fill(0);
+        }
+        let big_bias = case % 11 == 6;
+        for (c, e) in b.bias.chunks_exact_mut(8).take(cout).enumerate() {
+            let v = if big_bias && c == 0 { 1i64 << 35 } else { ((r.next() >> 40) as i64) - (1 << 23) };
+            e.copy_from_slice(&v.to_le_bytes());
+        }
+        let post = [PostOp::None, PostOp::Relu, PostOp::Sigmoid, PostOp::Tanh][(r.next() % 4) as usize];
+        let p = ConvParams {
+            k,
+            stride,
+            parts: &parts[..np],
+            cout,
+            weights: &b.weights[..cout * kl],
+            bias: BiasRef(&b.bias[..8 * cout]),
+            mult: MultRef(&b.mult[..8 * cout * np]),
+            post,
+        };
+        let (h_out, w_out) = ((h + 2 * (k / 2) - k) / stride + 1, p.out_width(w));
+        let n_out = h_out * w_out * cout;
+        let out_kind = r.next() % 3;
+        let fill = |r: &mut Rng| if extreme { Fill::Max } else if r.next() % 8 == 0 { Fill::Min } else { Fill::Random };
+        if wide {
+            for (t, &ch) in b.x16.iter_mut().zip(&parts[..np]) {
+                let f = fill(r);
+                for v in t.iter_mut().take(h * w * ch) {
+                    *v = i16::sample(r, f);
+                }
+            }
+        } else {
+            for (t, &ch) in b.x8.iter_mut().zip(&parts[..np]) {
+                let f = fill(r);
+                for v in t.iter_mut().take(h * w * ch) {
+                    *v = u8::sample(r, f);
+                }
+            }
+        }
+        b.want[..n_out].fill(0);
+        b.got[..n_out].fill(0);
+        let (want, got) = (&mut b.want[..n_out], &mut b.got[..n_out]);
+        // Both outputs as i16 storage, or as bytes of the same memory (i8 / u8 rows).
+        fn row<'a>(kind: u64, v: &'a mut [i16]) -> OutRow<'a> {
+            match kind {
+                0 => OutRow::I16(v),
+                1 => OutRow::U8(bytemuck::cast_slice_mut(v)),
+                _ => OutRow::I8(bytemuck::cast_slice_mut(v)),
+            }
+        }
+        let row_len = w_out * cout;
+        macro_rules! run {
+            ($x:expr) => {{
+                let ts: [&[_]; 3] = [&$x[0][..h * w * parts[0]], &$x[1][..h * w * parts[1]], &$x[2][..h * w * parts[2]]];
+                conv_plain(&p, &ts[..np], h, w, &mut row(out_kind, want));
+                for y in 0..h_out {
+                    let rows: [PartRows<'_, _>; 3] = core::array::from_fn(|i| PartRows::of_tensor(ts[i], h, w * parts[i], y, k, stride));
+                    let mut all = row(out_kind, got);
+                    let dst = match &mut all {
+                        OutRow::I16(o) => OutRow::I16(&mut o[y * row_len..(y + 1) * row_len]),
+                        OutRow::U8(o) => OutRow::U8(&mut o[y * row_len..(y + 1) * row_len]),
+                        OutRow::I8(o) => OutRow::I8(&mut o[y * row_len..(y + 1) * row_len]),
+                    };
+                    let mut dst = dst;
+                    run_conv(&p, &rows[..np], w, &mut dst, &mut b.scratch);
+                }
+            }};
+        }
+        if wide {
+            run!(b.x16);
+        } else {
+            run!(b.x8);
+        }
+        if b.want[..n_out] != b.got[..n_out] {
+            let at = b.want[..n_out].iter().zip(&b.got[..n_out]).position(|(a, g)| a != g).unwrap_or(0);
+            println!(
+                "MUIR-KERNELS FAILED conv row case {case}: k={k} stride={stride} parts={:?} cout={cout} {h}x{w} wide={wide} out={out_kind} post={} at {at}: engine {}, plain {}",
+                &parts[..np], post as u8, b.got[at], b.want[at]
+            );
+            process::exit(1);
+        }
+        cases += 1;
+    }
+    cases
+}
+
 fn lengths() -> impl Iterator<Item = usize> {
     (0..=40).chain([63, 64, 65, 72, 127, 128, 129, 255, 256, 257, 260, 507, 508, 509, 511, 512, 513, 576, 1000, 1016, 1017, 1152, 2304, 5760])
 }
@@ -243,7 +521,9 @@ fn main() -> ! {
     #[cfg(feature = "mve")]
     {
         cases += check_attention(i16s.a, i16s.b, &mut r);
+        cases += check_requant(&mut r);
     }
+    cases += check_conv(&mut r);
     println!("MUIR-KERNELS ok cases={cases}");
     process::exit(0)
 }

@@ -42,6 +42,9 @@ pub fn conv<'m>(m: &'m QuantModel<'_>, id: ConvId) -> ConvParams<'m> {
 /// Runs `conv_row` with the scratch patch typed as `T`.
 pub fn run_conv<T: Elem + bytemuck::Pod>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, out: &mut OutRow<'_>, patch: &mut [u8]) {
     // Two patches when the scratch holds them (conv_row then works on pixel pairs), else one.
+    if T::conv_row_wide(p, inputs, w_in, out, patch) {
+        return;
+    }
     let one = p.patch_len() * core::mem::size_of::<T>();
     let n = if patch.len() >= 2 * one { 2 * one } else { one };
     let patch: &mut [T] = bytemuck::cast_slice_mut(first_n_mut(patch, n));

@@ -23,6 +23,9 @@ use crate::model::graph::PostOp;
 #[cfg(all(target_arch = "x86_64", feature = "std"))]
 #[path = "conv_avx512.rs"]
 mod avx512;
+#[cfg(all(target_arch = "arm", feature = "mve"))]
+#[path = "conv_helium.rs"]
+mod helium;
 
 /// Largest kernel size.
 pub const MAX_K: usize = 7;
@@ -410,6 +413,64 @@ fn channel_at<T: Elem>(p: &ConvParams<'_>, patch: &[T], c: usize, out: &mut OutR
     out.set(at + c, finish(p, c, sum));
 }
 
+/// Channels `c` and `c + 1` of output pixels `a` and `b` (at `at_a` and `at_b` of `out`) from
+/// their gathered pair of patches: `w`, `m`, `b` are the channel pair's weights, multipliers and
+/// biases ([`channel_pairs`]). Every weight and activation is loaded once for the four products
+/// ([`Elem::dot2x2`]).
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn block2x2<T: Elem>(p: &ConvParams<'_>, pair: &[T], w: &[i8], m: &[u8], b: &[u8], out: &mut OutRow<'_>, at_a: usize, at_b: usize, c: usize) {
+    let k = p.k;
+    let nparts = p.parts.len();
+    let ((w0, w1), (m0, m1)) = (halves(w), halves(m));
+    let mut s = [0i64; 4];
+    let (b0, b1) = halves(b);
+    let (b0, b1) = (bias_at(b0), bias_at(b1));
+    // Whether every contribution came through `requantize_i32` and both biases are
+    // small (`short_ok`): then no sum can saturate and plain adds give the same integers.
+    let mut short = b0.unsigned_abs() < SHORT_MAX_BIAS && b1.unsigned_abs() < SHORT_MAX_BIAS;
+    let mut o = 0;
+    for ((&ch, m0), m1) in p.parts.iter().zip(m0.chunks_exact(8)).zip(m1.chunks_exact(8)) {
+        let n = ch * k * k;
+        let d = if nparts == 1 {
+            T::dot2x2(w0, w1, pair)
+        } else {
+            let (Some(a), Some(b), Some(x)) = (w0.get(o..o + n), w1.get(o..o + n), pair.get(2 * o..2 * (o + n))) else {
+                break;
+            };
+            T::dot2x2(a, b, x)
+        };
+        let (m0, m1) = (mult_at(m0), mult_at(m1));
+        match (short && short_ok(m0) && short_ok(m1), d.map(i32::try_from)) {
+            (true, [Ok(a0), Ok(a1), Ok(a2), Ok(a3)]) => {
+                s[0] += requantize_i32(a0, m0);
+                s[1] += requantize_i32(a1, m1);
+                s[2] += requantize_i32(a2, m0);
+                s[3] += requantize_i32(a3, m1);
+            }
+            _ => {
+                short = false;
+                s[0] = s[0].saturating_add(requantize(d[0], m0));
+                s[1] = s[1].saturating_add(requantize(d[1], m1));
+                s[2] = s[2].saturating_add(requantize(d[2], m0));
+                s[3] = s[3].saturating_add(requantize(d[3], m1));
+            }
+        }
+        o += n;
+    }
+    if short {
+        out.set(at_a + c, finish_short(p.post, b0, s[0]));
+        out.set(at_a + c + 1, finish_short(p.post, b1, s[1]));
+        out.set(at_b + c, finish_short(p.post, b0, s[2]));
+        out.set(at_b + c + 1, finish_short(p.post, b1, s[3]));
+    } else {
+        out.set(at_a + c, finish_with(p.post, b0, s[0]));
+        out.set(at_a + c + 1, finish_with(p.post, b1, s[1]));
+        out.set(at_b + c, finish_with(p.post, b0, s[2]));
+        out.set(at_b + c + 1, finish_with(p.post, b1, s[3]));
+    }
+}
+
 /// Computes one output row (`out_width * cout` values) from the parts' input rows. `patch` is
 /// scratch of at least [`ConvParams::patch_len`] elements; with room for two patches the row is
 /// computed two output pixels at a time, two output channels each ([`Elem::dot2x2`]: every
@@ -417,7 +478,6 @@ fn channel_at<T: Elem>(p: &ConvParams<'_>, patch: &[T], c: usize, out: &mut OutR
 /// Same integers either way. With less than one patch of scratch, or no weights per channel
 /// (`patch_len() == 0`), nothing is computed.
 pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, out: &mut OutRow<'_>, patch: &mut [T]) {
-    let k = p.k;
     let kl = p.patch_len();
     if kl == 0 {
         return;
@@ -429,60 +489,19 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
     let w_out = p.out_width(w_in);
     let mut ox = 0;
     if let Some(pair) = patch.get_mut(..2 * kl) {
+        #[cfg(all(target_arch = "arm", feature = "mve"))]
+        let helium = helium::Layer::of(p, out, w_out);
         while ox + 2 <= w_out {
             gather2(p, inputs, w_in, ox, pair);
             let (at_a, at_b) = (ox * p.cout, (ox + 1) * p.cout);
-            let nparts = p.parts.len();
+            #[allow(unused_mut)]
             let mut c = 0;
-            // A one-part layer needs no per-part loop.
-            for ((w, m), b) in channel_pairs(p, kl) {
-                let ((w0, w1), (m0, m1)) = (halves(w), halves(m));
-                let mut s = [0i64; 4];
-                let (b0, b1) = halves(b);
-                let (b0, b1) = (bias_at(b0), bias_at(b1));
-                // Whether every contribution came through `requantize_i32` and both biases are
-                // small (`short_ok`): then no sum can saturate and plain adds give the same integers.
-                let mut short = b0.unsigned_abs() < SHORT_MAX_BIAS && b1.unsigned_abs() < SHORT_MAX_BIAS;
-                let mut o = 0;
-                for ((&ch, m0), m1) in p.parts.iter().zip(m0.chunks_exact(8)).zip(m1.chunks_exact(8)) {
-                    let n = ch * k * k;
-                    let d = if nparts == 1 {
-                        T::dot2x2(w0, w1, pair)
-                    } else {
-                        let (Some(a), Some(b), Some(x)) = (w0.get(o..o + n), w1.get(o..o + n), pair.get(2 * o..2 * (o + n))) else {
-                            break;
-                        };
-                        T::dot2x2(a, b, x)
-                    };
-                    let (m0, m1) = (mult_at(m0), mult_at(m1));
-                    match (short && short_ok(m0) && short_ok(m1), d.map(i32::try_from)) {
-                        (true, [Ok(a0), Ok(a1), Ok(a2), Ok(a3)]) => {
-                            s[0] += requantize_i32(a0, m0);
-                            s[1] += requantize_i32(a1, m1);
-                            s[2] += requantize_i32(a2, m0);
-                            s[3] += requantize_i32(a3, m1);
-                        }
-                        _ => {
-                            short = false;
-                            s[0] = s[0].saturating_add(requantize(d[0], m0));
-                            s[1] = s[1].saturating_add(requantize(d[1], m1));
-                            s[2] = s[2].saturating_add(requantize(d[2], m0));
-                            s[3] = s[3].saturating_add(requantize(d[3], m1));
-                        }
-                    }
-                    o += n;
-                }
-                if short {
-                    out.set(at_a + c, finish_short(p.post, b0, s[0]));
-                    out.set(at_a + c + 1, finish_short(p.post, b1, s[1]));
-                    out.set(at_b + c, finish_short(p.post, b0, s[2]));
-                    out.set(at_b + c + 1, finish_short(p.post, b1, s[3]));
-                } else {
-                    out.set(at_a + c, finish_with(p.post, b0, s[0]));
-                    out.set(at_a + c + 1, finish_with(p.post, b1, s[1]));
-                    out.set(at_b + c, finish_with(p.post, b0, s[2]));
-                    out.set(at_b + c + 1, finish_with(p.post, b1, s[3]));
-                }
+            #[cfg(all(target_arch = "arm", feature = "mve"))]
+            if let Some(l) = &helium {
+                c = l.channels(p, pair, out, at_a, at_b);
+            }
+            for ((w, m), b) in channel_pairs(p, kl).skip(c / 2) {
+                block2x2(p, pair, w, m, b, out, at_a, at_b, c);
                 c += 2;
             }
             if c < p.cout {
@@ -496,6 +515,13 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
             ox += 2;
         }
     }
+    single_pixels(p, inputs, w_in, out, patch, ox);
+}
+
+/// Output pixels `ox ..` of the row one at a time (each from its own gathered patch).
+fn single_pixels<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, out: &mut OutRow<'_>, patch: &mut [T], mut ox: usize) {
+    let kl = p.patch_len();
+    let w_out = p.out_width(w_in);
     let Some(patch) = patch.get_mut(..kl) else {
         return;
     };
@@ -514,6 +540,82 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
             channel_at(p, patch, c, out, at);
         }
         ox += 1;
+    }
+}
+
+/// [`conv_row`] for u8 activations on the Armv7E-M DSP build: each pair of patches is gathered
+/// in the u8 pair layout, then widened once to the i16 pair layout (values 0, 2, 1, 3 of each
+/// group: what `UXTB16` of a word and of the word rotated by 8 give), and every channel pair runs
+/// the i16 loop ([`Elem::dot2x2`] for i16: 16 instructions per 16 MACs, against 20 for the u8
+/// loop, which widens the same activations again for every channel pair). The same products
+/// (u8 values are exact in i16) in the same chunks, so the same integers. Needs `6 patch_len()`
+/// bytes of `scratch` (the engine's holds two i16 patches of its largest layer); returns false,
+/// having computed nothing, when it is shorter.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+pub fn conv_row_u8_wide(p: &ConvParams<'_>, inputs: &[PartRows<'_, u8>], w_in: usize, out: &mut OutRow<'_>, scratch: &mut [u8]) -> bool {
+    let kl = p.patch_len();
+    let Some((pair, rest)) = scratch.split_at_mut_checked(2 * kl) else {
+        return false;
+    };
+    // Word-aligned i16 pairs (the i16 loop loads them with `LDRD`).
+    let skip = rest.as_ptr().align_offset(4);
+    let Some(wide) = rest.get_mut(skip..).and_then(|r| r.get_mut(..4 * kl)) else {
+        return false;
+    };
+    let Ok(wide) = bytemuck::try_cast_slice_mut::<u8, i16>(wide) else {
+        return false;
+    };
+    if kl == 0 {
+        return false;
+    }
+    let w_out = p.out_width(w_in);
+    let mut ox = 0;
+    while ox + 2 <= w_out {
+        gather2(p, inputs, w_in, ox, pair);
+        widen_pairs(p, pair, wide);
+        let (at_a, at_b) = (ox * p.cout, (ox + 1) * p.cout);
+        let mut c = 0;
+        for ((w, m), b) in channel_pairs(p, kl) {
+            block2x2::<i16>(p, wide, w, m, b, out, at_a, at_b, c);
+            c += 2;
+        }
+        if c < p.cout {
+            for (x, at) in [(ox, at_a), (ox + 1, at_b)] {
+                let single = head_mut(pair, kl);
+                gather(p, inputs, w_in, x, single);
+                channel_at(p, single, c, out, at);
+            }
+        }
+        ox += 2;
+    }
+    single_pixels(p, inputs, w_in, out, pair, ox);
+    true
+}
+
+/// The u8 pair layout of [`gather2`] (per part, groups of four values of patch `a` then `b`,
+/// then the `n % 4` last values of each) in the i16 pair layout of the DSP build
+/// ([`pair_index`] with the swap: each group as values 0, 2, 1, 3).
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline]
+fn widen_pairs(p: &ConvParams<'_>, pair: &[u8], wide: &mut [i16]) {
+    let mut base = 0;
+    for &ch in p.parts {
+        let n = ch * p.k * p.k;
+        let (Some(src), Some(dst)) = (pair.get(2 * base..2 * (base + n)), wide.get_mut(2 * base..2 * (base + n))) else {
+            return;
+        };
+        let q = n / 4 * 4;
+        let (sg, st) = src.split_at(2 * q);
+        let (dg, dt) = dst.split_at_mut(2 * q);
+        for (d, s) in dg.chunks_exact_mut(4).zip(sg.chunks_exact(4)) {
+            if let ([d0, d1, d2, d3], &[s0, s1, s2, s3]) = (d, s) {
+                (*d0, *d1, *d2, *d3) = (s0 as i16, s2 as i16, s1 as i16, s3 as i16);
+            }
+        }
+        for (d, &s) in dt.iter_mut().zip(st) {
+            *d = s as i16;
+        }
+        base += n;
     }
 }
 

@@ -120,6 +120,13 @@ pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + Send + Sync + 's
     }
     /// The slice as a conv output row.
     fn as_out(d: &mut [Self]) -> OutRow<'_>;
+    /// A whole convolution row by a path of this type's own with the engine's byte scratch
+    /// (`conv::conv_row_u8_wide` for u8 on the DSP build); false when there is none (the caller
+    /// then runs `conv::conv_row`).
+    #[inline(always)]
+    fn conv_row_wide(_p: &conv::ConvParams<'_>, _inputs: &[conv::PartRows<'_, Self>], _w_in: usize, _out: &mut OutRow<'_>, _scratch: &mut [u8]) -> bool {
+        false
+    }
 }
 
 #[deny(clippy::indexing_slicing)]
@@ -159,6 +166,11 @@ impl Elem for i8 {
 
 #[deny(clippy::indexing_slicing)]
 impl Elem for u8 {
+    #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+    #[inline(always)]
+    fn conv_row_wide(p: &conv::ConvParams<'_>, inputs: &[conv::PartRows<'_, u8>], w_in: usize, out: &mut OutRow<'_>, scratch: &mut [u8]) -> bool {
+        conv::conv_row_u8_wide(p, inputs, w_in, out, scratch)
+    }
     const BITS: u8 = 8;
     const STORAGE: crate::arith::QFormat = crate::arith::QFormat::u8(0);
     #[inline(always)]

@@ -348,3 +348,136 @@ pub fn dot2x2_split_i16(w0: &[i8], w1: &[i8], a: &[i16], b: &[i16]) -> [i64; 4] 
     }
     acc
 }
+
+/// The per-layer constants of [`requant4`]: four 32-bit lanes each.
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(16))]
+pub struct Requant4 {
+    /// Byte offsets of four consecutive channels' multipliers of one part: `8 np i`.
+    pub mult_offsets: [u32; 4],
+    /// Lower clamp (the output type's minimum; 0 with a ReLU).
+    pub lo: [i32; 4],
+    /// Upper clamp (the output type's maximum).
+    pub hi: [i32; 4],
+    /// Byte offsets of four consecutive biases: `8 i`.
+    pub bias_offsets: [u32; 4],
+}
+
+impl Requant4 {
+    /// The constants of a layer of `np` parts clamping to `lo..=hi`.
+    pub const fn new(np: usize, lo: i32, hi: i32) -> Self {
+        let s = 8 * np as u32;
+        Requant4 { mult_offsets: [0, s, 2 * s, 3 * s], lo: [lo; 4], hi: [hi; 4], bias_offsets: [0, 8, 16, 24] }
+    }
+}
+
+/// A convolution output type [`requant4`] stores with a narrowing vector store.
+pub trait Narrow: Copy {
+    /// [`requant4`] for this output type.
+    ///
+    /// # Safety
+    /// See [`requant4`].
+    unsafe fn requant4_n(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, out: *mut Self);
+}
+
+/// The [`Narrow`] kernel of one output type: `$store` is the narrowing store of four 32-bit lanes
+/// (a low base register, r0 here). Registers: q7 the multipliers' offsets, q0 those of the shift
+/// bytes (4 further), q5 the constant 32, q6 the sums; q1-q4 temporaries.
+macro_rules! narrow {
+    ($t:ty, $store:literal) => {
+        impl Narrow for $t {
+            #[inline(always)]
+            unsafe fn requant4_n(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, out: *mut $t) {
+                // SAFETY: the caller's bounds (`requant4`); registers as listed.
+                unsafe {
+                    asm!(
+                        "vldrw.u32 q0, [{k}, #48]",
+                        "vldrw.u32 q6, [{bias}, q0]",
+                        "vldrw.u32 q7, [{k}]",
+                        "vmov.i32 q0, #4",
+                        "vadd.i32 q0, q7, q0",
+                        "vmov.i32 q5, #32",
+                        "2:",
+                        "vldrw.u32 q1, [{d}], #32",
+                        "vldrw.u32 q2, [r1, q7]",
+                        "vldrb.u32 q3, [r1, q0]",
+                        "vmulh.s32 q4, q1, q2",
+                        "vmul.i32 q1, q1, q2",
+                        "vsub.i32 q2, q5, q3",
+                        "vneg.s32 q3, q3",
+                        "vrshl.u32 q1, q1, q3",
+                        "vqrshl.s32 q4, q4, q2",
+                        "vqadd.s32 q4, q4, q1",
+                        "vqadd.s32 q6, q6, q4",
+                        "add r1, r1, #8",
+                        "subs {n}, {n}, #1",
+                        "bne 2b",
+                        "vrshr.s32 q6, q6, #8",
+                        "vldrw.u32 q1, [{k}, #16]",
+                        "vmax.s32 q6, q6, q1",
+                        "vldrw.u32 q1, [{k}, #32]",
+                        "vmin.s32 q6, q6, q1",
+                        concat!($store, " q6, [r0]"),
+                        k = in(reg) k as *const Requant4,
+                        bias = in(reg) bias,
+                        d = inout(reg) d => _,
+                        n = inout(reg) np => _,
+                        inout("r1") mult => _,
+                        in("r0") out,
+                        out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+                        out("d8") _, out("d9") _, out("d10") _, out("d11") _, out("d12") _, out("d13") _, out("d14") _, out("d15") _,
+                        options(nostack),
+                    );
+                }
+            }
+        }
+    };
+}
+
+narrow!(u8, "vstrb.32");
+narrow!(i8, "vstrb.32");
+narrow!(i16, "vstrh.32");
+
+/// The convolution epilogue of four output channels `c .. c + 4` at one pixel, on 32-bit lanes:
+/// `out[i] = clamp(rshift_round(bias[c + i] + sum_p requantize_i32(d[8 p + i], mult(c + i, p)),
+/// 8), lo, hi)` over the parts `p < np`, where `mult(c, p)` is the `MultRef` entry at byte
+/// `8 (c np + p)` of `mult` (multiplier word, shift byte) and the bias the low word of the
+/// `BiasRef` entry at byte `8 c` of `bias`.
+///
+/// Each `requantize_i32(x, m)` with shift `s` is computed from the product's high word `h` and
+/// low word `l` (`VMULH`, `VMUL`): `h 2^(32-s) + rshift_round_u(l, s)` for `s <= 32` (`h 2^32` is
+/// a multiple of `2^s`, so the rounding only sees `l`), `rshift_round(h, s - 32)` for `s > 32`
+/// (then `l < 2^32 <= 2^(s-1)`: its rounded term is 0 and it cannot carry into the result): one
+/// formula, `VQRSHL(h, 32 - s) + VRSHL_u(l, -s)`. `VRSHL`, `VQRSHL` and `VRSHR` round in full
+/// precision. Every step is exact unless a saturating instruction (`VQRSHL`, `VQADD`) saturates,
+/// and then it sets `FPSCR.QC`: the result equals the portable epilogue's (`conv`'s
+/// `finish_short` of the summed `requantize_i32`s, then the clamp) whenever [`take_qc`] reports
+/// no saturation afterwards; the caller recomputes the outputs otherwise.
+///
+/// # Safety
+/// `d` points at `8 (np - 1) + 4` readable `i32`s (four per part, parts 32 bytes apart); `mult`
+/// is 4-byte aligned with `8 (4 np)` readable bytes; `k` is `Requant4::new(np, ..)`; `bias` is
+/// 4-byte aligned with 32 readable bytes; `out` points at four writable values (2-byte aligned
+/// for i16); `np >= 1`. The caller checks once per layer that every shift byte is in `8..=62`
+/// and every bias within `i32` (otherwise the result is not the portable one, but nothing
+/// outside these bounds is read or written).
+#[inline(always)]
+pub unsafe fn requant4<O: Narrow>(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, out: *mut O) {
+    // SAFETY: forwarded.
+    unsafe { O::requant4_n(d, mult, k, np, bias, out) }
+}
+
+/// Whether a saturating vector instruction saturated since the flag was last cleared
+/// (`FPSCR.QC`), clearing it.
+#[inline(always)]
+pub fn take_qc() -> bool {
+    let fpscr: u32;
+    // SAFETY: reads the floating-point status and control register.
+    unsafe { asm!("vmrs {0}, fpscr", out(reg) fpscr, options(nomem, nostack, preserves_flags)) };
+    let qc = fpscr & (1 << 27) != 0;
+    if qc {
+        // SAFETY: writes back the same register with QC cleared (LTPSIZE and the rest unchanged).
+        unsafe { asm!("vmsr fpscr, {0}", in(reg) fpscr & !(1 << 27), options(nomem, nostack)) };
+    }
+    qc
+}

@@ -1,0 +1,185 @@
+//! [`super::conv_row`]'s channels on Helium (Cortex-M55, feature `mve`): the requantisation,
+//! bias, rounding, activation and store of four output channels at a time on 32-bit vector lanes
+//! ([`mve::requant4`]) instead of one value at a time in 64-bit scalar arithmetic.
+//!
+//! Per pair of output pixels and block of four output channels, the two channel pairs' dot
+//! products ([`Elem::dot2x2`], as in the portable loop) are kept per part as 32-bit values, then
+//! one vector epilogue per pixel writes the four outputs. The portable code defines the result,
+//! and this path gives the same integers:
+//! - it runs only on layers whose every shift is in `8..=62` and every bias within `2^30` (checked
+//!   once per row, [`Layer::of`]), where the portable loop takes its short path (`short_ok`);
+//! - a block whose dot product does not fit in `i32`, or whose parts do not fit the tables, goes
+//!   through the portable block ([`super::block2x2`]) instead;
+//! - the vector epilogue is exact unless one of its saturating instructions saturates, which sets
+//!   `FPSCR.QC` ([`mve::take_qc`]); the block's outputs are then recomputed with the portable
+//!   formula from the same dot products.
+//!
+//! `boards/qemu-mps3-m55` checks the vector epilogue against the portable formula on the target
+//! (random and extreme operands, saturating cases included) and the whole frame against the host.
+#![deny(clippy::indexing_slicing)]
+
+use super::super::mve::{self, Narrow, Requant4};
+use super::super::{Elem, OutRow};
+use super::{ConvParams, bias_at, block2x2, finish_short, mult_at};
+use crate::arith::{lut, requantize_i32};
+use crate::model::graph::{MAX_PARTS, PostOp};
+
+/// Bias magnitude bound of the vector path (the bias enters a 32-bit lane).
+const MAX_BIAS: u64 = 1 << 30;
+
+/// Dot products of a block: per part, four channels at pixel `a`, then the same at pixel `b`.
+type Dots = [i32; MAX_PARTS * 8];
+
+/// A layer the vector epilogue serves, with its constants.
+pub(super) struct Layer {
+    k: Requant4,
+    /// The lookup table of a sigmoid or tanh activation (applied to the clamped vector).
+    lut: Option<fn(i16) -> i16>,
+}
+
+impl Layer {
+    /// The vector epilogue's constants for `p` writing `w_out` pixels into `out`, or `None` where
+    /// the portable path must run: a shift outside `8..=62`, a bias beyond [`MAX_BIAS`], tables or
+    /// the output row shorter than the parameters say, or tables not 4-byte aligned.
+    pub(super) fn of(p: &ConvParams<'_>, out: &OutRow<'_>, w_out: usize) -> Option<Layer> {
+        let np = p.parts.len();
+        if np == 0 || np > MAX_PARTS || p.cout < 4 || out.len() < w_out * p.cout || p.weights.len() < p.cout * p.patch_len() {
+            return None;
+        }
+        let (mult, bias) = (p.mult.0.get(..8 * np * p.cout)?, p.bias.0.get(..8 * p.cout)?);
+        if !(mult.as_ptr() as usize).is_multiple_of(4) || !(bias.as_ptr() as usize).is_multiple_of(4) {
+            return None;
+        }
+        if !mult.chunks_exact(8).all(|e| matches!(e.get(4), Some(8..=62))) || !bias.chunks_exact(8).all(|b| bias_at(b).unsigned_abs() < MAX_BIAS) {
+            return None;
+        }
+        let (lo, hi) = match out {
+            OutRow::U8(_) => (0, 255),
+            OutRow::I8(_) => (-128, 127),
+            OutRow::I16(_) => (-32768, 32767),
+        };
+        let (lo, hi, lut) = match p.post {
+            PostOp::None => (lo, hi, None),
+            PostOp::Relu => (lo.max(0), hi, None),
+            PostOp::Sigmoid => (-32768, 32767, Some(lut::sigmoid_q12 as fn(i16) -> i16)),
+            PostOp::Tanh => (-32768, 32767, Some(lut::tanh_q12 as fn(i16) -> i16)),
+        };
+        Some(Layer { k: Requant4::new(np, lo, hi), lut })
+    }
+
+    /// Output channels `0 .. 4 (cout / 4)` of pixels `a` and `b` (at `at_a` and `at_b` of `out`)
+    /// from their gathered pair of patches; returns the first channel not written.
+    pub(super) fn channels<T: Elem>(&self, p: &ConvParams<'_>, pair: &[T], out: &mut OutRow<'_>, at_a: usize, at_b: usize) -> usize {
+        let (kl, np) = (p.patch_len(), p.parts.len());
+        let blocks = p.weights.chunks_exact((4 * kl).max(1)).zip(p.mult.0.chunks_exact((32 * np).max(1))).zip(p.bias.0.chunks_exact(32));
+        let mut c = 0;
+        // Filled by `dots` for the block's parts before every read (no per-block clearing).
+        let mut d: Dots = [0; MAX_PARTS * 8];
+        for ((w, m), b) in blocks.take(p.cout / 4) {
+            if dots(p, pair, w, &mut d) {
+                self.store(&d, 0, m, b, out, at_a + c);
+                self.store(&d, 4, m, b, out, at_b + c);
+                if mve::take_qc() {
+                    // A lane saturated: the portable formula from the same dot products.
+                    recompute(p, &d, 0, m, b, out, at_a + c);
+                    recompute(p, &d, 4, m, b, out, at_b + c);
+                }
+            } else {
+                // (Whole chunks: the splits cannot fail.)
+                if let (Some((w0, w1)), Some((m0, m1)), Some((b0, b1))) = (w.split_at_checked(2 * kl), m.split_at_checked(16 * np), b.split_at_checked(16)) {
+                    block2x2(p, pair, w0, m0, b0, out, at_a, at_b, c);
+                    block2x2(p, pair, w1, m1, b1, out, at_a, at_b, c + 2);
+                }
+            }
+            c += 4;
+        }
+        c
+    }
+
+    /// The vector epilogue of one pixel's four channels (dot products at `d[off..]`, per part)
+    /// into `out[at..at + 4]`.
+    #[inline(always)]
+    fn store(&self, d: &Dots, off: usize, m: &[u8], b: &[u8], out: &mut OutRow<'_>, at: usize) {
+        let np = self.k.mult_offsets[1] as usize / 8;
+        // `off <= 4` and `np <= MAX_PARTS`: `d[off + 8 (np - 1) .. + 4]` is inside `d`; `m` holds
+        // `32 np` bytes and `b` 32, both 4-byte aligned (`Layer::of`, whole chunks).
+        let dp = d.as_ptr().wrapping_add(off);
+        if let Some(f) = self.lut {
+            let mut v = [0i16; 4];
+            // SAFETY: the bounds above; `v` holds four aligned i16.
+            unsafe { mve::requant4(dp, m.as_ptr(), &self.k, np, b.as_ptr(), v.as_mut_ptr()) };
+            for (i, v) in v.into_iter().enumerate() {
+                out.set(at + i, f(v) as i64);
+            }
+            return;
+        }
+        /// Stores through [`mve::requant4`] into `r[at..at + 4]` (nothing when the row is short,
+        /// which `Layer::of` rules out).
+        #[inline(always)]
+        fn to<O: Narrow>(k: &Requant4, np: usize, dp: *const i32, m: &[u8], b: &[u8], r: &mut [O], at: usize) {
+            if let Some(o) = r.get_mut(at..at + 4) {
+                // SAFETY: the bounds of `store`; `o` holds four values of `O`.
+                unsafe { mve::requant4(dp, m.as_ptr(), k, np, b.as_ptr(), o.as_mut_ptr()) };
+            }
+        }
+        match out {
+            OutRow::U8(r) => to(&self.k, np, dp, m, b, r, at),
+            OutRow::I8(r) => to(&self.k, np, dp, m, b, r, at),
+            OutRow::I16(r) => to(&self.k, np, dp, m, b, r, at),
+        }
+    }
+}
+
+/// The two channel pairs' dot products of a block (`w`: four channels' weights) into `d`; false
+/// when one does not fit in `i32` or a part does not fit the tables (the portable block then
+/// defines the outputs).
+#[inline(always)]
+fn dots<T: Elem>(p: &ConvParams<'_>, pair: &[T], w: &[i8], d: &mut Dots) -> bool {
+    let kl = p.patch_len();
+    let one_part = p.parts.len() == 1;
+    let Some((w01, w23)) = w.split_at_checked(2 * kl) else {
+        return false;
+    };
+    for (j, w) in [w01, w23].into_iter().enumerate() {
+        let Some((w0, w1)) = w.split_at_checked(kl) else {
+            return false;
+        };
+        let mut o = 0;
+        for (&ch, dp) in p.parts.iter().zip(d.chunks_exact_mut(8)) {
+            let n = ch * p.k * p.k;
+            let r = if one_part {
+                T::dot2x2(w0, w1, pair)
+            } else {
+                let (Some(a), Some(b), Some(x)) = (w0.get(o..o + n), w1.get(o..o + n), pair.get(2 * o..2 * (o + n))) else {
+                    return false;
+                };
+                T::dot2x2(a, b, x)
+            };
+            // `r` is `[w0 . a, w1 . a, w0 . b, w1 . b]`; pixel `a`'s channels first, then `b`'s.
+            let [Ok(a0), Ok(a1), Ok(b0), Ok(b1)] = r.map(i32::try_from) else {
+                return false;
+            };
+            if let Some([x0, x1]) = dp.get_mut(2 * j..2 * j + 2) {
+                (*x0, *x1) = (a0, a1);
+            }
+            if let Some([x0, x1]) = dp.get_mut(4 + 2 * j..4 + 2 * j + 2) {
+                (*x0, *x1) = (b0, b1);
+            }
+            o += n;
+        }
+    }
+    true
+}
+
+/// The portable epilogue (`finish_short` of the summed `requantize_i32`s) of one pixel's four
+/// channels from the block's dot products.
+fn recompute(p: &ConvParams<'_>, d: &Dots, off: usize, m: &[u8], b: &[u8], out: &mut OutRow<'_>, at: usize) {
+    let np = p.parts.len();
+    for (i, (m, b)) in m.chunks_exact((8 * np).max(1)).zip(b.chunks_exact(8)).enumerate() {
+        let mut s = 0i64;
+        for (dp, m) in d.chunks_exact(8).zip(m.chunks_exact(8)) {
+            s += requantize_i32(dp.get(off + i).copied().unwrap_or_default(), mult_at(m));
+        }
+        out.set(at + i, finish_short(p.post, bias_at(b), s));
+    }
+}
