@@ -13,13 +13,15 @@
 //! values, then patch `b`'s) with contiguous write-back loads: per 32 MACs two activation loads,
 //! two widening weight loads, four `VMLADAVA` and `LETP` (9 instructions; the `dsp` loop needs 40
 //! for u8 activations), the tail included by predication. [`aggregate`] and [`dot_i16_i64`] are the
-//! MGA attention's sums, [`copy`] the gather's row copies.
+//! MGA attention's sums, [`copy`] the gather's row copies, [`requant4`] the convolution epilogue
+//! on four output channels.
 //!
 //! The results are the same integers as the portable loops in `kernels`: every product is exact
 //! in 32 bits and the accumulators are 32-bit, with the same bounds as there and in `dsp` (u8 and
 //! i8 activations: `|w x| < 2^15`, fewer than 2^16 terms; i16 activations: chunks of at most
-//! `kernels::I16_CHUNK` terms, `|w x| <= 2^22`, which the caller in `kernels` makes), so no
-//! partial sum overflows and the summation order does not matter. The QEMU firmware
+//! `kernels::I16_CHUNK` terms, `|w x| <= 2^22`, which the caller in `kernels` makes; the i16
+//! pair loop [`dot2x2_split_i16`] accumulates in 64 bits instead), so no partial sum overflows
+//! and the summation order does not matter. The QEMU firmware
 //! `boards/qemu-mps3-m55` checks the whole frame against the host engine, and these functions
 //! against the portable ones on the target
 //! (`boards/qemu-mps3-m55/src/bin/kernels.rs`): the host cannot run them.
@@ -327,26 +329,75 @@ pub fn copy<T: Copy>(dst: &mut [T], src: &[T]) {
     }
 }
 
-/// [`dot2x2_split`] for i16 activations over a whole part of any length: chunks of
-/// `kernels::I16_CHUNK` terms (exact in the 32-bit lanes' sums), the chunk sums added in i64. One
-/// loop over offsets instead of four zipped chunk iterators: the per-chunk bookkeeping was 6 % of
-/// the Cortex-M55 frame.
+/// [`dot2x2_split`] for i16 activations over a whole part of any length, in one call and without
+/// chunks: `VMLALDAVA.S16` adds each vector's eight products into a 64-bit register pair, so the
+/// sums are exact for any `n` (below `2^41` terms). A standalone function (`muir_mve_dot2x2_i16`):
+/// four 64-bit sums, four pointers and the loop counter need r0-r12 and lr, two more registers
+/// than inline assembly may take (r6, r7). Per 32 MACs two activation loads, two widening weight
+/// loads, four `VMLALDAVA` and `LETP` (9 instructions), as [`dot2x2_split`]; the 508-term chunks
+/// it needed before (each with its call and four 64-bit adds) were 5 % of the Cortex-M55 frame.
 #[inline]
 pub fn dot2x2_split_i16(w0: &[i8], w1: &[i8], a: &[i16], b: &[i16]) -> [i64; 4] {
     let n = w0.len().min(w1.len()).min(a.len()).min(b.len());
     let mut acc = [0i64; 4];
-    let mut done = 0;
-    while done < n {
-        let len = (n - done).min(super::I16_CHUNK);
-        // SAFETY: `done + len <= n <= every length`, so each sub-slice starts inside its slice and
-        // holds at least `len >= 1` values.
-        let s = unsafe { i16::dot2x2_n(w0.get_unchecked(done..), w1.get_unchecked(done..), a.get_unchecked(done..), b.get_unchecked(done..), len) };
-        for (acc, s) in acc.iter_mut().zip(s) {
-            *acc += s as i64;
-        }
-        done += len;
+    if n > 0 {
+        // SAFETY: the loop reads `n` values of each slice (tail-predicated), `n <=` every length;
+        // it writes the four sums to `acc`.
+        unsafe { muir_mve_dot2x2_i16(a.as_ptr(), b.as_ptr(), w0.as_ptr(), w1.as_ptr(), n, &mut acc) };
     }
     acc
+}
+
+core::arch::global_asm!(
+    ".syntax unified",
+    ".thumb",
+    // Module-level assembly does not see `-C target-cpu`: enable Helium's integer instructions.
+    ".cpu cortex-m55",
+    ".section .text.muir_mve_dot2x2_i16,\"ax\",%progbits",
+    ".global muir_mve_dot2x2_i16",
+    ".type muir_mve_dot2x2_i16,%function",
+    ".p2align 2",
+    ".thumb_func",
+    // r0 = a, r1 = b, r2 = w0, r3 = w1, [sp] = n, [sp + 4] = out. Sums: w0.a in r0:r1, w0.b in
+    // r2:r3, w1.a in r8:r9, w1.b in r10:r11 (even/odd pairs, as VMLALDAVA takes them); the
+    // widening weight loads need low base registers (r4, r5), the activations run in r6, r7.
+    "muir_mve_dot2x2_i16:",
+    "    push {{r4-r11, lr}}",
+    "    ldr r12, [sp, #36]",
+    "    mov r6, r0",
+    "    mov r7, r1",
+    "    mov r4, r2",
+    "    mov r5, r3",
+    "    movs r0, #0",
+    "    movs r1, #0",
+    "    movs r2, #0",
+    "    movs r3, #0",
+    "    mov.w r8, #0",
+    "    mov.w r9, #0",
+    "    mov.w r10, #0",
+    "    mov.w r11, #0",
+    "    dlstp.16 lr, r12",
+    "1:",
+    "    vldrh.u16 q0, [r6], #16",
+    "    vldrh.u16 q1, [r7], #16",
+    "    vldrb.s16 q2, [r4], #8",
+    "    vmlaldava.s16 r0, r1, q0, q2",
+    "    vmlaldava.s16 r2, r3, q1, q2",
+    "    vldrb.s16 q2, [r5], #8",
+    "    vmlaldava.s16 r8, r9, q0, q2",
+    "    vmlaldava.s16 r10, r11, q1, q2",
+    "    letp lr, 1b",
+    "    ldr r12, [sp, #40]",
+    "    strd r0, r1, [r12]",
+    "    strd r8, r9, [r12, #8]",
+    "    strd r2, r3, [r12, #16]",
+    "    strd r10, r11, [r12, #24]",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_mve_dot2x2_i16, . - muir_mve_dot2x2_i16",
+);
+
+unsafe extern "C" {
+    fn muir_mve_dot2x2_i16(a: *const i16, b: *const i16, w0: *const i8, w1: *const i8, n: usize, out: *mut [i64; 4]);
 }
 
 /// The per-layer constants of [`requant4`]: four 32-bit lanes each.
