@@ -321,9 +321,25 @@ fn gather_dot<T: Elem>(p: &ConvParams<'_>, rows: &PartRows<'_, T>, ch: usize, w_
             let row = rows.row(ky);
             for kx in 0..k {
                 let src = column(row, (ox * p.stride + kx) as isize - pad, w_in, ch);
-                for e in j..j + ch {
-                    let v = src.and_then(|s| s.get(e - j)).map_or(zero, |v| (v.to_i32() - off) as i8);
-                    set_at(xt, 32 * (e / 4) + 4 * px + e % 4, v);
+                let cv = |v: &T| (v.to_i32() - off) as i8;
+                if ch.is_multiple_of(4) {
+                    // Whole groups (`j` is a multiple of 4 too): group `j / 4 + g` is 32 bytes
+                    // from `8 j + 32 g`, this pixel's 4 of them from `4 px`.
+                    let dst = xt.get_mut(8 * j..8 * (j + ch)).unwrap_or_default().chunks_exact_mut(32);
+                    let dst = dst.filter_map(|d| d.get_mut(4 * px..4 * px + 4));
+                    match src {
+                        Some(s) => dst.zip(s.chunks_exact(4)).for_each(|(d, s)| {
+                            if let ([d0, d1, d2, d3], [s0, s1, s2, s3]) = (d, s) {
+                                (*d0, *d1, *d2, *d3) = (cv(s0), cv(s1), cv(s2), cv(s3));
+                            }
+                        }),
+                        None => dst.for_each(|d| d.fill(zero)),
+                    }
+                } else {
+                    for e in j..j + ch {
+                        let v = src.and_then(|s| s.get(e - j)).map_or(zero, cv);
+                        set_at(xt, 32 * (e / 4) + 4 * px + e % 4, v);
+                    }
                 }
                 j += ch;
             }
@@ -342,9 +358,11 @@ fn gather_mlal<T: Elem>(p: &ConvParams<'_>, rows: &PartRows<'_, T>, ch: usize, w
             let row = rows.row(ky);
             for kx in 0..k {
                 let src = column(row, (ox * p.stride + kx) as isize - pad, w_in, ch);
-                for e in j..j + ch {
-                    let v = src.and_then(|s| s.get(e - j)).map_or(0, |v| v.to_i32() as i16);
-                    set_at(xt, PIXELS * e + px, v);
+                // Value `j + e` is `8 (j + e) + px`.
+                let dst = xt.get_mut(PIXELS * j..PIXELS * (j + ch)).unwrap_or_default().chunks_exact_mut(PIXELS);
+                match src {
+                    Some(s) => dst.zip(s).for_each(|(d, s)| set_at(d, px, s.to_i32() as i16)),
+                    None => dst.for_each(|d| set_at(d, px, 0)),
                 }
                 j += ch;
             }
