@@ -551,6 +551,9 @@ mod tests {
         /// Random weights; multipliers with any shift (1 to 126, the 128-bit `requantize`) and
         /// biases up to `2^62` (saturating sums) on some channels.
         Wild,
+        /// Weights -128 (even channels) or 127 (odd), multipliers `(2^31 - 1) / 2`, biases up to
+        /// `2^62`: long parts' contributions beyond `2^62`, whose sum saturates.
+        Huge,
     }
 
     /// The NEON row against the plain twin on one layer, at every level the CPU has, for each
@@ -559,11 +562,20 @@ mod tests {
         let mut r = Rng(seed);
         let h = 5;
         let kl = k * k * parts.iter().sum::<usize>();
-        let wts: Vec<i8> = (0..cout * kl).map(|_| if values == Values::Extreme { -128 } else { r.i8() }).collect();
-        let wild = |r: &mut Rng| values == Values::Wild && r.next() % 2 == 0;
+        let wts: Vec<i8> = (0..cout * kl)
+            .map(|i| match values {
+                Values::Extreme => -128,
+                Values::Huge => [-128, 127][i / kl % 2],
+                _ => r.i8(),
+            })
+            .collect();
+        let wild = |r: &mut Rng| values == Values::Huge || values == Values::Wild && r.next() % 2 == 0;
         let b: Vec<i64> = (0..cout).map(|_| if wild(&mut r) { (r.next() as i64) >> (1 + r.below(40)) } else { (r.next() as i64) >> 44 }).collect();
         let m: Vec<Multiplier> = (0..cout * parts.len())
             .map(|_| {
+                if values == Values::Huge {
+                    return Multiplier { m: i32::MAX, shift: 1 };
+                }
                 let shift = if wild(&mut r) { 1 + r.below(126) as u8 } else { 20 + r.below(20) as u8 };
                 Multiplier { m: (1 << 30) + (r.below(1 << 30) as i32), shift }
             })
@@ -667,6 +679,10 @@ mod tests {
             check(14, &|r: &mut Rng| if r.next() % 2 == 0 { i8::MIN } else { i8::MAX }, 3, 2, &[61], 2, PostOp::None, w, Values::Extreme);
             check(15, &|r: &mut Rng| [0u8, 255][r.below(2) as usize], 1, 1, &[33], 17, PostOp::Relu, w, Values::Wild);
         }
+        // Three parts of `|sum| > 2^33` each: contributions near `2^63` whose sum saturates (the
+        // parts added in order, saturating, as the portable path does).
+        check(18, &|_| i16::MIN, 3, 1, &[256, 256, 256], 6, PostOp::None, 9, Values::Huge);
+        check(19, &|r: &mut Rng| [i16::MIN, i16::MAX][r.below(2) as usize], 1, 1, &[2400, 2400, 2400], 4, PostOp::Relu, 5, Values::Huge);
         // One part longer than an `sdot` chunk (4096 steps of 16 values: 65536), twice over, and
         // a tail: the largest products throughout (`2^17 2^14 = 2^31` would wrap in one chunk).
         let n = 2 * 65536 + 3 * 16 + 5;
