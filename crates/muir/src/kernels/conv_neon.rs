@@ -28,7 +28,7 @@
 //! the wrap). An `sdot` lane adds 4 products of `|w x| <= 128 * 128 = 2^14` per instruction, 4
 //! instructions a step (`2^18`), and a chunk at most [`DOT_CHUNK`] steps: `2^12 * 2^18 = 2^30 <
 //! 2^31`. An `smlal` lane adds `|w x| <= 128 * 2^15 = 2^22` per instruction, 8 a step (`2^25`), at
-//! most [`MLAL_CHUNK`] steps a chunk: `63 * 2^25 < 2^31` (u8 and i8 widened: `2^15` smaller).
+//! most [`MLAL_CHUNK`] steps a chunk: `63 * 2^25 < 2^31` (u8 and i8 widened: `|w x| < 2^15`).
 //! Each chunk's i32 lanes are then added into i64 sums, so every part sum is the exact integer
 //! (the `x - 128` form: `sum w (x - 128) + 128 sum w`, exact in i64; padding columns hold
 //! `0 - 128`, so they add `w (0 - 128) + 128 w = 0`, as in the portable path). The epilogue is
