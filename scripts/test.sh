@@ -54,12 +54,19 @@ cargo test --workspace --all-targets --no-fail-fast 2>&1 | tee /tmp/muir-test.lo
 cargo test --workspace --doc
 
 echo "== aarch64 host build (Linux-class Arm modules): the core's tests and the engine tests under qemu-aarch64"
-# The portable kernels and the kernel pool without the x86 paths (host_rows' per-row forms, threads).
+# The NEON convolution rows (sdot on qemu's default CPU), the portable kernels elsewhere and the
+# kernel pool without the x86 paths (host_rows' per-row forms, threads). Then the core's tests
+# again (same binary, ~15 s each): on a CPU without the dot-product extension (Cortex-A72: the
+# detection's NEON-only level), and with MUIR_ARM_SIMD=0 (the portable conv rows, which the NEON
+# ones replace otherwise).
 (
     export CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_LINKER=aarch64-linux-gnu-gcc
     export CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_RUNNER="qemu-aarch64 -L /usr/aarch64-linux-gnu"
     cargo test -q --release --target aarch64-unknown-linux-gnu -p muir --features std,internals --lib
     cargo test -q --release --target aarch64-unknown-linux-gnu --test engine
+    CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_RUNNER="qemu-aarch64 -cpu cortex-a72 -L /usr/aarch64-linux-gnu" \
+        cargo test -q --release --target aarch64-unknown-linux-gnu -p muir --features std,internals --lib
+    MUIR_ARM_SIMD=0 cargo test -q --release --target aarch64-unknown-linux-gnu -p muir --features std,internals --lib
 )
 
 echo "== no_std build of the core (crates/muir) for thumbv7em-none-eabihf, and its package (no model files, < 10 MiB)"

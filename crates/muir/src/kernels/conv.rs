@@ -23,6 +23,9 @@ use crate::model::graph::PostOp;
 #[cfg(all(target_arch = "x86_64", feature = "std"))]
 #[path = "conv_avx512.rs"]
 mod avx512;
+#[cfg(all(target_arch = "aarch64", feature = "std"))]
+#[path = "conv_neon.rs"]
+mod neon;
 #[cfg(all(target_arch = "arm", feature = "mve"))]
 #[path = "conv_helium.rs"]
 mod helium;
@@ -484,6 +487,10 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
     }
     #[cfg(all(target_arch = "x86_64", feature = "std"))]
     if avx512::conv_row(p, inputs, w_in, out) {
+        return;
+    }
+    #[cfg(all(target_arch = "aarch64", feature = "std"))]
+    if neon::conv_row(p, inputs, w_in, out) {
         return;
     }
     let w_out = p.out_width(w_in);

@@ -22,6 +22,8 @@
 pub const I16_CHUNK: usize = if cfg!(all(target_arch = "arm", feature = "mve")) { 508 } else { 256 };
 const _: () = assert!((I16_CHUNK as u64) * (1 << 22) < (1u64 << 31) && I16_CHUNK.is_multiple_of(4));
 
+#[cfg(all(target_arch = "aarch64", feature = "std"))]
+pub mod aarch64;
 pub mod attention;
 pub mod conv;
 pub mod corr;
