@@ -75,14 +75,83 @@ pub fn release_scratch() {
     PACKED.with_borrow_mut(|b| *b = Vec::new());
 }
 
+/// A left-hand matrix in the tiles' layout: blocks of [`MR`] output rows, `k`-major, the
+/// rows past `cout` zero. A model packs its layers once ([`super::FloatModel::new`]).
+#[derive(Clone, Debug, Default)]
+pub struct Packed {
+    data: Vec<f32>,
+    cout: usize,
+    kk: usize,
+}
+
+impl Packed {
+    /// `w` (`cout x kk`) packed.
+    pub fn new(w: Lhs<'_>, cout: usize, kk: usize) -> Self {
+        let mut data = Vec::new();
+        pack(w, cout, kk, &mut data);
+        Self { data, cout, kk }
+    }
+
+    /// Output rows.
+    pub fn cout(&self) -> usize {
+        self.cout
+    }
+
+    /// Products per sum.
+    pub fn kk(&self) -> usize {
+        self.kk
+    }
+}
+
+fn pack(w: Lhs<'_>, cout: usize, kk: usize, buf: &mut Vec<f32>) {
+    assert!(cout == 0 || kk == 0 || (cout - 1) * w.row + (kk - 1) * w.col < w.data.len(), "product weights size");
+    let blocks = cout.div_ceil(MR);
+    let packed = pool::scratch(buf, blocks * kk * MR);
+    for b in 0..blocks {
+        let dst = &mut packed[b * kk * MR..][..kk * MR];
+        for o in 0..MR {
+            let oo = b * MR + o;
+            if oo < cout {
+                for k in 0..kk {
+                    dst[k * MR + o] = w.data[oo * w.row + k * w.col];
+                }
+            } else {
+                for k in 0..kk {
+                    dst[k * MR + o] = 0.0;
+                }
+            }
+        }
+    }
+}
+
 /// `out[o * pitch + p] = epi(sum_k w(o, k) * rows[k][p])` for `o < cout`, `p < len`.
 ///
 /// # Safety
 /// Every `rows[k]` is valid for reading `len` values, and none of them overlaps `out`.
 pub unsafe fn product(w: Lhs<'_>, cout: usize, rows: &[*const f32], len: usize, epi: &Epilogue<'_>, out: &mut [f32], pitch: usize) {
+    PACKED.with_borrow_mut(|buf| {
+        pack(w, cout, rows.len(), buf);
+        let blocks = cout.div_ceil(MR);
+        // SAFETY: the caller's guarantee.
+        unsafe { product_blocks(&buf[..blocks * rows.len() * MR], cout, rows, len, epi, out, pitch) };
+    });
+}
+
+/// [`product`] with a left-hand matrix packed beforehand (`w.kk() == rows.len()`).
+///
+/// # Safety
+/// As [`product`].
+pub unsafe fn product_packed(w: &Packed, rows: &[*const f32], len: usize, epi: &Epilogue<'_>, out: &mut [f32], pitch: usize) {
+    assert_eq!(w.kk, rows.len(), "product depth");
+    // SAFETY: the caller's guarantee.
+    unsafe { product_blocks(&w.data, w.cout, rows, len, epi, out, pitch) };
+}
+
+/// # Safety
+/// As [`product`]; `packed` holds `cout.div_ceil(MR) * rows.len() * MR` values.
+unsafe fn product_blocks(packed: &[f32], cout: usize, rows: &[*const f32], len: usize, epi: &Epilogue<'_>, out: &mut [f32], pitch: usize) {
     let kk = rows.len();
     assert!(pitch >= len && (cout == 0 || out.len() >= (cout - 1) * pitch + len), "product output size");
-    assert!(cout == 0 || kk == 0 || (cout - 1) * w.row + (kk - 1) * w.col < w.data.len(), "product weights size");
     if cout == 0 || len == 0 {
         return;
     }
@@ -93,66 +162,48 @@ pub unsafe fn product(w: Lhs<'_>, cout: usize, rows: &[*const f32], len: usize, 
         return;
     }
     let blocks = cout.div_ceil(MR);
-    PACKED.with_borrow_mut(|buf| {
-        let packed = pool::scratch(buf, blocks * kk * MR);
-        for b in 0..blocks {
-            let dst = &mut packed[b * kk * MR..][..kk * MR];
-            for o in 0..MR {
-                let oo = b * MR + o;
-                if oo < cout {
-                    for k in 0..kk {
-                        dst[k * MR + o] = w.data[oo * w.row + k * w.col];
+    assert!(packed.len() >= blocks * kk * MR, "packed weights size");
+    let tiles = len.div_ceil(NR);
+    // Tasks: runs of tiles (all blocks each) or, with few tiles, tiles times groups of blocks.
+    let want = if pool::threads() > 1 { 4 * pool::threads() } else { 1 };
+    let (per_task, groups) = if tiles >= want { (tiles.div_ceil(want), 1) } else { (1, (want / tiles).clamp(1, blocks)) };
+    let group = blocks.div_ceil(groups);
+    let chunks = tiles.div_ceil(per_task);
+    let outp = pool::Shared(out.as_mut_ptr());
+    let rowsp = pool::Shared(rows.as_ptr() as *mut *const f32);
+    let simd = has_avx512();
+    pool::run(chunks * groups, &|task| {
+        let (chunk, g) = (task / groups, task % groups);
+        let (rows, outp) = (rowsp, outp);
+        // SAFETY: `rows` outlives `run`; tasks only read it.
+        let rows = unsafe { core::slice::from_raw_parts(rows.0 as *const *const f32, kk) };
+        for t in chunk * per_task..((chunk + 1) * per_task).min(tiles) {
+            let p0 = t * NR;
+            let n = (len - p0).min(NR);
+            for b in g * group..((g + 1) * group).min(blocks) {
+                let o0 = b * MR;
+                let valid = (cout - o0).min(MR);
+                let wb = &packed[b * kk * MR..][..kk * MR];
+                // SAFETY: the tile reads rows[k][p0 .. p0 + n] (valid by the caller's
+                // guarantee) and writes out[(o0 + o) * pitch + p0 ..][..n] for o < valid, inside
+                // `out` (asserted above) and written by this task only (tiles and blocks are
+                // split between tasks without overlap).
+                unsafe {
+                    let dst = outp.0.add(o0 * pitch + p0);
+                    #[cfg(target_arch = "x86_64")]
+                    if simd {
+                        if n == NR {
+                            avx512::tile::<true>(wb, rows, p0, n, dst, pitch, valid, o0, epi);
+                        } else {
+                            avx512::tile::<false>(wb, rows, p0, n, dst, pitch, valid, o0, epi);
+                        }
+                        continue;
                     }
-                } else {
-                    for k in 0..kk {
-                        dst[k * MR + o] = 0.0;
-                    }
+                    let _ = simd;
+                    portable_tile(wb, rows, p0, n, dst, pitch, valid, o0, epi);
                 }
             }
         }
-        let packed = &*packed;
-        let tiles = len.div_ceil(NR);
-        // Tasks: runs of tiles (all blocks each) or, with few tiles, tiles times groups of blocks.
-        let want = if pool::threads() > 1 { 4 * pool::threads() } else { 1 };
-        let (per_task, groups) = if tiles >= want { (tiles.div_ceil(want), 1) } else { (1, (want / tiles).clamp(1, blocks)) };
-        let group = blocks.div_ceil(groups);
-        let chunks = tiles.div_ceil(per_task);
-        let outp = pool::Shared(out.as_mut_ptr());
-        let rowsp = pool::Shared(rows.as_ptr() as *mut *const f32);
-        let simd = has_avx512();
-        pool::run(chunks * groups, &|task| {
-            let (chunk, g) = (task / groups, task % groups);
-            let (rows, outp) = (rowsp, outp);
-            // SAFETY: `rows` outlives `run`; tasks only read it.
-            let rows = unsafe { core::slice::from_raw_parts(rows.0 as *const *const f32, kk) };
-            for t in chunk * per_task..((chunk + 1) * per_task).min(tiles) {
-                let p0 = t * NR;
-                let n = (len - p0).min(NR);
-                for b in g * group..((g + 1) * group).min(blocks) {
-                    let o0 = b * MR;
-                    let valid = (cout - o0).min(MR);
-                    let wb = &packed[b * kk * MR..][..kk * MR];
-                    // SAFETY: the tile reads rows[k][p0 .. p0 + n] (valid by the caller's
-                    // guarantee) and writes out[(o0 + o) * pitch + p0 ..][..n] for o < valid, inside
-                    // `out` (asserted above) and written by this task only (tiles and blocks are
-                    // split between tasks without overlap).
-                    unsafe {
-                        let dst = outp.0.add(o0 * pitch + p0);
-                        #[cfg(target_arch = "x86_64")]
-                        if simd {
-                            if n == NR {
-                                avx512::tile::<true>(wb, rows, p0, n, dst, pitch, valid, o0, epi);
-                            } else {
-                                avx512::tile::<false>(wb, rows, p0, n, dst, pitch, valid, o0, epi);
-                            }
-                            continue;
-                        }
-                        let _ = simd;
-                        portable_tile(wb, rows, p0, n, dst, pitch, valid, o0, epi);
-                    }
-                }
-            }
-        });
     });
 }
 

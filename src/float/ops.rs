@@ -4,9 +4,10 @@
 //! product ([`super::gemm::product`]) whose right-hand rows point into the zero-padded input, with
 //! bias, batch norm and ReLU applied to the sums before they are stored.
 
-use super::gemm::{Epilogue, Lhs, product};
+use super::gemm::{Epilogue, Lhs, Packed, product, product_packed};
 use super::tensor::Tensor;
 use super::weights::FloatConv;
+use muir::model::layers::ConvShape;
 
 /// Output side of a `k`-kernel, stride-`s`, padding-`k/2` convolution.
 pub fn conv_out(n: usize, k: usize, s: usize) -> usize {
@@ -21,28 +22,54 @@ pub fn conv2d(x: &Tensor, conv: &FloatConv) -> Tensor {
 
 /// [`conv2d`] of the channel concatenation of `parts` (without building it), then ReLU if `relu`.
 pub fn conv2d_cat(parts: &[&Tensor], conv: &FloatConv, relu: bool) -> Tensor {
-    let s = &conv.shape;
-    let (h, w) = (parts[0].h, parts[0].w);
-    assert!(parts.iter().all(|t| t.h == h && t.w == w), "conv input parts of different sizes");
+    let epi = Epilogue { bias: Some(&conv.bias), bn: conv.bn.as_ref(), scale: None, relu };
+    let kk = conv.shape.cin * conv.shape.k * conv.shape.k;
+    conv_with(parts, &conv.shape, Weights::Plain(Lhs { data: &conv.weight, row: kk, col: 1 }), &epi)
+}
+
+/// A convolution's weights: as stored (`cout x (cin k k)`), or packed beforehand.
+#[derive(Clone, Copy)]
+pub enum Weights<'a> {
+    /// Packed for this call.
+    Plain(Lhs<'a>),
+    /// Packed once.
+    Packed(&'a Packed),
+}
+
+/// The convolution of the channel concatenation of `parts` (shape `shape`, `shape.cout` output
+/// channels, or the packed matrix's rows) with `w`, `epi` applied to the sums.
+pub fn conv_with(parts: &[&Tensor], shape: &ConvShape, w: Weights<'_>, epi: &Epilogue<'_>) -> Tensor {
+    let s = shape;
+    let (h, w_) = (parts[0].h, parts[0].w);
+    assert!(parts.iter().all(|t| t.h == h && t.w == w_), "conv input parts of different sizes");
     assert_eq!(parts.iter().map(|t| t.c).sum::<usize>(), s.cin, "conv input channels");
     let (k, st, pad) = (s.k, s.stride, s.k / 2);
-    let (ho, wo) = (conv_out(h, k, st), conv_out(w, k, st));
+    let (ho, wo) = (conv_out(h, k, st), conv_out(w_, k, st));
     let kk = s.cin * k * k;
-    let epi = Epilogue { bias: Some(&conv.bias), bn: conv.bn.as_ref(), scale: None, relu };
-    let lhs = Lhs { data: &conv.weight, row: kk, col: 1 };
-    let mut out = Tensor::zeros(s.cout, ho, wo);
+    let cout = match w {
+        Weights::Plain(_) => s.cout,
+        Weights::Packed(p) => p.cout(),
+    };
+    // SAFETY (both calls): the caller of `run` passes rows valid for `len` values, apart from `out`.
+    let run = |rows: &[*const f32], len: usize, out: &mut [f32]| unsafe {
+        match w {
+            Weights::Plain(l) => product(l, cout, rows, len, epi, out, len),
+            Weights::Packed(p) => product_packed(p, rows, len, epi, out, len),
+        }
+    };
+    let mut out = Tensor::zeros(cout, ho, wo);
     if k == 1 && st == 1 {
         // The input planes themselves are the rows.
         let rows: Vec<*const f32> = parts.iter().flat_map(|t| (0..t.c).map(move |c| t.channel(c).as_ptr())).collect();
-        // SAFETY: each row is a whole channel (h * w values) of a part, distinct from `out`.
-        unsafe { product(lhs, s.cout, &rows, ho * wo, &epi, &mut out.data, ho * wo) };
+        // Each row is a whole channel (h * w values) of a part, distinct from `out`.
+        run(&rows, ho * wo, &mut out.data);
         return out;
     }
     // The input, zero-padded by `pad` and split into `st * st` phases (phase (py, px) holds the
     // padded samples (st i + py, st j + px)): row (c, ky, kx) of the product is phase
     // (ky % st, kx % st) of channel c moved by (ky / st, kx / st), read at position
     // oy * wq + ox. Positions with ox >= wo are computed and dropped.
-    let (hp, wp) = (h + 2 * pad, w + 2 * pad);
+    let (hp, wp) = (h + 2 * pad, w_ + 2 * pad);
     let (hq, wq) = (hp.div_ceil(st), wp.div_ceil(st));
     let plane = hq * wq;
     let len = (ho - 1) * wq + wo;
@@ -60,9 +87,9 @@ pub fn conv2d_cat(parts: &[&Tensor], conv: &FloatConv, relu: bool) -> Tensor {
                 let base = c * st * st * plane;
                 for y in 0..h {
                     let (py, iy) = ((y + pad) % st, (y + pad) / st);
-                    let srow = &src[y * w..][..w];
+                    let srow = &src[y * w_..][..w_];
                     if st == 1 {
-                        padded[base + iy * wq + pad..][..w].copy_from_slice(srow);
+                        padded[base + iy * wq + pad..][..w_].copy_from_slice(srow);
                         continue;
                     }
                     for (x, v) in srow.iter().enumerate() {
@@ -83,10 +110,10 @@ pub fn conv2d_cat(parts: &[&Tensor], conv: &FloatConv, relu: bool) -> Tensor {
                 }
             }
         }
-        let outs = muir::kernels::pool::scratch(outs, s.cout * len);
-        // SAFETY: row (c, ky, kx) starts at `at` and is read for `len` values: at + len <= need
-        // (the slack covers the reach of the last rows), and `outs` is another buffer.
-        unsafe { product(lhs, s.cout, &rows, len, &epi, outs, len) };
+        let outs = muir::kernels::pool::scratch(outs, cout * len);
+        // Row (c, ky, kx) starts at `at` and is read for `len` values: at + len <= need (the
+        // slack covers the reach of the last rows), and `outs` is another buffer.
+        run(&rows, len, outs);
         for (o, dst) in out.data.chunks_mut(ho * wo).enumerate() {
             for (oy, d) in dst.chunks_mut(wo).enumerate() {
                 d.copy_from_slice(&outs[o * len + oy * wq..][..wo]);
