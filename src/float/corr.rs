@@ -6,6 +6,7 @@
 //! tests.)
 
 use super::tensor::Tensor;
+use muir::kernels::pool;
 use muir::model::config::Config;
 
 /// Correlation of left pixel `(y, x1)` with every right column of row `y`, into `row` (len w).
@@ -40,10 +41,14 @@ pub fn lookup(f1: &Tensor, f2: &Tensor, flow: &Tensor, cfg: &Config) -> Tensor {
     let (h, w) = (f1.h, f1.w);
     let r = cfg.corr_radius as isize;
     let k = 2 * cfg.corr_radius + 1;
-    let mut out = Tensor::zeros(cfg.corr_channels(), h, w);
-    let mut row = vec![0.0f32; w];
-    let mut pooled = vec![0.0f32; w];
-    for y in 0..h {
+    let chans = cfg.corr_channels();
+    let mut out = Tensor::zeros(chans, h, w);
+    let outp = pool::Shared(out.data.as_mut_ptr());
+    // One task per row y: it writes out(., y, .) only.
+    super::par::each(h, w * chans * f1.c, &|y| {
+        let outp = outp;
+        let mut row = vec![0.0f32; w];
+        let mut pooled = vec![0.0f32; w];
         for x in 0..w {
             corr_row(f1, f2, y, x, &mut row);
             let centre = x as f32 + flow[(0, y, x)];
@@ -69,11 +74,12 @@ pub fn lookup(f1: &Tensor, f2: &Tensor, flow: &Tensor, cfg: &Config) -> Tensor {
                         }
                         sample(&pooled[..wl], centre / s as f32 + j as f32)
                     };
-                    out[(lvl * k + jj, y, x)] = v;
+                    // SAFETY: element (lvl k + jj, y, x) of `out`, written by row y's task only.
+                    unsafe { *outp.0.add(((lvl * k + jj) * h + y) * w + x) = v };
                 }
             }
         }
-    }
+    });
     out
 }
 
@@ -84,8 +90,11 @@ pub fn lookup(f1: &Tensor, f2: &Tensor, flow: &Tensor, cfg: &Config) -> Tensor {
 pub fn peaks(f1: &Tensor, f2: &Tensor, separation: usize, max_d8: usize) -> Tensor {
     let (h, w) = (f1.h, f1.w);
     let mut out = Tensor::zeros(2, h, w);
-    let mut row = vec![0.0f32; w];
-    for y in 0..h {
+    let outp = pool::Shared(out.data.as_mut_ptr());
+    // One task per row y: it writes out(., y, .) only.
+    super::par::each(h, w * w * f1.c, &|y| {
+        let outp = outp;
+        let mut row = vec![0.0f32; w];
         for x in 0..w {
             corr_row(f1, f2, y, x, &mut row);
             let best = |skip: Option<usize>| {
@@ -102,9 +111,12 @@ pub fn peaks(f1: &Tensor, f2: &Tensor, separation: usize, max_d8: usize) -> Tens
             };
             let d1 = best(None).unwrap_or(0);
             let d2 = best(Some(d1)).unwrap_or(d1);
-            out[(0, y, x)] = d1 as f32;
-            out[(1, y, x)] = d2 as f32;
+            // SAFETY: elements (0, y, x) and (1, y, x) of `out`, written by row y's task only.
+            unsafe {
+                *outp.0.add(y * w + x) = d1 as f32;
+                *outp.0.add((h + y) * w + x) = d2 as f32;
+            }
         }
-    }
+    });
     out
 }

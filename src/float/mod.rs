@@ -7,6 +7,7 @@ pub mod corr;
 pub mod gemm;
 pub mod model;
 pub mod ops;
+pub mod par;
 pub mod seeded;
 pub mod tensor;
 pub mod weights;

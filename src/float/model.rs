@@ -11,6 +11,7 @@ use super::gemm::{Epilogue, Lhs, Packed};
 use super::ops::{
     Weights, aggregate, attention_matrix, conv_with, convex_upsample, instance_norm, interp, pool2x, relu, rope_2d, sigmoid,
 };
+use super::par;
 use super::tensor::Tensor;
 use super::weights::{FloatConv, FloatWeights};
 use muir::input::{ImageView, InputError, check_pair};
@@ -295,14 +296,25 @@ impl FloatModel {
             None => Tensor::cat(&[&self.conv_cat(ids[0], &parts, false), &self.conv_cat(ids[1], &parts, false)]),
         };
         let (zs, rs) = zr.data.split_at(n);
-        let z: Vec<f32> = zs.iter().zip(&ctx[0].data).map(|(a, b)| sigmoid(a + b)).collect();
+        let mut z = vec![0.0f32; n];
+        par::chunks(&mut z, 1, &|i, ch| {
+            ch.iter_mut().zip(&zs[i..]).zip(&ctx[0].data[i..]).for_each(|((v, a), b)| *v = sigmoid(a + b));
+        });
         // r * h
-        let rh: Vec<f32> = rs.iter().zip(&ctx[1].data).zip(&h.data).map(|((a, b), h)| sigmoid(a + b) * h).collect();
+        let mut rh = vec![0.0f32; n];
+        par::chunks(&mut rh, 1, &|i, ch| {
+            ch.iter_mut().zip(&rs[i..]).zip(&ctx[1].data[i..]).zip(&h.data[i..]).for_each(|(((v, a), b), h)| *v = sigmoid(a + b) * h);
+        });
         let rh = Tensor::from_vec(h.c, h.h, h.w, rh);
         parts[0] = &rh;
         let q = self.conv_cat(ids[2], &parts, false);
         // (1 - z) * h + z * tanh(q + ctx)
-        let out = q.data.iter().zip(&ctx[2].data).zip(&z).zip(&h.data).map(|(((q, c), z), h)| (1.0 - z) * h + z * (q + c).tanh()).collect();
+        let mut out = q.data;
+        par::chunks(&mut out, 1, &|i, ch| {
+            for (((q, c), z), h) in ch.iter_mut().zip(&ctx[2].data[i..]).zip(&z[i..]).zip(&h.data[i..]) {
+                *q = (1.0 - z) * h + z * (*q + c).tanh();
+            }
+        });
         Tensor::from_vec(h.c, h.h, h.w, out)
     }
 

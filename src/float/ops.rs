@@ -79,27 +79,28 @@ pub fn conv_with(parts: &[&Tensor], shape: &ConvShape, w: Weights<'_>, epi: &Epi
         // further than the plane's own positions.
         let need = s.cin * st * st * plane + (k / st + 1) * (wq + 1);
         let padded = muir::kernels::pool::scratch(padded, need);
-        padded.fill(0.0);
-        let mut c = 0;
-        for t in parts {
-            for ci in 0..t.c {
-                let src = t.channel(ci);
-                let base = c * st * st * plane;
+        let chans: Vec<&[f32]> = parts.iter().flat_map(|t| (0..t.c).map(move |c| t.channel(c))).collect();
+        let span = st * st * plane;
+        padded[s.cin * span..].fill(0.0);
+        // Channel c's phases fill padded[c span ..][..span]: one chunk each.
+        super::par::chunks(&mut padded[..s.cin * span], span, &|at, chunk| {
+            for (i, dst) in chunk.chunks_mut(span).enumerate() {
+                dst.fill(0.0);
+                let src = chans[at / span + i];
                 for y in 0..h {
                     let (py, iy) = ((y + pad) % st, (y + pad) / st);
                     let srow = &src[y * w_..][..w_];
                     if st == 1 {
-                        padded[base + iy * wq + pad..][..w_].copy_from_slice(srow);
+                        dst[iy * wq + pad..][..w_].copy_from_slice(srow);
                         continue;
                     }
                     for (x, v) in srow.iter().enumerate() {
                         let (px, ix) = ((x + pad) % st, (x + pad) / st);
-                        padded[base + (py * st + px) * plane + iy * wq + ix] = *v;
+                        dst[(py * st + px) * plane + iy * wq + ix] = *v;
                     }
                 }
-                c += 1;
             }
-        }
+        });
         let mut rows = Vec::with_capacity(kk);
         for c in 0..s.cin {
             for ky in 0..k {
@@ -114,11 +115,15 @@ pub fn conv_with(parts: &[&Tensor], shape: &ConvShape, w: Weights<'_>, epi: &Epi
         // Row (c, ky, kx) starts at `at` and is read for `len` values: at + len <= need (the
         // slack covers the reach of the last rows), and `outs` is another buffer.
         run(&rows, len, outs);
-        for (o, dst) in out.data.chunks_mut(ho * wo).enumerate() {
-            for (oy, d) in dst.chunks_mut(wo).enumerate() {
-                d.copy_from_slice(&outs[o * len + oy * wq..][..wo]);
+        let outs = &*outs;
+        super::par::chunks(&mut out.data, ho * wo, &|at, chunk| {
+            for (i, dst) in chunk.chunks_mut(ho * wo).enumerate() {
+                let o = at / (ho * wo) + i;
+                for (oy, d) in dst.chunks_mut(wo).enumerate() {
+                    d.copy_from_slice(&outs[o * len + oy * wq..][..wo]);
+                }
             }
-        }
+        });
     });
     out
 }
@@ -140,12 +145,14 @@ pub fn release_scratch() {
 pub fn instance_norm(mut x: Tensor) -> Tensor {
     let n = x.plane() as f32;
     let p = x.plane();
-    for ch in x.data.chunks_mut(p) {
-        let mean = ch.iter().sum::<f32>() / n;
-        let var = ch.iter().map(|v| (v - mean) * (v - mean)).sum::<f32>() / n;
-        let inv = 1.0 / (var + 1e-5).sqrt();
-        ch.iter_mut().for_each(|v| *v = (*v - mean) * inv);
-    }
+    super::par::chunks(&mut x.data, p, &|_, chunk| {
+        for ch in chunk.chunks_mut(p) {
+            let mean = ch.iter().sum::<f32>() / n;
+            let var = ch.iter().map(|v| (v - mean) * (v - mean)).sum::<f32>() / n;
+            let inv = 1.0 / (var + 1e-5).sqrt();
+            ch.iter_mut().for_each(|v| *v = (*v - mean) * inv);
+        }
+    });
     x
 }
 
@@ -213,8 +220,11 @@ pub fn convex_upsample(x: &Tensor, mask: &Tensor) -> Tensor {
     let (h, w) = (x.h, x.w);
     assert!(mask.c == 576 && mask.h == h && mask.w == w);
     let mut out = Tensor::zeros(x.c, 8 * h, 8 * w);
-    let mut wts = [0.0f32; 9];
-    for y in 0..h {
+    let outp = muir::kernels::pool::Shared(out.data.as_mut_ptr());
+    // One task per row y: it writes output rows 8y .. 8y + 8 only.
+    super::par::each(h, 64 * w * (9 + 9 * x.c), &|y| {
+        let outp = outp;
+        let mut wts = [0.0f32; 9];
         for xx in 0..w {
             for dy in 0..8 {
                 for dx in 0..8 {
@@ -236,12 +246,13 @@ pub fn convex_upsample(x: &Tensor, mask: &Tensor) -> Tensor {
                                 acc += wk / sum * x[(c, ny as usize, nx as usize)];
                             }
                         }
-                        out[(c, 8 * y + dy, 8 * xx + dx)] = acc;
+                        // SAFETY: element (c, 8y + dy, 8xx + dx) of `out`, written by row y's task only.
+                        unsafe { *outp.0.add((c * 8 * h + 8 * y + dy) * 8 * w + 8 * xx + dx) = acc };
                     }
                 }
             }
         }
-    }
+    });
     out
 }
 
