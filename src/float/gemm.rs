@@ -379,3 +379,37 @@ mod tests {
         }
     }
 }
+
+#[cfg(test)]
+mod speed {
+    use super::*;
+
+    /// Throughput of the product on convolution-like shapes (padded-plane rows, 3x3):
+    /// `cargo test --release --lib float::gemm::speed -- --ignored --nocapture`.
+    #[test]
+    #[ignore]
+    fn product_speed() {
+        for &(cin, cout, h, w) in &[(64usize, 64usize, 144usize, 192usize), (96, 96, 72, 96), (384, 128, 36, 48), (128, 128, 18, 24), (256, 2, 36, 48)] {
+            let (hp, wp) = (h + 2, w + 2);
+            let x: Vec<f32> = (0..cin * hp * wp + 2 * wp + 8).map(|i| ((i * 7919) % 1000) as f32 / 1000.0 - 0.5).collect();
+            let kk = cin * 9;
+            let wts: Vec<f32> = (0..cout * kk).map(|i| ((i * 104729) % 1000) as f32 / 1000.0 - 0.5).collect();
+            let rows: Vec<*const f32> = (0..cin).flat_map(|c| (0..9).map(move |k| (c, k))).map(|(c, k)| x[c * hp * wp + (k / 3) * wp + k % 3..].as_ptr()).collect();
+            let len = (h - 1) * wp + w;
+            let packed = Packed::new(Lhs { data: &wts, row: kk, col: 1 }, cout, kk);
+            let mut out = vec![0.0f32; cout * len];
+            let reps = ((4e9 / (2.0 * (cout * kk * len) as f64)) as usize).max(1);
+            let mut best = f64::MAX;
+            for _ in 0..3 {
+                let t = std::time::Instant::now();
+                for _ in 0..reps {
+                    // SAFETY: rows lie in x with the slack above.
+                    unsafe { product_packed(&packed, &rows, len, &Epilogue::default(), &mut out, len) };
+                }
+                best = best.min(t.elapsed().as_secs_f64() / reps as f64);
+            }
+            let gf = 2.0 * (cout * kk * h * w) as f64 / best / 1e9;
+            eprintln!("cin {cin:4} cout {cout:4} {h}x{w}: {:.3} ms, {gf:.1} GF/s (useful)", best * 1e3);
+        }
+    }
+}

@@ -68,10 +68,12 @@ pub fn conv_with(parts: &[&Tensor], shape: &ConvShape, w: Weights<'_>, epi: &Epi
     // The input, zero-padded by `pad` and split into `st * st` phases (phase (py, px) holds the
     // padded samples (st i + py, st j + px)): row (c, ky, kx) of the product is phase
     // (ky % st, kx % st) of channel c moved by (ky / st, kx / st), read at position
-    // oy * wq + ox. Positions with ox >= wo are computed and dropped.
+    // oy * wq + ox. Positions with ox >= wo are computed and dropped. With stride 1 a row's right
+    // padding is the next row's left padding (row pitch w + pad, not w + 2 pad: fewer dropped
+    // positions), and the plane has `pad` more zeros for the last row's.
     let (hp, wp) = (h + 2 * pad, w_ + 2 * pad);
-    let (hq, wq) = (hp.div_ceil(st), wp.div_ceil(st));
-    let plane = hq * wq;
+    let (hq, wq) = if st == 1 { (hp, w_ + pad) } else { (hp.div_ceil(st), wp.div_ceil(st)) };
+    let plane = hq * wq + if st == 1 { pad } else { 0 };
     let len = (ho - 1) * wq + wo;
     PADDED.with_borrow_mut(|bufs| {
         let (padded, outs) = &mut *bufs;
