@@ -39,7 +39,8 @@ pub struct Epilogue<'a> {
 }
 
 impl Epilogue<'_> {
-    fn apply(&self, o: usize, v: f32) -> f32 {
+    /// The epilogue of output row `o` on the sum `v`.
+    pub fn apply(&self, o: usize, v: f32) -> f32 {
         let mut v = v;
         if let Some(b) = self.bias {
             v += b[o];
@@ -51,6 +52,24 @@ impl Epilogue<'_> {
             v *= s;
         }
         if self.relu { v.max(0.0) } else { v }
+    }
+
+    /// [`Epilogue::apply`] on every value of `vs` (output row `o`), each step a loop of its own.
+    pub fn apply_row(&self, o: usize, vs: &mut [f32]) {
+        if let Some(b) = self.bias {
+            let b = b[o];
+            vs.iter_mut().for_each(|v| *v += b);
+        }
+        if let Some(bn) = self.bn {
+            let (mean, inv, g, b) = (bn.mean[o], bn.inv_std[o], bn.weight[o], bn.bias[o]);
+            vs.iter_mut().for_each(|v| *v = (*v - mean) * inv * g + b);
+        }
+        if let Some(s) = self.scale {
+            vs.iter_mut().for_each(|v| *v *= s);
+        }
+        if self.relu {
+            vs.iter_mut().for_each(|v| *v = v.max(0.0));
+        }
     }
 }
 

@@ -11,6 +11,7 @@ pub mod par;
 pub mod seeded;
 pub mod tensor;
 pub mod weights;
+pub mod winograd;
 
 pub use model::{FloatModel, FloatOutput, NoTrace, Prediction, Trace};
 pub use tensor::Tensor;

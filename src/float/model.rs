@@ -14,6 +14,7 @@ use super::ops::{
 use super::par;
 use super::tensor::Tensor;
 use super::weights::{FloatConv, FloatWeights};
+use super::winograd;
 use muir::input::{ImageView, InputError, check_pair};
 use muir::model::config::{Config, MaxDisparity};
 use muir::model::layers::ConvId::{self, *};
@@ -103,8 +104,16 @@ pub struct FloatModel {
     max_disparity: MaxDisparity,
     /// Every computed layer's weights packed for the matrix product, by [`ConvId::index`].
     packed: Vec<Option<Packed>>,
+    /// The 3x3 stride-1 layers' Winograd weights ([`winograd_fits`]), by [`ConvId::index`].
+    wino: Vec<Option<winograd::Weights>>,
     /// Each GRU's z and r convolutions stacked into one (the same input): 1/8, then 1/16.
     zr: [Option<Stacked>; 2],
+}
+
+/// Whether a layer runs as Winograd F(2x2, 3x3) ([`winograd`]): 3x3, stride 1, and enough
+/// channels for the transforms to cost less than the multiply-adds they save.
+fn winograd_fits(s: &ConvShape) -> bool {
+    s.k == 3 && s.stride == 1 && s.cin >= 16 && s.cout >= 16
 }
 
 /// Two layers of one input as one convolution: their weights packed one above the other.
@@ -112,6 +121,7 @@ pub struct FloatModel {
 struct Stacked {
     shape: ConvShape,
     packed: Packed,
+    wino: Option<winograd::Weights>,
     bias: Vec<f32>,
 }
 
@@ -126,7 +136,9 @@ impl Stacked {
         let weight = [&a.weight[..], &b.weight[..]].concat();
         let packed = Packed::new(Lhs { data: &weight, row: kk, col: 1 }, 2 * a.shape.cout, kk);
         let bias = [&a.bias[..], &b.bias[..]].concat();
-        Some(Self { shape: ConvShape { cout: 2 * a.shape.cout, ..a.shape }, packed, bias })
+        let shape = ConvShape { cout: 2 * a.shape.cout, ..a.shape };
+        let wino = winograd_fits(&shape).then(|| winograd::Weights::new(&weight, shape.cout, shape.cin));
+        Some(Self { shape, packed, wino, bias })
     }
 }
 
@@ -144,17 +156,21 @@ impl FloatModel {
     /// Wraps validated weights.
     pub fn new(weights: FloatWeights) -> Self {
         let mut packed = vec![None; ConvId::COUNT];
+        let mut wino = vec![None; ConvId::COUNT];
         for id in ConvId::ALL {
             if let Some(c) = weights.get(*id) {
                 let kk = c.shape.cin * c.shape.k * c.shape.k;
                 packed[id.index()] = Some(Packed::new(Lhs { data: &c.weight, row: kk, col: 1 }, c.shape.cout, kk));
+                if winograd_fits(&c.shape) {
+                    wino[id.index()] = Some(winograd::Weights::new(&c.weight, c.shape.cout, c.shape.cin));
+                }
             }
         }
         let zr = [
             Stacked::new(weights.get(Gru08Z), weights.get(Gru08R)),
             Stacked::new(weights.get(Gru16Z), weights.get(Gru16R)),
         ];
-        Self { weights, max_disparity: MaxDisparity::DEFAULT, packed, zr }
+        Self { weights, max_disparity: MaxDisparity::DEFAULT, packed, wino, zr }
     }
 
     /// Sets the largest disparity of UFI's proposal search ([`MaxDisparity`], default 256 px).
@@ -195,9 +211,13 @@ impl FloatModel {
     /// The layer on the channel concatenation of `parts`, then ReLU if `relu`.
     fn conv_cat(&self, id: ConvId, parts: &[&Tensor], relu: bool) -> Tensor {
         let l = self.layer(id);
+        let epi = Epilogue { bias: Some(&l.bias), bn: l.bn.as_ref(), scale: None, relu };
+        if let Some(w) = &self.wino[id.index()] {
+            return winograd::conv(parts, w, &epi);
+        }
         // Packed in `new` for every layer the weights hold.
         let p = self.packed[id.index()].as_ref().unwrap_or_else(|| panic!("layer {} not packed", id.name()));
-        conv_with(parts, &l.shape, Weights::Packed(p), &Epilogue { bias: Some(&l.bias), bn: l.bn.as_ref(), scale: None, relu })
+        conv_with(parts, &l.shape, Weights::Packed(p), &epi)
     }
 
     /// Residual block; records its mid and output activations as `q.<names[0]>`, `q.<names[1]>`
@@ -292,7 +312,13 @@ impl FloatModel {
         // z and r from one product where they are stacked, else one each.
         let stacked = self.zr[if ids[0] == Gru08Z { 0 } else { 1 }].as_ref();
         let zr = match stacked {
-            Some(st) => conv_with(&parts, &st.shape, Weights::Packed(&st.packed), &Epilogue { bias: Some(&st.bias), ..Default::default() }),
+            Some(st) => {
+                let epi = Epilogue { bias: Some(&st.bias), ..Default::default() };
+                match &st.wino {
+                    Some(w) => winograd::conv(&parts, w, &epi),
+                    None => conv_with(&parts, &st.shape, Weights::Packed(&st.packed), &epi),
+                }
+            }
             None => Tensor::cat(&[&self.conv_cat(ids[0], &parts, false), &self.conv_cat(ids[1], &parts, false)]),
         };
         let (zs, rs) = zr.data.split_at(n);

@@ -141,6 +141,7 @@ std::thread_local! {
 pub fn release_scratch() {
     PADDED.with_borrow_mut(|b| *b = (Vec::new(), Vec::new()));
     super::gemm::release_scratch();
+    super::winograd::release_scratch();
 }
 
 /// `nn.InstanceNorm2d` without affine parameters: per channel, biased variance, eps 1e-5.
