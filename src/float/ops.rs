@@ -293,21 +293,29 @@ pub fn attention_matrix(q: &Tensor, k: &Tensor) -> Vec<f32> {
     // SAFETY: each row is a whole channel of q (n values), distinct from `at`.
     unsafe { product(Lhs { data: &k.data, row: 1, col: n }, n, &rows, n, &epi, &mut at, n) };
     // Softmax over j for every i: down the columns, in j order (the sums add in the order the
-    // row-wise loop added them).
-    let mut m = vec![f32::NEG_INFINITY; n];
-    for row in at.chunks(n) {
-        m.iter_mut().zip(row).for_each(|(m, v)| *m = m.max(*v));
-    }
-    let mut s = vec![0.0f32; n];
-    for row in at.chunks_mut(n) {
-        for ((v, m), s) in row.iter_mut().zip(&m).zip(s.iter_mut()) {
-            *v = (*v - m).exp();
-            *s += *v;
+    // row-wise loop added them); one task per block of columns.
+    const COLS: usize = 256;
+    let atp = muir::kernels::pool::Shared(at.as_mut_ptr());
+    super::par::each(n.div_ceil(COLS), n * n, &|b| {
+        let atp = atp;
+        let (i0, i1) = (b * COLS, ((b + 1) * COLS).min(n));
+        // SAFETY: columns i0 .. i1 of row j, written by this block's task only.
+        let row = |j: usize| unsafe { atp.slice(j * n + i0, i1 - i0) };
+        let mut m = vec![f32::NEG_INFINITY; i1 - i0];
+        for j in 0..n {
+            m.iter_mut().zip(row(j).iter()).for_each(|(m, v)| *m = m.max(*v));
         }
-    }
-    for row in at.chunks_mut(n) {
-        row.iter_mut().zip(&s).for_each(|(v, s)| *v /= s);
-    }
+        let mut s = vec![0.0f32; i1 - i0];
+        for j in 0..n {
+            for ((v, m), s) in row(j).iter_mut().zip(&m).zip(s.iter_mut()) {
+                *v = (*v - m).exp();
+                *s += *v;
+            }
+        }
+        for j in 0..n {
+            row(j).iter_mut().zip(&s).for_each(|(v, s)| *v /= s);
+        }
+    });
     at
 }
 
