@@ -296,13 +296,30 @@ mod avx512 {
                 *m = ((1u32 << left) - 1) as u16;
             }
         }
+        // The first k sets the sums (a product rounded once, as a multiply-add onto zero would),
+        // so that they are not zeroed in memory first; `product` never calls with no rows.
+        let Some((first, rest)) = rows.split_first() else { return };
         let mut acc = [[_mm512_setzero_ps(); V]; MR];
+        let mut b = [_mm512_setzero_ps(); V];
         let mut wp = w.as_ptr();
-        for r in rows {
-            // SAFETY: the caller's guarantee (masked loads read only the first n positions).
+        // SAFETY: the caller's guarantee (masked loads read only the first n positions).
+        unsafe {
+            let r = first.add(p0);
+            for v in 0..V {
+                b[v] = if FULL { _mm512_loadu_ps(r.add(16 * v)) } else { _mm512_maskz_loadu_ps(masks[v], r.add(16 * v)) };
+            }
+            for (o, a) in acc.iter_mut().enumerate() {
+                let x = _mm512_set1_ps(*wp.add(o));
+                for v in 0..V {
+                    a[v] = _mm512_mul_ps(x, b[v]);
+                }
+            }
+            wp = wp.add(MR);
+        }
+        for r in rest {
+            // SAFETY: as above.
             unsafe {
                 let r = r.add(p0);
-                let mut b = [_mm512_setzero_ps(); V];
                 for v in 0..V {
                     b[v] = if FULL { _mm512_loadu_ps(r.add(16 * v)) } else { _mm512_maskz_loadu_ps(masks[v], r.add(16 * v)) };
                 }
