@@ -47,7 +47,7 @@ pub fn lookup(f1: &Tensor, f2: &Tensor, flow: &Tensor, cfg: &Config) -> Tensor {
     let outp = pool::Shared(out.data.as_mut_ptr());
     // One task per row y: it writes out(., y, .) only.
     super::par::each(h, w * chans * f1.c, &|y| {
-        let outp = outp;
+        let outp = &outp;
         let mut block = vec![0.0f32; w * w];
         corr_block(f1, f2, y, &mut block);
         // RAFT pyramid: level l of the row, iterated 2-wide average pooling with floor
@@ -99,7 +99,7 @@ pub fn peaks(f1: &Tensor, f2: &Tensor, separation: usize, max_d8: usize) -> Tens
     let outp = pool::Shared(out.data.as_mut_ptr());
     // One task per row y: it writes out(., y, .) only.
     super::par::each(h, w * w * f1.c, &|y| {
-        let outp = outp;
+        let outp = &outp;
         let mut block = vec![0.0f32; w * w];
         corr_block(f1, f2, y, &mut block);
         for x in 0..w {

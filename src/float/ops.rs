@@ -226,7 +226,7 @@ pub fn convex_upsample(x: &Tensor, mask: &Tensor) -> Tensor {
     let outp = muir::kernels::pool::Shared(out.data.as_mut_ptr());
     // One task per row y: it writes output rows 8y .. 8y + 8 only.
     super::par::each(h, 64 * w * (9 + 9 * x.c), &|y| {
-        let outp = outp;
+        let outp = &outp;
         let mut wts = [0.0f32; 9];
         for xx in 0..w {
             for dy in 0..8 {
@@ -297,7 +297,7 @@ pub fn attention_matrix(q: &Tensor, k: &Tensor) -> Vec<f32> {
     const COLS: usize = 256;
     let atp = muir::kernels::pool::Shared(at.as_mut_ptr());
     super::par::each(n.div_ceil(COLS), n * n, &|b| {
-        let atp = atp;
+        let atp = &atp;
         let (i0, i1) = (b * COLS, ((b + 1) * COLS).min(n));
         // SAFETY: columns i0 .. i1 of row j, written by this block's task only.
         let row = |j: usize| unsafe { atp.slice(j * n + i0, i1 - i0) };

@@ -23,7 +23,7 @@ pub fn chunks(out: &mut [f32], grain: usize, f: &(dyn Fn(usize, &mut [f32]) + Sy
     let len = out.len();
     let p = pool::Shared(out.as_mut_ptr());
     pool::run(len.div_ceil(per), &|t| {
-        let p = p;
+        let p = &p;
         let start = t * per;
         let n = per.min(len - start);
         // SAFETY: task t owns out[start .. start + n]; the tasks' ranges do not overlap and lie in

@@ -123,7 +123,7 @@ pub fn conv(parts: &[&Tensor], w: &Weights, epi: &Epilogue<'_>) -> Tensor {
         let v = pool::scratch(v, 16 * cin * tiles);
         let vp = pool::Shared(v.as_mut_ptr());
         par::each(cin, cin * tiles * 16, &|c| {
-            let vp = vp;
+            let vp = &vp;
             let src = &padded[c * span..][..span];
             let mut t = vec![0.0f32; 16 * tw];
             for ty in 0..th {
