@@ -4,8 +4,9 @@
 //! The right-hand matrix is given as one pointer per row (`rows[k]`, each valid for `len`
 //! values), not as a dense matrix: a convolution points its rows into its zero-padded input
 //! (`ops::conv2d`: row `(c, ky, kx)` is the padded plane of channel `c` moved by `(ky, kx)`), so
-//! there is neither an im2col matrix nor a packed copy of it. The weights are repacked per call
-//! into blocks of [`MR`] output rows, `k`-major (`cout x kk` values, small beside the product).
+//! there is neither an im2col matrix nor a packed copy of it. The weights are packed into blocks
+//! of [`MR`] output rows, `k`-major: once per model for a layer ([`Packed`]), per call otherwise
+//! ([`product`]; `cout x kk` values, small beside the product).
 //!
 //! A tile is [`MR`] output rows by [`NR`] positions; its sums stay in registers for the whole `k`
 //! loop (one fused multiply-add per `k` after the other, in `k` order) and get the epilogue
