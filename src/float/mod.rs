@@ -20,7 +20,8 @@ pub use weights::{FloatWeights, WeightError};
 /// Threads for the float engine's matrix products (1 ..= 4, the caller included): the kernel
 /// pool of the fixed-point engine (`muir::kernels::pool`), shared by both engines. Each output
 /// tile is summed by one thread in the same order, so the results are the same bits for any count.
-/// Without the crate feature `threads` there is one thread.
+/// Without the crate feature `threads` this does nothing: the pool keeps the count it has (1
+/// unless the fixed-point engine's `Engine::set_threads` changed it).
 pub fn set_threads(n: usize) {
     #[cfg(feature = "threads")]
     muir::kernels::pool::set_threads(n.clamp(1, 4));
