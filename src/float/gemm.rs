@@ -208,20 +208,78 @@ unsafe fn product_blocks(packed: &[f32], cout: usize, rows: &[*const f32], len: 
                 // guarantee) and writes out[(o0 + o) * pitch + p0 ..][..n] for o < valid, inside
                 // `out` (asserted above) and written by this task only (tiles and blocks are
                 // split between tasks without overlap).
-                unsafe {
-                    let dst = outp.0.add(o0 * pitch + p0);
-                    #[cfg(target_arch = "x86_64")]
-                    if simd {
-                        if n == NR {
-                            avx512::tile::<true>(wb, rows, p0, n, dst, pitch, valid, o0, epi);
-                        } else {
-                            avx512::tile::<false>(wb, rows, p0, n, dst, pitch, valid, o0, epi);
-                        }
-                        continue;
-                    }
-                    let _ = simd;
-                    portable_tile(wb, rows, p0, n, dst, pitch, valid, o0, epi);
+                unsafe { tile(simd, wb, rows, p0, n, outp.0.add(o0 * pitch + p0), pitch, valid, o0, epi) };
+            }
+        }
+    });
+}
+
+/// One tile, on 512-bit vectors if `simd`.
+///
+/// # Safety
+/// As `portable_tile`; `simd` only where AVX-512 F is present.
+#[allow(clippy::too_many_arguments)]
+unsafe fn tile(simd: bool, w: &[f32], rows: &[*const f32], p0: usize, n: usize, dst: *mut f32, pitch: usize, valid: usize, o0: usize, epi: &Epilogue<'_>) {
+    // SAFETY: the caller's guarantee.
+    unsafe {
+        #[cfg(target_arch = "x86_64")]
+        if simd {
+            if n == NR {
+                avx512::tile::<true>(w, rows, p0, n, dst, pitch, valid, o0, epi);
+            } else {
+                avx512::tile::<false>(w, rows, p0, n, dst, pitch, valid, o0, epi);
+            }
+            return;
+        }
+        let _ = simd;
+        portable_tile(w, rows, p0, n, dst, pitch, valid, o0, epi);
+    }
+}
+
+/// Sixteen products of the same shape side by side (Winograd's, `super::winograd`): for every
+/// block of [`MR`] output rows and tile of [`NR`] positions, `sums[(i * MR + o) * NR + q] =
+/// sum_k w[i](o0 + o, k) rows[i][k][p0 + q]` for `i < 16`, then `f(o0, valid, p0, n, &sums)` (`valid`
+/// rows from `o0`, `n` positions from `p0`; the rest of `sums` is stale). Tasks over the pool as
+/// in [`product`]; `f` must write only what belongs to its rows and positions.
+///
+/// # Safety
+/// Every `rows[i][k]` is valid for reading `len` values; `w[i].kk() == rows[i].len()`.
+#[allow(clippy::type_complexity)]
+pub unsafe fn product16(w: &[Packed], rows: &[Vec<*const f32>], len: usize, f: &(dyn Fn(usize, usize, usize, usize, &[f32]) + Sync)) {
+    assert!(w.len() == 16 && rows.len() == 16, "16 products");
+    let (cout, kk) = (w[0].cout, w[0].kk);
+    assert!(w.iter().zip(rows).all(|(w, r)| w.cout == cout && w.kk == kk && r.len() == kk), "16 products of one shape");
+    if cout == 0 || len == 0 || kk == 0 {
+        assert!(kk > 0 || cout == 0 || len == 0, "product16 without rows");
+        return;
+    }
+    let blocks = cout.div_ceil(MR);
+    let tiles = len.div_ceil(NR);
+    let want = if pool::threads() > 1 { 4 * pool::threads() } else { 1 };
+    let (per_task, groups) = if tiles >= want { (tiles.div_ceil(want), 1) } else { (1, (want / tiles).clamp(1, blocks)) };
+    let group = blocks.div_ceil(groups);
+    let chunks = tiles.div_ceil(per_task);
+    let simd = has_avx512();
+    let rowsp = pool::Shared(rows.as_ptr() as *mut Vec<*const f32>);
+    pool::run(chunks * groups, &|task| {
+        let (chunk, g) = (task / groups, task % groups);
+        let rowsp = &rowsp;
+        // SAFETY: `rows` outlives `run`; tasks only read it.
+        let rows = unsafe { core::slice::from_raw_parts(rowsp.0 as *const Vec<*const f32>, 16) };
+        let mut sums = vec![0.0f32; 16 * MR * NR];
+        for t in chunk * per_task..((chunk + 1) * per_task).min(tiles) {
+            let p0 = t * NR;
+            let n = (len - p0).min(NR);
+            for b in g * group..((g + 1) * group).min(blocks) {
+                let o0 = b * MR;
+                let valid = (cout - o0).min(MR);
+                for (i, (wi, ri)) in w.iter().zip(rows).enumerate() {
+                    let wb = &wi.data[b * kk * MR..][..kk * MR];
+                    // SAFETY: reads rows[i][k][p0 .. p0 + n] (the caller's guarantee); writes
+                    // sums[i MR NR + o NR ..][..n] for o < valid, inside this task's `sums`.
+                    unsafe { tile(simd, wb, ri, p0, n, sums.as_mut_ptr().add(i * MR * NR), NR, valid, o0, &Epilogue::default()) };
                 }
+                f(o0, valid, p0, n, &sums);
             }
         }
     });

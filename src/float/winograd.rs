@@ -11,13 +11,14 @@
 //! ```
 //!
 //! The sum over channels is 16 matrix products (one per position of the 4x4 transform,
-//! [`super::gemm::product_packed`], `U` packed when the model is built); the transforms run on
-//! whole rows of tiles (loops the compiler vectorises). Rounding differs from the direct sum (the
+//! [`super::gemm::product16`], `U` packed when the model is built), computed tile by tile so that
+//! a tile's 16 blocks go into the output transform while they are in cache; the input transform
+//! runs on whole rows of tiles (loops the compiler vectorises). Rounding differs from the direct sum (the
 //! transforms add and subtract before and after it): the parity tests' tolerance covers it.
 //! Every value is computed by one task in one order, so the results are the same bits for any
 //! thread count.
 
-use super::gemm::{Epilogue, Lhs, Packed, product_packed};
+use super::gemm::{Epilogue, Lhs, MR, NR, Packed, product16};
 use super::par;
 use super::tensor::Tensor;
 use muir::kernels::pool;
@@ -65,14 +66,14 @@ impl Weights {
 }
 
 std::thread_local! {
-    /// Phase-split padded input, transformed input and the products, reused from call to call
+    /// Phase-split padded input and transformed input, reused from call to call
     /// ([`release_scratch`] frees them).
-    static SCRATCH: std::cell::RefCell<[Vec<f32>; 3]> = const { std::cell::RefCell::new([Vec::new(), Vec::new(), Vec::new()]) };
+    static SCRATCH: std::cell::RefCell<[Vec<f32>; 2]> = const { std::cell::RefCell::new([Vec::new(), Vec::new()]) };
 }
 
 /// Frees this thread's scratch.
 pub fn release_scratch() {
-    SCRATCH.with_borrow_mut(|s| *s = [Vec::new(), Vec::new(), Vec::new()]);
+    SCRATCH.with_borrow_mut(|s| *s = [Vec::new(), Vec::new()]);
 }
 
 /// The 3x3, stride-1, padding-1 convolution of the channel concatenation of `parts` with `w`,
@@ -91,7 +92,7 @@ pub fn conv(parts: &[&Tensor], w: &Weights, epi: &Epilogue<'_>) -> Tensor {
     let tiles = th * tw;
     let mut out = Tensor::zeros(cout, h, wd);
     SCRATCH.with_borrow_mut(|s| {
-        let [padded, v, m] = s;
+        let [padded, v] = s;
         let padded = pool::scratch(padded, cin * span);
         par::chunks(padded, span, &|at, chunk| {
             for (i, dst) in chunk.chunks_mut(span).enumerate() {
@@ -159,56 +160,47 @@ pub fn conv(parts: &[&Tensor], w: &Weights, epi: &Epilogue<'_>) -> Tensor {
             }
         });
         let v = &*v;
-        // M (16 x cout x tiles) = U[xi] V[xi]
-        let m = pool::scratch(m, 16 * cout * tiles);
-        for (xi, (mx, u)) in m.chunks_mut(cout * tiles).zip(&w.u).enumerate() {
-            let rows: Vec<*const f32> = (0..cin).map(|c| v[(xi * cin + c) * tiles..].as_ptr()).collect();
-            // SAFETY: row c is V[xi][c] (`tiles` values of `v`), and `m` is another buffer.
-            unsafe { product_packed(u, &rows, tiles, &Epilogue::default(), mx, tiles) };
-        }
-        let m = &*m;
-        // Y = A^T M A, then the epilogue, per output channel.
-        par::chunks(&mut out.data, h * wd, &|at, chunk| {
-            // a[j] = M0j + M1j + M2j, b[j] = M1j - M2j - M3j (A^T on the rows), then the same on
-            // the columns: y0 = a0 + a1 + a2, y1 = a1 - a2 - a3, y2 = b0 + b1 + b2, y3 = b1 - b2 - b3.
-            let mut ab = vec![0.0f32; 8 * tw];
-            let mut y = vec![0.0f32; 4 * tw];
-            for (i, dst) in chunk.chunks_mut(h * wd).enumerate() {
-                let o = at / (h * wd) + i;
-                for ty in 0..th {
-                    let mrow = |xi: usize| &m[(xi * cout + o) * tiles + ty * tw..][..tw];
-                    for j in 0..4 {
-                        let (m0, m1, m2, m3) = (mrow(j), mrow(4 + j), mrow(8 + j), mrow(12 + j));
-                        let (a, b) = ab[2 * j * tw..][..2 * tw].split_at_mut(tw);
-                        for tx in 0..tw {
-                            a[tx] = m0[tx] + m1[tx] + m2[tx];
-                            b[tx] = m1[tx] - m2[tx] - m3[tx];
-                        }
-                    }
-                    for (r, yr) in y.chunks_mut(2 * tw).enumerate() {
-                        let col = |j: usize| &ab[(2 * j + r) * tw..][..tw];
-                        let (c0, c1, c2, c3) = (col(0), col(1), col(2), col(3));
-                        let (ya, yb) = yr.split_at_mut(tw);
-                        for tx in 0..tw {
-                            ya[tx] = c0[tx] + c1[tx] + c2[tx];
-                            yb[tx] = c1[tx] - c2[tx] - c3[tx];
-                        }
-                    }
-                    epi.apply_row(o, &mut y);
-                    // y[r][0] (even columns) and y[r][1] (odd) of output row 2 ty + r
-                    for (r, yr) in y.chunks(2 * tw).enumerate() {
-                        let oy = 2 * ty + r;
-                        if oy >= h {
-                            break;
-                        }
-                        let (ya, yb) = yr.split_at(tw);
-                        for (x, d) in dst[oy * wd..][..wd].iter_mut().enumerate() {
-                            *d = if x % 2 == 0 { ya[x / 2] } else { yb[x / 2] };
+        // M[xi] (cout x tiles) = U[xi] V[xi], 16 products tile by tile; each tile's 16 blocks go
+        // straight into Y = A^T M A and the epilogue, then to the output.
+        let rows: Vec<Vec<*const f32>> = (0..16).map(|xi| (0..cin).map(|c| v[(xi * cin + c) * tiles..].as_ptr()).collect()).collect();
+        let outp = pool::Shared(out.data.as_mut_ptr());
+        let store = |o0: usize, valid: usize, p0: usize, n: usize, sums: &[f32]| {
+            let outp = &outp;
+            let mut y = [[0.0f32; NR]; 4];
+            for o in 0..valid {
+                let ms: [&[f32]; 16] = core::array::from_fn(|xi| &sums[(xi * MR + o) * NR..][..n]);
+                // a[j] = M0j + M1j + M2j, b[j] = M1j - M2j - M3j (A^T on the rows), then the same
+                // on the columns: y0 = a0 + a1 + a2, y1 = a1 - a2 - a3, y2 = b0 + b1 + b2,
+                // y3 = b1 - b2 - b3.
+                for q in 0..n {
+                    let a = |j: usize| ms[j][q] + ms[4 + j][q] + ms[8 + j][q];
+                    let b = |j: usize| ms[4 + j][q] - ms[8 + j][q] - ms[12 + j][q];
+                    let (a0, a1, a2, a3) = (a(0), a(1), a(2), a(3));
+                    let (b0, b1, b2, b3) = (b(0), b(1), b(2), b(3));
+                    y[0][q] = a0 + a1 + a2;
+                    y[1][q] = a1 - a2 - a3;
+                    y[2][q] = b0 + b1 + b2;
+                    y[3][q] = b1 - b2 - b3;
+                }
+                for yr in y.iter_mut() {
+                    epi.apply_row(o0 + o, &mut yr[..n]);
+                }
+                let plane = (o0 + o) * h * wd;
+                for q in 0..n {
+                    let (ty, tx) = ((p0 + q) / tw, (p0 + q) % tw);
+                    for (r, yr) in y.iter().enumerate() {
+                        let (oy, ox) = (2 * ty + r / 2, 2 * tx + r % 2);
+                        if oy < h && ox < wd {
+                            // SAFETY: output (o0 + o, oy, ox) belongs to tile p0 + q of this
+                            // block, which no other task has.
+                            unsafe { *outp.0.add(plane + oy * wd + ox) = yr[q] };
                         }
                     }
                 }
             }
-        });
+        };
+        // SAFETY: row c of product xi is V[xi][c] (`tiles` values of `v`).
+        unsafe { product16(&w.u, &rows, tiles, &store) };
     });
     out
 }
