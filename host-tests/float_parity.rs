@@ -155,3 +155,41 @@ fn full_res_refinement_matches_twin_bit_for_bit() {
     assert_eq!(differ, 0, "Rust and twin refinement differ on {differ} pixels");
     assert!(d.iter().zip(&d0).any(|(a, b)| a != b));
 }
+
+/// The float engine on 1, 2 and 4 threads (`float::set_threads`): every traced tensor the same
+/// bits (each sum is made by one thread, in one order, whatever the thread count).
+#[test]
+fn same_bits_for_any_thread_count() {
+    for config_name in ["muir-fast", "raft-stereo-realtime"] {
+        let file = parse_safetensors(&fixture(config_name)).expect("fixture parses");
+        let config = file.config.expect("fixture carries its config");
+        let seed: u64 = file.metadata["seed"].parse().expect("seed");
+        let weights = FloatWeights::from_state_dict(seeded::state_dict(&config, seed), &config).expect("seeded weights load");
+        let model = FloatModel::new(weights);
+        let input = |name: &str| {
+            let p = &file.tensors[name];
+            match &p.data {
+                ParamData::F32(v) => Tensor::from_vec(p.shape[0], p.shape[1], p.shape[2], v.clone()),
+                ParamData::I64(_) => panic!("{name}: not f32"),
+            }
+        };
+        let (left, right) = (input("input.left"), input("input.right"));
+        let mut first: Option<BTreeMap<String, Tensor>> = None;
+        for threads in [1, 2, 4] {
+            muir_tools::float::set_threads(threads);
+            let mut trace: BTreeMap<String, Tensor> = BTreeMap::new();
+            model.forward(&left, &right, &mut trace);
+            match &first {
+                None => first = Some(trace),
+                Some(f) => {
+                    assert_eq!(f.len(), trace.len());
+                    for (name, t) in f {
+                        let same = t.data.iter().zip(&trace[name].data).all(|(a, b)| a.to_bits() == b.to_bits());
+                        assert!(same, "{config_name}: {name} differs between 1 and {threads} threads");
+                    }
+                }
+            }
+        }
+        muir_tools::float::set_threads(1);
+    }
+}

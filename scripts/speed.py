@@ -1,17 +1,34 @@
 #!/usr/bin/env python3
-"""Side by side, one stereo pair, the same thread count for each (issue #24 item 4): the Rust fixed-point engine,
-the Rust float engine and the PyTorch twin, run interleaved (round k runs all three before round
+"""Side by side, one stereo pair, the same thread count for each (issue #24 items 3 and 4): the Rust fixed-point
+engine, the Rust float engine and the PyTorch twin, run interleaved (round k runs all of them before round
 k+1 starts, so a machine that gets busier slows all of them alike), network only (no full-resolution
 refinement: the twin has it in numpy, outside the network). Prints a Markdown table of min and
-median seconds and the ratios of the medians; the Rust times are the CLI's own `engine:` figure
-(the frame, not the process start or the PNG writing), the twin's the forward pass after one warm-up.
+median seconds, the median CPU seconds and the ratios of the medians; the Rust times are the CLI's own
+`engine:` figure (the frame, not the process start or the PNG writing) and its process's CPU time
+(`getrusage` of the child, so it includes loading the model and the PNGs), the twin's the forward pass
+(no trace) after one warm-up and its process CPU time over that pass.
 
     python3 scripts/speed.py [--pair assets/teddy] [--rounds 5] [--model models/muir-slim.safetensors]
                              [--blob models/muir-slim.muirq] [--threads N]
+                             [--config NAME [--seed S]] [--size WxH] [--no-fixed] [--baseline OLD_MUIR]
 
 `--threads N` (default 1): PyTorch's intra-op threads and `muir run --threads N` (the float
 engine's matrix products; the fixed-point engine's kernel pool: convolution rows, attention,
 correlation lookup).
+
+`--config NAME` (e.g. `raft-stereo-realtime`): instead of `--model`, seeded weights for that config
+(`python/muir/seeded.py`, the same values `src/float/seeded.rs` makes; seed `--seed`, default 11),
+written to `target/speed-out/NAME-seedS.safetensors` and run by both the float engine and the twin. There
+is no fixed-point model for such weights, so the fixed engine is left out unless `--blob` is named.
+`--size WxH`: the pair's top-left WxH crop (written to `target/speed-out/`), e.g. `--size 384x288`
+for the issue's `raft-stereo-realtime` case. `--no-fixed` leaves the fixed engine out.
+`--baseline OLD_MUIR`: another `muir` binary whose float engine runs in every round too (an
+interleaved A/B of two builds; copy the old `target/release/muir` aside before rebuilding).
+
+Examples (issue #24 item 3's figure):
+
+    OMP_NUM_THREADS=1 python3 scripts/speed.py --rounds 7
+    python3 scripts/speed.py --config raft-stereo-realtime --size 384x288 --rounds 7 --threads 2
 
 Needs a release build (`cargo build --release --bin muir`) and the twin (python/README.md).
 """
@@ -20,25 +37,35 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import resource
 import statistics
 import subprocess
 import sys
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+OUT = os.path.join(ROOT, "target", "speed-out")
 
 
-def rust_seconds(muir: str, model: str, pair: str, threads: int) -> float:
+def child_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def rust_seconds(muir: str, model: str, pair: str, threads: int) -> tuple[float, float]:
+    """(engine wall seconds as the CLI prints them, the process's CPU seconds)."""
     cmd = [muir, "run", "--model", model, "--left", os.path.join(pair, "left.png"),
            "--right", os.path.join(pair, "right.png"), "--no-refine", "--threads", str(threads),
-           "--out-dir", os.path.join(ROOT, "target", "speed-out")]
+           "--out-dir", OUT]
+    c0 = child_cpu()
     r = subprocess.run(cmd, capture_output=True, text=True)
+    cpu = child_cpu() - c0
     if r.returncode != 0:
         sys.exit(f"error: {' '.join(cmd)}: {r.stderr.strip()}")
     m = re.search(r"engine: ([0-9.]+) s", r.stderr)
     if not m:
         sys.exit(f"error: no 'engine: N s' in the output of {' '.join(cmd)}:\n{r.stderr}")
-    return float(m.group(1))
+    return float(m.group(1)), cpu
 
 
 def main(argv=None) -> int:
@@ -46,48 +73,110 @@ def main(argv=None) -> int:
     p.add_argument("--pair", default=os.path.join(ROOT, "assets", "teddy"), help="folder with left.png, right.png")
     p.add_argument("--rounds", type=int, default=5)
     p.add_argument("--model", default=os.path.join(ROOT, "models", "muir-slim.safetensors"))
-    p.add_argument("--blob", default=os.path.join(ROOT, "models", "muir-slim.muirq"))
+    p.add_argument("--blob", default=None, help="fixed-point model (default models/muir-slim.muirq without --config)")
     p.add_argument("--threads", type=int, default=1, help="1 to 4 (muir run --threads; torch.set_num_threads)")
+    p.add_argument("--config", default=None, help="seeded weights of this config preset instead of --model")
+    p.add_argument("--seed", type=int, default=11, help="seed of the --config weights")
+    p.add_argument("--size", default=None, help="WxH: the top-left crop of the pair")
+    p.add_argument("--no-fixed", action="store_true", help="leave the fixed-point engine out")
+    p.add_argument("--baseline", default=None, help="another muir binary, its float engine run in every round too")
     a = p.parse_args(argv)
     if not 1 <= a.threads <= 4:
         sys.exit("error: --threads must be 1 to 4")
     muir = os.path.join(ROOT, "target", "release", "muir")
     if not os.path.exists(muir):
         sys.exit("error: target/release/muir missing: cargo build --release --bin muir")
+    if a.baseline and not os.path.exists(a.baseline):
+        sys.exit(f"error: {a.baseline}: no such file")
     if a.rounds < 1:
         sys.exit("error: --rounds must be at least 1")
+    blob = a.blob if a.blob else (None if a.config else os.path.join(ROOT, "models", "muir-slim.muirq"))
+    if a.no_fixed:
+        blob = None
 
     sys.path.insert(0, os.path.join(ROOT, "python"))
     import numpy as np
     import torch
     from PIL import Image
 
-    from muir.checkpoint import load_model
-    from muir.evaluate import run_model
+    from muir.checkpoint import load_model, save_model
+    from muir.config import preset
+    from muir.model import MUIR
+    from muir import seeded
 
     torch.set_num_threads(a.threads)
-    model = load_model(a.model).eval()
-    left = np.asarray(Image.open(os.path.join(a.pair, "left.png")).convert("RGB"))
-    right = np.asarray(Image.open(os.path.join(a.pair, "right.png")).convert("RGB"))
-    run_model(model, left, right)  # warm-up
+    os.makedirs(OUT, exist_ok=True)
+    model_path = a.model
+    if a.config:
+        model = MUIR(preset(a.config)).eval()
+        model.load_state_dict(seeded.state_dict(model, a.seed), strict=True)
+        model_path = os.path.join(OUT, f"{a.config}-seed{a.seed}.safetensors")
+        save_model(model, model_path)
+    else:
+        model = load_model(a.model).eval()
+    left_im = Image.open(os.path.join(a.pair, "left.png")).convert("RGB")
+    right_im = Image.open(os.path.join(a.pair, "right.png")).convert("RGB")
+    pair = a.pair
+    if a.size:
+        w, h = (int(v) for v in a.size.lower().split("x"))
+        if w > left_im.width or h > left_im.height:
+            sys.exit(f"error: --size {a.size} is larger than the pair ({left_im.width}x{left_im.height})")
+        left_im, right_im = left_im.crop((0, 0, w, h)), right_im.crop((0, 0, w, h))
+        pair = os.path.join(OUT, f"{os.path.basename(os.path.normpath(a.pair))}-{w}x{h}")
+        os.makedirs(pair, exist_ok=True)
+        left_im.save(os.path.join(pair, "left.png"))
+        right_im.save(os.path.join(pair, "right.png"))
+    left, right = np.asarray(left_im), np.asarray(right_im)
 
-    times = {"muir fixed-point engine": [], "muir float engine": [], "PyTorch twin": []}
+    pad = model.cfg.pad_multiple
+    ph, pw = (-left.shape[0]) % pad, (-left.shape[1]) % pad
+
+    def prep(img):
+        t = torch.from_numpy(img.copy()).permute(2, 0, 1)[None].float()
+        return torch.nn.functional.pad(t, (0, pw, 0, ph), mode="replicate") if (ph or pw) else t
+
+    lt, rt = prep(left), prep(right)
+
+    def twin():
+        with torch.inference_mode():
+            model(lt, rt)
+
+    twin()  # warm-up
+
+    names = (["muir fixed-point engine"] if blob else []) + ["muir float engine"]
+    names += ["muir float engine (baseline)"] if a.baseline else []
+    names += ["PyTorch twin"]
+    times = {n: [] for n in names}
+    cpus = {n: [] for n in names}
     for k in range(a.rounds):
-        times["muir fixed-point engine"].append(rust_seconds(muir, a.blob, a.pair, a.threads))
-        times["muir float engine"].append(rust_seconds(muir, a.model, a.pair, a.threads))
-        t0 = time.perf_counter()
-        run_model(model, left, right)
+        runs = []
+        if blob:
+            runs.append(("muir fixed-point engine", muir, blob))
+        runs.append(("muir float engine", muir, model_path))
+        if a.baseline:
+            runs.append(("muir float engine (baseline)", a.baseline, model_path))
+        if k % 2:  # alternate the order of the Rust runs from round to round
+            runs.reverse()
+        for n, binary, m in runs:
+            t, c = rust_seconds(binary, m, pair, a.threads)
+            times[n].append(t)
+            cpus[n].append(c)
+        c0, t0 = time.process_time(), time.perf_counter()
+        twin()
         times["PyTorch twin"].append(time.perf_counter() - t0)
-        print(f"round {k + 1}/{a.rounds}: " + ", ".join(f"{n} {v[-1]:.2f} s" for n, v in times.items()), file=sys.stderr)
+        cpus["PyTorch twin"].append(time.process_time() - c0)
+        print(f"round {k + 1}/{a.rounds}: " + ", ".join(f"{n} {v[-1]:.3f} s" for n, v in times.items()), file=sys.stderr)
 
     h, w = left.shape[:2]
     med = {n: statistics.median(v) for n, v in times.items()}
-    print(f"{os.path.basename(os.path.normpath(a.pair))} {w}x{h}, {os.path.basename(a.model)}, {a.threads} thread(s), "
+    what = f"{a.config} seeded weights (seed {a.seed})" if a.config else os.path.basename(model_path)
+    print(f"{os.path.basename(os.path.normpath(a.pair))} {w}x{h}, {what}, {a.threads} thread(s), "
           f"{a.rounds} interleaved rounds, network only\n")
-    print("| engine | min s | median s | median / float engine | median / PyTorch |")
-    print("|---|---:|---:|---:|---:|")
+    print("| engine | min s | median s | median CPU s | median / float engine | median / PyTorch |")
+    print("|---|---:|---:|---:|---:|---:|")
     for n, v in times.items():
-        print(f"| {n} | {min(v):.2f} | {med[n]:.2f} | {med[n] / med['muir float engine']:.2f} | {med[n] / med['PyTorch twin']:.2f} |")
+        print(f"| {n} | {min(v):.3f} | {med[n]:.3f} | {statistics.median(cpus[n]):.3f} | "
+              f"{med[n] / med['muir float engine']:.2f} | {med[n] / med['PyTorch twin']:.2f} |")
     return 0
 
 

@@ -66,9 +66,11 @@ impl InputMoments {
             n += 1;
         }
         let mut g = vec![0f32; d * d];
-        // SAFETY: `p` holds n x d values (row-major), `g` d x d; a = p^T (d x n) via strides.
+        // g (d x d) = p^T (d x n) . p (n x d): left-hand (a, i) = p(i, a), right-hand row i = row i of p.
+        let rows: Vec<*const f32> = p.chunks(d).map(|r| r.as_ptr()).collect();
+        // SAFETY: each row is a row of `p` (d values), distinct from `g`.
         unsafe {
-            matrixmultiply::sgemm(d, n, d, 1.0, p.as_ptr(), 1, d as isize, p.as_ptr(), d as isize, 1, 0.0, g.as_mut_ptr(), d as isize, 1);
+            crate::float::gemm::product(crate::float::gemm::Lhs { data: &p, row: 1, col: d }, d, &rows, d, &Default::default(), &mut g, d);
         }
         for (h, g) in self.h.iter_mut().zip(&g) {
             *h += *g as f64;

@@ -7,14 +7,18 @@
 use std::collections::BTreeMap;
 
 use super::corr::{lookup, peaks};
+use super::gemm::{Epilogue, Lhs, Packed};
 use super::ops::{
-    aggregate, attention_matrix, conv2d, convex_upsample, instance_norm, interp, pool2x, relu, rope_2d, sigmoid,
+    Weights, aggregate, attention_matrix, conv_with, convex_upsample, instance_norm, interp, pool2x, relu, rope_2d, sigmoid,
 };
+use super::par;
 use super::tensor::Tensor;
 use super::weights::{FloatConv, FloatWeights};
+use super::winograd;
 use muir::input::{ImageView, InputError, check_pair};
 use muir::model::config::{Config, MaxDisparity};
 use muir::model::layers::ConvId::{self, *};
+use muir::model::layers::ConvShape;
 
 /// Receives intermediate tensors by name.
 pub trait Trace {
@@ -98,6 +102,46 @@ impl Prediction {
 pub struct FloatModel {
     weights: FloatWeights,
     max_disparity: MaxDisparity,
+    /// Every computed layer's weights packed for the matrix product, by [`ConvId::index`].
+    packed: Vec<Option<Packed>>,
+    /// The 3x3 stride-1 layers' Winograd weights ([`winograd_fits`]), by [`ConvId::index`].
+    wino: Vec<Option<winograd::Weights>>,
+    /// Each GRU's z and r convolutions stacked into one (the same input): 1/8, then 1/16.
+    zr: [Option<Stacked>; 2],
+}
+
+/// Whether a layer runs as Winograd F(2x2, 3x3) ([`winograd`]): 3x3, stride 1, and enough
+/// channels for the transforms to cost less than the multiply-adds they save (measured: with 16
+/// and more, muir-slim's 32- and 48-channel backbone layers were slower than direct; with 64 and
+/// more, both Teddy muir-slim and raft-stereo-realtime gain).
+fn winograd_fits(s: &ConvShape) -> bool {
+    s.k == 3 && s.stride == 1 && s.cin >= 64 && s.cout >= 64
+}
+
+/// Two layers of one input as one convolution: their weights packed one above the other.
+#[derive(Clone, Debug)]
+struct Stacked {
+    shape: ConvShape,
+    packed: Packed,
+    wino: Option<winograd::Weights>,
+    bias: Vec<f32>,
+}
+
+impl Stacked {
+    /// `a` and `b` stacked, if they have the same shape and no batch norm.
+    fn new(a: Option<&FloatConv>, b: Option<&FloatConv>) -> Option<Self> {
+        let (a, b) = (a?, b?);
+        if a.shape != b.shape || a.bn.is_some() || b.bn.is_some() {
+            return None;
+        }
+        let kk = a.shape.cin * a.shape.k * a.shape.k;
+        let weight = [&a.weight[..], &b.weight[..]].concat();
+        let packed = Packed::new(Lhs { data: &weight, row: kk, col: 1 }, 2 * a.shape.cout, kk);
+        let bias = [&a.bias[..], &b.bias[..]].concat();
+        let shape = ConvShape { cout: 2 * a.shape.cout, ..a.shape };
+        let wino = winograd_fits(&shape).then(|| winograd::Weights::new(&weight, shape.cout, shape.cin));
+        Some(Self { shape, packed, wino, bias })
+    }
 }
 
 struct Context {
@@ -113,7 +157,22 @@ struct Context {
 impl FloatModel {
     /// Wraps validated weights.
     pub fn new(weights: FloatWeights) -> Self {
-        Self { weights, max_disparity: MaxDisparity::DEFAULT }
+        let mut packed = vec![None; ConvId::COUNT];
+        let mut wino = vec![None; ConvId::COUNT];
+        for id in ConvId::ALL {
+            if let Some(c) = weights.get(*id) {
+                let kk = c.shape.cin * c.shape.k * c.shape.k;
+                packed[id.index()] = Some(Packed::new(Lhs { data: &c.weight, row: kk, col: 1 }, c.shape.cout, kk));
+                if winograd_fits(&c.shape) {
+                    wino[id.index()] = Some(winograd::Weights::new(&c.weight, c.shape.cout, c.shape.cin));
+                }
+            }
+        }
+        let zr = [
+            Stacked::new(weights.get(Gru08Z), weights.get(Gru08R)),
+            Stacked::new(weights.get(Gru16Z), weights.get(Gru16R)),
+        ];
+        Self { weights, max_disparity: MaxDisparity::DEFAULT, packed, wino, zr }
     }
 
     /// Sets the largest disparity of UFI's proposal search ([`MaxDisparity`], default 256 px).
@@ -143,20 +202,35 @@ impl FloatModel {
     }
 
     fn conv(&self, id: ConvId, x: &Tensor) -> Tensor {
-        conv2d(x, self.layer(id))
+        self.conv_cat(id, &[x], false)
+    }
+
+    /// `relu(conv(x))`.
+    fn conv_relu(&self, id: ConvId, x: &Tensor) -> Tensor {
+        self.conv_cat(id, &[x], true)
+    }
+
+    /// The layer on the channel concatenation of `parts`, then ReLU if `relu`.
+    fn conv_cat(&self, id: ConvId, parts: &[&Tensor], relu: bool) -> Tensor {
+        let l = self.layer(id);
+        let epi = Epilogue { bias: Some(&l.bias), bn: l.bn.as_ref(), scale: None, relu };
+        if let Some(w) = &self.wino[id.index()] {
+            return winograd::conv(parts, w, &epi);
+        }
+        // Packed in `new` for every layer the weights hold.
+        let p = self.packed[id.index()].as_ref().unwrap_or_else(|| panic!("layer {} not packed", id.name()));
+        conv_with(parts, &l.shape, Weights::Packed(p), &epi)
     }
 
     /// Residual block; records its mid and output activations as `q.<names[0]>`, `q.<names[1]>`
     /// (calibration statistics of the quantised engine's slots).
     fn res_block(&self, x: &Tensor, ids: [ConvId; 2], ds: Option<ConvId>, names: [&str; 2], tr: &mut dyn Trace) -> Tensor {
-        let y = relu(self.conv(ids[0], x));
+        let y = self.conv_relu(ids[0], x);
         tr.record(names[0], &y);
-        let y = relu(self.conv(ids[1], &y));
-        let skip = match ds {
-            Some(d) => self.conv(d, x),
-            None => x.clone(),
-        };
-        let out = relu(skip.zip(&y, |a, b| a + b));
+        let y = self.conv_relu(ids[1], &y);
+        let ds = ds.map(|d| self.conv(d, x));
+        // relu(skip + y)
+        let out = y.zip(ds.as_ref().unwrap_or(x), |a, b| (b + a).max(0.0));
         tr.record(names[1], &out);
         out
     }
@@ -170,7 +244,7 @@ impl FloatModel {
         let raw2 = self.conv(FmapC2, &mid);
         tr.record("q.fmap_raw2", &raw2);
         let y = relu(instance_norm(raw2));
-        let blk = relu(x.clone().zip(&y, |a, b| a + b));
+        let blk = y.zip(x, |a, b| (b + a).max(0.0));
         tr.record("q.fmap_blk", &blk);
         let f = self.conv(FmapOut, &blk);
         tr.record("q.fmap", &f);
@@ -178,7 +252,7 @@ impl FloatModel {
     }
 
     fn trunk(&self, img: &Tensor, tr: &mut dyn Trace) -> [Tensor; 4] {
-        let c1 = relu(self.conv(Conv1, img));
+        let c1 = self.conv_relu(Conv1, img);
         tr.record("q.c1", &c1);
         let x = self.res_block(&c1, [L1b0c1, L1b0c2], None, ["q.l1b0m", "q.l1b0o"], tr);
         let l1 = self.res_block(&x, [L1b1c1, L1b1c2], None, ["q.l1b1m", "q.l1b1o"], tr);
@@ -236,15 +310,40 @@ impl FloatModel {
     fn gru(&self, ids: [ConvId; 3], h: &Tensor, ctx: &[Tensor; 3], xs: &[&Tensor]) -> Tensor {
         let mut parts = vec![h];
         parts.extend_from_slice(xs);
-        let hx = Tensor::cat(&parts);
-        let z = self.conv(ids[0], &hx).zip(&ctx[0], |a, b| sigmoid(a + b));
-        let r = self.conv(ids[1], &hx).zip(&ctx[1], |a, b| sigmoid(a + b));
-        let rh = r.zip(h, |a, b| a * b);
+        let n = h.data.len();
+        // z and r from one product where they are stacked, else one each.
+        let stacked = self.zr[if ids[0] == Gru08Z { 0 } else { 1 }].as_ref();
+        let zr = match stacked {
+            Some(st) => {
+                let epi = Epilogue { bias: Some(&st.bias), ..Default::default() };
+                match &st.wino {
+                    Some(w) => winograd::conv(&parts, w, &epi),
+                    None => conv_with(&parts, &st.shape, Weights::Packed(&st.packed), &epi),
+                }
+            }
+            None => Tensor::cat(&[&self.conv_cat(ids[0], &parts, false), &self.conv_cat(ids[1], &parts, false)]),
+        };
+        let (zs, rs) = zr.data.split_at(n);
+        let mut z = vec![0.0f32; n];
+        par::chunks(&mut z, 1, &|i, ch| {
+            ch.iter_mut().zip(&zs[i..]).zip(&ctx[0].data[i..]).for_each(|((v, a), b)| *v = sigmoid(a + b));
+        });
+        // r * h
+        let mut rh = vec![0.0f32; n];
+        par::chunks(&mut rh, 1, &|i, ch| {
+            ch.iter_mut().zip(&rs[i..]).zip(&ctx[1].data[i..]).zip(&h.data[i..]).for_each(|(((v, a), b), h)| *v = sigmoid(a + b) * h);
+        });
+        let rh = Tensor::from_vec(h.c, h.h, h.w, rh);
         parts[0] = &rh;
-        let q = self.conv(ids[2], &Tensor::cat(&parts)).zip(&ctx[2], |a, b| (a + b).tanh());
-        // (1 - z) * h + z * q
-        let one_minus_z = z.clone().map(|v| 1.0 - v);
-        one_minus_z.zip(h, |a, b| a * b).zip(&z.zip(&q, |a, b| a * b), |a, b| a + b)
+        let q = self.conv_cat(ids[2], &parts, false);
+        // (1 - z) * h + z * tanh(q + ctx)
+        let mut out = q.data;
+        par::chunks(&mut out, 1, &|i, ch| {
+            for (((q, c), z), h) in ch.iter_mut().zip(&ctx[2].data[i..]).zip(&z[i..]).zip(&h.data[i..]) {
+                *q = (1.0 - z) * h + z * (*q + c).tanh();
+            }
+        });
+        Tensor::from_vec(h.c, h.h, h.w, out)
     }
 
     /// `u = log(eps_min^2 + (eps_max^2 - eps_min^2) * sigmoid(v))`.
@@ -255,9 +354,9 @@ impl FloatModel {
     }
 
     fn mud(&self, net08: &Tensor, corr: &Tensor, flow: &Tensor, tr: &mut dyn Trace) -> (Tensor, Tensor) {
-        let x = relu(self.conv(Mud1, &Tensor::cat(&[net08, corr, &flow.channels(0, 1)])));
+        let x = self.conv_cat(Mud1, &[net08, corr, &flow.channels(0, 1)], true);
         tr.record("q.mud1", &x);
-        let x = relu(self.conv(Mud2, &x));
+        let x = self.conv_relu(Mud2, &x);
         tr.record("q.mud2", &x);
         let ab = self.conv(Mud3, &x);
         (ab.channels(0, 1).map(sigmoid), self.uncertainty(ab.channels(1, 1)))
@@ -280,15 +379,15 @@ impl FloatModel {
             let corr_k = lookup(&c.f1, &c.f2, &flow_k, cfg);
             tr.record(&format!("ufi.corr{k}"), &corr_k);
             tr.record("q.corr", &corr_k);
-            let cc = relu(self.conv(UfiC, &corr_k));
-            let ff = relu(self.conv(UfiF, &flow_k));
+            let cc = self.conv_relu(UfiC, &corr_k);
+            let ff = self.conv_relu(UfiF, &flow_k);
             tr.record("q.ufi_c", &cc);
             tr.record("q.ufi_f", &ff);
-            let feat = relu(self.conv(UfiConv, &Tensor::cat(&[&cc, &ff])));
+            let feat = self.conv_cat(UfiConv, &[&cc, &ff], true);
             tr.record("q.ufi_feat", &feat);
             let fk = Tensor::cat(&[&feat, &flow_k]);
-            let q = self.conv(UfiQ, &Tensor::cat(&[&fk, &c.inp08])).map(f32::tanh);
-            let z = self.conv(UfiZ, &Tensor::cat(&[&hid, &q])).map(sigmoid);
+            let q = self.conv_cat(UfiQ, &[&fk, &c.inp08], false).map(f32::tanh);
+            let z = self.conv_cat(UfiZ, &[&hid, &q], false).map(sigmoid);
             // hid + (q - hid) * z
             let step = q.zip(&hid, |a, b| a - b).zip(&z, |a, b| a * b);
             hid = hid.zip(&step, |a, b| a + b);
@@ -298,7 +397,7 @@ impl FloatModel {
         let mut cand_flow = Vec::with_capacity(3);
         let mut cand_u = Vec::with_capacity(3);
         for (k, fk) in feats.iter().enumerate() {
-            let mid = relu(self.conv(UfiHead1, &Tensor::cat(&[&hid, fk])));
+            let mid = self.conv_cat(UfiHead1, &[&hid, fk], true);
             tr.record("q.ufi_head", &mid);
             let out = self.conv(UfiHead2, &mid);
             cand_flow.push(props[k].clone().map(|v| -v).zip(&out.channels(0, 1), |a, b| a + b));
@@ -367,20 +466,22 @@ impl FloatModel {
             tr.record(&format!("iter{itr}.corr"), &corr);
             tr.record("q.corr", &corr);
             let mut m = None;
-            let corr_in = if cfg.mud {
+            // The motion encoder's input: corr, or (with MUD) corr, corr * m, m.
+            let mut masked = None;
+            if cfg.mud {
                 let (mm, u) = self.mud(&net08, &corr, &flow, tr);
                 tr.record(&format!("iter{itr}.mud_m"), &mm);
                 tr.record(&format!("iter{itr}.mud_u"), &u);
-                let masked = corr.clone().mul_plane(&mm);
-                let ci = Tensor::cat(&[&corr, &masked, &mm]);
+                masked = Some(corr.clone().mul_plane(&mm));
                 m = Some(mm);
-                ci
-            } else {
-                corr.clone()
+            }
+            let corr_in: Vec<&Tensor> = match (&masked, &m) {
+                (Some(cm), Some(mm)) => vec![&corr, cm, mm],
+                _ => vec![&corr],
             };
             let glb = match (&attn, &m) {
                 (Some(a), Some(m)) => {
-                    let hm = self.conv(MgaMask, &Tensor::cat(&[&net08, &corr, &flow.channels(0, 1), m])).map(sigmoid);
+                    let hm = self.conv_cat(MgaMask, &[&net08, &corr, &flow.channels(0, 1), m], false).map(sigmoid);
                     let v0 = self.conv(MgaValue, &net08);
                     tr.record("q.mga_v", &v0);
                     let v = v0.mul_plane(&hm);
@@ -393,27 +494,30 @@ impl FloatModel {
                 _ => None,
             };
             let g16 = [Gru16Z, Gru16R, Gru16Q];
-            net16 = self.gru(g16, &net16, &c.ctx16, &[&pool2x(&net08)]);
-            net16 = self.gru(g16, &net16, &c.ctx16, &[&pool2x(&net08)]);
-            let c1 = relu(self.conv(MotC1, &corr_in));
-            let cor = relu(self.conv(MotC2, &c1));
-            let f1 = relu(self.conv(MotF1, &flow));
-            let flo = relu(self.conv(MotF2, &f1));
-            let out = relu(self.conv(MotOut, &Tensor::cat(&[&cor, &flo])));
+            let pooled = pool2x(&net08);
+            net16 = self.gru(g16, &net16, &c.ctx16, &[&pooled]);
+            net16 = self.gru(g16, &net16, &c.ctx16, &[&pooled]);
+            let c1 = self.conv_cat(MotC1, &corr_in, true);
+            let cor = self.conv_relu(MotC2, &c1);
+            let f1 = self.conv_relu(MotF1, &flow);
+            let flo = self.conv_relu(MotF2, &f1);
+            let out = self.conv_cat(MotOut, &[&cor, &flo], true);
             tr.record("q.mot_c1", &c1);
             tr.record("q.mot_c2", &cor);
             tr.record("q.mot_f1", &f1);
             tr.record("q.mot_f2", &flo);
             tr.record("q.mot_out", &out);
-            let motion = Tensor::cat(&[&out, &flow]);
-            tr.record(&format!("iter{itr}.motion"), &motion);
+            if tr.active() {
+                tr.record(&format!("iter{itr}.motion"), &Tensor::cat(&[&out, &flow]));
+            }
             let up16 = interp(&net16, h8, w8);
-            let mut xs = vec![&motion, &up16];
+            // The GRU's input after the hidden state: motion (out, flow), up16, the MGA context.
+            let mut xs = vec![&out, &flow, &up16];
             if let Some(g) = &glb {
                 xs.push(g);
             }
             net08 = self.gru([Gru08Z, Gru08R, Gru08Q], &net08, &c.ctx08, &xs);
-            let fmid = relu(self.conv(Flow1, &net08));
+            let fmid = self.conv_relu(Flow1, &net08);
             tr.record("q.flow_mid", &fmid);
             let delta = self.conv(Flow2, &fmid);
             let mut new_flow = flow.clone();
@@ -436,7 +540,7 @@ impl FloatModel {
             u_final = Some(u);
             m_final = Some(m);
         }
-        let mmid = relu(self.conv(Mask1, &net08));
+        let mmid = self.conv_relu(Mask1, &net08);
         tr.record("q.mask_mid", &mmid);
         let mask = self.conv(Mask2, &mmid).map(|v| 0.25 * v);
         tr.record("q.mask_logit", &mask);

@@ -1,10 +1,13 @@
 //! Float operators of the reference network: convolution, normalisation, pooling, resampling.
 //!
-//! Each one matches the PyTorch operator the twin uses (named in its doc). Convolution is im2col +
-//! sgemm (`matrixmultiply`), which keeps the reference fast enough for real images on the host.
+//! Each one matches the PyTorch operator the twin uses (named in its doc). Convolution is a matrix
+//! product ([`super::gemm::product`]) whose right-hand rows point into the zero-padded input, with
+//! bias, batch norm and ReLU applied to the sums before they are stored.
 
+use super::gemm::{Epilogue, Lhs, Packed, product, product_packed};
 use super::tensor::Tensor;
 use super::weights::FloatConv;
+use muir::model::layers::ConvShape;
 
 /// Output side of a `k`-kernel, stride-`s`, padding-`k/2` convolution.
 pub fn conv_out(n: usize, k: usize, s: usize) -> usize {
@@ -14,123 +17,145 @@ pub fn conv_out(n: usize, k: usize, s: usize) -> usize {
 /// `nn.Conv2d(cin, cout, k, stride, padding=k//2)` followed by the layer's BatchNorm (stored
 /// statistics) if it has one. InstanceNorm layers are normalised by the caller ([`instance_norm`]).
 pub fn conv2d(x: &Tensor, conv: &FloatConv) -> Tensor {
-    let s = &conv.shape;
-    assert_eq!(x.c, s.cin, "conv input channels");
+    conv2d_cat(&[x], conv, false)
+}
+
+/// [`conv2d`] of the channel concatenation of `parts` (without building it), then ReLU if `relu`.
+pub fn conv2d_cat(parts: &[&Tensor], conv: &FloatConv, relu: bool) -> Tensor {
+    let epi = Epilogue { bias: Some(&conv.bias), bn: conv.bn.as_ref(), scale: None, relu };
+    let kk = conv.shape.cin * conv.shape.k * conv.shape.k;
+    conv_with(parts, &conv.shape, Weights::Plain(Lhs { data: &conv.weight, row: kk, col: 1 }), &epi)
+}
+
+/// A convolution's weights: as stored (`cout x (cin k k)`), or packed beforehand.
+#[derive(Clone, Copy)]
+pub enum Weights<'a> {
+    /// Packed for this call.
+    Plain(Lhs<'a>),
+    /// Packed once.
+    Packed(&'a Packed),
+}
+
+/// The convolution of the channel concatenation of `parts` (shape `shape`, `shape.cout` output
+/// channels, or the packed matrix's rows) with `w`, `epi` applied to the sums.
+pub fn conv_with(parts: &[&Tensor], shape: &ConvShape, w: Weights<'_>, epi: &Epilogue<'_>) -> Tensor {
+    let s = shape;
+    let (h, w_) = (parts[0].h, parts[0].w);
+    assert!(parts.iter().all(|t| t.h == h && t.w == w_), "conv input parts of different sizes");
+    assert_eq!(parts.iter().map(|t| t.c).sum::<usize>(), s.cin, "conv input channels");
     let (k, st, pad) = (s.k, s.stride, s.k / 2);
-    let (ho, wo) = (conv_out(x.h, k, st), conv_out(x.w, k, st));
-    let n = ho * wo;
+    let (ho, wo) = (conv_out(h, k, st), conv_out(w_, k, st));
     let kk = s.cin * k * k;
-    COLS.with_borrow_mut(|buf| {
-        let cols: &[f32] = if k == 1 && st == 1 {
-            &x.data
-        } else {
-            let need = x.c * k * k * n;
-            if buf.len() < need {
-                buf.resize(need, 0.0);
+    let cout = match w {
+        Weights::Plain(_) => s.cout,
+        Weights::Packed(p) => p.cout(),
+    };
+    // SAFETY (both calls): the caller of `run` passes rows valid for `len` values, apart from `out`.
+    let run = |rows: &[*const f32], len: usize, out: &mut [f32]| unsafe {
+        match w {
+            Weights::Plain(l) => product(l, cout, rows, len, epi, out, len),
+            Weights::Packed(p) => product_packed(p, rows, len, epi, out, len),
+        }
+    };
+    let mut out = Tensor::zeros(cout, ho, wo);
+    if k == 1 && st == 1 {
+        // The input planes themselves are the rows.
+        let rows: Vec<*const f32> = parts.iter().flat_map(|t| (0..t.c).map(move |c| t.channel(c).as_ptr())).collect();
+        // Each row is a whole channel (h * w values) of a part, distinct from `out`.
+        run(&rows, ho * wo, &mut out.data);
+        return out;
+    }
+    // The input, zero-padded by `pad` and split into `st * st` phases (phase (py, px) holds the
+    // padded samples (st i + py, st j + px)): row (c, ky, kx) of the product is phase
+    // (ky % st, kx % st) of channel c moved by (ky / st, kx / st), read at position
+    // oy * wq + ox. Positions with ox >= wo are computed and dropped. With stride 1 a row's right
+    // padding is the next row's left padding (row pitch w + pad, not w + 2 pad: fewer dropped
+    // positions), and the plane has `pad` more zeros for the last row's.
+    let (hp, wp) = (h + 2 * pad, w_ + 2 * pad);
+    let (hq, wq) = if st == 1 { (hp, w_ + pad) } else { (hp.div_ceil(st), wp.div_ceil(st)) };
+    let plane = hq * wq + if st == 1 { pad } else { 0 };
+    let len = (ho - 1) * wq + wo;
+    PADDED.with_borrow_mut(|bufs| {
+        let (padded, outs) = &mut *bufs;
+        // Slack past the last plane: the last rows' reads reach (k - 1) / st rows and columns
+        // further than the plane's own positions.
+        let need = s.cin * st * st * plane + (k / st + 1) * (wq + 1);
+        let padded = muir::kernels::pool::scratch(padded, need);
+        let chans: Vec<&[f32]> = parts.iter().flat_map(|t| (0..t.c).map(move |c| t.channel(c))).collect();
+        let span = st * st * plane;
+        padded[s.cin * span..].fill(0.0);
+        // Channel c's phases fill padded[c span ..][..span]: one chunk each.
+        super::par::chunks(&mut padded[..s.cin * span], span, &|at, chunk| {
+            for (i, dst) in chunk.chunks_mut(span).enumerate() {
+                dst.fill(0.0);
+                let src = chans[at / span + i];
+                for y in 0..h {
+                    let (py, iy) = ((y + pad) % st, (y + pad) / st);
+                    let srow = &src[y * w_..][..w_];
+                    if st == 1 {
+                        dst[iy * wq + pad..][..w_].copy_from_slice(srow);
+                        continue;
+                    }
+                    for (x, v) in srow.iter().enumerate() {
+                        let (px, ix) = ((x + pad) % st, (x + pad) / st);
+                        dst[(py * st + px) * plane + iy * wq + ix] = *v;
+                    }
+                }
             }
-            let cols = &mut buf[..need];
-            im2col(x, k, st, pad, ho, wo, cols);
-            cols
-        };
-        gemm(conv, cols, ho, wo, kk, n)
-    })
+        });
+        let mut rows = Vec::with_capacity(kk);
+        for c in 0..s.cin {
+            for ky in 0..k {
+                for kx in 0..k {
+                    let at = (c * st * st + (ky % st) * st + kx % st) * plane + (ky / st) * wq + kx / st;
+                    debug_assert!(at + len <= padded.len());
+                    rows.push(padded[at..].as_ptr());
+                }
+            }
+        }
+        let outs = muir::kernels::pool::scratch(outs, cout * len);
+        // Row (c, ky, kx) starts at `at` and is read for `len` values: at + len <= need (the
+        // slack covers the reach of the last rows), and `outs` is another buffer.
+        run(&rows, len, outs);
+        let outs = &*outs;
+        super::par::chunks(&mut out.data, ho * wo, &|at, chunk| {
+            for (i, dst) in chunk.chunks_mut(ho * wo).enumerate() {
+                let o = at / (ho * wo) + i;
+                for (oy, d) in dst.chunks_mut(wo).enumerate() {
+                    d.copy_from_slice(&outs[o * len + oy * wq..][..wo]);
+                }
+            }
+        });
+    });
+    out
 }
 
 std::thread_local! {
-    /// The im2col matrix, reused from call to call within a frame (a fresh allocation per
-    /// convolution cost a page fault per page of it every time: Teddy's float frame 1.68 -> 1.36
-    /// s, docs/performance.md); [`release_scratch`] frees it.
-    static COLS: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
+    /// The padded input and the product's output before its padding columns are dropped,
+    /// reused from call to call within a frame (a fresh allocation per convolution cost a page
+    /// fault per page every time, docs/performance.md); [`release_scratch`] frees them.
+    static PADDED: std::cell::RefCell<(Vec<f32>, Vec<f32>)> = const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
 }
 
 /// Frees this thread's convolution scratch (`FloatModel::predict` does at the end of a frame).
 pub fn release_scratch() {
-    COLS.with_borrow_mut(|b| *b = Vec::new());
-}
-
-/// The convolution's matrix product over the im2col matrix `cols` (`kk x n`), bias and batch norm.
-fn gemm(conv: &FloatConv, cols: &[f32], ho: usize, wo: usize, kk: usize, n: usize) -> Tensor {
-    let s = &conv.shape;
-    let mut out = Tensor::zeros(s.cout, ho, wo);
-    for (o, ch) in out.data.chunks_mut(n).enumerate() {
-        ch.fill(conv.bias[o]);
-    }
-    // SAFETY: a is cout x kk (row-major), b is kk x n, c is cout x n; all slices hold exactly those
-    // many elements (checked by the shapes above and by the weight loader).
-    unsafe {
-        matrixmultiply::sgemm(
-            s.cout,
-            kk,
-            n,
-            1.0,
-            conv.weight.as_ptr(),
-            kk as isize,
-            1,
-            cols.as_ptr(),
-            n as isize,
-            1,
-            1.0,
-            out.data.as_mut_ptr(),
-            n as isize,
-            1,
-        );
-    }
-    if let Some(bn) = &conv.bn {
-        for (o, ch) in out.data.chunks_mut(n).enumerate() {
-            let (mean, inv, g, b) = (bn.mean[o], bn.inv_std[o], bn.weight[o], bn.bias[o]);
-            ch.iter_mut().for_each(|v| *v = (*v - mean) * inv * g + b);
-        }
-    }
-    out
-}
-
-/// `cols` (`c k k x ho wo`, row `(c, ky, kx)`) = the input samples of every output pixel, zeros in
-/// the padding. Stride 1 copies each row's valid run at once.
-fn im2col(x: &Tensor, k: usize, st: usize, pad: usize, ho: usize, wo: usize, cols: &mut [f32]) {
-    let n = ho * wo;
-    cols.fill(0.0);
-    for c in 0..x.c {
-        let src = x.channel(c);
-        for ky in 0..k {
-            for kx in 0..k {
-                let row = &mut cols[((c * k + ky) * k + kx) * n..][..n];
-                for oy in 0..ho {
-                    let iy = (oy * st + ky) as isize - pad as isize;
-                    if iy < 0 || iy >= x.h as isize {
-                        continue;
-                    }
-                    let srow = &src[iy as usize * x.w..][..x.w];
-                    let drow = &mut row[oy * wo..][..wo];
-                    if st == 1 {
-                        // ix = ox + kx - pad in [0, w): ox in [pad - kx, w + pad - kx), within wo.
-                        let lo = pad.saturating_sub(kx).min(wo);
-                        let hi = (x.w + pad).saturating_sub(kx).min(wo).max(lo);
-                        let s0 = lo + kx - pad;
-                        drow[lo..hi].copy_from_slice(&srow[s0..s0 + (hi - lo)]);
-                        continue;
-                    }
-                    for (ox, d) in drow.iter_mut().enumerate() {
-                        let ix = (ox * st + kx) as isize - pad as isize;
-                        if ix >= 0 && ix < x.w as isize {
-                            *d = srow[ix as usize];
-                        }
-                    }
-                }
-            }
-        }
-    }
+    PADDED.with_borrow_mut(|b| *b = (Vec::new(), Vec::new()));
+    super::gemm::release_scratch();
+    super::winograd::release_scratch();
 }
 
 /// `nn.InstanceNorm2d` without affine parameters: per channel, biased variance, eps 1e-5.
 pub fn instance_norm(mut x: Tensor) -> Tensor {
     let n = x.plane() as f32;
     let p = x.plane();
-    for ch in x.data.chunks_mut(p) {
-        let mean = ch.iter().sum::<f32>() / n;
-        let var = ch.iter().map(|v| (v - mean) * (v - mean)).sum::<f32>() / n;
-        let inv = 1.0 / (var + 1e-5).sqrt();
-        ch.iter_mut().for_each(|v| *v = (*v - mean) * inv);
-    }
+    super::par::chunks(&mut x.data, p, &|_, chunk| {
+        for ch in chunk.chunks_mut(p) {
+            let mean = ch.iter().sum::<f32>() / n;
+            let var = ch.iter().map(|v| (v - mean) * (v - mean)).sum::<f32>() / n;
+            let inv = 1.0 / (var + 1e-5).sqrt();
+            ch.iter_mut().for_each(|v| *v = (*v - mean) * inv);
+        }
+    });
     x
 }
 
@@ -198,8 +223,11 @@ pub fn convex_upsample(x: &Tensor, mask: &Tensor) -> Tensor {
     let (h, w) = (x.h, x.w);
     assert!(mask.c == 576 && mask.h == h && mask.w == w);
     let mut out = Tensor::zeros(x.c, 8 * h, 8 * w);
-    let mut wts = [0.0f32; 9];
-    for y in 0..h {
+    let outp = muir::kernels::pool::Shared(out.data.as_mut_ptr());
+    // One task per row y: it writes output rows 8y .. 8y + 8 only.
+    super::par::each(h, 64 * w * (9 + 9 * x.c), &|y| {
+        let outp = &outp;
+        let mut wts = [0.0f32; 9];
         for xx in 0..w {
             for dy in 0..8 {
                 for dx in 0..8 {
@@ -221,12 +249,13 @@ pub fn convex_upsample(x: &Tensor, mask: &Tensor) -> Tensor {
                                 acc += wk / sum * x[(c, ny as usize, nx as usize)];
                             }
                         }
-                        out[(c, 8 * y + dy, 8 * xx + dx)] = acc;
+                        // SAFETY: element (c, 8y + dy, 8xx + dx) of `out`, written by row y's task only.
+                        unsafe { *outp.0.add((c * 8 * h + 8 * y + dy) * 8 * w + 8 * xx + dx) = acc };
                     }
                 }
             }
         }
-    }
+    });
     out
 }
 
@@ -251,69 +280,55 @@ pub fn rope_2d(mut x: Tensor, base: f32) -> Tensor {
     x
 }
 
-/// Row-wise softmax attention weights `softmax_j(q_i . k_j / sqrt(c))`, as an N x N row-major
-/// matrix (N = h * w).
+/// Row-wise softmax attention weights `a(i, j) = softmax_j(q_i . k_j / sqrt(c))`, returned
+/// transposed: an N x N row-major matrix whose row `j` holds `a(0..N, j)` (N = h * w), the layout
+/// [`aggregate`] reads.
 pub fn attention_matrix(q: &Tensor, k: &Tensor) -> Vec<f32> {
     let n = q.plane();
     let scale = 1.0 / (q.c as f32).sqrt();
-    // logits = q^T k: (n x c) . (c x n)
-    let mut a = vec![0.0f32; n * n];
-    // SAFETY: q.data is c x n (so q^T is n x c with row stride 1, column stride n), k.data is c x n,
-    // a is n x n.
-    unsafe {
-        matrixmultiply::sgemm(
-            n,
-            q.c,
-            n,
-            scale,
-            q.data.as_ptr(),
-            1,
-            n as isize,
-            k.data.as_ptr(),
-            n as isize,
-            1,
-            0.0,
-            a.as_mut_ptr(),
-            n as isize,
-            1,
-        );
-    }
-    for row in a.chunks_mut(n) {
-        let m = row.iter().fold(f32::NEG_INFINITY, |m, v| m.max(*v));
-        let mut s = 0.0;
-        row.iter_mut().for_each(|v| {
-            *v = (*v - m).exp();
-            s += *v;
-        });
-        row.iter_mut().for_each(|v| *v /= s);
-    }
-    a
+    // logits^T (n x n) = k^T (n x c) . q (c x n): left-hand (j, ch) = k(ch, j).
+    let mut at = vec![0.0f32; n * n];
+    let rows: Vec<*const f32> = (0..q.c).map(|c| q.channel(c).as_ptr()).collect();
+    let epi = Epilogue { scale: Some(scale), ..Default::default() };
+    // SAFETY: each row is a whole channel of q (n values), distinct from `at`.
+    unsafe { product(Lhs { data: &k.data, row: 1, col: n }, n, &rows, n, &epi, &mut at, n) };
+    // Softmax over j for every i: down the columns, in j order (the sums add in the order the
+    // row-wise loop added them); one task per block of columns.
+    const COLS: usize = 256;
+    let atp = muir::kernels::pool::Shared(at.as_mut_ptr());
+    super::par::each(n.div_ceil(COLS), n * n, &|b| {
+        let atp = &atp;
+        let (i0, i1) = (b * COLS, ((b + 1) * COLS).min(n));
+        // SAFETY: columns i0 .. i1 of row j, written by this block's task only.
+        let row = |j: usize| unsafe { atp.slice(j * n + i0, i1 - i0) };
+        let mut m = vec![f32::NEG_INFINITY; i1 - i0];
+        for j in 0..n {
+            m.iter_mut().zip(row(j).iter()).for_each(|(m, v)| *m = m.max(*v));
+        }
+        let mut s = vec![0.0f32; i1 - i0];
+        for j in 0..n {
+            for ((v, m), s) in row(j).iter_mut().zip(&m).zip(s.iter_mut()) {
+                *v = (*v - m).exp();
+                *s += *v;
+            }
+        }
+        for j in 0..n {
+            row(j).iter_mut().zip(&s).for_each(|(v, s)| *v /= s);
+        }
+    });
+    at
 }
 
-/// `out(c, i) = sum_j a(i, j) * v(c, j)`: aggregation of `v` (C x h x w) with attention `a` (N x N).
-pub fn aggregate(a: &[f32], v: &Tensor) -> Tensor {
+/// `out(c, i) = sum_j a(i, j) * v(c, j)`: aggregation of `v` (C x h x w) with the attention
+/// [`attention_matrix`] returned (`a` transposed, N x N).
+pub fn aggregate(at: &[f32], v: &Tensor) -> Tensor {
     let n = v.plane();
+    assert_eq!(at.len(), n * n, "attention size");
     let mut out = Tensor::zeros(v.c, v.h, v.w);
-    // out (c x n) = v (c x n) . a^T (n x n)
-    // SAFETY: sizes as documented; a^T is read with row stride 1, column stride n.
-    unsafe {
-        matrixmultiply::sgemm(
-            v.c,
-            n,
-            n,
-            1.0,
-            v.data.as_ptr(),
-            n as isize,
-            1,
-            a.as_ptr(),
-            1,
-            n as isize,
-            0.0,
-            out.data.as_mut_ptr(),
-            n as isize,
-            1,
-        );
-    }
+    // out (c x n) = v (c x n) . a^T (n x n): right-hand row j is row j of `at`.
+    let rows: Vec<*const f32> = at.chunks(n).map(|r| r.as_ptr()).collect();
+    // SAFETY: each row is a row of `at` (n values), distinct from `out`.
+    unsafe { product(Lhs { data: &v.data, row: n, col: 1 }, v.c, &rows, n, &Epilogue::default(), &mut out.data, n) };
     out
 }
 

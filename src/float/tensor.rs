@@ -63,16 +63,16 @@ impl Tensor {
         Tensor::from_vec(c, h, w, data)
     }
 
-    /// Applies `f` to every element.
-    pub fn map(mut self, f: impl Fn(f32) -> f32) -> Tensor {
-        self.data.iter_mut().for_each(|v| *v = f(*v));
+    /// Applies `f` to every element (on the float engine's threads when large, `super::par`).
+    pub fn map(mut self, f: impl Fn(f32) -> f32 + Sync) -> Tensor {
+        super::par::chunks(&mut self.data, 1, &|_, ch| ch.iter_mut().for_each(|v| *v = f(*v)));
         self
     }
 
     /// Element-wise combination with a tensor of the same shape.
-    pub fn zip(mut self, other: &Tensor, f: impl Fn(f32, f32) -> f32) -> Tensor {
+    pub fn zip(mut self, other: &Tensor, f: impl Fn(f32, f32) -> f32 + Sync) -> Tensor {
         assert_eq!(self.data.len(), other.data.len(), "zip of different shapes");
-        self.data.iter_mut().zip(&other.data).for_each(|(a, b)| *a = f(*a, *b));
+        super::par::chunks(&mut self.data, 1, &|i, ch| ch.iter_mut().zip(&other.data[i..]).for_each(|(a, b)| *a = f(*a, *b)));
         self
     }
 
