@@ -693,14 +693,19 @@ unsafe fn transpose_task<T: Elem>(row: Option<&[T]>, plan: &PartPlan, kind: Kind
     let col_of = |i: usize| (i * stride + phase).checked_sub(lead).filter(|c| *c < cols);
     // Blocks of 16 indices whose columns are all real, 16 whole groups at a time: 16 columns
     // loaded, transposed in registers, one store per group.
-    let vector = cb == 4 * cg;
+    // Whole groups (`cb = 4 cg`: 16 x 16 transpositions, then gathers), or a last group shorter
+    // than 4 bytes (e.g. 3 u8 channels: gathers whose last group is masked; a block then also
+    // needs the 1 to 3 bytes after its last column, which the row's last columns lack).
+    let whole = cb == 4 * cg;
+    let vector = cb.div_ceil(4) == cg && cg > 0 && bytes.len() < i32::MAX as usize;
+    let readable = |i: usize| col_of(i).is_some_and(|c| c * cb + 4 * cg <= bytes.len());
     let mut i = i0;
     while i < i1 {
         let blk = (i1 - i).min(16);
         // (A vector block writes every entry it covers: 16 real columns, all `cg` groups.)
-        if vector && blk == 16 && col_of(i).is_some() && col_of(i + 15).is_some() {
+        if vector && blk == 16 && col_of(i).is_some() && readable(i + 15) {
             let mut gb = 0;
-            while gb + 16 <= cg {
+            while whole && gb + 16 <= cg {
                 let mut r = [_mm512_setzero_si512(); 16];
                 for (j, r) in r.iter_mut().enumerate() {
                     let at = col_of(i + j).unwrap_or(0) * cb + 4 * gb;
@@ -715,17 +720,29 @@ unsafe fn transpose_task<T: Elem>(row: Option<&[T]>, plan: &PartPlan, kind: Kind
                 }
                 gb += 16;
             }
-            // The groups past the last multiple of 16, index by index.
-            for ii in i..i + 16 {
-                let Some(col) = col_of(ii) else {
-                    continue;
-                };
-                let src = bytes.get(col * cb + 4 * gb..(col + 1) * cb).unwrap_or_default();
-                for (g, v) in (gb..).zip(src.chunks_exact(4)) {
-                    if let &[a, b, c, e] = v {
-                        // SAFETY: group `g < cg` of index `ii`: this task's entry.
-                        unsafe { xt.0.add(base + g * tw + ii).write((u32::from_le_bytes([a, b, c, e]) ^ zero as u32) as i32) };
+            // The groups past the last multiple of 16 (all of them for fewer than 16 groups,
+            // e.g. 32 u8 channels): one gather of the 16 columns per group.
+            if gb < cg {
+                let mut at = [0i32; 16];
+                for (j, a) in at.iter_mut().enumerate() {
+                    // (Every column is real here, `bytes.len() < 2^31`: `vector`.)
+                    *a = (col_of(i + j).unwrap_or(0) * cb) as i32;
+                }
+                // SAFETY: 64 readable bytes.
+                let mut idx = _mm512_add_epi32(unsafe { _mm512_loadu_si512(at.as_ptr().cast()) }, _mm512_set1_epi32(4 * gb as i32));
+                for g in gb..cg {
+                    // The bytes of group `g` that belong to the column (the rest reads as zero).
+                    let have = (cb - 4 * g).min(4);
+                    let mask = _mm512_set1_epi32((u32::MAX >> (32 - 8 * have as u32)) as i32);
+                    // SAFETY: each lane reads 4 bytes at `col cb + 4 g` of a real column, with
+                    // `col cb + 4 cg <= bytes.len()` (`readable`, columns ascending in `i`): inside
+                    // `bytes`; the store writes group `g < cg`, indices `i .. i + 16 <= i1`: this
+                    // task's entries.
+                    unsafe {
+                        let v = _mm512_and_si512(_mm512_i32gather_epi32::<1>(idx, bytes.as_ptr().cast()), mask);
+                        _mm512_storeu_si512(xt.0.add(base + g * tw + i).cast(), _mm512_xor_si512(v, _mm512_set1_epi32(zero)));
                     }
+                    idx = _mm512_add_epi32(idx, _mm512_set1_epi32(4));
                 }
             }
         } else {
