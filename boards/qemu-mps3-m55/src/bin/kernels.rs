@@ -298,6 +298,31 @@ fn check_requant(r: &mut Rng) -> usize {
     exact + saturated
 }
 
+/// `mve::popcount20` (the refinement's census distances) against `count_ones`: random words,
+/// all ones, single bits.
+#[cfg(feature = "mve")]
+fn check_popcount(r: &mut Rng) -> usize {
+    let mut cases = 0;
+    for case in 0..2000u32 {
+        let mut w = [0u32; 20];
+        for (i, x) in w.iter_mut().enumerate() {
+            *x = match case % 4 {
+                0 => u32::MAX,
+                1 => 1 << ((r.next() % 32) as u32),
+                2 if i % 3 == 0 => 0,
+                _ => (r.next() >> 32) as u32,
+            };
+        }
+        let want: u32 = w.iter().map(|x| x.count_ones()).sum();
+        let got = muir::kernels::mve::popcount20(&w);
+        if got != want {
+            fail("popcount20", case as usize, &[got as i64], &[want as i64]);
+        }
+        cases += 1;
+    }
+    cases
+}
+
 /// Largest patch of the convolution-row check (`k * k * sum(parts)`).
 const CONV_KL: usize = 9 * 72;
 /// Largest input part (`h x w x ch`) and output (`h x w x cout`) of the convolution-row check.
@@ -522,6 +547,7 @@ fn main() -> ! {
     {
         cases += check_attention(i16s.a, i16s.b, &mut r);
         cases += check_requant(&mut r);
+        cases += check_popcount(&mut r);
     }
     cases += check_conv(&mut r);
     println!("MUIR-KERNELS ok cases={cases}");
