@@ -286,8 +286,8 @@ macro_rules! split_lanes {
 split_lanes!(i16, "vldrh.u16", 16);
 
 /// u8 activations sixteen at a time: each flipped to `x - 128` in i8 (`VEOR` with 0x80) so that
-/// `VMLADAVA.S8` multiplies sixteen signed byte pairs per instruction, and `w . x = w . (x - 128)
-/// + 128 sum(w)` with `VADDVA.S8` summing the weights in the same pass. Per 64 MACs two
+/// `VMLADAVA.S8` multiplies sixteen signed byte pairs per instruction, and
+/// `w . x = w . (x - 128) + 128 sum(w)` with `VADDVA.S8` summing the weights in the same pass. Per 64 MACs two
 /// activation loads, two flips, two weight loads, two weight sums, four `VMLADAVA` and `LETP`
 /// (13 instructions; eight activations per vector took 18). Exact: `|w (x - 128)| <= 2^14`,
 /// `|sum(w)| <= 2^7 n` and the result `|w . x| < 2^15 n` stay in i32 for `n < 2^16` (the u8
