@@ -67,9 +67,9 @@ pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + Send + Sync + 's
     /// Whether the pair layout stores groups as values 0, 2, 1, 3 ([`pair_index`]).
     const PAIR_SWAP: bool = false;
     /// Whether this type's pair layout on this target is split: patch `a`'s `n` values, then
-    /// patch `b`'s (Helium, u8 and i16: both read by contiguous loads, `mve::dot2x2_split`, and
-    /// gathered by whole runs of the input rows); otherwise the interleaved groups of
-    /// [`pair_index`].
+    /// patch `b`'s (Helium, u8 and i16: both read by contiguous loads, `mve::dot2x2_split` and
+    /// `mve::dot2x2_split_i16`, and gathered by whole runs of the input rows); otherwise the
+    /// interleaved groups of [`pair_index`].
     const SPLIT_PAIRS: bool = false;
     /// Where value `j` of the first (`second == false`) or second of two `n`-value patches sits in
     /// this type's pair layout ([`Elem::SPLIT_PAIRS`], [`pair_index`]).

@@ -9,11 +9,11 @@
 //! are neither loaded nor added), so no scalar tail is needed for whole groups, and `LETP` resets
 //! `FPSCR.LTPSIZE` to 4 on exit (no predication leaks into compiler-generated vector code).
 //!
-//! [`dot2x2_split`] reads the two patches of the split pair layout (`Elem::SPLIT_PAIRS`: patch `a`'s
-//! values, then patch `b`'s) with contiguous write-back loads: per 32 MACs two activation loads,
-//! two widening weight loads, four `VMLADAVA` and `LETP` (9 instructions; the `dsp` loop needs 40
-//! for u8 activations), the tail included by predication; u8 activations go sixteen to a vector
-//! as `x - 128` in i8 (13 instructions per 64 MACs, `SplitLanes for u8`). [`aggregate`] and [`dot_i16_i64`] are the
+//! [`dot2x2_split`] (u8) and [`dot2x2_split_i16`] read the two patches of the split pair layout
+//! (`Elem::SPLIT_PAIRS`: patch `a`'s values, then patch `b`'s) with contiguous write-back loads,
+//! the tail included by predication: u8 activations sixteen to a vector as `x - 128` in i8 (13
+//! instructions per 64 MACs; the `dsp` loop needs 40 per 32), i16 ones eight to a vector with
+//! widening weight loads (9 instructions per 32 MACs). [`aggregate`] and [`dot_i16_i64`] are the
 //! MGA attention's sums, [`copy`] the gather's row copies, [`requant4`] the convolution epilogue
 //! on four output channels.
 //!
@@ -230,128 +230,74 @@ pub fn aggregate(e: &[i32], v: &[i16], cv: usize, acc: &mut [i64]) {
     }
 }
 
-/// An activation type with a Helium [`dot2x2_split`] (u8 and i16: the convolution inputs).
-pub trait SplitLanes: Lanes {
-    /// The four products of [`dot2x2_split`] over `n >= 1` values.
-    ///
-    /// # Safety
-    /// `n <= w0.len()`, `n <= w1.len()`, `n <= a.len()`, `n <= b.len()`.
-    unsafe fn dot2x2_n(w0: &[i8], w1: &[i8], a: &[Self], b: &[Self], n: usize) -> [i32; 4];
-}
-
-/// The [`SplitLanes`] loop of one activation type: `$load` reads eight activations into 16-bit
-/// lanes (`$step` bytes) from each patch; the rest is the same for u8 and i16. The widening u8
-/// loads need low base registers (r0-r3 here), the `VMLADAVA` sums even ones (r4, r8, r10, r12).
-macro_rules! split_lanes {
-    ($t:ty, $load:literal, $step:literal) => {
-        impl SplitLanes for $t {
-            #[inline(always)]
-            unsafe fn dot2x2_n(w0: &[i8], w1: &[i8], a: &[$t], b: &[$t], n: usize) -> [i32; 4] {
-                let [mut s0, mut s1, mut s2, mut s3] = [0i32; 4];
-                // SAFETY: `n` lanes (tail-predicated: disabled lanes are not loaded) of each slice,
-                // inside them by the caller's bounds; registers as the macro's doc says.
-                unsafe {
-                    asm!(
-                        "dlstp.16 lr, {n}",
-                        "2:",
-                        concat!($load, " q0, [r0], #", $step),
-                        concat!($load, " q1, [r1], #", $step),
-                        "vldrb.s16 q2, [r2], #8",
-                        "vmlava.s16 r4, q0, q2",
-                        "vmlava.s16 r8, q1, q2",
-                        "vldrb.s16 q2, [r3], #8",
-                        "vmlava.s16 r10, q0, q2",
-                        "vmlava.s16 r12, q1, q2",
-                        "letp lr, 2b",
-                        n = in(reg) n,
-                        inout("r0") a.as_ptr() => _,
-                        inout("r1") b.as_ptr() => _,
-                        inout("r2") w0.as_ptr() => _,
-                        inout("r3") w1.as_ptr() => _,
-                        inout("r4") s0,
-                        inout("r10") s1,
-                        inout("r8") s2,
-                        inout("r12") s3,
-                        out("lr") _,
-                        out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _,
-                        options(nostack, readonly),
-                    );
-                }
-                [s0, s1, s2, s3]
-            }
-        }
-    };
-}
-
-split_lanes!(i16, "vldrh.u16", 16);
-
 /// u8 activations sixteen at a time: each flipped to `x - 128` in i8 (`VEOR` with 0x80) so that
 /// `VMLADAVA.S8` multiplies sixteen signed byte pairs per instruction, and
-/// `w . x = w . (x - 128) + 128 sum(w)` with `VADDVA.S8` summing the weights in the same pass. Per 64 MACs two
-/// activation loads, two flips, two weight loads, two weight sums, four `VMLADAVA` and `LETP`
-/// (13 instructions; eight activations per vector took 18). Exact: `|w (x - 128)| <= 2^14`,
+/// `w . x = w . (x - 128) + 128 sum(w)` with `VADDVA.S8` summing the weights in the same pass.
+/// Per 64 MACs two activation loads, two flips, two weight loads, two weight sums, four
+/// `VMLADAVA` and `LETP` (13 instructions; eight activations per vector took 18). Exact: `|w (x - 128)| <= 2^14`,
 /// `|sum(w)| <= 2^7 n` and the result `|w . x| < 2^15 n` stay in i32 for `n < 2^16` (the u8
 /// bound of the module doc).
-impl SplitLanes for u8 {
-    #[inline(always)]
-    unsafe fn dot2x2_n(w0: &[i8], w1: &[i8], a: &[u8], b: &[u8], n: usize) -> [i32; 4] {
-        let [mut s0, mut s1, mut s2, mut s3] = [0i32; 4];
-        let (mut sw0, mut sw1) = (0i32, 0i32);
-        // SAFETY: `n` lanes (tail-predicated: disabled lanes are not loaded, flipped lanes of
-        // them are not added) of each slice, inside them by the caller's bounds; the sums in even
-        // registers (`VMLADAVA`, `VADDVA`), q3 the flip mask, set before the loop.
-        unsafe {
-            asm!(
-                "vmov.i8 q3, #0x80",
-                "dlstp.8 lr, {n}",
-                "2:",
-                "vldrb.u8 q0, [{a}], #16",
-                "vldrb.u8 q1, [{b}], #16",
-                "veor q0, q0, q3",
-                "veor q1, q1, q3",
-                "vldrb.u8 q2, [{w0}], #16",
-                "vaddva.s8 r0, q2",
-                "vmlava.s8 r4, q0, q2",
-                "vmlava.s8 r8, q1, q2",
-                "vldrb.u8 q2, [{w1}], #16",
-                "vaddva.s8 r2, q2",
-                "vmlava.s8 r10, q0, q2",
-                "vmlava.s8 r12, q1, q2",
-                "letp lr, 2b",
-                n = in(reg) n,
-                a = inout(reg) a.as_ptr() => _,
-                b = inout(reg) b.as_ptr() => _,
-                w0 = inout(reg) w0.as_ptr() => _,
-                w1 = inout(reg) w1.as_ptr() => _,
-                inout("r0") sw0,
-                inout("r2") sw1,
-                inout("r4") s0,
-                inout("r10") s1,
-                inout("r8") s2,
-                inout("r12") s3,
-                out("lr") _,
-                out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
-                options(nostack, readonly),
-            );
-        }
-        let (c0, c1) = (sw0.wrapping_mul(128), sw1.wrapping_mul(128));
-        [s0.wrapping_add(c0), s1.wrapping_add(c1), s2.wrapping_add(c0), s3.wrapping_add(c1)]
+///
+/// # Safety
+/// `n >= 1`, `n <= w0.len()`, `n <= w1.len()`, `n <= a.len()`, `n <= b.len()`.
+#[inline(always)]
+unsafe fn dot2x2_u8_n(w0: &[i8], w1: &[i8], a: &[u8], b: &[u8], n: usize) -> [i32; 4] {
+    let [mut s0, mut s1, mut s2, mut s3] = [0i32; 4];
+    let (mut sw0, mut sw1) = (0i32, 0i32);
+    // SAFETY: `n` lanes (tail-predicated: disabled lanes are not loaded, flipped lanes of
+    // them are not added) of each slice, inside them by the caller's bounds; the sums in even
+    // registers (`VMLADAVA`, `VADDVA`), q3 the flip mask, set before the loop.
+    unsafe {
+        asm!(
+            "vmov.i8 q3, #0x80",
+            "dlstp.8 lr, {n}",
+            "2:",
+            "vldrb.u8 q0, [{a}], #16",
+            "vldrb.u8 q1, [{b}], #16",
+            "veor q0, q0, q3",
+            "veor q1, q1, q3",
+            "vldrb.u8 q2, [{w0}], #16",
+            "vaddva.s8 r0, q2",
+            "vmlava.s8 r4, q0, q2",
+            "vmlava.s8 r8, q1, q2",
+            "vldrb.u8 q2, [{w1}], #16",
+            "vaddva.s8 r2, q2",
+            "vmlava.s8 r10, q0, q2",
+            "vmlava.s8 r12, q1, q2",
+            "letp lr, 2b",
+            n = in(reg) n,
+            a = inout(reg) a.as_ptr() => _,
+            b = inout(reg) b.as_ptr() => _,
+            w0 = inout(reg) w0.as_ptr() => _,
+            w1 = inout(reg) w1.as_ptr() => _,
+            inout("r0") sw0,
+            inout("r2") sw1,
+            inout("r4") s0,
+            inout("r10") s1,
+            inout("r8") s2,
+            inout("r12") s3,
+            out("lr") _,
+            out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+            options(nostack, readonly),
+        );
     }
+    let (c0, c1) = (sw0.wrapping_mul(128), sw1.wrapping_mul(128));
+    [s0.wrapping_add(c0), s1.wrapping_add(c1), s2.wrapping_add(c0), s3.wrapping_add(c1)]
 }
 
-/// Four dot products, two output channels at two output pixels, with the two patches side by
+/// Four dot products, two output channels at two output pixels, with the two u8 patches side by
 /// side (the Helium pair layout, `kernels::pair_index`: patch `a` then patch `b`):
-/// `[w0 . a, w1 . a, w0 . b, w1 . b]` over `n = min` of the lengths. Contiguous loads with
-/// write-back and a tail-predicated loop: per 32 MACs two activation loads, two weight loads,
-/// four `VMLADAVA` and `LETP` (9 instructions), no scalar tail. Same chunking rule as [`dot`].
+/// `[w0 . a, w1 . a, w0 . b, w1 . b]` over `n = min` of the lengths, by the loop above:
+/// contiguous loads with write-back, tail-predicated, no scalar tail. (i16 patches:
+/// [`dot2x2_split_i16`].)
 #[inline]
-pub fn dot2x2_split<T: SplitLanes>(w0: &[i8], w1: &[i8], a: &[T], b: &[T]) -> [i32; 4] {
+pub fn dot2x2_split(w0: &[i8], w1: &[i8], a: &[u8], b: &[u8]) -> [i32; 4] {
     let n = w0.len().min(w1.len()).min(a.len()).min(b.len());
     if n == 0 {
         return [0; 4];
     }
     // SAFETY: 1 <= n <= every length.
-    unsafe { T::dot2x2_n(w0, w1, a, b, n) }
+    unsafe { dot2x2_u8_n(w0, w1, a, b, n) }
 }
 
 /// `dst[..n] = src[..n]` for `n = min` of the lengths, sixteen bytes per load/store pair in a
@@ -383,13 +329,14 @@ pub fn copy<T: Copy>(dst: &mut [T], src: &[T]) {
     }
 }
 
-/// [`dot2x2_split`] for i16 activations over a whole part of any length, in one call and without
-/// chunks: `VMLALDAVA.S16` adds each vector's eight products into a 64-bit register pair, so the
-/// sums are exact for any `n` (below `2^41` terms). A standalone function (`muir_mve_dot2x2_i16`):
-/// four 64-bit sums, four pointers and the loop counter need r0-r12 and lr, two more registers
-/// than inline assembly may take (r6, r7). Per 32 MACs two activation loads, two widening weight
-/// loads, four `VMLALDAVA` and `LETP` (9 instructions), as [`dot2x2_split`]; the 508-term chunks
-/// it needed before (each with its call and four 64-bit adds) were 5 % of the Cortex-M55 frame.
+/// The four products of the split pair layout for i16 activations over a whole part of any
+/// length, in one call and without chunks: `VMLALDAVA.S16` adds each vector's eight products into
+/// a 64-bit register pair, so the sums are exact for any `n` (below `2^41` terms). A standalone
+/// function (`muir_mve_dot2x2_i16`): four 64-bit sums, four pointers and the loop counter need
+/// r0-r12 and lr, two more registers than inline assembly may take (r6, r7). Per 32 MACs two
+/// activation loads, two widening weight loads, four `VMLALDAVA` and `LETP` (9 instructions);
+/// the 508-term chunks it needed before (each with its call and four 64-bit adds) were 5 % of the
+/// Cortex-M55 frame.
 #[inline]
 pub fn dot2x2_split_i16(w0: &[i8], w1: &[i8], a: &[i16], b: &[i16]) -> [i64; 4] {
     let n = w0.len().min(w1.len()).min(a.len()).min(b.len());
