@@ -365,15 +365,21 @@ fn halves<T>(b: &[T]) -> (&[T], &[T]) {
 }
 
 /// Weights (`2 kl` values), multipliers (`2 parts` entries) and biases (2 entries) of output
-/// channels `2i` and `2i + 1`, for `i < cout / 2`: the channel pairs walk the tables in steps of
-/// two channels, with no index arithmetic or bounds check per pair (stops early where a table is
-/// shorter; `kl` and the part count are not 0).
+/// channels `c + 2i` and `c + 2i + 1` (`c` even), for `c + 2i + 1 < cout`: the channel pairs walk
+/// the tables in steps of two channels, with no index arithmetic or bounds check per pair (stops
+/// early where a table is shorter; `kl` and the part count are not 0). The tables are sliced at
+/// channel `c` once, not skipped pair by pair (a `skip` adapter costs in every step of the loop).
 #[inline(always)]
-fn channel_pairs<'a>(p: &ConvParams<'a>, kl: usize) -> impl Iterator<Item = ((&'a [i8], &'a [u8]), &'a [u8])> {
+fn channel_pairs<'a>(p: &ConvParams<'a>, kl: usize, c: usize) -> impl Iterator<Item = ((&'a [i8], &'a [u8]), &'a [u8])> {
+    let np = p.parts.len();
+    let (w, m, b) = (p.weights.get(c * kl..), p.mult.0.get(8 * c * np..), p.bias.0.get(8 * c..));
     // Chunk sizes of at least 1 (the empty shapes this rules out return before they get here):
     // no zero-size chunking path.
-    let weights = p.weights.chunks_exact((2 * kl).max(1));
-    weights.zip(p.mult.0.chunks_exact((16 * p.parts.len()).max(1))).zip(p.bias.0.chunks_exact(16)).take(p.cout / 2)
+    let weights = w.unwrap_or_default().chunks_exact((2 * kl).max(1));
+    weights
+        .zip(m.unwrap_or_default().chunks_exact((16 * np).max(1)))
+        .zip(b.unwrap_or_default().chunks_exact(16))
+        .take(p.cout.saturating_sub(c) / 2)
 }
 
 /// Sums of the parts' contributions (before [`finish`]) of a channel pair at one pixel from its
@@ -416,6 +422,45 @@ fn channel_at<T: Elem>(p: &ConvParams<'_>, patch: &[T], c: usize, out: &mut OutR
     out.set(at + c, finish(p, c, sum));
 }
 
+/// [`Elem::dot2x2`] of one part of channels `c`, `c + 1` (weight rows `w0`, `w1`) at two pixels:
+/// the part's `n` values at offset `o` of the weight rows and its block of `2 n` at `2 o` of the
+/// pair of patches (a one-part layer, `one_part`, passes the whole rows); `None` where a weight
+/// row or the pair is shorter than that.
+#[inline(always)]
+fn part_dot2x2<T: Elem>(one_part: bool, w0: &[i8], w1: &[i8], pair: &[T], o: usize, n: usize) -> Option<[i64; 4]> {
+    if one_part {
+        return Some(T::dot2x2(w0, w1, pair));
+    }
+    Some(T::dot2x2(w0.get(o..o + n)?, w1.get(o..o + n)?, pair.get(2 * o..2 * (o + n))?))
+}
+
+/// Channel pairs `c ..` of output pixels `ox` and `ox + 1` (patches of `kl` values) by
+/// [`block2x2`] from their pair of patches `pair` (the gathered pair, or its widened copy);
+/// returns the first channel not written (an odd last one: [`odd_channel`]).
+#[inline(always)]
+fn pair_blocks<T: Elem>(p: &ConvParams<'_>, kl: usize, pair: &[T], out: &mut OutRow<'_>, ox: usize, mut c: usize) -> usize {
+    let (at_a, at_b) = (ox * p.cout, (ox + 1) * p.cout);
+    for ((w, m), b) in channel_pairs(p, kl, c) {
+        block2x2(p, pair, w, m, b, out, at_a, at_b, c);
+        c += 2;
+    }
+    c
+}
+
+/// Channel `c`, when it is the odd last one, of output pixels `ox` and `ox + 1`: each pixel one
+/// at a time from its own patch, gathered again into the head of `scratch`.
+#[inline]
+fn odd_channel<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, ox: usize, scratch: &mut [T], out: &mut OutRow<'_>, c: usize) {
+    if c >= p.cout {
+        return;
+    }
+    for x in [ox, ox + 1] {
+        let single = head_mut(scratch, p.patch_len());
+        gather(p, inputs, w_in, x, single);
+        channel_at(p, single, c, out, x * p.cout);
+    }
+}
+
 /// Channels `c` and `c + 1` of output pixels `a` and `b` (at `at_a` and `at_b` of `out`) from
 /// their gathered pair of patches: `w`, `m`, `b` are the channel pair's weights, multipliers and
 /// biases ([`channel_pairs`]). Every weight and activation is loaded once for the four products
@@ -435,13 +480,8 @@ fn block2x2<T: Elem>(p: &ConvParams<'_>, pair: &[T], w: &[i8], m: &[u8], b: &[u8
     let mut o = 0;
     for ((&ch, m0), m1) in p.parts.iter().zip(m0.chunks_exact(8)).zip(m1.chunks_exact(8)) {
         let n = ch * k * k;
-        let d = if nparts == 1 {
-            T::dot2x2(w0, w1, pair)
-        } else {
-            let (Some(a), Some(b), Some(x)) = (w0.get(o..o + n), w1.get(o..o + n), pair.get(2 * o..2 * (o + n))) else {
-                break;
-            };
-            T::dot2x2(a, b, x)
+        let Some(d) = part_dot2x2(nparts == 1, w0, w1, pair, o, n) else {
+            break;
         };
         let (m0, m1) = (mult_at(m0), mult_at(m1));
         match (short && short_ok(m0) && short_ok(m1), d.map(i32::try_from)) {
@@ -500,25 +540,14 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
         let helium = helium::Layer::of(p, out, w_out);
         while ox + 2 <= w_out {
             gather2(p, inputs, w_in, ox, pair);
-            let (at_a, at_b) = (ox * p.cout, (ox + 1) * p.cout);
             #[allow(unused_mut)]
             let mut c = 0;
             #[cfg(all(target_arch = "arm", feature = "mve"))]
             if let Some(l) = &helium {
-                c = l.channels(p, pair, out, at_a, at_b);
+                c = l.channels(p, pair, out, ox * p.cout, (ox + 1) * p.cout);
             }
-            for ((w, m), b) in channel_pairs(p, kl).skip(c / 2) {
-                block2x2(p, pair, w, m, b, out, at_a, at_b, c);
-                c += 2;
-            }
-            if c < p.cout {
-                // An odd last channel: the two pixels one at a time (their own patches again).
-                for (x, at) in [(ox, at_a), (ox + 1, at_b)] {
-                    let single = head_mut(pair, kl);
-                    gather(p, inputs, w_in, x, single);
-                    channel_at(p, single, c, out, at);
-                }
-            }
+            let c = pair_blocks(p, kl, pair, out, ox, c);
+            odd_channel(p, inputs, w_in, ox, pair, out, c);
             ox += 2;
         }
     }
@@ -536,7 +565,7 @@ fn single_pixels<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: 
         gather(p, inputs, w_in, ox, patch);
         let at = ox * p.cout;
         let mut c = 0;
-        for ((w, m), b) in channel_pairs(p, kl) {
+        for ((w, m), b) in channel_pairs(p, kl, 0) {
             let (s0, s1) = pair_sums(p, patch, w, m);
             let (b0, b1) = halves(b);
             out.set(at + c, finish_with(p.post, bias_at(b0), s0));
@@ -580,19 +609,8 @@ pub fn conv_row_u8_wide(p: &ConvParams<'_>, inputs: &[PartRows<'_, u8>], w_in: u
     while ox + 2 <= w_out {
         gather2(p, inputs, w_in, ox, pair);
         widen_pairs(p, pair, wide);
-        let (at_a, at_b) = (ox * p.cout, (ox + 1) * p.cout);
-        let mut c = 0;
-        for ((w, m), b) in channel_pairs(p, kl) {
-            block2x2::<i16>(p, wide, w, m, b, out, at_a, at_b, c);
-            c += 2;
-        }
-        if c < p.cout {
-            for (x, at) in [(ox, at_a), (ox + 1, at_b)] {
-                let single = head_mut(pair, kl);
-                gather(p, inputs, w_in, x, single);
-                channel_at(p, single, c, out, at);
-            }
-        }
+        let c = pair_blocks::<i16>(p, kl, wide, out, ox, 0);
+        odd_channel(p, inputs, w_in, ox, pair, out, c);
         ox += 2;
     }
     single_pixels(p, inputs, w_in, out, pair, ox);

@@ -20,7 +20,7 @@
 
 use super::super::mve::{self, Narrow, Requant4};
 use super::super::{Elem, OutRow};
-use super::{ConvParams, bias_at, block2x2, finish_short, mult_at};
+use super::{ConvParams, bias_at, block2x2, finish_short, mult_at, part_dot2x2};
 use crate::arith::{lut, requantize_i32};
 use crate::model::graph::{MAX_PARTS, PostOp};
 
@@ -147,13 +147,8 @@ fn dots<T: Elem>(p: &ConvParams<'_>, pair: &[T], w: &[i8], d: &mut Dots) -> bool
         let mut o = 0;
         for (&ch, dp) in p.parts.iter().zip(d.chunks_exact_mut(8)) {
             let n = ch * p.k * p.k;
-            let r = if one_part {
-                T::dot2x2(w0, w1, pair)
-            } else {
-                let (Some(a), Some(b), Some(x)) = (w0.get(o..o + n), w1.get(o..o + n), pair.get(2 * o..2 * (o + n))) else {
-                    return false;
-                };
-                T::dot2x2(a, b, x)
+            let Some(r) = part_dot2x2(one_part, w0, w1, pair, o, n) else {
+                return false;
             };
             // `r` is `[w0 . a, w1 . a, w0 . b, w1 . b]`; pixel `a`'s channels first, then `b`'s.
             let [Ok(a0), Ok(a1), Ok(b0), Ok(b1)] = r.map(i32::try_from) else {
