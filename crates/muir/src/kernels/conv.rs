@@ -30,6 +30,25 @@ mod neon;
 #[path = "conv_helium.rs"]
 mod helium;
 
+/// Whether `p`'s tables, its `inputs` parts and `out` (`out_len` values) are as long as its
+/// parameters say for a row of `w_in` input columns, with a shape the whole-row host kernels
+/// take (`conv_avx512`, `conv_neon`; each adds its own limits). Otherwise the portable path runs,
+/// which defines the result of a short table.
+#[cfg(all(feature = "std", any(target_arch = "x86_64", target_arch = "aarch64")))]
+fn whole_row(p: &ConvParams<'_>, inputs: usize, w_in: usize, out_len: usize) -> bool {
+    let (kl, np, w_out) = (p.patch_len(), p.parts.len(), p.out_width(w_in));
+    kl != 0
+        && p.cout != 0
+        && w_out != 0
+        && p.k <= MAX_K
+        && p.stride != 0
+        && inputs >= np
+        && p.weights.len() >= p.cout * kl
+        && p.mult.0.len() >= 8 * p.cout * np
+        && p.bias.0.len() >= 8 * p.cout
+        && out_len >= w_out * p.cout
+}
+
 /// Largest kernel size.
 pub const MAX_K: usize = 7;
 

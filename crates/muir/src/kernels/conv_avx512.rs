@@ -39,7 +39,7 @@ use core::cell::RefCell;
 use super::super::pool::{self, Shared, scratch};
 use super::super::x86::{cast, has_avx512};
 use super::super::{Elem, OutRow};
-use super::{ConvParams, MAX_K, PartRows, finish_with, mult_at};
+use super::{ConvParams, PartRows, finish_with, mult_at, whole_row};
 use crate::model::graph::MAX_PARTS;
 use crate::arith::requantize;
 use crate::model::graph::PostOp;
@@ -139,19 +139,8 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
     } else {
         return false;
     };
-    let (kl, np, w_out) = (p.patch_len(), p.parts.len(), p.out_width(w_in));
-    let whole = kl != 0
-        && p.cout != 0
-        && w_out != 0
-        && p.k <= MAX_K
-        && p.stride != 0
-        && inputs.len() >= np
-        && p.weights.len() >= p.cout * kl
-        && p.mult.0.len() >= 8 * p.cout * np
-        && p.bias.0.len() >= 8 * p.cout
-        && out.len() >= w_out * p.cout
-        && w_in < 1 << 20;
-    if !whole || !has_avx512() {
+    let w_out = p.out_width(w_in);
+    if !whole_row(p, inputs.len(), w_in, out.len()) || w_in >= 1 << 20 || !has_avx512() {
         return false;
     }
     // SAFETY: the CPU has AVX-512 F/BW/VNNI (`has_avx512`); the layer passed the checks above.

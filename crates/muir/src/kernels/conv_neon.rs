@@ -47,7 +47,7 @@ use core::cell::RefCell;
 use super::super::aarch64::{Level, level};
 use super::super::pool::{self, Shared, scratch};
 use super::super::{Elem, OutRow, set_at};
-use super::{ConvParams, MAX_K, PartRows, column, finish_with, mult_at};
+use super::{ConvParams, PartRows, column, finish_with, mult_at, whole_row};
 use crate::arith::requantize;
 use crate::model::graph::MAX_PARTS;
 
@@ -124,18 +124,9 @@ fn conv_row_at<T: Elem>(level: Level, p: &ConvParams<'_>, inputs: &[PartRows<'_,
         (Level::DotProd | Level::Neon, 8 | 16) => Kind::Mlal,
         _ => return false,
     };
-    let (kl, np, w_out) = (p.patch_len(), p.parts.len(), p.out_width(w_in));
-    let whole = kl != 0
-        && p.cout != 0
-        && w_out != 0
-        && p.k <= MAX_K
-        && p.stride != 0
-        && np <= MAX_PARTS
-        && inputs.len() >= np
-        && p.weights.len() >= p.cout * kl
-        && p.mult.0.len() >= 8 * p.cout * np
-        && p.bias.0.len() >= 8 * p.cout
-        && out.len() >= w_out * p.cout
+    let w_out = p.out_width(w_in);
+    let whole = whole_row(p, inputs.len(), w_in, out.len())
+        && p.parts.len() <= MAX_PARTS
         && inputs.iter().zip(p.parts).all(|(r, &ch)| r.rows.iter().take(p.k).flatten().all(|r| r.len() >= w_in * ch));
     if !whole {
         return false;
