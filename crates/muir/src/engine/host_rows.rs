@@ -35,6 +35,10 @@ std::thread_local! {
     /// The keys laid out for the batched statistics, `true` while they are this frame's.
     #[cfg(target_arch = "x86_64")]
     static KEYS_T: RefCell<(Prepared, bool)> = const { RefCell::new((Prepared::new(), false)) };
+    /// The frame's softmax weights, kept by the statistics pass for every iteration's
+    /// aggregation (on the calling thread).
+    #[cfg(target_arch = "x86_64")]
+    static KEPT: RefCell<Kept> = const { RefCell::new(Kept { w: Vec::new(), row: 0, filled: Vec::new() }) };
     /// `true` while it holds this pass's keys and values.
     #[cfg(target_arch = "x86_64")]
     static PREPARED: RefCell<(Prepared, bool)> = const { RefCell::new((Prepared::new(), false)) };
@@ -47,6 +51,24 @@ std::thread_local! {
     static F2: RefCell<()> = const { RefCell::new(()) };
     /// A task's correlation window and its prefix sums (on the thread that runs it).
     static WINDOW: RefCell<(Vec<i32>, Vec<i64>)> = const { RefCell::new((Vec::new(), Vec::new())) };
+}
+
+/// Most bytes of softmax weights kept for a frame (`n^2 / 2` u32 for `n` pixels at 1/8
+/// resolution: 15 MB at 450 x 375, 107 MB at 1242 x 375). Larger frames compute the weights
+/// again in every iteration, as the microcontroller does.
+#[cfg(target_arch = "x86_64")]
+const KEPT_BYTES: usize = 256 << 20;
+
+/// Every query's softmax weights against every key ([`Prepared::stats_keep`]'s rows), so that
+/// the iterations aggregate values without computing queries, logits and weights again: they
+/// depend on the context alone, which a frame does not change.
+#[cfg(target_arch = "x86_64")]
+struct Kept {
+    /// `row` key pairs per query, queries in pixel order.
+    w: Vec<u32>,
+    row: usize,
+    /// Queries whose row holds this frame's weights.
+    filled: Vec<bool>,
 }
 
 /// Queries (or keys) of row `y` (after RoPE) into `q` (`w qk` values): the 1x1 conv `p` over the
@@ -81,6 +103,11 @@ pub fn keys_row(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, y: usize, w: usize
 pub fn new_keys() {
     #[cfg(target_arch = "x86_64")]
     KEYS_T.with_borrow_mut(|(_, fresh)| *fresh = false);
+    #[cfg(target_arch = "x86_64")]
+    KEPT.with_borrow_mut(|k| {
+        k.filled.clear();
+        k.row = 0;
+    });
 }
 
 /// Softmax statistics (`max`, `sum`) of every query of row `y` into `stats` (`2 w`). Call
@@ -101,11 +128,32 @@ pub fn stats_row(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, y: usize, w: usiz
                 *fresh = true;
             }
             let prep = &*prep;
-            per_pixels(n, &|px| {
-                let (x0, x1) = (px.start, px.end);
-                // SAFETY: entries `2 x0 .. 2 x1 <= stats.len()`, this task's pixels only.
-                let o = unsafe { out.slice(2 * x0, 2 * (x1 - x0)) };
-                prep.stats(q.get(x0 * qk..x1 * qk).unwrap_or_default(), m, o);
+            KEPT.with_borrow_mut(|kept| {
+                // The weights of the row's queries `y w .. y w + n` are kept where the frame's
+                // (`prep.n` queries, one a key) fit in `KEPT_BYTES`.
+                let (row, nq) = (prep.kept_row(), prep.keys());
+                let keep = row > 0 && nq.saturating_mul(row) <= KEPT_BYTES / 4 && y * w + n <= nq;
+                if keep && kept.row != row {
+                    kept.row = row;
+                    kept.filled.clear();
+                }
+                let (wk, base) = if keep { (Shared(scratch(&mut kept.w, nq * row).as_mut_ptr()), y * w) } else { (Shared(core::ptr::null_mut()), 0) };
+                let fine = core::sync::atomic::AtomicBool::new(true);
+                per_pixels(n, &|px| {
+                    let (x0, x1) = (px.start, px.end);
+                    // SAFETY: entries `2 x0 .. 2 x1 <= stats.len()`, this task's pixels only.
+                    let o = unsafe { out.slice(2 * x0, 2 * (x1 - x0)) };
+                    // SAFETY: rows `base + x0 .. base + x1 <= nq` of the kept weights (`nq
+                    // row` long), this task's queries only.
+                    let k = if keep { unsafe { wk.slice((base + x0) * row, (x1 - x0) * row) } } else { &mut [][..] };
+                    if !prep.stats_keep(q.get(x0 * qk..x1 * qk).unwrap_or_default(), m, o, k) {
+                        fine.store(false, core::sync::atomic::Ordering::Relaxed);
+                    }
+                });
+                if keep && fine.into_inner() {
+                    let f = scratch(&mut kept.filled, nq);
+                    f.get_mut(base..base + n).unwrap_or_default().fill(true);
+                }
             });
             true
         });
@@ -152,6 +200,10 @@ pub fn aggregate_row(
     shift: i8,
     d: &mut [i16],
 ) {
+    #[cfg(target_arch = "x86_64")]
+    if aggregate_kept(p.cout, y, w, keys, values, cv, stats, shift, d) {
+        return;
+    }
     ROW.with_borrow_mut(|(q, patch)| {
         let qk = queries(p, inp08, ctx, y, w, phases, q, patch);
         let (q, out) = (&*q, Shared(d.as_mut_ptr()));
@@ -195,6 +247,40 @@ pub fn aggregate_row(
             });
         });
     });
+}
+
+/// [`aggregate_row`] from the weights the statistics pass kept for row `y`'s queries (`qk`
+/// channels each); `false` (nothing written) where they were not kept.
+#[cfg(target_arch = "x86_64")]
+#[allow(clippy::too_many_arguments)]
+fn aggregate_kept(qk: usize, y: usize, w: usize, keys: &[i16], values: &[i16], cv: usize, stats: &[i64], shift: i8, d: &mut [i16]) -> bool {
+    let n = w.min(d.len() / cv.max(1)).min(stats.len() / 2);
+    KEPT.with_borrow(|kept| {
+        let (base, row) = (y * w, kept.row);
+        if row == 0 || !kept.filled.get(base..base + n).is_some_and(|f| f.iter().all(|&f| f)) {
+            return false;
+        }
+        PREPARED.with_borrow_mut(|(prep, fresh)| {
+            if !*fresh {
+                if !prep.fill(keys, values, qk, cv) {
+                    return false;
+                }
+                *fresh = true;
+            }
+            if prep.kept_row() != row {
+                return false;
+            }
+            let (prep, out) = (&*prep, Shared(d.as_mut_ptr()));
+            per_pixels(n, &|px| {
+                let (x0, x1) = (px.start, px.end);
+                // SAFETY: values `x0 cv .. x1 cv <= d.len()`, this task's pixels only.
+                let o = unsafe { out.slice(x0 * cv, (x1 - x0) * cv) };
+                let rows = kept.w.get((base + x0) * row..(base + x1) * row).unwrap_or_default();
+                prep.aggregate_kept(rows, stats.get(2 * x0..2 * x1).unwrap_or_default(), shift, o);
+            });
+            true
+        })
+    })
 }
 
 /// The upsampling mask's logits of a row: the 1x1 conv `p` over `mid` (`w` pixels of `mh`), then

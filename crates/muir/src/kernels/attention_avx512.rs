@@ -135,14 +135,39 @@ impl Prepared {
     /// [`super::query_stats`] of the queries `qs` (`c` values each) into `out` (`max, sum` per
     /// query): the maxima of the exact logits, then the sums of the weights.
     pub fn stats(&self, qs: &[i16], m: Multiplier, out: &mut [i64]) {
+        self.stats_keep(qs, m, out, &mut []);
+    }
+
+    /// Keys laid out.
+    pub fn keys(&self) -> usize {
+        self.n
+    }
+
+    /// Key pairs of a row of kept weights ([`Prepared::stats_keep`]).
+    pub fn kept_row(&self) -> usize {
+        self.npad / 2
+    }
+
+    /// [`Prepared::stats`], and where `keep` holds a row of [`Prepared::kept_row`] key pairs
+    /// per query, every query's weights `e_j = weight(l_j, max, m)` there as key pairs
+    /// (`e_2p | e_2p+1 << 16`; keys past the last weigh 0) for [`Prepared::aggregate_kept`].
+    /// `false` where some weight lies outside `[0, 32768]` (which `exp_q11` never gives; the
+    /// rows are then not to be used).
+    pub fn stats_keep(&self, qs: &[i16], m: Multiplier, out: &mut [i64], keep: &mut [u32]) -> bool {
         let c = self.c;
         let nq = (qs.len() / c.max(1)).min(out.len() / 2);
+        let row = self.npad / 2;
+        let kept = keep.len() >= nq * row;
+        let mut ok = true;
         let mut i = 0;
         while i < nq {
             let r = (nq - i).min(R);
             let (qh, ql) = split_queries(qs.get(i * c..(i + r) * c).unwrap_or_default(), c);
-            // SAFETY: the CPU has AVX-512 F/BW/VNNI (`fill_keys` checked).
-            let st = unsafe { self.stats_avx512(&qh, &ql, r, m) };
+            let k = if kept { keep.get_mut(i * row..(i + r) * row).unwrap_or_default() } else { &mut [][..] };
+            // SAFETY: the CPU has AVX-512 F/BW/VNNI (`fill_keys` checked); `k` is empty or
+            // holds `r` rows of `npad / 2`.
+            let (st, fine) = unsafe { self.stats_avx512(&qh, &ql, r, m, k) };
+            ok &= fine;
             for (o, (mx, sum)) in out.get_mut(2 * i..2 * (i + r)).unwrap_or_default().chunks_exact_mut(2).zip(st) {
                 if let [a, b] = o {
                     (*a, *b) = (mx, sum);
@@ -150,14 +175,16 @@ impl Prepared {
             }
             i += r;
         }
+        ok || !kept
     }
 
-    /// `(max, sum)` of `r <= R` split queries.
+    /// `(max, sum)` of `r <= R` split queries, and where `keep` is not empty (`r` rows of
+    /// `npad / 2`) their weights as key pairs; `true` when every weight is in `[0, 32768]`.
     ///
     /// # Safety
-    /// The CPU has AVX-512 F, BW and VNNI.
+    /// The CPU has AVX-512 F, BW and VNNI; `keep` is empty or holds `r npad / 2` values.
     #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
-    unsafe fn stats_avx512(&self, qh: &[[i32; R]; MAX_C / 2], ql: &[[i32; R]; MAX_C / 2], r: usize, m: Multiplier) -> [(i64, i64); R] {
+    unsafe fn stats_avx512(&self, qh: &[[i32; R]; MAX_C / 2], ql: &[[i32; R]; MAX_C / 2], r: usize, m: Multiplier, keep: &mut [u32]) -> ([(i64, i64); R], bool) {
         let (npad, n, g_n) = (self.npad, self.n, self.c / 2);
         let (kt, qhp, qlp) = (self.kt.as_ptr(), qh.as_ptr().cast::<i32>(), ql.as_ptr().cast::<i32>());
         let lanes = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
@@ -188,6 +215,9 @@ impl Prepared {
         }
         // 2. The sums of the weights.
         let knots = exp_knots();
+        let row = npad / 2;
+        let kept = !keep.is_empty() && keep.len() >= r * row;
+        let mut fine = true;
         let mut e = [0i32; 16];
         for j in (0..npad).step_by(16) {
             let k = live(j);
@@ -196,13 +226,29 @@ impl Prepared {
             }
             // SAFETY: as above.
             let (ah, al) = unsafe { logits16(kt, npad, j, g_n, qhp, qlp) };
-            for ((o, ah), al) in out.iter_mut().zip(ah).zip(al).take(r) {
+            for (t, ((o, ah), al)) in out.iter_mut().zip(ah).zip(al).take(r).enumerate() {
                 // SAFETY: `e` is 16 i32.
                 unsafe { weights16(ah, al, o.0, m, knots, e.as_mut_ptr()) };
                 o.1 += e.iter().take(n - j).map(|&v| v as i64).sum::<i64>();
+                if kept {
+                    // SAFETY: `e` is 16 i32.
+                    let v = _mm512_maskz_mov_epi32(k, unsafe { _mm512_loadu_si512(e.as_ptr().cast()) });
+                    fine &= _mm512_cmpgt_epu32_mask(v, _mm512_set1_epi32(32768)) == 0;
+                    if let Some(d) = keep.get_mut(t * row + j / 2..t * row + j / 2 + 8) {
+                        // SAFETY: `d` is 8 u32: the 16 weights narrowed to u16, in key order.
+                        unsafe { _mm256_storeu_si256(d.as_mut_ptr().cast(), _mm512_cvtepi32_epi16(v)) };
+                    }
+                }
             }
         }
-        out
+        if kept {
+            // Keys past the last 16 weigh nothing.
+            let live_pairs = n.next_multiple_of(16) / 2;
+            for t in 0..r {
+                keep.get_mut(t * row + live_pairs..(t + 1) * row).unwrap_or_default().fill(0);
+            }
+        }
+        (out, fine)
     }
 
     /// [`super::aggregate_query`] of the queries `qs` (`c` values each) with their statistics
@@ -231,6 +277,93 @@ impl Prepared {
                 i += r;
             }
         });
+    }
+
+    /// [`Prepared::aggregate`] of queries whose weights [`Prepared::stats_keep`] kept
+    /// (`weights`: their rows of [`Prepared::kept_row`] key pairs, laid out for the same keys):
+    /// no logits, no weights, only the values' sums. `false` (nothing written) where the rows
+    /// do not match this layout.
+    pub fn aggregate_kept(&self, weights: &[u32], stats: &[i64], shift: i8, out: &mut [i16]) -> bool {
+        let (cv, row) = (self.cv, self.npad / 2);
+        if cv == 0 || row == 0 || !weights.len().is_multiple_of(row) {
+            return false;
+        }
+        let nq = (weights.len() / row).min(stats.len() / 2).min(out.len() / cv);
+        SCRATCH.with_borrow_mut(|s| {
+            let mut i = 0;
+            while i < nq {
+                let r = (nq - i).min(R);
+                let acc = scratch(&mut s.acc, R * cv);
+                acc.fill(0);
+                let rows = weights.get(i * row..(i + r) * row).unwrap_or_default();
+                let mut j0 = 0;
+                while j0 < self.npad {
+                    let mut cb = 0;
+                    while cb < cv / 16 {
+                        // SAFETY: the CPU has AVX-512 F/BW/VNNI (`fill` checked); `rows` holds
+                        // `r` rows of `npad / 2` key pairs; channel blocks `cb .. cb + NB <= cv / 16`.
+                        unsafe {
+                            if cb + 4 <= cv / 16 {
+                                self.values_kept::<4>(j0, cb, rows, r, acc);
+                                cb += 4;
+                            } else {
+                                self.values_kept::<1>(j0, cb, rows, r, acc);
+                                cb += 1;
+                            }
+                        }
+                    }
+                    j0 += KEYS;
+                }
+                let st = stats.get(2 * i..2 * (i + r)).unwrap_or_default();
+                for ((o, a), st) in out.get_mut(i * cv..(i + r) * cv).unwrap_or_default().chunks_exact_mut(cv).zip(acc.chunks_exact(cv)).zip(st.chunks_exact(2)) {
+                    let sum = st.get(1).copied().unwrap_or(0);
+                    for (o, a) in o.iter_mut().zip(a) {
+                        *o = sat_i16(div_round(shift_round(*a, shift as i32), sum));
+                    }
+                }
+                i += r;
+            }
+        });
+        true
+    }
+
+    /// [`values`] for the key block at `j0`, the weight pairs split from the kept rows
+    /// (`rows`: `r` rows of `npad / 2` pairs `e_a | e_b << 16`, each weight in `[0, 32768]`):
+    /// `eh = e >> 8`, `el = e & 255` per 16-bit half.
+    ///
+    /// # Safety
+    /// The CPU has AVX-512 F, BW and VNNI; `rows` holds `r <= R` rows of `npad / 2`;
+    /// `cb + NB <= cv / 16`; `acc` holds `R cv`.
+    #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+    unsafe fn values_kept<const NB: usize>(&self, j0: usize, cb: usize, rows: &[u32], r: usize, acc: &mut [i64]) {
+        let (cv, row) = (self.cv, self.npad / 2);
+        let z = _mm512_setzero_si512();
+        let bytes = _mm512_set1_epi32(0x00FF_00FF);
+        let vt = self.vt.as_ptr();
+        let (mut h, mut l) = ([[z; NB]; R], [[z; NB]; R]);
+        // An absent query reads the first one's row (its sums are not stored).
+        let rp = [rows.as_ptr(), if r > 1 { rows.as_ptr().wrapping_add(row) } else { rows.as_ptr() }];
+        for pk in j0 / 2..(j0 + KEYS) / 2 {
+            // SAFETY: `vt` holds `npad / 2` key pairs of `cv` values, `pk < npad / 2`; each row
+            // `npad / 2` pairs (the contract).
+            unsafe {
+                let vrow = vt.add(pk * cv + 16 * cb);
+                let mut v = [z; NB];
+                for (b, v) in v.iter_mut().enumerate() {
+                    *v = _mm512_loadu_si512(vrow.add(16 * b).cast());
+                }
+                for ((h, l), rp) in h.iter_mut().zip(l.iter_mut()).zip(rp) {
+                    let e = _mm512_set1_epi32(*rp.add(pk) as i32);
+                    let (bh, bl) = (_mm512_and_si512(_mm512_srli_epi32::<8>(e), bytes), _mm512_and_si512(e, bytes));
+                    for ((h, l), &v) in h.iter_mut().zip(l.iter_mut()).zip(v.iter()) {
+                        *h = _mm512_dpwssd_epi32(*h, v, bh);
+                        *l = _mm512_dpwssd_epi32(*l, v, bl);
+                    }
+                }
+            }
+        }
+        // SAFETY: as `values`' own epilogue (`acc` holds `R cv`).
+        unsafe { add_halves::<NB>(&h, &l, cv, cb, r, acc) };
     }
 
     /// The sums of `r <= R` queries over every key into `acc` (`R cv`).
@@ -461,6 +594,17 @@ unsafe fn values<const NB: usize>(vt: *const i32, j0: usize, cv: usize, cb: usiz
             }
         }
     }
+    // SAFETY: `acc` holds `R cv` (the contract).
+    unsafe { add_halves::<NB>(&h, &l, cv, cb, r, acc) };
+}
+
+/// Adds `256 h + l` (i64) of the queries' channel blocks `cb .. cb + NB` into `acc` (`R cv`).
+///
+/// # Safety
+/// The CPU has AVX-512 F.
+#[target_feature(enable = "avx512f")]
+#[inline]
+unsafe fn add_halves<const NB: usize>(h: &[[__m512i; NB]; R], l: &[[__m512i; NB]; R], cv: usize, cb: usize, r: usize, acc: &mut [i64]) {
     for (t, (h, l)) in h.iter().zip(l.iter()).enumerate().take(r) {
         for (b, (&hv, &lv)) in h.iter().zip(l.iter()).enumerate() {
             let Some(a) = acc.get_mut(t * cv + 16 * (cb + b)..t * cv + 16 * (cb + b + 1)) else {
@@ -529,6 +673,16 @@ mod tests {
                 prep.aggregate(&qs, &stats, m, 3, &mut got);
                 assert_eq!(want, got, "n {n} c {c} cv {cv} {m:?}");
                 assert!(want.iter().any(|v| *v != 0));
+                // The same from the weights the statistics pass keeps (rows start dirty).
+                let row = prep.kept_row();
+                let mut keep = vec![0xDEAD_BEEFu32; nq * row];
+                let mut kept_stats = vec![0i64; 2 * nq];
+                assert!(prep.stats_keep(&qs, m, &mut kept_stats, &mut keep));
+                assert_eq!(stats, kept_stats);
+                let mut got = vec![0i16; nq * cv];
+                assert!(prep.aggregate_kept(&keep, &stats, 3, &mut got));
+                assert_eq!(want, got, "kept: n {n} c {c} cv {cv} {m:?}");
+                assert!(!prep.aggregate_kept(&keep[..row - 1], &stats, 3, &mut got), "rows of another layout");
             }
         }
     }
