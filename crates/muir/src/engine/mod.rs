@@ -247,6 +247,9 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
 
     /// [`Engine::run`] with `iters` refinement iterations.
     pub fn run_iters(&mut self, left: &ImageView<'_>, right: &ImageView<'_>, iters: usize, out: &mut Output<'_>) -> Result<(), EngineError> {
+        // Host: the convolutions re-lay a layer's weights once per frame, not once per row.
+        #[cfg(all(target_arch = "x86_64", feature = "std"))]
+        let _frame = crate::kernels::conv::FrameScope::new();
         let m = self.model;
         let cfg = *m.config();
         check_pair(left, right)?;
@@ -349,7 +352,12 @@ fn encode_pair_threaded(m: &QuantModel<'_>, plan: &Plan, arena: &mut [u8], left:
     let (out_l, out_r, scratch_l) = encoder_zone(plan, arena);
     let grid = &plan.grid;
     std::thread::scope(|s| {
-        s.spawn(move || encoder::encode(m, right, grid, scratch_r, out_r));
+        s.spawn(move || {
+            // This thread's own frame of re-laid weights (see `run_iters`).
+            #[cfg(target_arch = "x86_64")]
+            let _frame = crate::kernels::conv::FrameScope::new();
+            encoder::encode(m, right, grid, scratch_r, out_r)
+        });
         encoder::encode(m, left, grid, scratch_l, out_l);
     });
 }

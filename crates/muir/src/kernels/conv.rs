@@ -23,6 +23,8 @@ use crate::model::graph::PostOp;
 #[cfg(all(target_arch = "x86_64", feature = "std"))]
 #[path = "conv_avx512.rs"]
 mod avx512;
+#[cfg(all(target_arch = "x86_64", feature = "std"))]
+pub use avx512::FrameScope;
 #[cfg(all(target_arch = "aarch64", feature = "std"))]
 #[path = "conv_neon.rs"]
 mod neon;

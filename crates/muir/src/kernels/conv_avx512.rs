@@ -90,6 +90,67 @@ std::thread_local! {
     static WEIGHTS: RefCell<Vec<i16>> = const { RefCell::new(Vec::new()) };
 }
 
+/// A layer's weights as the matrix product reads them (padded or widened, see [`copy_weights`]),
+/// kept for the rest of an engine frame ([`FrameScope`]).
+struct Relaid {
+    /// The layer: its weight table's address and length, the activation kind, its output
+    /// channels, kernel size and parts.
+    key: (usize, usize, Kind, usize, usize, [usize; MAX_PARTS]),
+    /// This frame's copy (else the buffer waits for reuse).
+    valid: bool,
+    /// Per part (where it needs a copy): `cout` channel rows of `k k chp` values.
+    buf: Vec<i16>,
+    /// Where each part's rows start in `buf`.
+    at: [usize; MAX_PARTS],
+}
+
+std::thread_local! {
+    /// The relaid layers of the frame that runs on this thread; `None` outside a frame.
+    static FRAME: RefCell<Option<Vec<Relaid>>> = const { RefCell::new(None) };
+}
+
+/// While it lives, the convolutions called on this thread copy a layer's padded or widened
+/// weights once and reuse them, instead of once per output row and channel block. An engine
+/// frame holds one: the model's tables cannot change during it (the engine borrows them), and
+/// the copies are dropped from use when it ends, so a table freed and another allocated at its
+/// address is never mistaken for it. The buffers stay for the next frame (no allocation once
+/// the first frame has run).
+pub struct FrameScope(());
+
+impl FrameScope {
+    /// Starts a frame on this thread.
+    pub fn new() -> Self {
+        FRAME.with_borrow_mut(|f| match f {
+            Some(layers) => layers.iter_mut().for_each(|l| l.valid = false),
+            None => *f = Some(Vec::new()),
+        });
+        FRAME_ON.with(|on| on.set(true));
+        FrameScope(())
+    }
+}
+
+impl Default for FrameScope {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Drop for FrameScope {
+    fn drop(&mut self) {
+        FRAME.with_borrow_mut(|f| {
+            if let Some(layers) = f {
+                layers.iter_mut().for_each(|l| l.valid = false);
+            }
+        });
+        FRAME_ON.with(|on| on.set(false));
+    }
+}
+
+std::thread_local! {
+    /// A [`FrameScope`] lives on this thread.
+    static FRAME_ON: core::cell::Cell<bool> = const { core::cell::Cell::new(false) };
+}
+
 /// Activation kinds of the matrix product.
 #[derive(Clone, Copy, PartialEq)]
 enum Kind {
@@ -187,11 +248,8 @@ fn par(big: bool, tasks: usize, f: &(dyn Fn(usize) + Sync)) {
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
 #[allow(clippy::too_many_arguments)]
 unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, w_out: usize, kind: Kind, out: &mut OutRow<'_>, s: &mut Scratch) {
-    let (cout, kl, np, k, stride) = (p.cout, p.patch_len(), p.parts.len(), p.k, p.stride);
+    let (np, k, stride) = (p.parts.len(), p.k, p.stride);
     let pixpad = w_out.div_ceil(LANES) * LANES;
-    let signed8 = cast::<T, i8>(&[]).is_some();
-    let flip = if signed8 { 0x8080_8080u32 as i32 } else { 0 };
-    let big = w_out * cout * kl >= PARALLEL_MACS;
     // The parts' layout: transposed rows (see `transpose_task`) and taps.
     let (pad, lead) = (k / 2, (k / 2).div_ceil(stride) * stride);
     let mut plans = [PartPlan::default(); MAX_PARTS];
@@ -222,6 +280,99 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
         tasks += part_tasks;
     }
     let plans = plans.get(..np).unwrap_or_default();
+    if FRAME_ON.with(|on| on.get()) {
+        FRAME.with_borrow_mut(|f| {
+            let relaid = f.as_mut().and_then(|layers| {
+                // SAFETY: the CPU has AVX-512 F and BW (this function's contract).
+                unsafe { relaid(layers, p, plans, kind) }
+            });
+            // SAFETY: forwarded (this function's contract).
+            unsafe { run_with(p, inputs, w_in, w_out, kind, out, s, plans, xt_len, tasks, relaid) }
+        });
+    } else {
+        // SAFETY: forwarded.
+        unsafe { run_with(p, inputs, w_in, w_out, kind, out, s, plans, xt_len, tasks, None) }
+    }
+}
+
+/// This frame's relaid weights of layer `p` (built on first use in the frame, into a buffer of
+/// an earlier frame where one is free): `None` where no part needs a copy.
+///
+/// # Safety
+/// The CPU has AVX-512 F and BW.
+#[target_feature(enable = "avx512f,avx512bw")]
+unsafe fn relaid<'a>(layers: &'a mut Vec<Relaid>, p: &ConvParams<'_>, plans: &[PartPlan], kind: Kind) -> Option<(&'a [i16], [usize; MAX_PARTS])> {
+    let copied = |pl: &PartPlan| kind == Kind::I16 || pl.ch != pl.chp;
+    if !plans.iter().any(copied) {
+        return None;
+    }
+    let mut parts = [0; MAX_PARTS];
+    parts.iter_mut().zip(plans).for_each(|(c, pl)| *c = pl.ch);
+    let key = (p.weights.as_ptr() as usize, p.weights.len(), kind, p.cout, p.k, parts);
+    let i = match layers.iter().position(|l| l.key == key) {
+        Some(i) => i,
+        None => {
+            // A buffer of a layer this frame has not used, else a new one.
+            let i = layers.iter().position(|l| !l.valid).unwrap_or(layers.len());
+            if i == layers.len() {
+                layers.push(Relaid { key, valid: false, buf: Vec::new(), at: [0; MAX_PARTS] });
+            }
+            let l = layers.get_mut(i)?;
+            (l.key, l.valid) = (key, false);
+            i
+        }
+    };
+    let l = layers.get_mut(i)?;
+    if !l.valid {
+        let (cout, kl, taps) = (p.cout, p.patch_len(), p.k * p.k);
+        let mut len = 0;
+        for (at, pl) in l.at.iter_mut().zip(plans) {
+            *at = len;
+            if copied(pl) {
+                len += cout * taps * pl.chp;
+            }
+        }
+        let mut part = Vec::new();
+        core::mem::swap(&mut part, &mut l.buf);
+        let buf = scratch(&mut part, len);
+        for (&at, pl) in l.at.iter().zip(plans).filter(|(_, pl)| copied(pl)) {
+            let n = cout * taps * pl.chp;
+            if let Some(dst) = buf.get_mut(at..at + n) {
+                // SAFETY: the CPU has AVX-512 F and BW (this function's contract).
+                unsafe { copy_weights_into(p.weights, kl, pl.off, pl.ch, pl.chp, taps, cout, kind, dst) };
+            }
+        }
+        l.buf = part;
+        l.valid = true;
+    }
+    Some((l.buf.as_slice(), l.at))
+}
+
+/// [`run`] after the part plans, with this frame's relaid weights where there are some.
+///
+/// # Safety
+/// As [`run`].
+#[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn run_with<T: Elem>(
+    p: &ConvParams<'_>,
+    inputs: &[PartRows<'_, T>],
+    w_in: usize,
+    w_out: usize,
+    kind: Kind,
+    out: &mut OutRow<'_>,
+    s: &mut Scratch,
+    plans: &[PartPlan],
+    xt_len: usize,
+    tasks: usize,
+    relaid: Option<(&[i16], [usize; MAX_PARTS])>,
+) {
+    let (cout, kl, np, k, stride) = (p.cout, p.patch_len(), p.parts.len(), p.k, p.stride);
+    let pixpad = w_out.div_ceil(LANES) * LANES;
+    let signed8 = cast::<T, i8>(&[]).is_some();
+    let flip = if signed8 { 0x8080_8080u32 as i32 } else { 0 };
+    let big = w_out * cout * kl >= PARALLEL_MACS;
+    let lead = (k / 2).div_ceil(stride) * stride;
     let xt = scratch(&mut s.xt, xt_len);
     // 1. The input rows, transposed.
     let xtp = Shared(xt.as_mut_ptr());
@@ -267,7 +418,15 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
             // (u8) or widened to i16, in this thread's buffer.
             WEIGHTS.with_borrow_mut(|buf| {
                 let mut wp = [core::ptr::null::<u8>(); BLOCK_C];
-                if kind == Kind::U8 && ch == chp {
+                let kept = relaid.and_then(|(buf, at)| Some((buf, *at.get(part)?)));
+                if let (Some((buf, at)), true) = (kept, kind == Kind::I16 || ch != chp) {
+                    // This frame's copy: `cout` rows of `k k chp` i16 (or i8 in their first half).
+                    let bytes: &[u8] = bytemuck::cast_slice(buf);
+                    let wrow = 2 * k * k * chp;
+                    for (i, wp) in wp.iter_mut().enumerate().take(r) {
+                        *wp = bytes.get(2 * at + (c0 + i) * wrow..).unwrap_or_default().as_ptr();
+                    }
+                } else if kind == Kind::U8 && ch == chp {
                     for (i, wp) in wp.iter_mut().enumerate().take(r) {
                         *wp = p.weights.get((c0 + i) * kl + off..).unwrap_or_default().as_ptr().cast();
                     }
@@ -431,6 +590,20 @@ unsafe fn transpose_out(fin: &[i32], pixpad: usize, cout: usize, x0: usize, nx: 
 unsafe fn copy_weights(w: &[i8], kl: usize, off: usize, ch: usize, chp: usize, taps: usize, r: usize, kind: Kind, buf: &mut Vec<i16>) -> usize {
     let row = taps * chp; // values per channel
     let dst = scratch(buf, r * row);
+    // SAFETY: the CPU has AVX-512 F and BW (this function's contract).
+    unsafe { copy_weights_into(w, kl, off, ch, chp, taps, r, kind, dst) };
+    2 * row
+}
+
+/// [`copy_weights`] into `dst` (`r k k chp` values).
+///
+/// # Safety
+/// The CPU has AVX-512 F and BW (for the compiler's vectorisation only).
+#[target_feature(enable = "avx512f,avx512bw")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn copy_weights_into(w: &[i8], kl: usize, off: usize, ch: usize, chp: usize, taps: usize, r: usize, kind: Kind, dst: &mut [i16]) {
+    let row = taps * chp; // values per channel
+    let dst = dst.get_mut(..r * row).unwrap_or_default();
     if ch != chp {
         // The padding channels' zeros, in one go (the copies below fill the rest).
         dst.fill(0);
@@ -457,7 +630,6 @@ unsafe fn copy_weights(w: &[i8], kl: usize, off: usize, ch: usize, chp: usize, t
             }
         }
     }
-    2 * row
 }
 
 /// `fin[x] = clamp(finish_with(post, bias, sum[x]), lo, hi)` for every pixel (`lo..=hi` the output
@@ -794,13 +966,18 @@ mod tests {
                 let len = ho * wo * cout;
                 let (mut want, mut got) = (vec![<$t>::default(); len], vec![<$t>::default(); len]);
                 conv_plain(&p, &refs, h, w, &mut OutRow::$variant(&mut want));
-                for (oy, o) in got.chunks_exact_mut(wo * cout).enumerate() {
-                    let rows: Vec<PartRows<T>> =
-                        tensors.iter().zip(parts).map(|(t, &c)| PartRows::of_tensor(t, h, w * c, oy, k, stride)).collect();
-                    assert!(conv_row(&p, &rows, w, &mut OutRow::$variant(o)), "path not taken");
+                // Outside an engine frame (weights re-laid per call), then inside one (once).
+                for scoped in [false, true] {
+                    let _frame = scoped.then(FrameScope::new);
+                    got.fill(<$t>::default());
+                    for (oy, o) in got.chunks_exact_mut(wo * cout).enumerate() {
+                        let rows: Vec<PartRows<T>> =
+                            tensors.iter().zip(parts).map(|(t, &c)| PartRows::of_tensor(t, h, w * c, oy, k, stride)).collect();
+                        assert!(conv_row(&p, &rows, w, &mut OutRow::$variant(o)), "path not taken");
+                    }
+                    let what = format!("k {k} s {stride} parts {parts:?} cout {cout} w {w} extreme {extreme} {post:?} {} frame {scoped}", stringify!($t));
+                    assert_eq!(want, got, "{what}");
                 }
-                let what = format!("k {k} s {stride} parts {parts:?} cout {cout} w {w} extreme {extreme} {post:?} {}", stringify!($t));
-                assert_eq!(want, got, "{what}");
                 want.iter().any(|v| *v != 0)
             }};
         }
@@ -812,6 +989,42 @@ mod tests {
         }
         pool::set_threads(1);
         assert!(nonzero.iter().any(|n| *n), "all zero");
+    }
+
+    /// A frame's re-laid weights are its own: the next frame sees a table changed in place (the
+    /// same address and length), and two layers of one frame do not share copies.
+    #[test]
+    fn frames_relay_weights_of_their_own() {
+        if !has_avx512() {
+            return;
+        }
+        let mut r = Rng(5);
+        let (k, parts, cout, w) = (3, &[8usize, 3][..], 9, 20);
+        let kl = k * k * parts.iter().sum::<usize>();
+        let b: Vec<i64> = (0..cout).map(|_| (r.next() as i64) >> 50).collect();
+        let m: Vec<Multiplier> = (0..cout * parts.len()).map(|_| Multiplier { m: 1 << 30, shift: 24 }).collect();
+        let (bias, mult) = (encode_bias(&b), encode_mults(&m));
+        let x: Vec<Vec<i16>> = parts.iter().map(|&c| (0..3 * w * c).map(|_| r.i16() >> 4).collect()).collect();
+        let mut wts: Vec<i8> = (0..cout * kl).map(|_| r.i8()).collect();
+        let other: Vec<i8> = (0..cout * kl).map(|_| r.i8()).collect();
+        let row = |wts: &[i8]| {
+            let p = ConvParams { k, stride: 1, parts, cout, weights: wts, bias: BiasRef(&bias), mult: MultRef(&mult), post: PostOp::None };
+            let rows: Vec<PartRows<i16>> = x.iter().zip(parts).map(|(t, &c)| PartRows::of_tensor(t, 3, w * c, 1, k, 1)).collect();
+            let mut o = vec![0i16; w * cout];
+            assert!(conv_row(&p, &rows, w, &mut OutRow::I16(&mut o)));
+            o
+        };
+        let (want_a, want_b) = (row(&wts), row(&other));
+        assert_ne!(want_a, want_b);
+        {
+            let _frame = FrameScope::new();
+            assert_eq!(row(&wts), want_a);
+            assert_eq!(row(&other), want_b, "another layer in the same frame");
+            assert_eq!(row(&wts), want_a, "the first layer again");
+        }
+        wts.copy_from_slice(&other);
+        let _frame = FrameScope::new();
+        assert_eq!(row(&wts), want_b, "a table changed in place between frames");
     }
 
     #[test]
