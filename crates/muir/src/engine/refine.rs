@@ -157,6 +157,22 @@ fn conv16(p: &ConvParams<'_>, parts: &[PartRows<'_, i16>], w: usize, out: &mut [
     run_conv(p, parts, w, &mut OutRow::I16(out), patch);
 }
 
+/// [`conv16`] of a ConvGRU gate whose last input part is the context, the same in every
+/// iteration for output row `row`: the host kernels compute that part's sums once per frame
+/// (`with_constant_part`; a microcontroller has no RAM to keep them).
+fn conv16_ctx(p: &ConvParams<'_>, parts: &[PartRows<'_, i16>], row: usize, w: usize, out: &mut [i16], patch: &mut [u8]) {
+    #[cfg(all(feature = "std", target_arch = "x86_64"))]
+    if let Some(last) = parts.len().checked_sub(1) {
+        crate::kernels::conv::with_constant_part(last, row, || conv16(p, parts, w, out, patch));
+        return;
+    }
+    #[allow(unreachable_code)]
+    {
+        let _ = row;
+        conv16(p, parts, w, out, patch)
+    }
+}
+
 /// The convex upsampler's factor: every 1/8-grid pixel becomes an `UP x UP` block of the output
 /// (the per-pixel block buffers of the output pass are this size).
 const UP: usize = 8;
@@ -456,14 +472,14 @@ pub fn gru16(c: &mut Ctx<'_, '_, '_>) {
         }
         if let Some(r) = gru16_stages::SCHEDULE.row(s, gru16_stages::GATES, h) {
             let parts = [full(c.frame.net16, h, row, r, 3), rows(&pool, r, 3), rows(&inp, r, 3)];
-            conv16(&pz, &parts, w, rz.push(), c.px.patch);
+            conv16_ctx(&pz, &parts, r, w, rz.push(), c.px.patch);
             let gate = first_n_mut(gate, row);
-            conv16(&pr, &parts, w, gate, c.px.patch);
+            conv16_ctx(&pr, &parts, r, w, gate, c.px.patch);
             mul_q15(gate, chunk(c.frame.net16, r, row), rh.push());
         }
         if let Some(r) = gru16_stages::SCHEDULE.row(s, gru16_stages::CANDIDATE, h) {
             let q = first_n_mut(q, row);
-            conv16(&pq, &[rows(&rh, r, 3), rows(&pool, r, 3), rows(&inp, r, 3)], w, q, c.px.patch);
+            conv16_ctx(&pq, &[rows(&rh, r, 3), rows(&pool, r, 3), rows(&inp, r, 3)], r, w, q, c.px.patch);
             blend_q15(chunk_mut(c.frame.net16, r, row), rz.row(r), q);
         }
     }
@@ -561,8 +577,8 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
                 5
             };
             let gate = first_n_mut(gate, row);
-            conv16(&pz, first_n(&parts, n), w, rz.push(), c.px.patch);
-            conv16(&pr, first_n(&parts, n), w, gate, c.px.patch);
+            conv16_ctx(&pz, first_n(&parts, n), r, w, rz.push(), c.px.patch);
+            conv16_ctx(&pr, first_n(&parts, n), r, w, gate, c.px.patch);
             mul_q15(gate, chunk(c.frame.net08, r, row), rrh.push());
         }
         if let Some(r) = gru08_stages::SCHEDULE.row(s, gru08_stages::CANDIDATE, h8) {
@@ -575,7 +591,7 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
                 5
             };
             let q = first_n_mut(q, row);
-            conv16(&pq, first_n(&parts, n), w, q, c.px.patch);
+            conv16_ctx(&pq, first_n(&parts, n), r, w, q, c.px.patch);
             blend_q15(chunk_mut(c.frame.net08, r, row), rz.row(r), q);
         }
     }

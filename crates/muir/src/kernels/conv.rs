@@ -24,7 +24,7 @@ use crate::model::graph::PostOp;
 #[path = "conv_avx512.rs"]
 mod avx512;
 #[cfg(all(target_arch = "x86_64", feature = "std"))]
-pub use avx512::FrameScope;
+pub use avx512::{FrameScope, with_constant_part};
 #[cfg(all(target_arch = "aarch64", feature = "std"))]
 #[path = "conv_neon.rs"]
 mod neon;

@@ -102,11 +102,84 @@ struct Relaid {
     buf: Vec<i16>,
     /// Where each part's rows start in `buf`.
     at: [usize; MAX_PARTS],
+    /// Exact sums of a part that is the same all frame ([`with_constant_part`]), per row.
+    memo: Vec<Memo>,
+}
+
+/// One output row's exact sums of a constant part ([`with_constant_part`]).
+struct Memo {
+    /// The part and the output row.
+    part: usize,
+    row: usize,
+    /// Computed in this frame (else the buffers wait for reuse).
+    valid: bool,
+    /// The part's input rows as they were: per row its length in bytes (`u64::MAX` for a
+    /// padding row) as 8 bytes, then its bytes.
+    src: Vec<u8>,
+    /// The sums, `cout` rows of `pixpad`.
+    sums: Vec<i64>,
+    pixpad: usize,
+}
+
+impl Memo {
+    /// Whether `rows` (the first `k`) are the rows `src` holds.
+    fn same_rows<T: Elem>(&self, rows: &[Option<&[T]>]) -> bool {
+        let mut at = 0;
+        for r in rows {
+            let b = r.map(bytes_of);
+            let len = b.map_or(u64::MAX, |b| b.len() as u64);
+            if self.src.get(at..at + 8) != Some(&len.to_le_bytes()[..]) {
+                return false;
+            }
+            at += 8;
+            if let Some(b) = b {
+                if self.src.get(at..at + b.len()) != Some(b) {
+                    return false;
+                }
+                at += b.len();
+            }
+        }
+        at == self.src.len()
+    }
+
+    /// Keeps `rows` (the first `k`) as [`Memo::same_rows`] reads them.
+    fn keep_rows<T: Elem>(&mut self, rows: &[Option<&[T]>]) {
+        self.src.clear();
+        for r in rows {
+            let b = r.map(bytes_of);
+            self.src.extend_from_slice(&b.map_or(u64::MAX, |b| b.len() as u64).to_le_bytes());
+            self.src.extend_from_slice(b.unwrap_or_default());
+        }
+    }
+}
+
+std::thread_local! {
+    /// The next convolution's part that stays the same all frame, and its output row.
+    static CONSTANT: core::cell::Cell<Option<(usize, usize)>> = const { core::cell::Cell::new(None) };
+}
+
+/// Runs `f`, one convolution row call, telling the host kernels that its input part `part` is
+/// the same in every call for output row `row` during the engine frame (the ConvGRU gates'
+/// context). Inside a [`FrameScope`] that part's exact sums are then computed once per frame and
+/// row, and reused only where its input rows equal a copy kept with them.
+pub fn with_constant_part<R>(part: usize, row: usize, f: impl FnOnce() -> R) -> R {
+    CONSTANT.with(|c| c.set(Some((part, row))));
+    let r = f();
+    CONSTANT.with(|c| c.set(None));
+    r
 }
 
 std::thread_local! {
     /// The relaid layers of the frame that runs on this thread; `None` outside a frame.
     static FRAME: RefCell<Option<Vec<Relaid>>> = const { RefCell::new(None) };
+}
+
+impl Relaid {
+    /// Leaves the buffers for reuse: nothing of this frame is kept.
+    fn invalidate(&mut self) {
+        self.valid = false;
+        self.memo.iter_mut().for_each(|m| m.valid = false);
+    }
 }
 
 /// While it lives, the convolutions called on this thread copy a layer's padded or widened
@@ -121,7 +194,7 @@ impl FrameScope {
     /// Starts a frame on this thread.
     pub fn new() -> Self {
         FRAME.with_borrow_mut(|f| match f {
-            Some(layers) => layers.iter_mut().for_each(|l| l.valid = false),
+            Some(layers) => layers.iter_mut().for_each(Relaid::invalidate),
             None => *f = Some(Vec::new()),
         });
         FRAME_ON.with(|on| on.set(true));
@@ -139,7 +212,7 @@ impl Drop for FrameScope {
     fn drop(&mut self) {
         FRAME.with_borrow_mut(|f| {
             if let Some(layers) = f {
-                layers.iter_mut().for_each(|l| l.valid = false);
+                layers.iter_mut().for_each(Relaid::invalidate);
             }
         });
         FRAME_ON.with(|on| on.set(false));
@@ -200,12 +273,13 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
     } else {
         return false;
     };
+    let constant = CONSTANT.with(|c| c.take());
     let w_out = p.out_width(w_in);
     if !whole_row(p, inputs.len(), w_in, out.len()) || w_in >= 1 << 20 || !has_avx512() {
         return false;
     }
     // SAFETY: the CPU has AVX-512 F/BW/VNNI (`has_avx512`); the layer passed the checks above.
-    SCRATCH.with_borrow_mut(|s| unsafe { run(p, inputs, w_in, w_out, kind, out, s) });
+    SCRATCH.with_borrow_mut(|s| unsafe { run(p, inputs, w_in, w_out, kind, out, s, constant) });
     true
 }
 
@@ -247,7 +321,7 @@ fn par(big: bool, tasks: usize, f: &(dyn Fn(usize) + Sync)) {
 /// The CPU has AVX-512 F, BW and VNNI; the layer passed [`conv_row`]'s checks.
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
 #[allow(clippy::too_many_arguments)]
-unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, w_out: usize, kind: Kind, out: &mut OutRow<'_>, s: &mut Scratch) {
+unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, w_out: usize, kind: Kind, out: &mut OutRow<'_>, s: &mut Scratch, constant: Option<(usize, usize)>) {
     let (np, k, stride) = (p.parts.len(), p.k, p.stride);
     let pixpad = w_out.div_ceil(LANES) * LANES;
     // The parts' layout: transposed rows (see `transpose_task`) and taps.
@@ -282,30 +356,52 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
     let plans = plans.get(..np).unwrap_or_default();
     if FRAME_ON.with(|on| on.get()) {
         FRAME.with_borrow_mut(|f| {
-            let relaid = f.as_mut().and_then(|layers| {
-                // SAFETY: the CPU has AVX-512 F and BW (this function's contract).
-                unsafe { relaid(layers, p, plans, kind) }
+            // SAFETY: the CPU has AVX-512 F and BW (this function's contract).
+            let Some(l) = f.as_mut().and_then(|layers| unsafe { layer(layers, p, plans, kind) }) else {
+                // SAFETY: forwarded (this function's contract).
+                return unsafe { run_with(p, inputs, w_in, w_out, kind, out, s, plans, xt_len, tasks, None, None) };
+            };
+            let copied = plans.iter().any(|pl| kind == Kind::I16 || pl.ch != pl.chp);
+            let weights = copied.then_some((l.buf.as_slice(), l.at));
+            let pixpad = w_out.div_ceil(LANES) * LANES;
+            let memo = constant.and_then(|(part, row)| {
+                let rows = inputs.get(part)?.rows.get(..p.k)?;
+                // This frame's sums of the part for the row where its rows are as kept, else a
+                // free entry (one of an earlier frame, or a new one) to fill.
+                let hit = l.memo.iter().position(|m| m.valid && (m.part, m.row, m.pixpad) == (part, row, pixpad) && m.same_rows(rows));
+                let i = match hit {
+                    Some(i) => i,
+                    None => {
+                        let i = l.memo.iter().position(|m| !m.valid).unwrap_or(l.memo.len());
+                        if i == l.memo.len() {
+                            l.memo.push(Memo { part, row, valid: false, src: Vec::new(), sums: Vec::new(), pixpad });
+                        }
+                        let m = l.memo.get_mut(i)?;
+                        (m.part, m.row, m.pixpad, m.valid) = (part, row, pixpad, false);
+                        m.keep_rows(rows);
+                        scratch(&mut m.sums, p.cout * pixpad);
+                        i
+                    }
+                };
+                Some((l.memo.get_mut(i)?, hit.is_some(), part))
             });
-            // SAFETY: forwarded (this function's contract).
-            unsafe { run_with(p, inputs, w_in, w_out, kind, out, s, plans, xt_len, tasks, relaid) }
+            // SAFETY: forwarded (this function's contract); a memo's sums hold `cout pixpad`.
+            unsafe { run_with(p, inputs, w_in, w_out, kind, out, s, plans, xt_len, tasks, weights, memo) }
         });
     } else {
         // SAFETY: forwarded.
-        unsafe { run_with(p, inputs, w_in, w_out, kind, out, s, plans, xt_len, tasks, None) }
+        unsafe { run_with(p, inputs, w_in, w_out, kind, out, s, plans, xt_len, tasks, None, None) }
     }
 }
 
-/// This frame's relaid weights of layer `p` (built on first use in the frame, into a buffer of
-/// an earlier frame where one is free): `None` where no part needs a copy.
+/// This frame's entry of layer `p`: its weights re-laid (built on first use in the frame, into a
+/// buffer of an earlier frame where one is free) where a part needs a copy, and its memos.
 ///
 /// # Safety
 /// The CPU has AVX-512 F and BW.
 #[target_feature(enable = "avx512f,avx512bw")]
-unsafe fn relaid<'a>(layers: &'a mut Vec<Relaid>, p: &ConvParams<'_>, plans: &[PartPlan], kind: Kind) -> Option<(&'a [i16], [usize; MAX_PARTS])> {
+unsafe fn layer<'a>(layers: &'a mut Vec<Relaid>, p: &ConvParams<'_>, plans: &[PartPlan], kind: Kind) -> Option<&'a mut Relaid> {
     let copied = |pl: &PartPlan| kind == Kind::I16 || pl.ch != pl.chp;
-    if !plans.iter().any(copied) {
-        return None;
-    }
     let mut parts = [0; MAX_PARTS];
     parts.iter_mut().zip(plans).for_each(|(c, pl)| *c = pl.ch);
     let key = (p.weights.as_ptr() as usize, p.weights.len(), kind, p.cout, p.k, parts);
@@ -315,10 +411,11 @@ unsafe fn relaid<'a>(layers: &'a mut Vec<Relaid>, p: &ConvParams<'_>, plans: &[P
             // A buffer of a layer this frame has not used, else a new one.
             let i = layers.iter().position(|l| !l.valid).unwrap_or(layers.len());
             if i == layers.len() {
-                layers.push(Relaid { key, valid: false, buf: Vec::new(), at: [0; MAX_PARTS] });
+                layers.push(Relaid { key, valid: false, buf: Vec::new(), at: [0; MAX_PARTS], memo: Vec::new() });
             }
             let l = layers.get_mut(i)?;
-            (l.key, l.valid) = (key, false);
+            l.invalidate();
+            l.key = key;
             i
         }
     };
@@ -345,7 +442,7 @@ unsafe fn relaid<'a>(layers: &'a mut Vec<Relaid>, p: &ConvParams<'_>, plans: &[P
         l.buf = part;
         l.valid = true;
     }
-    Some((l.buf.as_slice(), l.at))
+    Some(l)
 }
 
 /// [`run`] after the part plans, with this frame's relaid weights where there are some.
@@ -366,7 +463,14 @@ unsafe fn run_with<T: Elem>(
     xt_len: usize,
     tasks: usize,
     relaid: Option<(&[i16], [usize; MAX_PARTS])>,
+    mut memo: Option<(&mut Memo, bool, usize)>,
 ) {
+    // The constant part's sums: reused (`hit`: its transposition and products skipped), or
+    // computed and kept.
+    let (memo_sums, hit, memo_part) = match &mut memo {
+        Some((m, hit, part)) => (Shared(m.sums.as_mut_ptr()), *hit, Some(*part)),
+        None => (Shared(core::ptr::null_mut()), false, None),
+    };
     let (cout, kl, np, k, stride) = (p.cout, p.patch_len(), p.parts.len(), p.k, p.stride);
     let pixpad = w_out.div_ceil(LANES) * LANES;
     let signed8 = cast::<T, i8>(&[]).is_some();
@@ -380,6 +484,9 @@ unsafe fn run_with<T: Elem>(
         let Some((part, plan)) = plans.iter().enumerate().find(|(_, pl)| (pl.task0..pl.task0 + pl.tasks).contains(&t)) else {
             return;
         };
+        if hit && memo_part == Some(part) {
+            return; // its products are not computed
+        }
         let chunks = plan.tw.div_ceil(INDICES);
         let (plane, chunk) = ((t - plan.task0) / chunks, (t - plan.task0) % chunks);
         let (i0, i1) = (chunk * INDICES, ((chunk + 1) * INDICES).min(plan.tw));
@@ -439,6 +546,15 @@ unsafe fn run_with<T: Elem>(
                         *wp = bytes.get(i * wrow..).unwrap_or_default().as_ptr();
                     }
                 }
+                if memo_part == Some(part) {
+                    // SAFETY: the memo's sums hold `cout pixpad` (the caller's); rows `c0 ..
+                    // c0 + r` are this task's only.
+                    let kept = unsafe { memo_sums.slice(c0 * pixpad, r * pixpad) };
+                    if hit {
+                        sp.copy_from_slice(kept);
+                        return;
+                    }
+                }
                 // SAFETY: the CPU has AVX-512 F/BW/VNNI (this function's contract); each `wp`
                 // points at `k k chp` weights of its channel (the blob's, `weights.len() >=
                 // cout kl` checked, or this thread's copy), which the taps' groups cover; the
@@ -449,6 +565,10 @@ unsafe fn run_with<T: Elem>(
                         Kind::U8 => block_dispatch::<true>(r, xtp as *const i32, taps, pixpad, &wp, sp.as_mut_ptr()),
                         Kind::I16 => block_dispatch::<false>(r, xtp as *const i32, taps, pixpad, &wp, sp.as_mut_ptr()),
                     }
+                }
+                if memo_part == Some(part) {
+                    // SAFETY: as above.
+                    unsafe { memo_sums.slice(c0 * pixpad, r * pixpad) }.copy_from_slice(sp);
                 }
             });
             for (i, ((acc, sum), wild)) in sp.chunks_exact_mut(pixpad).zip(sums.chunks_exact_mut(pixpad)).zip(wild.iter_mut()).enumerate() {
@@ -471,6 +591,9 @@ unsafe fn run_with<T: Elem>(
             unsafe { finish_channel(p.post, p.bias.get(c0 + i), wild, sum, fin, lo, hi) };
         }
     });
+    if let Some((m, false, _)) = memo {
+        m.valid = true; // computed by every channel block above
+    }
     // 3. The row in its `[x][c]` order, per range of 16 pixels.
     let fin = &*fin;
     macro_rules! write_out {
@@ -1025,6 +1148,48 @@ mod tests {
         wts.copy_from_slice(&other);
         let _frame = FrameScope::new();
         assert_eq!(row(&wts), want_b, "a table changed in place between frames");
+    }
+
+    /// A constant part's kept sums ([`with_constant_part`]) give the sums computed afresh, and
+    /// are not reused where the part's rows changed, in the frame or the next one.
+    #[test]
+    fn constant_parts_are_reused_only_for_the_same_rows() {
+        if !has_avx512() {
+            return;
+        }
+        let mut r = Rng(6);
+        let (k, parts, cout, w, h) = (3, &[8usize, 6][..], 10, 37, 4);
+        let kl = k * k * parts.iter().sum::<usize>();
+        let wts: Vec<i8> = (0..cout * kl).map(|_| r.i8()).collect();
+        let b: Vec<i64> = (0..cout).map(|_| (r.next() as i64) >> 50).collect();
+        let m: Vec<Multiplier> = (0..cout * parts.len()).map(|_| Multiplier { m: 1 << 30, shift: 24 }).collect();
+        let (bias, mult) = (encode_bias(&b), encode_mults(&m));
+        let p = ConvParams { k, stride: 1, parts, cout, weights: &wts, bias: BiasRef(&bias), mult: MultRef(&mult), post: PostOp::None };
+        let a: Vec<i16> = (0..h * w * 8).map(|_| r.i16() >> 2).collect();
+        let mut ctx: Vec<i16> = (0..h * w * 6).map(|_| r.i16() >> 2).collect();
+        // Every output row, the context part marked constant or not.
+        let frame = |ctx: &[i16], constant: bool| {
+            let mut o = vec![0i16; h * w * cout];
+            for (y, o) in o.chunks_exact_mut(w * cout).enumerate() {
+                let rows = [PartRows::of_tensor(&a, h, w * 8, y, k, 1), PartRows::of_tensor(ctx, h, w * 6, y, k, 1)];
+                let mut call = || assert!(conv_row(&p, &rows, w, &mut OutRow::I16(o)));
+                if constant { with_constant_part(1, y, call) } else { call() }
+            }
+            o
+        };
+        let want = frame(&ctx, false);
+        let _f = FrameScope::new();
+        assert_eq!(frame(&ctx, true), want, "sums computed and kept");
+        assert_eq!(frame(&ctx, true), want, "sums reused");
+        // The context changes in the same frame (one value of row 2): rows 1 to 3 read it.
+        ctx[2 * w * 6 + 5] ^= 0x155;
+        let want2 = frame(&ctx, false);
+        assert_ne!(want, want2);
+        assert_eq!(frame(&ctx, true), want2, "changed rows recomputed");
+        drop(_f);
+        let _f = FrameScope::new();
+        ctx[5] ^= 0x2A;
+        assert_eq!(frame(&ctx, true), frame(&ctx, false), "the next frame");
     }
 
     #[test]
