@@ -151,14 +151,17 @@ pub const fn div_round(n: i64, d: i64) -> i64 {
     if d == 0 {
         return 0;
     }
-    let (n_abs, neg_n) = if n < 0 { ((n as i128).unsigned_abs(), true) } else { (n as u128, false) };
-    let (d_abs, neg_d) = if d < 0 { ((d as i128).unsigned_abs(), true) } else { (d as u128, false) };
-    let q = (n_abs + d_abs / 2) / d_abs;
-    let q = if neg_n != neg_d { -(q as i128) } else { q as i128 };
-    if q > i64::MAX as i128 {
+    let (n_abs, d_abs) = (n.unsigned_abs(), d.unsigned_abs());
+    // `n_abs <= 2^63` and `d_abs / 2 <= 2^62`: the sum fits in u64, so no 128-bit division is
+    // needed; where both fit in 32 bits (most calls: pooling, resizing, attention), a 32-bit one
+    // (one `UDIV` on Cortex-M, whose 64-bit division is a library call).
+    let s = n_abs + d_abs / 2;
+    let q = if s <= u32::MAX as u64 && d_abs <= u32::MAX as u64 { (s as u32 / d_abs as u32) as u64 } else { s / d_abs };
+    if (n < 0) != (d < 0) {
+        // `-q`, saturated at `i64::MIN` (`q = 2^63` is `i64::MIN` exactly).
+        if q > 1 << 63 { i64::MIN } else { (q as i64).wrapping_neg() }
+    } else if q > i64::MAX as u64 {
         i64::MAX
-    } else if q < i64::MIN as i128 {
-        i64::MIN
     } else {
         q as i64
     }
@@ -375,6 +378,33 @@ mod tests {
         assert_eq!(div_round(-5, 2), -3); // half away from zero
         assert_eq!(div_round(7, -2), -4);
         assert_eq!(div_round(1, 0), 0);
+        // Against the 128-bit formula it replaced, on edges and random operands of all sizes.
+        fn wide(n: i64, d: i64) -> i64 {
+            if d == 0 {
+                return 0;
+            }
+            let (na, da) = ((n as i128).unsigned_abs(), (d as i128).unsigned_abs());
+            let q = (na + da / 2) / da;
+            let q = if (n < 0) != (d < 0) { -(q as i128) } else { q as i128 };
+            q.clamp(i64::MIN as i128, i64::MAX as i128) as i64
+        }
+        let edges = [0, 1, -1, 2, -2, 3, 9, -9, i64::MAX, i64::MIN, i64::MAX - 1, i64::MIN + 1, u32::MAX as i64, -(u32::MAX as i64), 1 << 32, (1 << 32) + 1, i32::MIN as i64, 1 << 62, -(1 << 62)];
+        for &n in &edges {
+            for &d in &edges {
+                assert_eq!(div_round(n, d), wide(n, d), "{n} / {d}");
+            }
+        }
+        let mut x = 0x9E37_79B9_7F4A_7C15u64;
+        for i in 0..200_000u32 {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            let (bn, bd) = (i % 64, (i / 64) % 64);
+            let n = (x as i64) >> bn;
+            let d = ((x.rotate_left(29) as i64) >> bd) | 1;
+            assert_eq!(div_round(n, d), wide(n, d), "{n} / {d}");
+            assert_eq!(div_round(n, d - 1), wide(n, d - 1), "{n} / {}", d - 1);
+        }
         assert_eq!(shift_round(3, 2), 12);
         assert_eq!(shift_round(i64::MAX / 2, 2), i64::MAX);
         assert_eq!(rescale(100, 4, 2), 25);

@@ -9,25 +9,27 @@ use crate::arith::{div_round, sat_i16};
 /// One row of `avg_pool2d(x, 3, stride=2, padding=1)` (padding counted, so the sum is divided by
 /// 9) of an HWC i16 tensor `src` (`h x w x c`). Output row `y` has `ceil(w/2) * c` values.
 pub fn pool2x_row(src: &[i16], h: usize, w: usize, c: usize, y: usize, out: &mut [i16]) {
+    // Channels a pass (the sums wait on the stack: 9 i16 fit in i32).
+    const CH: usize = 64;
     let wo = w.div_ceil(2);
+    let rows = [(2 * y).checked_sub(1), Some(2 * y), Some(2 * y + 1)];
     for ox in 0..wo {
-        for ch in 0..c {
-            let mut s = 0i64;
-            for dy in 0..3 {
-                let iy = (2 * y + dy) as isize - 1;
-                if iy < 0 || iy as usize >= h {
-                    continue;
-                }
-                for dx in 0..3 {
-                    let ix = (2 * ox + dx) as isize - 1;
-                    if ix >= 0 && (ix as usize) < w {
-                        s += src.get((iy as usize * w + ix as usize) * c + ch).map_or(0, |v| *v as i64);
+        let mut c0 = 0;
+        while c0 < c {
+            let n = (c - c0).min(CH);
+            let mut s = [0i32; CH];
+            for iy in rows.iter().flatten().filter(|&&iy| iy < h) {
+                for ix in [(2 * ox).checked_sub(1), Some(2 * ox), Some(2 * ox + 1)].into_iter().flatten().filter(|&ix| ix < w) {
+                    let at = (iy * w + ix) * c + c0;
+                    for (s, v) in s.iter_mut().zip(src.get(at..at + n).unwrap_or_default()) {
+                        *s += *v as i32;
                     }
                 }
             }
-            if let Some(o) = out.get_mut(ox * c + ch) {
-                *o = sat_i16(div_round(s, 9));
+            for (o, s) in out.get_mut(ox * c + c0..ox * c + c0 + n).unwrap_or_default().iter_mut().zip(s) {
+                *o = sat_i16(div_round(s as i64, 9));
             }
+            c0 += n;
         }
     }
 }
@@ -50,16 +52,17 @@ fn align_corners(i: usize, n_in: usize, n_out: usize) -> (usize, i64, i64) {
 pub fn interp_row(src: &[i16], h: usize, w: usize, c: usize, h_out: usize, w_out: usize, y: usize, out: &mut [i16]) {
     let (y0, ry, dy) = align_corners(y, h, h_out);
     let y1 = (y0 + 1).min(h.saturating_sub(1));
+    // A source pixel's `c` values (empty past the end of `src`: zeros).
+    let px = |yy: usize, xx: usize| src.get((yy * w + xx) * c..(yy * w + xx + 1) * c).unwrap_or_default();
+    let at = |p: &[i16], ch: usize| p.get(ch).map_or(0, |v| *v as i64);
     for x in 0..w_out {
         let (x0, rx, dx) = align_corners(x, w, w_out);
         let x1 = (x0 + 1).min(w.saturating_sub(1));
-        for ch in 0..c {
-            let at = |yy: usize, xx: usize| src.get((yy * w + xx) * c + ch).map_or(0, |v| *v as i64);
-            let top = (dx - rx) * at(y0, x0) + rx * at(y0, x1);
-            let bot = (dx - rx) * at(y1, x0) + rx * at(y1, x1);
-            if let Some(o) = out.get_mut(x * c + ch) {
-                *o = sat_i16(div_round((dy - ry) * top + ry * bot, dy * dx));
-            }
+        let (a, b, e, f) = (px(y0, x0), px(y0, x1), px(y1, x0), px(y1, x1));
+        for (ch, o) in out.get_mut(x * c..(x + 1) * c).unwrap_or_default().iter_mut().enumerate() {
+            let top = (dx - rx) * at(a, ch) + rx * at(b, ch);
+            let bot = (dx - rx) * at(e, ch) + rx * at(f, ch);
+            *o = sat_i16(div_round((dy - ry) * top + ry * bot, dy * dx));
         }
     }
 }
@@ -82,5 +85,49 @@ mod tests {
         assert_eq!(r, [100, 150, 200]);
         interp_row(&small, 2, 2, 1, 3, 3, 2, &mut r);
         assert_eq!(r, [200, 250, 300]);
+    }
+
+    /// Both against their definitions, pixel by pixel, on random tensors of odd sizes and more
+    /// channels than one pass of the pooling holds.
+    #[test]
+    fn pool_and_interp_match_their_formulas() {
+        let mut x = 12345u64;
+        let mut rnd = || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            x as i16
+        };
+        for (h, w, c) in [(5, 7, 3), (4, 6, 70), (1, 1, 2), (9, 5, 128)] {
+            let src: Vec<i16> = (0..h * w * c).map(|_| rnd()).collect();
+            let at = |y: isize, x: isize, ch: usize| if y < 0 || x < 0 || y >= h as isize || x >= w as isize { 0 } else { src[(y as usize * w + x as usize) * c + ch] as i64 };
+            let wo = w.div_ceil(2);
+            for y in 0..h.div_ceil(2) {
+                let mut o = vec![0i16; wo * c];
+                pool2x_row(&src, h, w, c, y, &mut o);
+                for ox in 0..wo {
+                    for ch in 0..c {
+                        let s: i64 = (0..9).map(|i| at(2 * y as isize - 1 + i / 3, 2 * ox as isize - 1 + i % 3, ch)).sum();
+                        assert_eq!(o[ox * c + ch], sat_i16(div_round(s, 9)), "pool {h}x{w}x{c} y {y} x {ox} ch {ch}");
+                    }
+                }
+            }
+            let (ho, wo) = (2 * h + 1, 2 * w + 3);
+            for y in 0..ho {
+                let mut o = vec![0i16; wo * c];
+                interp_row(&src, h, w, c, ho, wo, y, &mut o);
+                let (y0, ry, dy) = align_corners(y, h, ho);
+                let y1 = (y0 + 1).min(h - 1);
+                for xo in 0..wo {
+                    let (x0, rx, dx) = align_corners(xo, w, wo);
+                    let x1 = (x0 + 1).min(w - 1);
+                    for ch in 0..c {
+                        let v = |yy: usize, xx: usize| at(yy as isize, xx as isize, ch);
+                        let num = (dy - ry) * ((dx - rx) * v(y0, x0) + rx * v(y0, x1)) + ry * ((dx - rx) * v(y1, x0) + rx * v(y1, x1));
+                        assert_eq!(o[xo * c + ch], sat_i16(div_round(num, dy * dx)), "interp y {y} x {xo} ch {ch}");
+                    }
+                }
+            }
+        }
     }
 }
