@@ -54,6 +54,9 @@ const U8_CHUNK: usize = 8192;
 const I16_CHUNK: usize = 255;
 /// Layers of fewer multiply-accumulates per row stay on the calling thread.
 const PARALLEL_MACS: usize = 1 << 16;
+/// Rows of fewer outputs are written out on the calling thread: a job costs the pool a hand-over
+/// and a wait, more than these few microseconds of 16 x 16 transpositions.
+const PARALLEL_OUTPUTS: usize = 1 << 14;
 
 /// Where a run of consecutive weight groups finds its activations: group `w + g` (`g < groups`)
 /// of pixel `x` is `xt[x + g gstride + x]`.
@@ -599,7 +602,7 @@ unsafe fn run_with<T: Elem>(
     macro_rules! write_out {
         ($o:ident, $t:ty, $kind:expr) => {{
             let op = Shared($o.as_mut_ptr());
-            par(big, w_out.div_ceil(LANES), &|t| {
+            par(big && w_out * cout >= PARALLEL_OUTPUTS, w_out.div_ceil(LANES), &|t| {
                 let x0 = t * LANES;
                 let nx = w_out.saturating_sub(x0).min(LANES);
                 // SAFETY: pixels `x0 .. x0 + nx <= w_out` of the row (`w_out cout <= len`,
@@ -1224,6 +1227,9 @@ mod tests {
                 }
             }
         }
+        // A row long enough for the write-out on the pool (`PARALLEL_OUTPUTS`).
+        check(90, &u8s, 1, 1, &[8], 64, PostOp::Relu, 260, false);
+        check(91, &i16s, 3, 1, &[16, 2], 70, PostOp::None, 240, false);
         // Extremes: every weight -128, activations at their most negative (i16: the products'
         // largest magnitude, 2^22) and largest, over patches of several i16 chunks (3 3 128).
         for w in [7, 40] {

@@ -122,13 +122,14 @@ pub fn run(tasks: usize, f: &(dyn Fn(usize) + Sync)) {
         p.wake.notify_all();
     }
     work(&job);
+    let mut waits = 0u32;
     while job.done.load(Ordering::Acquire) < tasks {
-        std::hint::spin_loop();
+        pause(&mut waits);
     }
     // Unpost, then wait for the workers that may still hold it (see `Pool`).
     p.job.store(core::ptr::null_mut(), Ordering::SeqCst);
     while p.active.load(Ordering::SeqCst) != 0 {
-        std::hint::spin_loop();
+        pause(&mut waits);
     }
     p.busy.store(false, Ordering::Release);
     if job.panicked.load(Ordering::Relaxed) {
@@ -136,6 +137,19 @@ pub fn run(tasks: usize, f: &(dyn Fn(usize) + Sync)) {
         {
             panic!("a kernel task panicked on a worker thread");
         }
+    }
+}
+
+/// One step of the caller's wait for a worker's last task: a spin, and after a while a yield of
+/// the core, so that a worker the OS has descheduled mid-task (a machine busy with other
+/// processes) gets it back instead of waiting behind a spinning caller.
+#[inline]
+fn pause(waits: &mut u32) {
+    *waits += 1;
+    if *waits < 4096 {
+        std::hint::spin_loop();
+    } else {
+        std::thread::yield_now();
     }
 }
 
