@@ -137,6 +137,11 @@ pub fn stats_row(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, y: usize, w: usiz
                     kept.row = row;
                     kept.filled.clear();
                 }
+                if keep && kept.w.len() < nq * row {
+                    // Zeroed by the OS page by page as the tasks first write them (on every
+                    // thread), not by a serial fill of up to `KEPT_BYTES` here.
+                    kept.w = std::vec![0; nq * row];
+                }
                 let (wk, base) = if keep { (Shared(scratch(&mut kept.w, nq * row).as_mut_ptr()), y * w) } else { (Shared(core::ptr::null_mut()), 0) };
                 let fine = core::sync::atomic::AtomicBool::new(true);
                 per_pixels(n, &|px| {
@@ -281,6 +286,18 @@ fn aggregate_kept(qk: usize, y: usize, w: usize, keys: &[i16], values: &[i16], c
             true
         })
     })
+}
+
+/// [`crate::kernels::resample::interp_row`] with the row's pixels on the kernel pool.
+#[allow(clippy::too_many_arguments)]
+pub fn interp_row(src: &[i16], h: usize, w: usize, c: usize, h_out: usize, w_out: usize, y: usize, out: &mut [i16]) {
+    let o = Shared(out.as_mut_ptr());
+    let n = w_out.min(out.len() / c.max(1));
+    per_pixels(n, &|xs| {
+        // SAFETY: values `xs.start c .. xs.end c <= out.len()`, this task's pixels only.
+        let d = unsafe { o.slice(xs.start * c, xs.len() * c) };
+        crate::kernels::resample::interp_cols(src, h, w, c, h_out, w_out, y, xs, d);
+    });
 }
 
 /// The upsampling mask's logits of a row: the 1x1 conv `p` over `mid` (`w` pixels of `mh`), then

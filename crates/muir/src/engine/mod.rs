@@ -279,7 +279,7 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
         let threaded = false;
         if threaded {
             #[cfg(feature = "std")]
-            crate::kernels::pool::inline_while(|| encode_pair_threaded(m, &plan, self.arena, left, right));
+            encode_pair_threaded(m, &plan, self.arena, left, right);
         } else {
             encode_image(m, &plan, self.arena, right, false);
             encode_image(m, &plan, self.arena, left, true);
@@ -351,8 +351,13 @@ fn encode_pair_threaded(m: &QuantModel<'_>, plan: &Plan, arena: &mut [u8], left:
 
     let (out_l, out_r, scratch_l) = encoder_zone(plan, arena);
     let grid = &plan.grid;
+    // The pool is held while both encoders run (their kernels on their own threads; the workers
+    // would only compete for the cores), and released when the right one is done: the left one
+    // (features and context, the longer) then has the workers for the rest.
+    let held = crate::kernels::pool::hold();
     std::thread::scope(|s| {
         s.spawn(move || {
+            let _held = held;
             // This thread's own frame of re-laid weights (see `run_iters`).
             #[cfg(target_arch = "x86_64")]
             let _frame = crate::kernels::conv::FrameScope::new();

@@ -24,7 +24,9 @@ use crate::kernels::attention::{aggregate_query, query_stats, rope_pixel};
 use crate::kernels::conv::{ConvParams, MAX_K, PartRows};
 use crate::kernels::corr::{LookupParams, LookupScratch, lookup_pixel, peaks_pixel};
 use crate::kernels::eltwise::{blend_q15, mud_mask, mul_plane_q15, mul_q15, proposal_flow};
-use crate::kernels::resample::{interp_row, pool2x_row};
+use crate::kernels::resample::pool2x_row;
+#[cfg(not(feature = "std"))]
+use crate::kernels::resample::interp_row;
 use crate::kernels::upsample::upsample_pixel;
 use crate::model::graph::Act;
 use crate::model::layers::{ConvId::*, MASK_CHANNELS};
@@ -542,7 +544,13 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
         if let Some(r) = gru08_stages::SCHEDULE.row(s, gru08_stages::GATES, h8) {
             let upto = last_input_row(r, 3, 1, h8);
             let (net16, w16, h16) = (&*c.frame.net16, g.w16, g.h16);
-            fill(&mut rup, upto, |y, d| interp_row(net16, h16, w16, hd, h8, w, y, d));
+            fill(&mut rup, upto, |y, d| {
+                // Host: the row's pixels on the kernel pool.
+                #[cfg(feature = "std")]
+                super::host_rows::interp_row(net16, h16, w16, hd, h8, w, y, d);
+                #[cfg(not(feature = "std"))]
+                interp_row(net16, h16, w16, hd, h8, w, y, d);
+            });
             fill(&mut rinp, upto, |y, d| widen_row(chunk(c.frame.inp08, y, w * ctx), d));
             if let Some(pqy) = &pquery {
                 let st = &c.st;

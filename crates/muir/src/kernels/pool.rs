@@ -157,13 +157,27 @@ fn pause(waits: &mut u32) {
 /// caller. For work that is split coarsely already (the two image encoders on two threads): the
 /// pool's workers would only compete with it for the cores.
 pub fn inline_while<R>(f: impl FnOnce() -> R) -> R {
-    let p = pool();
-    let held = !p.busy.swap(true, Ordering::Acquire);
-    let r = f();
-    if held {
-        p.busy.store(false, Ordering::Release);
+    let _held = hold();
+    f()
+}
+
+/// Holds the pool until the returned guard is dropped, on any thread: meanwhile every [`run`]
+/// runs its tasks on its caller (see [`inline_while`]). The image encoders' pair hands it to the
+/// shorter of its two threads, so that the longer one's kernels get the pool's workers back as
+/// soon as the other is done.
+pub fn hold() -> Hold {
+    Hold(!pool().busy.swap(true, Ordering::Acquire))
+}
+
+/// See [`hold`] (`true`: this guard set the pool busy and clears it when dropped).
+pub struct Hold(bool);
+
+impl Drop for Hold {
+    fn drop(&mut self) {
+        if self.0 {
+            pool().busy.store(false, Ordering::Release);
+        }
     }
-    r
 }
 
 /// Takes and runs task numbers until none are left.

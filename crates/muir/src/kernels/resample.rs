@@ -50,16 +50,25 @@ fn align_corners(i: usize, n_in: usize, n_out: usize) -> (usize, i64, i64) {
 /// i16 tensor `src` (`h x w x c`), with exact rational weights and one rounding.
 #[allow(clippy::too_many_arguments)]
 pub fn interp_row(src: &[i16], h: usize, w: usize, c: usize, h_out: usize, w_out: usize, y: usize, out: &mut [i16]) {
+    interp_cols(src, h, w, c, h_out, w_out, y, 0..w_out, out);
+}
+
+/// Columns `xs` of [`interp_row`]'s row `y` into `out` (`xs.len() c` values, column `xs.start`
+/// first).
+#[allow(clippy::too_many_arguments)]
+pub fn interp_cols(src: &[i16], h: usize, w: usize, c: usize, h_out: usize, w_out: usize, y: usize, xs: core::ops::Range<usize>, out: &mut [i16]) {
+    let x_first = xs.start;
     let (y0, ry, dy) = align_corners(y, h, h_out);
     let y1 = (y0 + 1).min(h.saturating_sub(1));
     // A source pixel's `c` values (empty past the end of `src`: zeros).
     let px = |yy: usize, xx: usize| src.get((yy * w + xx) * c..(yy * w + xx + 1) * c).unwrap_or_default();
     let at = |p: &[i16], ch: usize| p.get(ch).map_or(0, |v| *v as i64);
-    for x in 0..w_out {
+    for x in xs.start..xs.end.min(w_out) {
         let (x0, rx, dx) = align_corners(x, w, w_out);
         let x1 = (x0 + 1).min(w.saturating_sub(1));
         let (a, b, e, f) = (px(y0, x0), px(y0, x1), px(y1, x0), px(y1, x1));
-        for (ch, o) in out.get_mut(x * c..(x + 1) * c).unwrap_or_default().iter_mut().enumerate() {
+        let at_out = (x - x_first) * c;
+        for (ch, o) in out.get_mut(at_out..at_out + c).unwrap_or_default().iter_mut().enumerate() {
             let top = (dx - rx) * at(a, ch) + rx * at(b, ch);
             let bot = (dx - rx) * at(e, ch) + rx * at(f, ch);
             *o = sat_i16(div_round((dy - ry) * top + ry * bot, dy * dx));
@@ -116,6 +125,11 @@ mod tests {
             for y in 0..ho {
                 let mut o = vec![0i16; wo * c];
                 interp_row(&src, h, w, c, ho, wo, y, &mut o);
+                // A range of columns alone gives the same values.
+                let (a, b) = (wo / 3, wo - 1);
+                let mut part = vec![0i16; (b - a) * c];
+                interp_cols(&src, h, w, c, ho, wo, y, a..b, &mut part);
+                assert_eq!(part, o[a * c..b * c], "columns {a}..{b} of row {y}");
                 let (y0, ry, dy) = align_corners(y, h, ho);
                 let y1 = (y0 + 1).min(h - 1);
                 for xo in 0..wo {
