@@ -140,8 +140,8 @@ core::arch::global_asm!(
     ".type muir_dsp_dot2x2_i16,%function",
     ".p2align 2",
     ".thumb_func",
-    // i16: the whole patch in one call, `kernels::I16_CHUNK / 4` groups at a time in i32 (exact,
-    // module doc), each chunk's four sums added into the i64 `out` (which the caller zeroes);
+    // i16: the whole patch in one call, `I16_ASM_GROUPS` groups at a time in i32 (exact, see
+    // there), each chunk's four sums added into the i64 `out` (which the caller zeroes);
     // the groups still to do wait in the stack slot [sp].
     "muir_dsp_dot2x2_i16:",
     "    push {{r4-r11, lr}}",
@@ -284,8 +284,15 @@ core::arch::global_asm!(
     "    stm r12, {{r4-r7}}",
     "    pop {{r4-r11, pc}}",
     ".size muir_dsp_dot2x2_u8, . - muir_dsp_dot2x2_u8",
-    chunk = const super::I16_CHUNK / 4,
+    chunk = const I16_ASM_GROUPS,
 );
+
+/// Groups of four per i32 chunk of the i16 assembly loop: `4 * 127 = 508` terms of `|w x| <=
+/// 2^22` sum below `2^31` at every step (the Helium loops' `kernels::I16_CHUNK`), so each
+/// chunk's sum is exact. Twice the portable chunk: half the chunk set-ups and 64-bit adds. The
+/// chunking does not change the integers (the chunk sums add exactly in i64).
+const I16_ASM_GROUPS: usize = 127;
+const _: () = assert!(4 * (I16_ASM_GROUPS as u64) * (1 << 22) < (1u64 << 31));
 
 unsafe extern "C" {
     fn muir_dsp_dot2x2_i16(x: *const i16, w0: *const u8, w1: *const u8, groups: usize, out: *mut [i64; 4]);
@@ -426,7 +433,7 @@ pub fn dot2x2<T: Quad>(w0: &[i8], w1: &[i8], x: &[T]) -> [i32; 4] {
 }
 
 /// [`dot2x2`] for i16 activations over a whole patch of any length: the assembly loop takes
-/// every group of four, `kernels::I16_CHUNK` values at a time in i32 (so each chunk's sum is exact,
+/// every group of four, `4 I16_ASM_GROUPS` values at a time in i32 (so each chunk's sum is exact,
 /// module doc), into i64 sums; the last `n % 4` values are added here. Same integers as four
 /// `dot`s.
 #[inline]
