@@ -436,7 +436,7 @@ pub fn dot2x2<T: Quad>(w0: &[i8], w1: &[i8], x: &[T]) -> [i32; 4] {
 /// every group of four, `4 I16_ASM_GROUPS` values at a time in i32 (so each chunk's sum is exact,
 /// module doc), into i64 sums; the last `n % 4` values are added here. Same integers as four
 /// `dot`s.
-#[inline]
+#[inline(always)]
 pub fn dot2x2_i16(w0: &[i8], w1: &[i8], x: &[i16]) -> [i64; 4] {
     let n = w0.len().min(w1.len()).min(x.len() / 2);
     let q = n / 4;

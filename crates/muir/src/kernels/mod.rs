@@ -282,7 +282,10 @@ impl Elem for i16 {
         (a, b)
     }
     #[cfg(all(target_arch = "arm", any(feature = "dsp", feature = "mve")))]
-    #[inline]
+    // DSP build: inlined into the 2x2 block, so the sums go straight to its frame (no call, no
+    // copy of the four i64 per part).
+    #[cfg_attr(not(feature = "mve"), inline(always))]
+    #[cfg_attr(feature = "mve", inline)]
     fn dot2x2(w0: &[i8], w1: &[i8], x: &[i16]) -> [i64; 4] {
         // Same chunks as `dot` (a multiple of 4: each chunk of the pair layout is itself in the
         // pair layout), so every partial sum stays exact in i32.
