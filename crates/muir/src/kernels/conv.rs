@@ -17,7 +17,9 @@
 #![deny(clippy::indexing_slicing)]
 
 use super::{Elem, OutRow, dot_plain, head_mut, pair_index, set_at};
-use crate::arith::{Multiplier, lut, requantize, requantize_i32};
+use crate::arith::{Multiplier, lut, requantize};
+#[cfg(not(all(target_arch = "arm", feature = "dsp", not(feature = "mve"))))]
+use crate::arith::requantize_i32;
 use crate::model::graph::PostOp;
 
 #[cfg(all(target_arch = "x86_64", feature = "std"))]
@@ -94,6 +96,23 @@ fn mult_at(b: &[u8]) -> Multiplier {
         Some(&[m0, m1, m2, m3, shift, ..]) => Multiplier { m: i32::from_le_bytes([m0, m1, m2, m3]), shift: shift.clamp(1, 126) },
         None => Multiplier::ZERO,
     }
+}
+
+/// [`mult_at`] without the clamp of the shift: for the short epilogue, whose [`short_ok`] test
+/// (`8 <= shift <= 62`) implies that the clamp would change nothing; [`clamp_shift`] gives
+/// [`mult_at`]'s multiplier for the other path.
+#[inline(always)]
+fn mult_raw(b: &[u8]) -> Multiplier {
+    match b.first_chunk::<8>() {
+        Some(&[m0, m1, m2, m3, shift, ..]) => Multiplier { m: i32::from_le_bytes([m0, m1, m2, m3]), shift },
+        None => Multiplier::ZERO,
+    }
+}
+
+/// [`mult_at`]'s multiplier from [`mult_raw`]'s.
+#[inline(always)]
+fn clamp_shift(m: Multiplier) -> Multiplier {
+    Multiplier { m: m.m, shift: m.shift.clamp(1, 126) }
 }
 
 /// Encodes multipliers in the [`MultRef`] layout (host: blob writer and tests).
@@ -184,13 +203,23 @@ fn activate(post: PostOp, v: i64) -> i64 {
 const SHORT_MAX_BIAS: u64 = 1 << 40;
 
 /// Whether a (channel, part) multiplier allows the short epilogue: `8 <= shift <= 62` (the
-/// shipped blobs use 13 to 46). Then [`requantize_i32`] of an `i32` sum is [`requantize`]'s
+/// shipped blobs use 13 to 46). Then [`crate::arith::requantize_i32`] of an `i32` sum is [`requantize`]'s
 /// integer, below `2^62 / 2^8 = 2^54` in magnitude; up to `MAX_PARTS` (6) such contributions, a
 /// bias below [`SHORT_MAX_BIAS`] and the rounding half sum far inside i64, so the plain adds of
 /// [`finish_short`] give [`finish_with`]'s integers. Anything else takes the saturating path.
 #[inline(always)]
 fn short_ok(m: Multiplier) -> bool {
     (8..=62).contains(&m.shift)
+}
+
+/// [`crate::arith::requantize_i32`] where [`short_ok`] holds: by `SMLAL` on the DSP build
+/// ([`super::dsp::requantize_i32`], same integers), else the portable formula.
+#[inline(always)]
+fn requant_short(acc: i32, m: Multiplier) -> i64 {
+    #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+    return super::dsp::requantize_i32(acc, m);
+    #[cfg(not(all(target_arch = "arm", feature = "dsp", not(feature = "mve"))))]
+    requantize_i32(acc, m)
 }
 
 /// [`finish_with`] when every contribution to `sum` was short and `|bias| <` [`SHORT_MAX_BIAS`]:
@@ -502,16 +531,17 @@ fn block2x2<T: Elem>(p: &ConvParams<'_>, pair: &[T], w: &[i8], m: &[u8], b: &[u8
         let Some(d) = part_dot2x2(nparts == 1, w0, w1, pair, o, n) else {
             break;
         };
-        let (m0, m1) = (mult_at(m0), mult_at(m1));
+        let (m0, m1) = (mult_raw(m0), mult_raw(m1));
         match (short && short_ok(m0) && short_ok(m1), d.map(i32::try_from)) {
             (true, [Ok(a0), Ok(a1), Ok(a2), Ok(a3)]) => {
-                s[0] += requantize_i32(a0, m0);
-                s[1] += requantize_i32(a1, m1);
-                s[2] += requantize_i32(a2, m0);
-                s[3] += requantize_i32(a3, m1);
+                s[0] += requant_short(a0, m0);
+                s[1] += requant_short(a1, m1);
+                s[2] += requant_short(a2, m0);
+                s[3] += requant_short(a3, m1);
             }
             _ => {
                 short = false;
+                let (m0, m1) = (clamp_shift(m0), clamp_shift(m1));
                 s[0] = s[0].saturating_add(requantize(d[0], m0));
                 s[1] = s[1].saturating_add(requantize(d[1], m1));
                 s[2] = s[2].saturating_add(requantize(d[2], m0));

@@ -96,6 +96,32 @@ fn smlad(a: u32, b: u32, acc: i32) -> i32 {
     r
 }
 
+/// [`crate::arith::requantize_i32`] for `8 <= m.shift <= 62` (the convolution's short epilogue,
+/// `conv::short_ok`): the same integer, `floor((acc m + 2^(s-1)) / 2^s)`. `SMLAL` adds the
+/// 64-bit product to the rounding half in one instruction (the portable formula, compiled,
+/// multiplies 64 by 64 bits when the `i32` came from a range-checked `i64`), then the 64-bit
+/// arithmetic shift: for `s >= 32` only the high word (shifted by `s - 32`, sign-extended), else
+/// both words. A shift outside the range gives an unspecified value, never a panic.
+#[inline(always)]
+pub fn requantize_i32(acc: i32, m: crate::arith::Multiplier) -> i64 {
+    let s = m.shift as u32;
+    // The rounding half 2^(s-1) as (low, high) words.
+    let (mut lo, mut hi) = if s >= 33 { (0u32, 1u32 << ((s - 33) & 31)) } else { (1u32 << (s.wrapping_sub(1) & 31), 0u32) };
+    // SAFETY: register-only; SMLAL touches no flags.
+    unsafe {
+        asm!("smlal {lo}, {hi}, {a}, {b}", lo = inout(reg) lo, hi = inout(reg) hi, a = in(reg) acc, b = in(reg) m.m,
+            options(pure, nomem, nostack, preserves_flags))
+    };
+    if s >= 32 {
+        ((hi as i32) >> ((s - 32) & 31)) as i64
+    } else {
+        // 8 <= s < 32: both words (|p + 2^(s-1)| < 2^63, so the shifted value is exact).
+        let l = (lo >> (s & 31)) | (hi << ((32 - s) & 31));
+        let h = (hi as i32) >> (s & 31);
+        ((h as i64) << 32) | l as i64
+    }
+}
+
 /// An activation type whose four values at `i` widen into the two 16-bit pairs `SMLAD` takes:
 /// values 0 and 2, then values 1 and 3 (the order `SXTB16` gives the weights).
 pub trait Quad: Copy + Into<i32> {
