@@ -353,6 +353,36 @@ static mut CONV: ConvBufs = ConvBufs {
     scratch: [0; 8 * CONV_KL],
 };
 
+/// The DSP build's requantisation of the convolution's short epilogue (`dsp::requantize_i32`,
+/// `SMLAL` and a 64-bit shift split at 32) against the specification (`arith::requantize` of
+/// the same `i32` sum): every shift the short path takes (8 to 62), extreme and random sums and
+/// multipliers (both signs, zero, the i32 limits).
+#[cfg(not(feature = "mve"))]
+fn check_requant_dsp(r: &mut Rng) -> usize {
+    use muir::arith::{Multiplier, requantize};
+    use muir::kernels::dsp;
+    let edges = [i32::MIN, i32::MIN + 1, -65536, -1, 0, 1, 65535, i32::MAX - 1, i32::MAX];
+    let mut cases = 0;
+    for shift in 8..=62u8 {
+        for i in 0..120usize {
+            let pick = |r: &mut Rng, j: usize| match j % 3 {
+                0 => edges[(r.next() % edges.len() as u64) as usize],
+                1 => ((r.next() >> 32) as i32) >> (r.next() % 31),
+                _ => (r.next() >> 32) as i32,
+            };
+            let (acc, m) = (pick(r, i), pick(r, i / 3));
+            let mult = Multiplier { m, shift };
+            let (got, want) = (dsp::requantize_i32(acc, mult), requantize(acc as i64, mult));
+            if got != want {
+                println!("MUIR-KERNELS FAILED dsp::requantize_i32({acc}, m={m}, shift={shift}): {got}, requantize {want}");
+                process::exit(1);
+            }
+            cases += 1;
+        }
+    }
+    cases
+}
+
 /// Whole convolutions row by row through the engine's entry (`engine::encoder::run_conv`: with
 /// Helium the vector epilogue of `conv`, on the DSP build the u8 rows widened once to the i16
 /// loop) against the plain twin `conv_plain`: random layers of 1 to 3 parts (channel counts with
@@ -548,6 +578,10 @@ fn main() -> ! {
         cases += check_attention(i16s.a, i16s.b, &mut r);
         cases += check_requant(&mut r);
         cases += check_popcount(&mut r);
+    }
+    #[cfg(not(feature = "mve"))]
+    {
+        cases += check_requant_dsp(&mut r);
     }
     cases += check_conv(&mut r);
     println!("MUIR-KERNELS ok cases={cases}");
