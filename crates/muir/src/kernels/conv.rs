@@ -516,19 +516,39 @@ fn odd_channel<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: us
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
 fn block2x2<T: Elem>(p: &ConvParams<'_>, pair: &[T], w: &[i8], m: &[u8], b: &[u8], out: &mut OutRow<'_>, at_a: usize, at_b: usize, c: usize) {
-    let k = p.k;
     let nparts = p.parts.len();
-    let ((w0, w1), (m0, m1)) = (halves(w), halves(m));
+    let (w0, w1) = halves(w);
+    block2x2_by(p, m, b, out, at_a, at_b, c, |o, n, _| part_dot2x2(nparts == 1, w0, w1, pair, o, n));
+}
+
+/// [`block2x2`]'s requantisation and stores, with each part's four dot products from `dot(o,
+/// n, wo)`: the part's `n` values at offset `o` of the patch, `wo` the sum of `4 (n / 4)` over
+/// the parts before it (the part's offset in [`super::dsp::widen_weights`]'s words); `None`
+/// ends the channel pair's parts early (a short table).
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn block2x2_by(
+    p: &ConvParams<'_>,
+    m: &[u8],
+    b: &[u8],
+    out: &mut OutRow<'_>,
+    at_a: usize,
+    at_b: usize,
+    c: usize,
+    mut dot: impl FnMut(usize, usize, usize) -> Option<[i64; 4]>,
+) {
+    let k = p.k;
+    let (m0, m1) = halves(m);
     let mut s = [0i64; 4];
     let (b0, b1) = halves(b);
     let (b0, b1) = (bias_at(b0), bias_at(b1));
     // Whether every contribution came through `requantize_i32` and both biases are
     // small (`short_ok`): then no sum can saturate and plain adds give the same integers.
     let mut short = b0.unsigned_abs() < SHORT_MAX_BIAS && b1.unsigned_abs() < SHORT_MAX_BIAS;
-    let mut o = 0;
+    let (mut o, mut wo) = (0, 0);
     for ((&ch, m0), m1) in p.parts.iter().zip(m0.chunks_exact(8)).zip(m1.chunks_exact(8)) {
         let n = ch * k * k;
-        let Some(d) = part_dot2x2(nparts == 1, w0, w1, pair, o, n) else {
+        let Some(d) = dot(o, n, wo) else {
             break;
         };
         let (m0, m1) = (mult_raw(m0), mult_raw(m1));
@@ -549,6 +569,7 @@ fn block2x2<T: Elem>(p: &ConvParams<'_>, pair: &[T], w: &[i8], m: &[u8], b: &[u8
             }
         }
         o += n;
+        wo += n / 4 * 4;
     }
     if short {
         out.set(at_a + c, finish_short(p.post, b0, s[0]));
@@ -644,15 +665,21 @@ pub fn conv_row_u8_wide(p: &ConvParams<'_>, inputs: &[PartRows<'_, u8>], w_in: u
     };
     // Word-aligned i16 pairs (the i16 loop loads them with `LDRD`).
     let skip = rest.as_ptr().align_offset(4);
+    if kl == 0 {
+        return false;
+    }
+    if conv_row_w16(p, inputs, w_in, out, pair, rest, |ox, pair, slot| {
+        gather2(p, inputs, w_in, ox, pair);
+        widen_pairs(p, pair, slot);
+    }) {
+        return true;
+    }
     let Some(wide) = rest.get_mut(skip..).and_then(|r| r.get_mut(..4 * kl)) else {
         return false;
     };
     let Ok(wide) = bytemuck::try_cast_slice_mut::<u8, i16>(wide) else {
         return false;
     };
-    if kl == 0 {
-        return false;
-    }
     let w_out = p.out_width(w_in);
     let mut ox = 0;
     while ox + 2 <= w_out {
@@ -664,6 +691,111 @@ pub fn conv_row_u8_wide(p: &ConvParams<'_>, inputs: &[PartRows<'_, u8>], w_in: u
     }
     single_pixels(p, inputs, w_in, out, pair, ox);
     true
+}
+
+/// Fewest pixel pairs per widening of the weights for [`conv_row_w16`]: each group of four of a
+/// channel pair costs 8 instructions to widen and saves 4 per pixel pair (16 -> 12), so 2 pairs
+/// only break even.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+const W16_MIN_PAIRS: usize = 3;
+/// Most pixel pairs gathered at a time (beyond it the widening is amortised already).
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+const W16_MAX_PAIRS: usize = 8;
+
+/// The DSP build's convolution row with the weights widened once per channel pair and block of
+/// pixel pairs: the patches of up to [`W16_MAX_PAIRS`] pixel pairs are gathered first (`fill(ox,
+/// temp, slot)` writes the pair of `ox` and `ox + 1` in the i16 pair layout into `slot`, with
+/// `temp` as its scratch), then every channel pair's int8 weights are widened once
+/// ([`super::dsp::widen_weights`]) and every gathered pair runs [`super::dsp::dot2x2_w16`] (12
+/// instructions per 16 MACs against 16 for [`Elem::dot2x2`], which widens the weights again for
+/// every pixel pair). `scratch` holds the widened weights and the gathered pairs (word-aligned);
+/// where it has room for fewer than [`W16_MIN_PAIRS`] pairs (or the row has fewer), returns
+/// false having computed nothing. The odd last channel and pixel as [`conv_row`] does. Same
+/// products in the same chunks as [`Elem::dot2x2`], so the same integers.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+fn conv_row_w16<T: Elem>(
+    p: &ConvParams<'_>,
+    inputs: &[PartRows<'_, T>],
+    w_in: usize,
+    out: &mut OutRow<'_>,
+    temp: &mut [T],
+    scratch: &mut [u8],
+    mut fill: impl FnMut(usize, &mut [T], &mut [i16]),
+) -> bool {
+    let (kl, w_out) = (p.patch_len(), p.out_width(w_in));
+    // Words of one channel pair's widened weights: four per whole group of every part.
+    let wq: usize = p.parts.iter().map(|&ch| ch * p.k * p.k / 4 * 4).sum();
+    let skip = scratch.as_ptr().align_offset(4);
+    let Some(words) = scratch.get_mut(skip..) else {
+        return false;
+    };
+    let len = words.len() / 4 * 4;
+    let Ok(words) = bytemuck::try_cast_slice_mut::<u8, u32>(head_mut(words, len)) else {
+        return false;
+    };
+    let Some((ww, slots)) = words.split_at_mut_checked(wq) else {
+        return false;
+    };
+    // One pair of patches is `2 kl` i16 values, `kl` words.
+    let np = (slots.len() / kl.max(1)).min(W16_MAX_PAIRS).min(w_out / 2);
+    if np < W16_MIN_PAIRS || kl == 0 {
+        return false;
+    }
+    let slots: &mut [i16] = bytemuck::cast_slice_mut(head_mut(slots, np * kl));
+    let mut ox = 0;
+    while ox + 2 <= w_out {
+        let n = ((w_out - ox) / 2).min(np);
+        for (i, slot) in slots.chunks_exact_mut(2 * kl).take(n).enumerate() {
+            fill(ox + 2 * i, temp, slot);
+        }
+        for (cp, ((w, m), b)) in channel_pairs(p, kl, 0).enumerate() {
+            let (w0, w1) = halves(w);
+            let (mut o, mut wo) = (0, 0);
+            for &ch in p.parts {
+                let n = ch * p.k * p.k;
+                if let (Some(a), Some(b), Some(d)) = (w0.get(o..), w1.get(o..), ww.get_mut(wo..)) {
+                    super::dsp::widen_weights(a, b, n / 4, d);
+                }
+                o += n;
+                wo += n / 4 * 4;
+            }
+            let ww = &*ww;
+            for (i, slot) in slots.chunks_exact(2 * kl).take(n).enumerate() {
+                let x = ox + 2 * i;
+                block2x2_by(p, m, b, out, x * p.cout, (x + 1) * p.cout, 2 * cp, |o, n, wo| {
+                    super::dsp::dot2x2_w16(ww.get(wo..)?, w0.get(o..)?, w1.get(o..)?, slot.get(2 * o..)?, n)
+                });
+            }
+        }
+        ox += 2 * n;
+    }
+    // The odd last channel of every pair and the odd last pixel, each pixel from its own patch.
+    let c = p.cout / 2 * 2;
+    let mut x = 0;
+    while x + 2 <= w_out {
+        odd_channel(p, inputs, w_in, x, temp, out, c);
+        x += 2;
+    }
+    single_pixels(p, inputs, w_in, out, temp, x);
+    true
+}
+
+/// [`conv_row`] for i16 activations on the DSP build by [`conv_row_w16`] (the gathered pairs
+/// straight into its slots), where the engine's byte `scratch` holds the widened weights, a
+/// patch for the odd channel and pixel, and at least [`W16_MIN_PAIRS`] pairs of patches (the
+/// layers with a patch up to a quarter of the largest); false, having computed nothing,
+/// otherwise.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+pub fn conv_row_i16_w16(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: usize, out: &mut OutRow<'_>, scratch: &mut [u8]) -> bool {
+    let kl = p.patch_len();
+    let skip = scratch.as_ptr().align_offset(2);
+    let Some((single, rest)) = scratch.get_mut(skip..).and_then(|s| s.split_at_mut_checked(2 * kl)) else {
+        return false;
+    };
+    let Ok(single) = bytemuck::try_cast_slice_mut::<u8, i16>(single) else {
+        return false;
+    };
+    conv_row_w16(p, inputs, w_in, out, single, rest, |ox, _, slot| gather2(p, inputs, w_in, ox, slot))
 }
 
 /// The u8 pair layout of [`gather2`] (per part, groups of four values of patch `a` then `b`,
