@@ -357,24 +357,31 @@ fn gather2<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize,
             let mut j = 0;
             for ky in 0..k {
                 let row = part.row(ky);
+                // Whole groups and the window inside the row: its `k ch` values are one run of
+                // the input row, copied group by group in one pass.
+                if ch % 4 == 0
+                    && let Some(r) = row
+                    && let Some(x0) = (x * p.stride).checked_sub(k / 2)
+                    && x0 + k <= w_in
+                    && let (Some(s), Some(d)) = (r.get(x0 * ch..(x0 + k) * ch), dst.get_mut(2 * j..2 * (j + k * ch)))
+                {
+                    T::put_groups(d, s, second);
+                    j += k * ch;
+                    continue;
+                }
                 for kx in 0..k {
                     let ix = (x * p.stride + kx) as isize - pad;
                     let src = column(row, ix, w_in, ch);
                     if ch % 4 == 0 {
                         // Every group whole (`j` and `n` are multiples of 4): group `g` of these
                         // values goes to `2 j + 8 g` (plus 4 for the second patch).
-                        let d = dst.get_mut(2 * j..2 * (j + ch)).unwrap_or_default().chunks_exact_mut(8).map(|d| {
-                            let (a, b) = d.split_at_mut(4);
-                            if second { b } else { a }
-                        });
+                        let d = dst.get_mut(2 * j..2 * (j + ch)).unwrap_or_default();
                         match src {
-                            Some(s) if T::PAIR_SWAP => d.zip(s.chunks_exact(4)).for_each(|(g, s)| {
-                                if let ([g0, g1, g2, g3], &[s0, s1, s2, s3]) = (g, s) {
-                                    (*g0, *g1, *g2, *g3) = (s0, s2, s1, s3);
-                                }
+                            Some(s) => T::put_groups(d, s, second),
+                            None => d.chunks_exact_mut(8).for_each(|d| {
+                                let (a, b) = d.split_at_mut(4);
+                                (if second { b } else { a }).fill(T::default())
                             }),
-                            Some(s) => d.zip(s.chunks_exact(4)).for_each(|(g, s)| g.copy_from_slice(s)),
-                            None => d.for_each(|g| g.fill(T::default())),
                         }
                         j += ch;
                         continue;

@@ -641,3 +641,23 @@ pub fn dot2x2_w16(ww: &[u32], w0: &[i8], w1: &[i8], x: &[i16], n: usize) -> Opti
     }
     Some(acc)
 }
+
+/// `Elem::put_groups` for i16 (the pair layout's swap): each group of four as two words
+/// (`(x0, x1)`, `(x2, x3)`, unaligned loads) repacked by `PKHBT`/`PKHTB` into `(x0, x2)`, `(x1,
+/// x3)`: 2 loads, 2 packs and 2 stores per group instead of 4 halfword loads and 4 stores.
+#[inline(always)]
+pub fn put_groups_i16(d: &mut [i16], s: &[i16], second: bool) {
+    let off = if second { 4 } else { 0 };
+    for (g, q) in d.chunks_exact_mut(8).zip(s.chunks_exact(4)) {
+        if let Some(g) = g.get_mut(off..off + 4) {
+            let (x01, x23) = (pair(q, 0), pair(q, 2));
+            let (lo, hi) = (pkhbt(x01, x23), pkhtb(x01, x23));
+            // SAFETY: `g` holds 4 values (8 bytes); unaligned word stores are allowed on
+            // Cortex-M4/M7.
+            unsafe {
+                core::ptr::write_unaligned(g.as_mut_ptr() as *mut u32, lo);
+                core::ptr::write_unaligned(g.as_mut_ptr().add(2) as *mut u32, hi);
+            }
+        }
+    }
+}
