@@ -752,7 +752,8 @@ fn conv_row_w16<T: Elem>(
     let mut ox = 0;
     while ox + 2 <= w_out {
         let n = ((w_out - ox) / 2).min(np);
-        for (i, slot) in slots.chunks_exact_mut(2 * kl).take(n).enumerate() {
+        // (`kl >= 1` here; `max` keeps the chunking free of its zero-size panic path.)
+        for (i, slot) in slots.chunks_exact_mut((2 * kl).max(1)).take(n).enumerate() {
             fill(ox + 2 * i, temp, slot);
         }
         for (cp, ((w, m), b)) in channel_pairs(p, kl, 0).enumerate() {
@@ -767,7 +768,7 @@ fn conv_row_w16<T: Elem>(
                 wo += n / 4 * 4;
             }
             let ww = &*ww;
-            for (i, slot) in slots.chunks_exact(2 * kl).take(n).enumerate() {
+            for (i, slot) in slots.chunks_exact((2 * kl).max(1)).take(n).enumerate() {
                 let x = ox + 2 * i;
                 block2x2_by(p, m, b, out, x * p.cout, (x + 1) * p.cout, 2 * cp, |o, n, wo| {
                     super::dsp::dot2x2_w16(ww.get(wo..)?, w0.get(o..)?, w1.get(o..)?, slot.get(2 * o..)?, n)
