@@ -120,6 +120,28 @@ fn check<T: Sample>(name: &str, buf: &mut Buffers<T>, r: &mut Rng, n: usize, wf:
     3
 }
 
+/// The DSP build's i16 pair loop against weights widened beforehand (`dsp::widen_weights`,
+/// `dsp::dot2x2_w16`, the convolution rows' `conv_row_w16`) on the vectors `check` just filled
+/// (lengths up to 5,760: several 508-term chunks, odd group counts, tails of 1 to 3 values; the
+/// extreme fills), against the plain dot products.
+#[cfg(not(feature = "mve"))]
+fn check_w16(buf: &Buffers<i16>, ww: &mut [u32; MAX_N], n: usize) -> usize {
+    use muir::kernels::dsp;
+    let (w0, w1, a, b) = (&buf.w0[..n], &buf.w1[..n], &buf.a[..n], &buf.b[..n]);
+    let want = [dot_plain(w0, a), dot_plain(w1, a), dot_plain(w0, b), dot_plain(w1, b)];
+    ww.fill(0x5A5A_5A5A);
+    dsp::widen_weights(w0, w1, n / 4, ww);
+    match dsp::dot2x2_w16(ww, w0, w1, &buf.pair[..2 * n], n) {
+        Some(got) if got == want => 1,
+        Some(got) => fail("i16 dot2x2_w16", n, &got, &want),
+        None => fail("i16 dot2x2_w16 (no result)", n, &[], &want),
+    }
+}
+
+/// Widened weights of `check_w16`.
+#[cfg(not(feature = "mve"))]
+static mut WW: [u32; MAX_N] = [0; MAX_N];
+
 static mut W0: [i8; MAX_N] = [0; MAX_N];
 static mut W1: [i8; MAX_N] = [0; MAX_N];
 static mut A8: [u8; MAX_N] = [0; MAX_N];
@@ -353,6 +375,36 @@ static mut CONV: ConvBufs = ConvBufs {
     scratch: [0; 8 * CONV_KL],
 };
 
+/// The DSP build's requantisation of the convolution's short epilogue (`dsp::requantize_i32`,
+/// `SMLAL` and a 64-bit shift split at 32) against the specification (`arith::requantize` of
+/// the same `i32` sum): every shift the short path takes (8 to 62), extreme and random sums and
+/// multipliers (both signs, zero, the i32 limits).
+#[cfg(not(feature = "mve"))]
+fn check_requant_dsp(r: &mut Rng) -> usize {
+    use muir::arith::{Multiplier, requantize};
+    use muir::kernels::dsp;
+    let edges = [i32::MIN, i32::MIN + 1, -65536, -1, 0, 1, 65535, i32::MAX - 1, i32::MAX];
+    let mut cases = 0;
+    for shift in 8..=62u8 {
+        for i in 0..120usize {
+            let pick = |r: &mut Rng, j: usize| match j % 3 {
+                0 => edges[(r.next() % edges.len() as u64) as usize],
+                1 => ((r.next() >> 32) as i32) >> (r.next() % 31),
+                _ => (r.next() >> 32) as i32,
+            };
+            let (acc, m) = (pick(r, i), pick(r, i / 3));
+            let mult = Multiplier { m, shift };
+            let (got, want) = (dsp::requantize_i32(acc, mult), requantize(acc as i64, mult));
+            if got != want {
+                println!("MUIR-KERNELS FAILED dsp::requantize_i32({acc}, m={m}, shift={shift}): {got}, requantize {want}");
+                process::exit(1);
+            }
+            cases += 1;
+        }
+    }
+    cases
+}
+
 /// Whole convolutions row by row through the engine's entry (`engine::encoder::run_conv`: with
 /// Helium the vector epilogue of `conv`, on the DSP build the u8 rows widened once to the i16
 /// loop) against the plain twin `conv_plain`: random layers of 1 to 3 parts (channel counts with
@@ -538,9 +590,16 @@ fn main() -> ! {
         }
     }
     let mut i16s = Buffers { w0: i8s.w0, w1: i8s.w1, a: a16, b: b16, pair: p16 };
+    // SAFETY: as above, the only user of `WW`.
+    #[cfg(not(feature = "mve"))]
+    let ww = unsafe { &mut *core::ptr::addr_of_mut!(WW) };
     for n in lengths() {
         for &(wf, xf) in &fills {
             cases += check("i16", &mut i16s, &mut r, n, wf, xf);
+            #[cfg(not(feature = "mve"))]
+            {
+                cases += check_w16(&i16s, ww, n);
+            }
         }
     }
     #[cfg(feature = "mve")]
@@ -548,6 +607,10 @@ fn main() -> ! {
         cases += check_attention(i16s.a, i16s.b, &mut r);
         cases += check_requant(&mut r);
         cases += check_popcount(&mut r);
+    }
+    #[cfg(not(feature = "mve"))]
+    {
+        cases += check_requant_dsp(&mut r);
     }
     cases += check_conv(&mut r);
     println!("MUIR-KERNELS ok cases={cases}");

@@ -17,7 +17,9 @@
 #![deny(clippy::indexing_slicing)]
 
 use super::{Elem, OutRow, dot_plain, head_mut, pair_index, set_at};
-use crate::arith::{Multiplier, lut, requantize, requantize_i32};
+use crate::arith::{Multiplier, lut, requantize};
+#[cfg(not(all(target_arch = "arm", feature = "dsp", not(feature = "mve"))))]
+use crate::arith::requantize_i32;
 use crate::model::graph::PostOp;
 
 #[cfg(all(target_arch = "x86_64", feature = "std"))]
@@ -96,6 +98,23 @@ fn mult_at(b: &[u8]) -> Multiplier {
         Some(&[m0, m1, m2, m3, shift, ..]) => Multiplier { m: i32::from_le_bytes([m0, m1, m2, m3]), shift: shift.clamp(1, 126) },
         None => Multiplier::ZERO,
     }
+}
+
+/// [`mult_at`] without the clamp of the shift: for the short epilogue, whose [`short_ok`] test
+/// (`8 <= shift <= 62`) implies that the clamp would change nothing; [`clamp_shift`] gives
+/// [`mult_at`]'s multiplier for the other path.
+#[inline(always)]
+fn mult_raw(b: &[u8]) -> Multiplier {
+    match b.first_chunk::<8>() {
+        Some(&[m0, m1, m2, m3, shift, ..]) => Multiplier { m: i32::from_le_bytes([m0, m1, m2, m3]), shift },
+        None => Multiplier::ZERO,
+    }
+}
+
+/// [`mult_at`]'s multiplier from [`mult_raw`]'s.
+#[inline(always)]
+fn clamp_shift(m: Multiplier) -> Multiplier {
+    Multiplier { m: m.m, shift: m.shift.clamp(1, 126) }
 }
 
 /// Encodes multipliers in the [`MultRef`] layout (host: blob writer and tests).
@@ -186,13 +205,23 @@ fn activate(post: PostOp, v: i64) -> i64 {
 const SHORT_MAX_BIAS: u64 = 1 << 40;
 
 /// Whether a (channel, part) multiplier allows the short epilogue: `8 <= shift <= 62` (the
-/// shipped blobs use 13 to 46). Then [`requantize_i32`] of an `i32` sum is [`requantize`]'s
+/// shipped blobs use 13 to 46). Then [`crate::arith::requantize_i32`] of an `i32` sum is [`requantize`]'s
 /// integer, below `2^62 / 2^8 = 2^54` in magnitude; up to `MAX_PARTS` (6) such contributions, a
 /// bias below [`SHORT_MAX_BIAS`] and the rounding half sum far inside i64, so the plain adds of
 /// [`finish_short`] give [`finish_with`]'s integers. Anything else takes the saturating path.
 #[inline(always)]
 fn short_ok(m: Multiplier) -> bool {
     (8..=62).contains(&m.shift)
+}
+
+/// [`crate::arith::requantize_i32`] where [`short_ok`] holds: by `SMLAL` on the DSP build
+/// ([`super::dsp::requantize_i32`], same integers), else the portable formula.
+#[inline(always)]
+fn requant_short(acc: i32, m: Multiplier) -> i64 {
+    #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+    return super::dsp::requantize_i32(acc, m);
+    #[cfg(not(all(target_arch = "arm", feature = "dsp", not(feature = "mve"))))]
+    requantize_i32(acc, m)
 }
 
 /// [`finish_with`] when every contribution to `sum` was short and `|bias| <` [`SHORT_MAX_BIAS`]:
@@ -330,24 +359,31 @@ fn gather2<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize,
             let mut j = 0;
             for ky in 0..k {
                 let row = part.row(ky);
+                // Whole groups and the window inside the row: its `k ch` values are one run of
+                // the input row, copied group by group in one pass.
+                if ch % 4 == 0
+                    && let Some(r) = row
+                    && let Some(x0) = (x * p.stride).checked_sub(k / 2)
+                    && x0 + k <= w_in
+                    && let (Some(s), Some(d)) = (r.get(x0 * ch..(x0 + k) * ch), dst.get_mut(2 * j..2 * (j + k * ch)))
+                {
+                    T::put_groups(d, s, second);
+                    j += k * ch;
+                    continue;
+                }
                 for kx in 0..k {
                     let ix = (x * p.stride + kx) as isize - pad;
                     let src = column(row, ix, w_in, ch);
                     if ch % 4 == 0 {
                         // Every group whole (`j` and `n` are multiples of 4): group `g` of these
                         // values goes to `2 j + 8 g` (plus 4 for the second patch).
-                        let d = dst.get_mut(2 * j..2 * (j + ch)).unwrap_or_default().chunks_exact_mut(8).map(|d| {
-                            let (a, b) = d.split_at_mut(4);
-                            if second { b } else { a }
-                        });
+                        let d = dst.get_mut(2 * j..2 * (j + ch)).unwrap_or_default();
                         match src {
-                            Some(s) if T::PAIR_SWAP => d.zip(s.chunks_exact(4)).for_each(|(g, s)| {
-                                if let ([g0, g1, g2, g3], &[s0, s1, s2, s3]) = (g, s) {
-                                    (*g0, *g1, *g2, *g3) = (s0, s2, s1, s3);
-                                }
+                            Some(s) => T::put_groups(d, s, second),
+                            None => d.chunks_exact_mut(8).for_each(|d| {
+                                let (a, b) = d.split_at_mut(4);
+                                (if second { b } else { a }).fill(T::default())
                             }),
-                            Some(s) => d.zip(s.chunks_exact(4)).for_each(|(g, s)| g.copy_from_slice(s)),
-                            None => d.for_each(|g| g.fill(T::default())),
                         }
                         j += ch;
                         continue;
@@ -489,31 +525,52 @@ fn odd_channel<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: us
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
 fn block2x2<T: Elem>(p: &ConvParams<'_>, pair: &[T], w: &[i8], m: &[u8], b: &[u8], out: &mut OutRow<'_>, at_a: usize, at_b: usize, c: usize) {
-    let k = p.k;
     let nparts = p.parts.len();
-    let ((w0, w1), (m0, m1)) = (halves(w), halves(m));
+    let (w0, w1) = halves(w);
+    block2x2_by(p, m, b, out, at_a, at_b, c, |o, n, _| part_dot2x2(nparts == 1, w0, w1, pair, o, n));
+}
+
+/// [`block2x2`]'s requantisation and stores, with each part's four dot products from `dot(o,
+/// n, wo)`: the part's `n` values at offset `o` of the patch, `wo` the sum of `4 (n / 4)` over
+/// the parts before it (the part's offset in [`super::dsp::widen_weights`]'s words); `None`
+/// ends the channel pair's parts early (a short table).
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn block2x2_by(
+    p: &ConvParams<'_>,
+    m: &[u8],
+    b: &[u8],
+    out: &mut OutRow<'_>,
+    at_a: usize,
+    at_b: usize,
+    c: usize,
+    mut dot: impl FnMut(usize, usize, usize) -> Option<[i64; 4]>,
+) {
+    let k = p.k;
+    let (m0, m1) = halves(m);
     let mut s = [0i64; 4];
     let (b0, b1) = halves(b);
     let (b0, b1) = (bias_at(b0), bias_at(b1));
     // Whether every contribution came through `requantize_i32` and both biases are
     // small (`short_ok`): then no sum can saturate and plain adds give the same integers.
     let mut short = b0.unsigned_abs() < SHORT_MAX_BIAS && b1.unsigned_abs() < SHORT_MAX_BIAS;
-    let mut o = 0;
+    let (mut o, mut wo) = (0, 0);
     for ((&ch, m0), m1) in p.parts.iter().zip(m0.chunks_exact(8)).zip(m1.chunks_exact(8)) {
         let n = ch * k * k;
-        let Some(d) = part_dot2x2(nparts == 1, w0, w1, pair, o, n) else {
+        let Some(d) = dot(o, n, wo) else {
             break;
         };
-        let (m0, m1) = (mult_at(m0), mult_at(m1));
+        let (m0, m1) = (mult_raw(m0), mult_raw(m1));
         match (short && short_ok(m0) && short_ok(m1), d.map(i32::try_from)) {
             (true, [Ok(a0), Ok(a1), Ok(a2), Ok(a3)]) => {
-                s[0] += requantize_i32(a0, m0);
-                s[1] += requantize_i32(a1, m1);
-                s[2] += requantize_i32(a2, m0);
-                s[3] += requantize_i32(a3, m1);
+                s[0] += requant_short(a0, m0);
+                s[1] += requant_short(a1, m1);
+                s[2] += requant_short(a2, m0);
+                s[3] += requant_short(a3, m1);
             }
             _ => {
                 short = false;
+                let (m0, m1) = (clamp_shift(m0), clamp_shift(m1));
                 s[0] = s[0].saturating_add(requantize(d[0], m0));
                 s[1] = s[1].saturating_add(requantize(d[1], m1));
                 s[2] = s[2].saturating_add(requantize(d[2], m0));
@@ -521,6 +578,7 @@ fn block2x2<T: Elem>(p: &ConvParams<'_>, pair: &[T], w: &[i8], m: &[u8], b: &[u8
             }
         }
         o += n;
+        wo += n / 4 * 4;
     }
     if short {
         out.set(at_a + c, finish_short(p.post, b0, s[0]));
@@ -616,15 +674,21 @@ pub fn conv_row_u8_wide(p: &ConvParams<'_>, inputs: &[PartRows<'_, u8>], w_in: u
     };
     // Word-aligned i16 pairs (the i16 loop loads them with `LDRD`).
     let skip = rest.as_ptr().align_offset(4);
+    if kl == 0 {
+        return false;
+    }
+    if conv_row_w16(p, inputs, w_in, out, pair, rest, |ox, pair, slot| {
+        gather2(p, inputs, w_in, ox, pair);
+        widen_pairs(p, pair, slot);
+    }) {
+        return true;
+    }
     let Some(wide) = rest.get_mut(skip..).and_then(|r| r.get_mut(..4 * kl)) else {
         return false;
     };
     let Ok(wide) = bytemuck::try_cast_slice_mut::<u8, i16>(wide) else {
         return false;
     };
-    if kl == 0 {
-        return false;
-    }
     let w_out = p.out_width(w_in);
     let mut ox = 0;
     while ox + 2 <= w_out {
@@ -636,6 +700,112 @@ pub fn conv_row_u8_wide(p: &ConvParams<'_>, inputs: &[PartRows<'_, u8>], w_in: u
     }
     single_pixels(p, inputs, w_in, out, pair, ox);
     true
+}
+
+/// Fewest pixel pairs per widening of the weights for [`conv_row_w16`]: each group of four of a
+/// channel pair costs 8 instructions to widen and saves 4 per pixel pair (16 -> 12), so 2 pairs
+/// only break even.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+const W16_MIN_PAIRS: usize = 3;
+/// Most pixel pairs gathered at a time (beyond it the widening is amortised already).
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+const W16_MAX_PAIRS: usize = 8;
+
+/// The DSP build's convolution row with the weights widened once per channel pair and block of
+/// pixel pairs: the patches of up to [`W16_MAX_PAIRS`] pixel pairs are gathered first (`fill(ox,
+/// temp, slot)` writes the pair of `ox` and `ox + 1` in the i16 pair layout into `slot`, with
+/// `temp` as its scratch), then every channel pair's int8 weights are widened once
+/// ([`super::dsp::widen_weights`]) and every gathered pair runs [`super::dsp::dot2x2_w16`] (12
+/// instructions per 16 MACs against 16 for [`Elem::dot2x2`], which widens the weights again for
+/// every pixel pair). `scratch` holds the widened weights and the gathered pairs (word-aligned);
+/// where it has room for fewer than [`W16_MIN_PAIRS`] pairs (or the row has fewer), returns
+/// false having computed nothing. The odd last channel and pixel as [`conv_row`] does. Same
+/// products in the same chunks as [`Elem::dot2x2`], so the same integers.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+fn conv_row_w16<T: Elem>(
+    p: &ConvParams<'_>,
+    inputs: &[PartRows<'_, T>],
+    w_in: usize,
+    out: &mut OutRow<'_>,
+    temp: &mut [T],
+    scratch: &mut [u8],
+    mut fill: impl FnMut(usize, &mut [T], &mut [i16]),
+) -> bool {
+    let (kl, w_out) = (p.patch_len(), p.out_width(w_in));
+    // Words of one channel pair's widened weights: four per whole group of every part.
+    let wq: usize = p.parts.iter().map(|&ch| ch * p.k * p.k / 4 * 4).sum();
+    let skip = scratch.as_ptr().align_offset(4);
+    let Some(words) = scratch.get_mut(skip..) else {
+        return false;
+    };
+    let len = words.len() / 4 * 4;
+    let Ok(words) = bytemuck::try_cast_slice_mut::<u8, u32>(head_mut(words, len)) else {
+        return false;
+    };
+    let Some((ww, slots)) = words.split_at_mut_checked(wq) else {
+        return false;
+    };
+    // One pair of patches is `2 kl` i16 values, `kl` words.
+    let np = (slots.len() / kl.max(1)).min(W16_MAX_PAIRS).min(w_out / 2);
+    if np < W16_MIN_PAIRS || kl == 0 {
+        return false;
+    }
+    let slots: &mut [i16] = bytemuck::cast_slice_mut(head_mut(slots, np * kl));
+    let mut ox = 0;
+    while ox + 2 <= w_out {
+        let n = ((w_out - ox) / 2).min(np);
+        // (`kl >= 1` here; `max` keeps the chunking free of its zero-size panic path.)
+        for (i, slot) in slots.chunks_exact_mut((2 * kl).max(1)).take(n).enumerate() {
+            fill(ox + 2 * i, temp, slot);
+        }
+        for (cp, ((w, m), b)) in channel_pairs(p, kl, 0).enumerate() {
+            let (w0, w1) = halves(w);
+            let (mut o, mut wo) = (0, 0);
+            for &ch in p.parts {
+                let n = ch * p.k * p.k;
+                if let (Some(a), Some(b), Some(d)) = (w0.get(o..), w1.get(o..), ww.get_mut(wo..)) {
+                    super::dsp::widen_weights(a, b, n / 4, d);
+                }
+                o += n;
+                wo += n / 4 * 4;
+            }
+            let ww = &*ww;
+            for (i, slot) in slots.chunks_exact((2 * kl).max(1)).take(n).enumerate() {
+                let x = ox + 2 * i;
+                block2x2_by(p, m, b, out, x * p.cout, (x + 1) * p.cout, 2 * cp, |o, n, wo| {
+                    super::dsp::dot2x2_w16(ww.get(wo..)?, w0.get(o..)?, w1.get(o..)?, slot.get(2 * o..)?, n)
+                });
+            }
+        }
+        ox += 2 * n;
+    }
+    // The odd last channel of every pair and the odd last pixel, each pixel from its own patch.
+    let c = p.cout / 2 * 2;
+    let mut x = 0;
+    while x + 2 <= w_out {
+        odd_channel(p, inputs, w_in, x, temp, out, c);
+        x += 2;
+    }
+    single_pixels(p, inputs, w_in, out, temp, x);
+    true
+}
+
+/// [`conv_row`] for i16 activations on the DSP build by [`conv_row_w16`] (the gathered pairs
+/// straight into its slots), where the engine's byte `scratch` holds the widened weights, a
+/// patch for the odd channel and pixel, and at least [`W16_MIN_PAIRS`] pairs of patches (the
+/// layers with a patch up to a quarter of the largest); false, having computed nothing,
+/// otherwise.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+pub fn conv_row_i16_w16(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: usize, out: &mut OutRow<'_>, scratch: &mut [u8]) -> bool {
+    let kl = p.patch_len();
+    let skip = scratch.as_ptr().align_offset(2);
+    let Some((single, rest)) = scratch.get_mut(skip..).and_then(|s| s.split_at_mut_checked(2 * kl)) else {
+        return false;
+    };
+    let Ok(single) = bytemuck::try_cast_slice_mut::<u8, i16>(single) else {
+        return false;
+    };
+    conv_row_w16(p, inputs, w_in, out, single, rest, |ox, _, slot| gather2(p, inputs, w_in, ox, slot))
 }
 
 /// The u8 pair layout of [`gather2`] (per part, groups of four values of patch `a` then `b`,

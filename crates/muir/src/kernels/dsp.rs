@@ -96,6 +96,32 @@ fn smlad(a: u32, b: u32, acc: i32) -> i32 {
     r
 }
 
+/// [`crate::arith::requantize_i32`] for `8 <= m.shift <= 62` (the convolution's short epilogue,
+/// `conv::short_ok`): the same integer, `floor((acc m + 2^(s-1)) / 2^s)`. `SMLAL` adds the
+/// 64-bit product to the rounding half in one instruction (the portable formula, compiled,
+/// multiplies 64 by 64 bits when the `i32` came from a range-checked `i64`), then the 64-bit
+/// arithmetic shift: for `s >= 32` only the high word (shifted by `s - 32`, sign-extended), else
+/// both words. A shift outside the range gives an unspecified value, never a panic.
+#[inline(always)]
+pub fn requantize_i32(acc: i32, m: crate::arith::Multiplier) -> i64 {
+    let s = m.shift as u32;
+    // The rounding half 2^(s-1) as (low, high) words.
+    let (mut lo, mut hi) = if s >= 33 { (0u32, 1u32 << ((s - 33) & 31)) } else { (1u32 << (s.wrapping_sub(1) & 31), 0u32) };
+    // SAFETY: register-only; SMLAL touches no flags.
+    unsafe {
+        asm!("smlal {lo}, {hi}, {a}, {b}", lo = inout(reg) lo, hi = inout(reg) hi, a = in(reg) acc, b = in(reg) m.m,
+            options(pure, nomem, nostack, preserves_flags))
+    };
+    if s >= 32 {
+        ((hi as i32) >> ((s - 32) & 31)) as i64
+    } else {
+        // 8 <= s < 32: both words (|p + 2^(s-1)| < 2^63, so the shifted value is exact).
+        let l = (lo >> (s & 31)) | (hi << ((32 - s) & 31));
+        let h = (hi as i32) >> (s & 31);
+        ((h as i64) << 32) | l as i64
+    }
+}
+
 /// An activation type whose four values at `i` widen into the two 16-bit pairs `SMLAD` takes:
 /// values 0 and 2, then values 1 and 3 (the order `SXTB16` gives the weights).
 pub trait Quad: Copy + Into<i32> {
@@ -140,8 +166,8 @@ core::arch::global_asm!(
     ".type muir_dsp_dot2x2_i16,%function",
     ".p2align 2",
     ".thumb_func",
-    // i16: the whole patch in one call, `kernels::I16_CHUNK / 4` groups at a time in i32 (exact,
-    // module doc), each chunk's four sums added into the i64 `out` (which the caller zeroes);
+    // i16: the whole patch in one call, `I16_ASM_GROUPS` groups at a time in i32 (exact, see
+    // there), each chunk's four sums added into the i64 `out` (which the caller zeroes);
     // the groups still to do wait in the stack slot [sp].
     "muir_dsp_dot2x2_i16:",
     "    push {{r4-r11, lr}}",
@@ -284,12 +310,120 @@ core::arch::global_asm!(
     "    stm r12, {{r4-r7}}",
     "    pop {{r4-r11, pc}}",
     ".size muir_dsp_dot2x2_u8, . - muir_dsp_dot2x2_u8",
-    chunk = const super::I16_CHUNK / 4,
+    "",
+    // The i16 loop against weights widened beforehand (`dot2x2_w16`): per group 4 LDRD and
+    // 8 SMLAD = 12 instructions per 16 MACs. r0 = x (pair layout, word-aligned), r1 = the
+    // channel pair's widened weights (per group w0's two words, then w1's; word-aligned),
+    // r2 = groups (>= 1), r3 = out (four i64, added to). Chunks of `chunk` groups in i32 as
+    // in the i16 loop; r2 counts the groups still to do, r3 is the chunk's end of r1 (`out`
+    // waits on the stack).
+    ".section .text.muir_dsp_dot2x2_w16,\"ax\",%progbits",
+    ".global muir_dsp_dot2x2_w16",
+    ".type muir_dsp_dot2x2_w16,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_dot2x2_w16:",
+    "    push {{r3-r11, lr}}",
+    "2:",
+    "    mov r12, r2",
+    "    cmp r12, #{chunk}",
+    "    it hi",
+    "    movhi r12, #{chunk}",
+    "    sub r2, r2, r12",
+    "    add r3, r1, r12, lsl #4",
+    "    movs r4, #0",
+    "    movs r5, #0",
+    "    movs r6, #0",
+    "    movs r7, #0",
+    "    tst r12, #1",               // an odd group count starts at 3
+    "    bne 3f",
+    "1:",
+    "    ldrd r8, r9, [r0], #8",      // a: (a0, a2), (a1, a3)
+    "    ldrd r10, r11, [r0], #8",    // b: (b0, b2), (b1, b3)
+    "    ldrd r12, lr, [r1], #8",     // w0: (w0, w2), (w1, w3), widened
+    "    smlad r4, r12, r8, r4",
+    "    smlad r4, lr, r9, r4",
+    "    smlad r6, r12, r10, r6",
+    "    smlad r6, lr, r11, r6",
+    "    ldrd r12, lr, [r1], #8",     // w1
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    smlad r7, r12, r10, r7",
+    "    smlad r7, lr, r11, r7",
+    "3:",
+    "    ldrd r8, r9, [r0], #8",      // a: (a0, a2), (a1, a3)
+    "    ldrd r10, r11, [r0], #8",    // b: (b0, b2), (b1, b3)
+    "    ldrd r12, lr, [r1], #8",     // w0: (w0, w2), (w1, w3), widened
+    "    smlad r4, r12, r8, r4",
+    "    smlad r4, lr, r9, r4",
+    "    smlad r6, r12, r10, r6",
+    "    smlad r6, lr, r11, r6",
+    "    ldrd r12, lr, [r1], #8",     // w1
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    smlad r7, r12, r10, r7",
+    "    smlad r7, lr, r11, r7",
+    "    cmp r1, r3",
+    "    bne 1b",
+    "    ldr r12, [sp]",
+    "    ldrd r8, r9, [r12]",
+    "    adds r8, r8, r4",
+    "    adc r9, r9, r4, asr #31",
+    "    strd r8, r9, [r12]",
+    "    ldrd r8, r9, [r12, #8]",
+    "    adds r8, r8, r5",
+    "    adc r9, r9, r5, asr #31",
+    "    strd r8, r9, [r12, #8]",
+    "    ldrd r8, r9, [r12, #16]",
+    "    adds r8, r8, r6",
+    "    adc r9, r9, r6, asr #31",
+    "    strd r8, r9, [r12, #16]",
+    "    ldrd r8, r9, [r12, #24]",
+    "    adds r8, r8, r7",
+    "    adc r9, r9, r7, asr #31",
+    "    strd r8, r9, [r12, #24]",
+    "    cmp r2, #0",
+    "    bne 2b",
+    "    pop {{r3-r11, pc}}",
+    ".size muir_dsp_dot2x2_w16, . - muir_dsp_dot2x2_w16",
+    "",
+    // `widen_weights`' loop: r0 = w0, r1 = w1 (int8 rows, any alignment), r2 = groups (>= 1),
+    // r3 = out (word-aligned): per group LDR, LDR, 4 SXTB16, one STM.
+    ".section .text.muir_dsp_widen_w16,\"ax\",%progbits",
+    ".global muir_dsp_widen_w16",
+    ".type muir_dsp_widen_w16,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_widen_w16:",
+    "    push {{r4-r7}}",
+    "4:",
+    "    ldr r4, [r0], #4",
+    "    ldr r6, [r1], #4",
+    "    sxtb16 r5, r4, ror #8",
+    "    sxtb16 r4, r4",
+    "    sxtb16 r7, r6, ror #8",
+    "    sxtb16 r6, r6",
+    "    stm r3!, {{r4-r7}}",
+    "    subs r2, #1",
+    "    bne 4b",
+    "    pop {{r4-r7}}",
+    "    bx lr",
+    ".size muir_dsp_widen_w16, . - muir_dsp_widen_w16",
+    chunk = const I16_ASM_GROUPS,
 );
+
+/// Groups of four per i32 chunk of the i16 assembly loop: `4 * 127 = 508` terms of `|w x| <=
+/// 2^22` sum below `2^31` at every step (the Helium loops' `kernels::I16_CHUNK`), so each
+/// chunk's sum is exact. Twice the portable chunk: half the chunk set-ups and 64-bit adds. The
+/// chunking does not change the integers (the chunk sums add exactly in i64).
+const I16_ASM_GROUPS: usize = 127;
+const _: () = assert!(4 * (I16_ASM_GROUPS as u64) * (1 << 22) < (1u64 << 31));
 
 unsafe extern "C" {
     fn muir_dsp_dot2x2_i16(x: *const i16, w0: *const u8, w1: *const u8, groups: usize, out: *mut [i64; 4]);
     fn muir_dsp_dot2x2_u8(x: *const u8, w0: *const u8, w1: *const u8, groups: usize, out: *mut [i32; 4]);
+    fn muir_dsp_dot2x2_w16(x: *const i16, w: *const u32, groups: usize, out: *mut [i64; 4]);
+    fn muir_dsp_widen_w16(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
 }
 
 impl Quad for u8 {
@@ -426,10 +560,10 @@ pub fn dot2x2<T: Quad>(w0: &[i8], w1: &[i8], x: &[T]) -> [i32; 4] {
 }
 
 /// [`dot2x2`] for i16 activations over a whole patch of any length: the assembly loop takes
-/// every group of four, `kernels::I16_CHUNK` values at a time in i32 (so each chunk's sum is exact,
+/// every group of four, `4 I16_ASM_GROUPS` values at a time in i32 (so each chunk's sum is exact,
 /// module doc), into i64 sums; the last `n % 4` values are added here. Same integers as four
 /// `dot`s.
-#[inline]
+#[inline(always)]
 pub fn dot2x2_i16(w0: &[i8], w1: &[i8], x: &[i16]) -> [i64; 4] {
     let n = w0.len().min(w1.len()).min(x.len() / 2);
     let q = n / 4;
@@ -461,4 +595,69 @@ pub fn dot2x2_i16(w0: &[i8], w1: &[i8], x: &[i16]) -> [i64; 4] {
         }
     }
     acc
+}
+
+/// The `q` groups of four of a channel pair's int8 weight rows `w0`, `w1` widened for
+/// [`dot2x2_w16`] into `out` (four words per group: `w0`'s `(w0, w2)`, `(w1, w3)` as `SXTB16`
+/// gives them, then `w1`'s); stops early where a slice is shorter.
+#[inline]
+pub fn widen_weights(w0: &[i8], w1: &[i8], q: usize, out: &mut [u32]) {
+    let q = q.min(w0.len() / 4).min(w1.len() / 4).min(out.len() / 4);
+    if q > 0 {
+        // SAFETY: the loop reads `4 q` bytes from each row (unaligned word loads, which
+        // Cortex-M4/M7 allow) and writes `4 q` words of `out`, all within the slices (above).
+        unsafe { muir_dsp_widen_w16(w0.as_ptr(), w1.as_ptr(), q, out.as_mut_ptr()) };
+    }
+}
+
+/// [`dot2x2_i16`] with the weights widened beforehand ([`widen_weights`]): `[w0 . a, w1 . a,
+/// w0 . b, w1 . b]` over the `q` whole groups of four of a pair of i16 patches `x` (pair layout,
+/// `8 q` values) and `ww` (`4 q` words), plus the last `n % 4` values from the int8 rows `w0`,
+/// `w1` (`n` values each) and `x[8 q .. 2 n]`. 12 instructions per 16 MACs in the loop instead
+/// of 16: worth it where one widening serves several pixel pairs (`conv::conv_row_w16`). Same
+/// integers as [`dot2x2_i16`] (the same products in the same 508-term chunks); `None` where a
+/// slice is shorter than that or `x` or `ww` is not word-aligned.
+#[inline(always)]
+pub fn dot2x2_w16(ww: &[u32], w0: &[i8], w1: &[i8], x: &[i16], n: usize) -> Option<[i64; 4]> {
+    let q = n / 4;
+    let (wq, xq) = (ww.get(..4 * q)?, x.get(..2 * n)?);
+    if w0.len() < n || w1.len() < n || !(xq.as_ptr() as usize).is_multiple_of(4) {
+        return None;
+    }
+    let mut acc = [0i64; 4];
+    if q > 0 {
+        // SAFETY: the loop reads `4 q` words from `wq` and `8 q <= 2 n` values from the
+        // word-aligned `xq` (LDRD; `wq` is a `u32` slice, so aligned too), and adds into `acc`.
+        unsafe { muir_dsp_dot2x2_w16(xq.as_ptr(), wq.as_ptr(), q, &mut acc) };
+    }
+    let q4 = 4 * q;
+    if q4 == n {
+        return Some(acc);
+    }
+    if let (Some(t0), Some(t1), Some(tx)) = (w0.get(q4..n), w1.get(q4..n), xq.get(2 * q4..2 * n)) {
+        for (a, s) in acc.iter_mut().zip(dot2x2(t0, t1, tx)) {
+            *a += s as i64;
+        }
+    }
+    Some(acc)
+}
+
+/// `Elem::put_groups` for i16 (the pair layout's swap): each group of four as two words
+/// (`(x0, x1)`, `(x2, x3)`, unaligned loads) repacked by `PKHBT`/`PKHTB` into `(x0, x2)`, `(x1,
+/// x3)`: 2 loads, 2 packs and 2 stores per group instead of 4 halfword loads and 4 stores.
+#[inline(always)]
+pub fn put_groups_i16(d: &mut [i16], s: &[i16], second: bool) {
+    let off = if second { 4 } else { 0 };
+    for (g, q) in d.chunks_exact_mut(8).zip(s.chunks_exact(4)) {
+        if let Some(g) = g.get_mut(off..off + 4) {
+            let (x01, x23) = (pair(q, 0), pair(q, 2));
+            let (lo, hi) = (pkhbt(x01, x23), pkhtb(x01, x23));
+            // SAFETY: `g` holds 4 values (8 bytes); unaligned word stores are allowed on
+            // Cortex-M4/M7.
+            unsafe {
+                core::ptr::write_unaligned(g.as_mut_ptr() as *mut u32, lo);
+                core::ptr::write_unaligned(g.as_mut_ptr().add(2) as *mut u32, hi);
+            }
+        }
+    }
 }

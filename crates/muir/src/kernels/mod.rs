@@ -120,6 +120,25 @@ pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + Send + Sync + 's
         }
         acc
     }
+    /// Groups of four of `s` into the pair layout's groups in `d` (`2 s.len()` values: group `g`
+    /// of `s` to `d[8 g..8 g + 4]`, or `d[8 g + 4..8 g + 8]` for the `second` patch), each as
+    /// values 0, 2, 1, 3 with [`Elem::PAIR_SWAP`]; stops at the shorter.
+    #[inline(always)]
+    fn put_groups(d: &mut [Self], s: &[Self], second: bool) {
+        let d = d.chunks_exact_mut(8).map(|d| {
+            let (a, b) = d.split_at_mut(4);
+            if second { b } else { a }
+        });
+        if Self::PAIR_SWAP {
+            d.zip(s.chunks_exact(4)).for_each(|(g, s)| {
+                if let ([g0, g1, g2, g3], &[s0, s1, s2, s3]) = (g, s) {
+                    (*g0, *g1, *g2, *g3) = (s0, s2, s1, s3);
+                }
+            });
+        } else {
+            d.zip(s.chunks_exact(4)).for_each(|(g, s)| g.copy_from_slice(s));
+        }
+    }
     /// The slice as a conv output row.
     fn as_out(d: &mut [Self]) -> OutRow<'_>;
     /// A whole convolution row by a path of this type's own with the engine's byte scratch
@@ -230,6 +249,16 @@ impl Elem for u8 {
 
 #[deny(clippy::indexing_slicing)]
 impl Elem for i16 {
+    #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+    #[inline(always)]
+    fn put_groups(d: &mut [i16], s: &[i16], second: bool) {
+        dsp::put_groups_i16(d, s, second);
+    }
+    #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+    #[inline(always)]
+    fn conv_row_wide(p: &conv::ConvParams<'_>, inputs: &[conv::PartRows<'_, i16>], w_in: usize, out: &mut OutRow<'_>, scratch: &mut [u8]) -> bool {
+        conv::conv_row_i16_w16(p, inputs, w_in, out, scratch)
+    }
     const BITS: u8 = 16;
     const PAIR_SWAP: bool = true;
     #[cfg(all(target_arch = "arm", feature = "mve"))]
@@ -282,7 +311,10 @@ impl Elem for i16 {
         (a, b)
     }
     #[cfg(all(target_arch = "arm", any(feature = "dsp", feature = "mve")))]
-    #[inline]
+    // DSP build: inlined into the 2x2 block, so the sums go straight to its frame (no call, no
+    // copy of the four i64 per part).
+    #[cfg_attr(not(feature = "mve"), inline(always))]
+    #[cfg_attr(feature = "mve", inline)]
     fn dot2x2(w0: &[i8], w1: &[i8], x: &[i16]) -> [i64; 4] {
         // Same chunks as `dot` (a multiple of 4: each chunk of the pair layout is itself in the
         // pair layout), so every partial sum stays exact in i32.
