@@ -985,17 +985,24 @@ unsafe fn transpose_task<T: Elem>(row: Option<&[T]>, plan: &PartPlan, kind: Kind
     // needs the 1 to 3 bytes after its last column, which the row's last columns lack).
     let whole = cb == 4 * cg;
     let vector = cb.div_ceil(4) == cg && cg > 0 && bytes.len() < i32::MAX as usize;
-    let readable = |i: usize| col_of(i).is_some_and(|c| c * cb + 4 * cg <= bytes.len());
+    let readable = |c: usize| c * cb + 4 * cg <= bytes.len();
     let mut i = i0;
     while i < i1 {
         let blk = (i1 - i).min(16);
-        // (A vector block writes every entry it covers: 16 real columns, all `cg` groups.)
-        if vector && blk == 16 && col_of(i).is_some() && readable(i + 15) {
+        // The block's real columns: a run of indices (`col_of` rises with `i`), those in the
+        // padding (a row's first and last blocks) read as zero.
+        let real: u16 = (0..blk).filter(|&j| col_of(i + j).is_some()).fold(0, |m, j| m | 1 << j);
+        let last_real = (0..blk).rev().find_map(|j| col_of(i + j));
+        // (A vector block writes every entry it covers: 16 indices, all `cg` groups.)
+        if vector && blk == 16 && last_real.is_some_and(readable) {
             let mut gb = 0;
             while whole && gb + 16 <= cg {
-                let mut r = [_mm512_setzero_si512(); 16];
+                let mut r = [_mm512_set1_epi32(zero); 16];
                 for (j, r) in r.iter_mut().enumerate() {
-                    let at = col_of(i + j).unwrap_or(0) * cb + 4 * gb;
+                    let Some(col) = col_of(i + j) else {
+                        continue; // padding: the zero value
+                    };
+                    let at = col * cb + 4 * gb;
                     if let Some(src) = bytes.get(at..at + 64) {
                         // SAFETY: 64 readable bytes.
                         *r = _mm512_xor_si512(unsafe { _mm512_loadu_si512(src.as_ptr().cast()) }, _mm512_set1_epi32(zero));
@@ -1012,7 +1019,7 @@ unsafe fn transpose_task<T: Elem>(row: Option<&[T]>, plan: &PartPlan, kind: Kind
             if gb < cg {
                 let mut at = [0i32; 16];
                 for (j, a) in at.iter_mut().enumerate() {
-                    // (Every column is real here, `bytes.len() < 2^31`: `vector`.)
+                    // (`bytes.len() < 2^31`: `vector`; padding lanes are masked off.)
                     *a = (col_of(i + j).unwrap_or(0) * cb) as i32;
                 }
                 // SAFETY: 64 readable bytes.
@@ -1021,12 +1028,14 @@ unsafe fn transpose_task<T: Elem>(row: Option<&[T]>, plan: &PartPlan, kind: Kind
                     // The bytes of group `g` that belong to the column (the rest reads as zero).
                     let have = (cb - 4 * g).min(4);
                     let mask = _mm512_set1_epi32((u32::MAX >> (32 - 8 * have as u32)) as i32);
-                    // SAFETY: each lane reads 4 bytes at `col cb + 4 g` of a real column, with
-                    // `col cb + 4 cg <= bytes.len()` (`readable`, columns ascending in `i`): inside
+                    // SAFETY: each lane of a real column (`real`; the others read nothing and
+                    // give 0) reads 4 bytes at `col cb + 4 g`, with `col cb + 4 cg <=
+                    // bytes.len()` (`readable` of the last, columns ascending in `i`): inside
                     // `bytes`; the store writes group `g < cg`, indices `i .. i + 16 <= i1`: this
                     // task's entries.
                     unsafe {
-                        let v = _mm512_and_si512(_mm512_i32gather_epi32::<1>(idx, bytes.as_ptr().cast()), mask);
+                        let got = _mm512_mask_i32gather_epi32::<1>(_mm512_setzero_si512(), real, idx, bytes.as_ptr().cast());
+                        let v = _mm512_and_si512(got, mask);
                         _mm512_storeu_si512(xt.0.add(base + g * tw + i).cast(), _mm512_xor_si512(v, _mm512_set1_epi32(zero)));
                     }
                     idx = _mm512_add_epi32(idx, _mm512_set1_epi32(4));
