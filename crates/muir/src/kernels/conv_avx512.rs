@@ -52,8 +52,9 @@ const BLOCK_C: usize = 8;
 const U8_CHUNK: usize = 8192;
 /// Most groups an i16 chunk sums in i32 lanes (see the module doc).
 const I16_CHUNK: usize = 255;
-/// Layers of fewer multiply-accumulates per row stay on the calling thread.
-const PARALLEL_MACS: usize = 1 << 16;
+/// Layers of fewer multiply-accumulates per row stay on the calling thread (256K: a few
+/// microseconds, no more than a pool job costs in hand-over, wake-up and tail).
+const PARALLEL_MACS: usize = 1 << 18;
 /// Rows of fewer outputs are written out on the calling thread: a job costs the pool a hand-over
 /// and a wait, more than these few microseconds of 16 x 16 transpositions.
 const PARALLEL_OUTPUTS: usize = 1 << 14;

@@ -19,8 +19,10 @@ use std::sync::{Condvar, Mutex, OnceLock};
 /// Most threads (caller included).
 pub const MAX_THREADS: usize = 64;
 
-/// Spins (about a microsecond each) a worker waits for the next job before it sleeps.
-const SPINS: usize = 200;
+/// Spins (about a microsecond each) a worker waits for the next job before it sleeps: long
+/// enough to stay awake through the serial stretches between an iteration's kernels (a woken
+/// worker starts its first task tens of microseconds late).
+const SPINS: usize = 2000;
 
 /// Threads the kernels use, the caller included.
 static THREADS: AtomicUsize = AtomicUsize::new(1);
