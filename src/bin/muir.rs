@@ -140,10 +140,9 @@ struct RunArgs {
     max_disparity: MaxDisparity,
     /// Threads (1 to 4; the results are the same bits for any count): the float engine's matrix
     /// products; the fixed-point engine's kernels (convolution rows, attention, correlation
-    /// lookup split over a worker pool) and its two image encoders side by side. Default: the
-    /// machine's cores, at most 4.
-    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u8).range(1..=4))]
-    threads: Option<u8>,
+    /// lookup split over a worker pool) and its two image encoders side by side.
+    #[arg(long, value_name = "N", default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=4))]
+    threads: u8,
     /// Fixed engine: adaptive iterations, stop once at most P per mille of the 1/8-grid pixels
     /// still move by more than --settled px (full resolution) per iteration; --iters stays the
     /// maximum.
@@ -394,13 +393,8 @@ struct Prediction {
     iters_used: usize,
 }
 
-/// `--threads`, else the cores this process may use (at most 4).
-fn threads(args: &RunArgs) -> usize {
-    args.threads.map(usize::from).unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get().min(4)))
-}
-
 fn run(args: &RunArgs) -> Result<(), String> {
-    muir_tools::float::set_threads(threads(args));
+    muir_tools::float::set_threads(args.threads as usize);
     let engine_kind = args.model.engine(args.engine);
     // Without --left/--right: the shipped demo pair, scored against its ground truth.
     let demo = args.left.is_none();
@@ -502,7 +496,7 @@ fn run(args: &RunArgs) -> Result<(), String> {
         settled: (args.settled * 32.0).round().clamp(0.0, u16::MAX as f32) as u16,
         max_moving_per_mille: p.min(1000),
     });
-    let pred = engine.predict(&left.view(), &right.view(), iters, args.reject_above, !args.no_refine, early, max_disparity, threads(args));
+    let pred = engine.predict(&left.view(), &right.view(), iters, args.reject_above, !args.no_refine, early, max_disparity, args.threads as usize);
     let network = start.elapsed();
     spinner.finish_and_clear();
     let pred = pred.map_err(|e| pair_err(&e))?;
