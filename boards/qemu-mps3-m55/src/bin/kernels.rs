@@ -323,6 +323,157 @@ fn check_popcount(r: &mut Rng) -> usize {
     cases
 }
 
+/// Widest image of the refinement checks.
+#[cfg(feature = "mve")]
+const REF_W: usize = 160;
+
+/// Buffers of the refinement checks (static: no large stack frames).
+#[cfg(feature = "mve")]
+struct RefineBufs {
+    img: [u8; REF_W * 9 * 3],
+    grey: [u8; 7 * REF_W],
+    got: [u64; REF_W + 1],
+    want: [u64; REF_W + 1],
+    codes: [[u64; REF_W]; 6],
+}
+
+#[cfg(feature = "mve")]
+static mut REFINE: RefineBufs = RefineBufs {
+    img: [0; REF_W * 9 * 3],
+    grey: [0; 7 * REF_W],
+    got: [0; REF_W + 1],
+    want: [0; REF_W + 1],
+    codes: [[0; REF_W]; 6],
+};
+
+/// The refinement's Helium kernels against their portable twins (`muir::kernels::fullres`):
+/// census rows (`mve::census`) of grey and RGB images of widths 1 to 40 and up to 160, rows
+/// inside and outside the image, random, two-level (equal neighbours) and constant pixels, a
+/// grey scratch too short for the vector path; the costs of a pixel's band (`mve::cost_pairs`) on
+/// random, all-ones and zero codes at every column with bands starting left and right of the
+/// clamping limit; path steps (`mve::path_update`) with shifted bands, random and extreme costs
+/// and penalties (the portable fallback beyond the u16 lanes), sentinels past the written values.
+#[cfg(feature = "mve")]
+fn check_refine(r: &mut Rng) -> usize {
+    use muir::input::{ImageView, PixelFormat};
+    use muir::kernels::fullres::{self, Band, SLOTS};
+    // SAFETY: called once, the only user of `REFINE`.
+    let b = unsafe { &mut *core::ptr::addr_of_mut!(REFINE) };
+    let mut cases = 0;
+    let widths = (1..=40usize).chain([63, 64, 65, 100, 127, 160]);
+    for (i, w) in widths.enumerate() {
+        for h in [1usize, 2, 5, 9] {
+            for fmt in [PixelFormat::Gray8, PixelFormat::Rgb8] {
+                let len = w * h * fmt.channels();
+                let kind = (i + h) % 4;
+                for v in b.img.iter_mut().take(len) {
+                    let x = (r.next() >> 56) as u8;
+                    *v = match kind {
+                        0 => x,
+                        1 => if x & 1 == 0 { 0 } else { 255 },
+                        2 => 77,
+                        _ => x & 3,
+                    };
+                }
+                let Ok(img) = ImageView::new(w, h, fmt, &b.img[..len]) else {
+                    println!("MUIR-KERNELS FAILED census: image {w}x{h}");
+                    process::exit(1)
+                };
+                for y in -4..(h as isize + 4) {
+                    for grey_rows in [7usize, 3] {
+                        let sentinel = r.next();
+                        b.got.fill(sentinel);
+                        b.want.fill(sentinel);
+                        fullres::census_row(&img, y, &mut b.grey[..grey_rows * w], &mut b.got[..w]);
+                        fullres::census_row_portable(&img, y, &mut b.grey[..grey_rows * w], &mut b.want[..w]);
+                        if b.got != b.want {
+                            let at = b.got.iter().zip(&b.want).position(|(g, x)| g != x).unwrap_or(0);
+                            println!("MUIR-KERNELS FAILED census {w}x{h} y={y} rows={grey_rows} x={at}: kernel {:#x}, plain {:#x}", b.got[at], b.want[at]);
+                            process::exit(1);
+                        }
+                        cases += 1;
+                    }
+                }
+            }
+        }
+    }
+    // Costs.
+    for case in 0..60u32 {
+        let w = match case % 6 {
+            0 => 2 + (r.next() % 6) as usize,
+            1 => REF_W,
+            _ => 3 + (r.next() % 60) as usize,
+        };
+        for row in b.codes.iter_mut() {
+            for c in row.iter_mut().take(w) {
+                *c = match case % 5 {
+                    0 => u64::MAX,
+                    1 => 0,
+                    2 => r.next() >> 16,
+                    _ => r.next(),
+                };
+            }
+        }
+        let [l0, l1, l2, r0, r1, r2] = &b.codes;
+        let left: [&[u64]; 3] = [&l0[..w], &l1[..w], &l2[..w]];
+        let right: [&[u64]; 3] = [&r0[..w], &r1[..w], &r2[..w]];
+        for x in 0..w {
+            for _ in 0..4 {
+                let first = (x as i64 + 3 - (r.next() % 40) as i64) as i16;
+                let len = (r.next() % (SLOTS as u64 + 3)) as i16;
+                let band = Band { first, len };
+                let (mut got, mut want) = ([0xA5A5u16; SLOTS + 2], [0xA5A5u16; SLOTS + 2]);
+                fullres::pixel_costs(&left, &right, w, x, band, &mut got);
+                fullres::pixel_costs_portable(&left, &right, w, x, band, &mut want);
+                if got != want {
+                    let g: [i64; SLOTS + 2] = core::array::from_fn(|k| got[k] as i64);
+                    let p: [i64; SLOTS + 2] = core::array::from_fn(|k| want[k] as i64);
+                    println!("MUIR-KERNELS FAILED costs w={w} x={x} first={first} len={len}");
+                    fail("costs", x, &g, &p);
+                }
+                cases += 1;
+            }
+        }
+    }
+    // Path steps.
+    for case in 0..20000u32 {
+        let kind = case % 6;
+        let mut prev = [0u16; SLOTS + 4];
+        let mut cost = [0u16; SLOTS + 4];
+        for (p, c) in prev.iter_mut().zip(cost.iter_mut()) {
+            let x = r.next();
+            (*p, *c) = match kind {
+                0 => ((x % 4096) as u16, ((x >> 20) % 433) as u16),
+                1 => (u16::MAX, u16::MAX),
+                2 => ((x >> 48) as u16, (x >> 32) as u16),
+                3 => (65000 + (x % 536) as u16, (x >> 40) as u16),
+                _ => ((x % 1500) as u16, ((x >> 20) % 433) as u16),
+            };
+        }
+        let pband = Band { first: (r.next() % 60) as i16 - 5, len: (r.next() % (SLOTS as u64 + 4)) as i16 - 1 };
+        let band = Band { first: pband.first + (r.next() % 80) as i16 - 40, len: (r.next() % (SLOTS as u64 + 4)) as i16 - 1 };
+        let band = if kind == 5 { Band { first: pband.first + (r.next() % 5) as i16 - 2, len: pband.len } } else { band };
+        let p2 = match case % 7 {
+            0 => (r.next() % 70000) as u32,
+            1 => u16::MAX as u32 - 256 - prev.iter().take(pband.len.max(0) as usize).min().copied().unwrap_or(0) as u32,
+            _ => fullres::penalty2((r.next() >> 56) as u8, (r.next() >> 56) as u8),
+        };
+        let plen = (r.next() % (SLOTS as u64 + 4)) as usize;
+        let olen = (r.next() % (SLOTS as u64 + 4)) as usize;
+        let (mut got, mut want) = ([0x5A5Au16; SLOTS + 4], [0x5A5Au16; SLOTS + 4]);
+        fullres::path_step(&prev[..plen], pband, &cost, band, p2, &mut got[..olen]);
+        fullres::path_step_portable(&prev[..plen], pband, &cost, band, p2, &mut want[..olen]);
+        if got != want {
+            let g: [i64; SLOTS + 4] = core::array::from_fn(|k| got[k] as i64);
+            let p: [i64; SLOTS + 4] = core::array::from_fn(|k| want[k] as i64);
+            println!("MUIR-KERNELS FAILED path step case {case}: {pband:?} -> {band:?} p2={p2} plen={plen} olen={olen}");
+            fail("path step", case as usize, &g, &p);
+        }
+        cases += 1;
+    }
+    cases
+}
+
 /// Largest patch of the convolution-row check (`k * k * sum(parts)`).
 const CONV_KL: usize = 9 * 72;
 /// Largest input part (`h x w x ch`) and output (`h x w x cout`) of the convolution-row check.
@@ -548,6 +699,7 @@ fn main() -> ! {
         cases += check_attention(i16s.a, i16s.b, &mut r);
         cases += check_requant(&mut r);
         cases += check_popcount(&mut r);
+        cases += check_refine(&mut r);
     }
     cases += check_conv(&mut r);
     println!("MUIR-KERNELS ok cases={cases}");
