@@ -323,6 +323,115 @@ fn check_popcount(r: &mut Rng) -> usize {
     cases
 }
 
+/// The MGA softmax weights on Helium (`mve::exp_weights`, four keys a vector) against the
+/// portable `attention::weight`: logit distances across `i32` (0, small, near the limits),
+/// multipliers of both signs and at the limits, every shift 0 to 64 (those outside `2..=62` must
+/// be refused), lengths 0 to 33; the largest weight and the sum it returns, and `FPSCR.QC` clear
+/// afterwards. Then whole queries (`query_stats`, `aggregate_query`, which take the vector weights
+/// per block of keys) against plain loops over `weight`, with key counts that leave partial
+/// blocks and logits whose distance to the maximum does not fit `i32` (the scalar fallback).
+#[cfg(feature = "mve")]
+fn check_weights(r: &mut Rng, keys: &mut [i16; MAX_N], vals: &mut [i16; MAX_N]) -> usize {
+    use muir::arith::Multiplier;
+    use muir::kernels::{attention, mve};
+    let mut cases = 0;
+    for case in 0..6000u32 {
+        let n = (case % 34) as usize;
+        let shift = (r.next() % 65) as u8;
+        let m = match case % 7 {
+            0 => i32::MIN,
+            1 => i32::MAX,
+            2 => 0,
+            3 => (1 << 30) + (r.next() % (1 << 30)) as i32,
+            _ => (r.next() >> 32) as i32,
+        };
+        let mut d = [0i32; 33];
+        for v in d.iter_mut().take(n) {
+            let x = r.next();
+            *v = match (x >> 60) % 6 {
+                0 => 0,
+                1 => -((x % 100000) as i32),
+                2 => i32::MIN + (x % 3) as i32,
+                3 => i32::MAX - (x % 3) as i32,
+                4 => ((x >> 8) as i32) >> (x % 31),
+                _ => (x >> 32) as i32,
+            };
+        }
+        let mut e = [-7i32; 34];
+        e[..n].copy_from_slice(&d[..n]);
+        let got = mve::exp_weights(&mut e[..n], m, shift);
+        if mve::take_qc() {
+            println!("MUIR-KERNELS FAILED exp_weights case {case}: FPSCR.QC left set");
+            process::exit(1);
+        }
+        let mult = Multiplier { m, shift };
+        match got {
+            None if (2..=62).contains(&shift) => fail("exp_weights refused", case as usize, &[shift as i64], &[]),
+            None => {
+                if e[..n] != d[..n] {
+                    fail("exp_weights wrote", case as usize, &[], &[]);
+                }
+            }
+            Some((most, sum)) => {
+                if !(2..=62).contains(&shift) {
+                    fail("exp_weights accepted", case as usize, &[shift as i64], &[]);
+                }
+                let want: [i64; 34] = core::array::from_fn(|k| if k < n { attention::weight(d[k] as i64, 0, mult) as i64 } else { -7 });
+                let have: [i64; 34] = core::array::from_fn(|k| e[k] as i64);
+                if have != want {
+                    println!("MUIR-KERNELS FAILED exp_weights m={m} shift={shift}");
+                    fail("exp_weights", case as usize, &have, &want);
+                }
+                let (wm, ws) = (want[..n].iter().copied().max().unwrap_or(0), want[..n].iter().sum::<i64>());
+                if most as i64 != wm || sum != ws {
+                    fail("exp_weights max/sum", case as usize, &[most as i64, sum], &[wm, ws]);
+                }
+            }
+        }
+        cases += 1;
+    }
+    // Whole queries.
+    for case in 0..40u32 {
+        let c = [8usize, 16, 32, 5][(case % 4) as usize];
+        let cv = [4usize, 7, 64][(case % 3) as usize];
+        let n = 1 + (r.next() % 90) as usize;
+        let big = case % 5 == 4;
+        for k in keys.iter_mut().take((n + 1) * c) {
+            *k = if big { (r.next() >> 48) as i16 } else { ((r.next() >> 48) as i16) >> 6 };
+        }
+        for v in vals.iter_mut().take(n * cv) {
+            *v = (r.next() >> 48) as i16;
+        }
+        let (q, ks) = (&keys[n * c..(n + 1) * c], &keys[..n * c]);
+        let mult = match case % 3 {
+            0 => Multiplier { m: 1 << 30, shift: 26 },
+            1 => Multiplier { m: (1 << 30) + (r.next() % (1 << 30)) as i32, shift: 20 + (r.next() % 20) as u8 },
+            _ => Multiplier { m: i32::MAX, shift: 1 },
+        };
+        let logit = |k: &[i16]| q.iter().zip(k).map(|(a, b)| *a as i64 * *b as i64).sum::<i64>();
+        let max = ks.chunks_exact(c).map(logit).max().unwrap_or(0);
+        let sum: i64 = ks.chunks_exact(c).map(|k| attention::weight(logit(k), max, mult) as i64).sum();
+        let st = attention::query_stats(q, ks, mult);
+        if st != (max, sum) {
+            fail("query_stats", case as usize, &[st.0, st.1], &[max, sum]);
+        }
+        let mut acc = [0i64; 64];
+        let mut got = [0i16; 64];
+        attention::aggregate_query(q, ks, &vals[..n * cv], cv, st, mult, -1, &mut acc, &mut got[..cv]);
+        let mut want = [0i64; 64];
+        for (ch, w) in want.iter_mut().enumerate().take(cv) {
+            let a: i64 = ks.chunks_exact(c).enumerate().map(|(j, k)| attention::weight(logit(k), max, mult) as i64 * vals[j * cv + ch] as i64).sum();
+            *w = muir::arith::sat_i16(muir::arith::div_round(muir::arith::shift_round(a, -1), sum)) as i64;
+        }
+        let have: [i64; 64] = core::array::from_fn(|k| got[k] as i64);
+        if have[..cv] != want[..cv] {
+            fail("aggregate_query", case as usize, &have[..cv], &want[..cv]);
+        }
+        cases += 1;
+    }
+    cases
+}
+
 /// Widest image of the refinement checks.
 #[cfg(feature = "mve")]
 const REF_W: usize = 160;
@@ -700,6 +809,7 @@ fn main() -> ! {
         cases += check_requant(&mut r);
         cases += check_popcount(&mut r);
         cases += check_refine(&mut r);
+        cases += check_weights(&mut r, i16s.a, i16s.b);
     }
     cases += check_conv(&mut r);
     println!("MUIR-KERNELS ok cases={cases}");

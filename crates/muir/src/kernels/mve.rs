@@ -1020,3 +1020,84 @@ pub fn path_update(win: &[u16], cost: &[u16], p1: u16, m: u16, mp2: u16, out: &m
         );
     }
 }
+
+/// The MGA softmax weights, four keys a vector, in place: each `e[k]`, the logit minus the
+/// query's maximum, becomes `exp_q11(clamp(requantize_i32(e[k], m), -32768, 0))`, for shifts
+/// `2..=62` (other shifts: nothing is written, `None`). Returns the largest weight and the sum
+/// of the weights.
+///
+/// The requantisation is [`requant4`]'s formula, `VQRSHL(h, 32 - s) + VRSHL_u(l, -s)` on the
+/// product's high and low words. It is exact where nothing saturates; where `VQRSHL` or `VQADD`
+/// saturates the exact value lies beyond `i32` on the same side (the shifted high word is a
+/// multiple of `2^(32 - s)` and the rounded low word is in `0 ..= 2^(32 - s) <= 2^30`), so after
+/// the clamp to `-32768 ..= 0` both give the same value. `FPSCR.QC` is cleared afterwards (the
+/// convolution epilogue reads it). The table read is `exp_q11`'s: index `i = min(u >> 5, 1023)`
+/// and fraction `u - 32 i` (32 at `u = 32768`, which gives the last entry exactly), two gather
+/// loads and `a + rshift_round((b - a) f, 5)`.
+#[inline]
+pub fn exp_weights(e: &mut [i32], m: i32, shift: u8) -> Option<(i32, i64)> {
+    let n = e.len();
+    if !(2..=62).contains(&shift) {
+        return None;
+    }
+    if n == 0 {
+        return Some((0, 0));
+    }
+    let t = crate::arith::lut::exp_table();
+    let (mut max, mut lo, mut hi) = (0i32, 0u32, 0u32);
+    // SAFETY: lane `k < n` reads and then writes `e[k]` (tail-predicated: disabled lanes are
+    // neither loaded nor stored) and gathers table entries `i` and `i + 1` with `i <= 1023`
+    // (1025 entries). VADDLVA takes an even/odd register pair (r0/r1).
+    unsafe {
+        asm!(
+            "vdup.32 q7, {m}",
+            "vmov.i32 q6, #0x8000",
+            "vneg.s32 q6, q6",
+            "vmov.i32 q5, #0",
+            "mov {m}, #1023",
+            "vdup.32 q4, {m}",
+            "dlstp.32 lr, {n}",
+            "2:",
+            "vldrw.u32 q0, [{d}], #16",
+            "vmulh.s32 q1, q0, q7",
+            "vmul.i32 q0, q0, q7",
+            "vqrshl.s32 q1, {sl}",
+            "vrshl.u32 q0, {sr}",
+            "vqadd.s32 q0, q1, q0",
+            "vmax.s32 q0, q0, q6",
+            "vmin.s32 q0, q0, q5",
+            "vsub.i32 q0, q0, q6",
+            "vshr.u32 q1, q0, #5",
+            "vmin.u32 q1, q1, q4",
+            "vshl.i32 q2, q1, #5",
+            "vsub.i32 q0, q0, q2",
+            "vldrh.u32 q2, [{tab}, q1, uxtw #1]",
+            "vldrh.u32 q3, [{tab1}, q1, uxtw #1]",
+            "vsub.i32 q3, q3, q2",
+            "vmul.i32 q3, q3, q0",
+            "vrshr.s32 q3, q3, #5",
+            "vadd.i32 q2, q2, q3",
+            "vmaxv.s32 {max}, q2",
+            "vaddlva.s32 r0, r1, q2",
+            "vstrw.32 q2, [{e}], #16",
+            "letp lr, 2b",
+            m = inout(reg) m => _,
+            n = in(reg) n,
+            d = inout(reg) e.as_ptr() => _,
+            e = inout(reg) e.as_mut_ptr() => _,
+            sl = in(reg) 32 - shift as i32,
+            sr = in(reg) -(shift as i32),
+            tab = in(reg) t.as_ptr(),
+            tab1 = in(reg) t.as_ptr().wrapping_add(1),
+            max = inout(reg) max,
+            inout("r0") lo,
+            inout("r1") hi,
+            out("lr") _,
+            out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+            out("d8") _, out("d9") _, out("d10") _, out("d11") _, out("d12") _, out("d13") _, out("d14") _, out("d15") _,
+            options(nostack),
+        );
+    }
+    take_qc();
+    Some((max, ((hi as u64) << 32 | lo as u64) as i64))
+}
