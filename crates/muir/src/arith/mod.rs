@@ -151,6 +151,13 @@ pub const fn div_round(n: i64, d: i64) -> i64 {
     if d == 0 {
         return 0;
     }
+    // Both magnitudes below 2^31 (the usual case): the same formula in u32, whose sum cannot
+    // overflow, one hardware division on Cortex-M instead of the 64-bit library routine.
+    let (na, da) = (n.unsigned_abs(), d.unsigned_abs());
+    if na < 1 << 31 && da < 1 << 31 {
+        let q = ((na as u32 + da as u32 / 2) / da as u32) as i64;
+        return if (n < 0) != (d < 0) { -q } else { q };
+    }
     let (n_abs, neg_n) = if n < 0 { ((n as i128).unsigned_abs(), true) } else { (n as u128, false) };
     let (d_abs, neg_d) = if d < 0 { ((d as i128).unsigned_abs(), true) } else { (d as u128, false) };
     let q = (n_abs + d_abs / 2) / d_abs;
@@ -375,6 +382,22 @@ mod tests {
         assert_eq!(div_round(-5, 2), -3); // half away from zero
         assert_eq!(div_round(7, -2), -4);
         assert_eq!(div_round(1, 0), 0);
+        // The u32 path against the 128-bit formula around its limits.
+        let wide = |n: i64, d: i64| {
+            let (n, d) = (n as i128, d as i128);
+            let q = (n.abs() + d.abs() / 2) / d.abs();
+            if (n < 0) != (d < 0) { -q } else { q }
+        };
+        let edges = [1i64, 2, 3, 9, 1 << 30, (1 << 31) - 1, 1 << 31, (1 << 31) + 1, 1 << 32, i64::MAX];
+        for &a in &edges {
+            for &b in &edges {
+                for (n, d) in [(a, b), (-a, b), (a, -b), (-a, -b), (a - 1, b), (i64::MIN, b), (a, i64::MIN)] {
+                    let want = wide(n, d);
+                    let want = want.clamp(i64::MIN as i128, i64::MAX as i128) as i64;
+                    assert_eq!(div_round(n, d), want, "{n} / {d}");
+                }
+            }
+        }
         assert_eq!(shift_round(3, 2), 12);
         assert_eq!(shift_round(i64::MAX / 2, 2), i64::MAX);
         assert_eq!(rescale(100, 4, 2), 25);
