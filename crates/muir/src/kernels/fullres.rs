@@ -106,7 +106,7 @@ pub fn census_row(img: &ImageView<'_>, y: isize, grey: &mut [u8], out: &mut [u64
         return;
     }
     #[cfg(all(target_arch = "arm", feature = "mve"))]
-    if w >= 2 * CENSUS_RADIUS + 1 && grey.len() >= (2 * CENSUS_RADIUS + 1) * w && out.len() >= w {
+    if w > 2 * CENSUS_RADIUS && grey.len() >= (2 * CENSUS_RADIUS + 1) * w && out.len() >= w {
         super::mve::census(grey, w, out);
         census_codes(grey, w, (0..CENSUS_RADIUS).chain(w - CENSUS_RADIUS..w), out);
         return;

@@ -801,6 +801,8 @@ core::arch::global_asm!(
 );
 
 /// Population counts of the bytes 0..=255 (a gather load counts sixteen bytes at once).
+// Evaluated at compile time: an index out of range would be a build error, not a panic.
+#[allow(clippy::indexing_slicing)]
 static POPCOUNT8: [u8; 256] = {
     let mut t = [0u8; 256];
     let mut i = 0;
