@@ -77,7 +77,7 @@ pub fn query_stats(q: &[i16], keys: &[i16], m: Multiplier) -> (i64, i64) {
 
 /// The softmax weights of the whole keys in `kb` (`q.len()` values each, at most [`KEY_BLOCK`]
 /// of them) into `e`: `(number of keys, sum of their weights, whether one is not 0)`. On
-/// Cortex-M55 with Helium four keys a vector ([`super::mve::exp_weights`]) where every logit's
+/// Cortex-M55 with Helium four keys a vector (`mve::exp_weights`) where every logit's
 /// distance to the maximum fits `i32`, the same integers as [`weight`].
 #[inline(always)]
 fn block_weights(q: &[i16], kb: &[i16], max: i64, m: Multiplier, e: &mut [i32; KEY_BLOCK]) -> (usize, i64, bool) {

@@ -99,7 +99,7 @@ pub fn grey_at(img: &ImageView<'_>, x: usize, y: usize) -> u8 {
 /// Census codes of image row `clamp(y)` into `out` (`img.width` codes). `grey` is scratch of
 /// `(2 * CENSUS_RADIUS + 1) * img.width` bytes (the grey rows `y - 3 ..= y + 3`; with less, the
 /// codes stop where the centre row does). On Cortex-M55 with Helium the interior pixels' codes
-/// come from [`super::mve::census`], the same integers as [`census_row_portable`].
+/// come from `mve::census`, the same integers as [`census_row_portable`].
 pub fn census_row(img: &ImageView<'_>, y: isize, grey: &mut [u8], out: &mut [u64]) {
     let w = img.width;
     if !grey_rows(img, y, grey) {
@@ -225,7 +225,7 @@ fn cost_plain(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w: us
 
 /// The costs of the candidates of band `b` at column `x` into `out[..b.n()]` (as far as `out`
 /// reaches): `out[k] = cost(first + k)`. On Cortex-M55 with Helium the candidates whose columns
-/// need no clamping go two at a time through [`super::mve::cost_pairs`], the same integers.
+/// need no clamping go two at a time through `mve::cost_pairs`, the same integers.
 #[inline(always)]
 pub fn pixel_costs(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w: usize, x: usize, b: Band, out: &mut [u16]) {
     let out = head_mut(out, b.n());
@@ -296,7 +296,7 @@ fn copy_head(out: &mut [u16], src: &[u16], n: usize) {
 /// One step along a path: `out` (the current pixel's `L_r`, `band.len` values) from the
 /// predecessor's `prev` (`pband.len` values) and the current costs `cost` (each slice read or
 /// written only as far as it reaches). On Cortex-M55 with Helium eight candidates a vector
-/// ([`super::mve::path_update`]), the same integers as [`path_step_portable`].
+/// (`mve::path_update`), the same integers as [`path_step_portable`].
 #[inline(always)]
 pub fn path_step(prev: &[u16], pband: Band, cost: &[u16], band: Band, p2: u32, out: &mut [u16]) {
     #[cfg(all(target_arch = "arm", feature = "mve"))]
