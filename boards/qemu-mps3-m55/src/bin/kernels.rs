@@ -345,6 +345,266 @@ fn check_popcount(r: &mut Rng) -> usize {
     cases
 }
 
+/// The MGA softmax weights on Helium (`mve::exp_weights`, four keys a vector) against the
+/// portable `attention::weight`: logit distances across `i32` (0, small, near the limits),
+/// multipliers of both signs and at the limits, every shift 0 to 64 (those outside `2..=62` must
+/// be refused), lengths 0 to 33; the largest weight and the sum it returns, and `FPSCR.QC` clear
+/// afterwards. Then whole queries (`query_stats`, `aggregate_query`, which take the vector weights
+/// per block of keys) against plain loops over `weight`, with key counts that leave partial
+/// blocks and logits whose distance to the maximum does not fit `i32` (the scalar fallback).
+#[cfg(feature = "mve")]
+fn check_weights(r: &mut Rng, keys: &mut [i16; MAX_N], vals: &mut [i16; MAX_N]) -> usize {
+    use muir::arith::Multiplier;
+    use muir::kernels::{attention, mve};
+    let mut cases = 0;
+    for case in 0..6000u32 {
+        let n = (case % 34) as usize;
+        let shift = (r.next() % 65) as u8;
+        let m = match case % 7 {
+            0 => i32::MIN,
+            1 => i32::MAX,
+            2 => 0,
+            3 => (1 << 30) + (r.next() % (1 << 30)) as i32,
+            _ => (r.next() >> 32) as i32,
+        };
+        let mut d = [0i32; 33];
+        for v in d.iter_mut().take(n) {
+            let x = r.next();
+            *v = match (x >> 60) % 6 {
+                0 => 0,
+                1 => -((x % 100000) as i32),
+                2 => i32::MIN + (x % 3) as i32,
+                3 => i32::MAX - (x % 3) as i32,
+                4 => ((x >> 8) as i32) >> (x % 31),
+                _ => (x >> 32) as i32,
+            };
+        }
+        let mut e = [-7i32; 34];
+        e[..n].copy_from_slice(&d[..n]);
+        let got = mve::exp_weights(&mut e[..n], m, shift);
+        if mve::take_qc() {
+            println!("MUIR-KERNELS FAILED exp_weights case {case}: FPSCR.QC left set");
+            process::exit(1);
+        }
+        let mult = Multiplier { m, shift };
+        match got {
+            None if (2..=62).contains(&shift) => fail("exp_weights refused", case as usize, &[shift as i64], &[]),
+            None => {
+                if e[..n] != d[..n] {
+                    fail("exp_weights wrote", case as usize, &[], &[]);
+                }
+            }
+            Some((most, sum)) => {
+                if !(2..=62).contains(&shift) {
+                    fail("exp_weights accepted", case as usize, &[shift as i64], &[]);
+                }
+                let want: [i64; 34] = core::array::from_fn(|k| if k < n { attention::weight(d[k] as i64, 0, mult) as i64 } else { -7 });
+                let have: [i64; 34] = core::array::from_fn(|k| e[k] as i64);
+                if have != want {
+                    println!("MUIR-KERNELS FAILED exp_weights m={m} shift={shift}");
+                    fail("exp_weights", case as usize, &have, &want);
+                }
+                let (wm, ws) = (want[..n].iter().copied().max().unwrap_or(0), want[..n].iter().sum::<i64>());
+                if most as i64 != wm || sum != ws {
+                    fail("exp_weights max/sum", case as usize, &[most as i64, sum], &[wm, ws]);
+                }
+            }
+        }
+        cases += 1;
+    }
+    // Whole queries.
+    for case in 0..40u32 {
+        let c = [8usize, 16, 32, 5][(case % 4) as usize];
+        let cv = [4usize, 7, 64][(case % 3) as usize];
+        let n = 1 + (r.next() % 90) as usize;
+        let big = case % 5 == 4;
+        for k in keys.iter_mut().take((n + 1) * c) {
+            *k = if big { (r.next() >> 48) as i16 } else { ((r.next() >> 48) as i16) >> 6 };
+        }
+        for v in vals.iter_mut().take(n * cv) {
+            *v = (r.next() >> 48) as i16;
+        }
+        let (q, ks) = (&keys[n * c..(n + 1) * c], &keys[..n * c]);
+        let mult = match case % 3 {
+            0 => Multiplier { m: 1 << 30, shift: 26 },
+            1 => Multiplier { m: (1 << 30) + (r.next() % (1 << 30)) as i32, shift: 20 + (r.next() % 20) as u8 },
+            _ => Multiplier { m: i32::MAX, shift: 1 },
+        };
+        let logit = |k: &[i16]| q.iter().zip(k).map(|(a, b)| *a as i64 * *b as i64).sum::<i64>();
+        let max = ks.chunks_exact(c).map(logit).max().unwrap_or(0);
+        let sum: i64 = ks.chunks_exact(c).map(|k| attention::weight(logit(k), max, mult) as i64).sum();
+        let st = attention::query_stats(q, ks, mult);
+        if st != (max, sum) {
+            fail("query_stats", case as usize, &[st.0, st.1], &[max, sum]);
+        }
+        let mut acc = [0i64; 64];
+        let mut got = [0i16; 64];
+        attention::aggregate_query(q, ks, &vals[..n * cv], cv, st, mult, -1, &mut acc, &mut got[..cv]);
+        let mut want = [0i64; 64];
+        for (ch, w) in want.iter_mut().enumerate().take(cv) {
+            let a: i64 = ks.chunks_exact(c).enumerate().map(|(j, k)| attention::weight(logit(k), max, mult) as i64 * vals[j * cv + ch] as i64).sum();
+            *w = muir::arith::sat_i16(muir::arith::div_round(muir::arith::shift_round(a, -1), sum)) as i64;
+        }
+        let have: [i64; 64] = core::array::from_fn(|k| got[k] as i64);
+        if have[..cv] != want[..cv] {
+            fail("aggregate_query", case as usize, &have[..cv], &want[..cv]);
+        }
+        cases += 1;
+    }
+    cases
+}
+
+/// Widest image of the refinement checks.
+#[cfg(feature = "mve")]
+const REF_W: usize = 160;
+
+/// Buffers of the refinement checks (static: no large stack frames).
+#[cfg(feature = "mve")]
+struct RefineBufs {
+    img: [u8; REF_W * 9 * 3],
+    grey: [u8; 7 * REF_W],
+    got: [u64; REF_W + 1],
+    want: [u64; REF_W + 1],
+    codes: [[u64; REF_W]; 6],
+}
+
+#[cfg(feature = "mve")]
+static mut REFINE: RefineBufs = RefineBufs {
+    img: [0; REF_W * 9 * 3],
+    grey: [0; 7 * REF_W],
+    got: [0; REF_W + 1],
+    want: [0; REF_W + 1],
+    codes: [[0; REF_W]; 6],
+};
+
+/// The refinement's Helium kernels against their portable twins (`muir::kernels::fullres`):
+/// census rows (`mve::census`) of grey and RGB images of widths 1 to 40 and up to 160, rows
+/// inside and outside the image, random, two-level (equal neighbours) and constant pixels, a
+/// grey scratch too short for the vector path; the costs of a pixel's band (`mve::cost_pairs`) on
+/// random, all-ones and zero codes at every column with bands starting left and right of the
+/// clamping limit; path steps (`mve::path_update`) with shifted bands, random and extreme costs
+/// and penalties (the portable fallback beyond the u16 lanes), sentinels past the written values.
+#[cfg(feature = "mve")]
+fn check_refine(r: &mut Rng) -> usize {
+    use muir::input::{ImageView, PixelFormat};
+    use muir::kernels::fullres::{self, Band, SLOTS};
+    // SAFETY: called once, the only user of `REFINE`.
+    let b = unsafe { &mut *core::ptr::addr_of_mut!(REFINE) };
+    let mut cases = 0;
+    let widths = (1..=40usize).chain([63, 64, 65, 100, 127, 160]);
+    for (i, w) in widths.enumerate() {
+        for h in [1usize, 2, 5, 9] {
+            for fmt in [PixelFormat::Gray8, PixelFormat::Rgb8] {
+                let len = w * h * fmt.channels();
+                let kind = (i + h) % 4;
+                for v in b.img.iter_mut().take(len) {
+                    let x = (r.next() >> 56) as u8;
+                    *v = match kind {
+                        0 => x,
+                        1 => if x & 1 == 0 { 0 } else { 255 },
+                        2 => 77,
+                        _ => x & 3,
+                    };
+                }
+                let Ok(img) = ImageView::new(w, h, fmt, &b.img[..len]) else {
+                    println!("MUIR-KERNELS FAILED census: image {w}x{h}");
+                    process::exit(1)
+                };
+                for y in -4..(h as isize + 4) {
+                    for grey_rows in [7usize, 3] {
+                        let sentinel = r.next();
+                        b.got.fill(sentinel);
+                        b.want.fill(sentinel);
+                        fullres::census_row(&img, y, &mut b.grey[..grey_rows * w], &mut b.got[..w]);
+                        fullres::census_row_portable(&img, y, &mut b.grey[..grey_rows * w], &mut b.want[..w]);
+                        if b.got != b.want {
+                            let at = b.got.iter().zip(&b.want).position(|(g, x)| g != x).unwrap_or(0);
+                            println!("MUIR-KERNELS FAILED census {w}x{h} y={y} rows={grey_rows} x={at}: kernel {:#x}, plain {:#x}", b.got[at], b.want[at]);
+                            process::exit(1);
+                        }
+                        cases += 1;
+                    }
+                }
+            }
+        }
+    }
+    // Costs.
+    for case in 0..60u32 {
+        let w = match case % 6 {
+            0 => 2 + (r.next() % 6) as usize,
+            1 => REF_W,
+            _ => 3 + (r.next() % 60) as usize,
+        };
+        for row in b.codes.iter_mut() {
+            for c in row.iter_mut().take(w) {
+                *c = match case % 5 {
+                    0 => u64::MAX,
+                    1 => 0,
+                    2 => r.next() >> 16,
+                    _ => r.next(),
+                };
+            }
+        }
+        let [l0, l1, l2, r0, r1, r2] = &b.codes;
+        let left: [&[u64]; 3] = [&l0[..w], &l1[..w], &l2[..w]];
+        let right: [&[u64]; 3] = [&r0[..w], &r1[..w], &r2[..w]];
+        for x in 0..w {
+            for _ in 0..4 {
+                let first = (x as i64 + 3 - (r.next() % 40) as i64) as i16;
+                let len = (r.next() % (SLOTS as u64 + 3)) as i16;
+                let band = Band { first, len };
+                let (mut got, mut want) = ([0xA5A5u16; SLOTS + 2], [0xA5A5u16; SLOTS + 2]);
+                fullres::pixel_costs(&left, &right, w, x, band, &mut got);
+                fullres::pixel_costs_portable(&left, &right, w, x, band, &mut want);
+                if got != want {
+                    let g: [i64; SLOTS + 2] = core::array::from_fn(|k| got[k] as i64);
+                    let p: [i64; SLOTS + 2] = core::array::from_fn(|k| want[k] as i64);
+                    println!("MUIR-KERNELS FAILED costs w={w} x={x} first={first} len={len}");
+                    fail("costs", x, &g, &p);
+                }
+                cases += 1;
+            }
+        }
+    }
+    // Path steps.
+    for case in 0..20000u32 {
+        let kind = case % 6;
+        let mut prev = [0u16; SLOTS + 4];
+        let mut cost = [0u16; SLOTS + 4];
+        for (p, c) in prev.iter_mut().zip(cost.iter_mut()) {
+            let x = r.next();
+            (*p, *c) = match kind {
+                0 => ((x % 4096) as u16, ((x >> 20) % 433) as u16),
+                1 => (u16::MAX, u16::MAX),
+                2 => ((x >> 48) as u16, (x >> 32) as u16),
+                3 => (65000 + (x % 536) as u16, (x >> 40) as u16),
+                _ => ((x % 1500) as u16, ((x >> 20) % 433) as u16),
+            };
+        }
+        let pband = Band { first: (r.next() % 60) as i16 - 5, len: (r.next() % (SLOTS as u64 + 4)) as i16 - 1 };
+        let band = Band { first: pband.first + (r.next() % 80) as i16 - 40, len: (r.next() % (SLOTS as u64 + 4)) as i16 - 1 };
+        let band = if kind == 5 { Band { first: pband.first + (r.next() % 5) as i16 - 2, len: pband.len } } else { band };
+        let p2 = match case % 7 {
+            0 => (r.next() % 70000) as u32,
+            1 => u16::MAX as u32 - 256 - prev.iter().take(pband.len.max(0) as usize).min().copied().unwrap_or(0) as u32,
+            _ => fullres::penalty2((r.next() >> 56) as u8, (r.next() >> 56) as u8),
+        };
+        let plen = (r.next() % (SLOTS as u64 + 4)) as usize;
+        let olen = (r.next() % (SLOTS as u64 + 4)) as usize;
+        let (mut got, mut want) = ([0x5A5Au16; SLOTS + 4], [0x5A5Au16; SLOTS + 4]);
+        fullres::path_step(&prev[..plen], pband, &cost, band, p2, &mut got[..olen]);
+        fullres::path_step_portable(&prev[..plen], pband, &cost, band, p2, &mut want[..olen]);
+        if got != want {
+            let g: [i64; SLOTS + 4] = core::array::from_fn(|k| got[k] as i64);
+            let p: [i64; SLOTS + 4] = core::array::from_fn(|k| want[k] as i64);
+            println!("MUIR-KERNELS FAILED path step case {case}: {pband:?} -> {band:?} p2={p2} plen={plen} olen={olen}");
+            fail("path step", case as usize, &g, &p);
+        }
+        cases += 1;
+    }
+    cases
+}
+
 /// Largest patch of the convolution-row check (`k * k * sum(parts)`).
 const CONV_KL: usize = 9 * 72;
 /// Largest input part (`h x w x ch`) and output (`h x w x cout`) of the convolution-row check.
@@ -607,6 +867,8 @@ fn main() -> ! {
         cases += check_attention(i16s.a, i16s.b, &mut r);
         cases += check_requant(&mut r);
         cases += check_popcount(&mut r);
+        cases += check_refine(&mut r);
+        cases += check_weights(&mut r, i16s.a, i16s.b);
     }
     #[cfg(not(feature = "mve"))]
     {

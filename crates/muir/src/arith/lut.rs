@@ -60,6 +60,13 @@ pub fn exp_q11(x: i32) -> i32 {
     interp(a, b, u & 31, 5)
 }
 
+/// The table of [`exp_q11`] (`exp(-16 + i / 64)` in Q0.15 for `i = 0 ..= 1024`), for vector
+/// kernels that read it by gather loads.
+#[inline]
+pub fn exp_table() -> &'static [u16; 1025] {
+    &EXP
+}
+
 /// Sine of a 32-bit phase (`2^32` = one turn), times 32767.
 #[inline]
 pub fn sin_phase(phase: u32) -> i32 {

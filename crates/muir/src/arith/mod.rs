@@ -388,7 +388,7 @@ mod tests {
             let q = if (n < 0) != (d < 0) { -(q as i128) } else { q as i128 };
             q.clamp(i64::MIN as i128, i64::MAX as i128) as i64
         }
-        let edges = [0, 1, -1, 2, -2, 3, 9, -9, i64::MAX, i64::MIN, i64::MAX - 1, i64::MIN + 1, u32::MAX as i64, -(u32::MAX as i64), 1 << 32, (1 << 32) + 1, i32::MIN as i64, 1 << 62, -(1 << 62)];
+        let edges = [0, 1, -1, 2, -2, 3, 9, -9, i64::MAX, i64::MIN, i64::MAX - 1, i64::MIN + 1, (1 << 31) - 1, 1 << 31, (1 << 31) + 1, u32::MAX as i64, -(u32::MAX as i64), 1 << 32, (1 << 32) + 1, i32::MIN as i64, 1 << 62, -(1 << 62)];
         for &n in &edges {
             for &d in &edges {
                 assert_eq!(div_round(n, d), wide(n, d), "{n} / {d}");

@@ -60,8 +60,50 @@ pub fn query_stats(q: &[i16], keys: &[i16], m: Multiplier) -> (i64, i64) {
         return (0, 0); // no query channels: no logits
     }
     let max = keys.chunks_exact(c).map(|k| logit(q, k)).max().unwrap_or(0);
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    if (2..=62).contains(&m.shift) {
+        // Helium: the weights of a block of keys four a vector (`block_weights`).
+        let mut e = [0i32; KEY_BLOCK];
+        let mut sum = 0i64;
+        for kb in keys.chunks(c.saturating_mul(KEY_BLOCK).max(1)) {
+            sum += block_weights(q, kb, max, m, &mut e).1;
+        }
+        return (max, sum);
+    }
+    #[allow(unreachable_code)]
     let sum = keys.chunks_exact(c).map(|k| weight(logit(q, k), max, m) as i64).sum();
     (max, sum)
+}
+
+/// The softmax weights of the whole keys in `kb` (`q.len()` values each, at most [`KEY_BLOCK`]
+/// of them) into `e`: `(number of keys, sum of their weights, whether one is not 0)`. On
+/// Cortex-M55 with Helium four keys a vector (`mve::exp_weights`) where every logit's
+/// distance to the maximum fits `i32`, the same integers as [`weight`].
+#[inline(always)]
+fn block_weights(q: &[i16], kb: &[i16], max: i64, m: Multiplier, e: &mut [i32; KEY_BLOCK]) -> (usize, i64, bool) {
+    let c = q.len().max(1);
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    {
+        // The distances to the maximum in `e`, then their weights in place.
+        let (mut nb, mut fits) = (0, true);
+        for (dk, k) in e.iter_mut().zip(kb.chunks_exact(c)) {
+            let l = logit(q, k) - max;
+            *dk = l as i32;
+            fits &= *dk as i64 == l;
+            nb += 1;
+        }
+        if fits && let Some(ek) = e.get_mut(..nb) && let Some((most, sum)) = super::mve::exp_weights(ek, m.m, m.shift) {
+            return (nb, sum, most != 0);
+        }
+    }
+    let (mut nb, mut sum, mut any) = (0, 0i64, false);
+    for (w, k) in e.iter_mut().zip(kb.chunks_exact(c)) {
+        *w = weight(logit(q, k), max, m);
+        sum += *w as i64;
+        any |= *w != 0;
+        nb += 1;
+    }
+    (nb, sum, any)
 }
 
 /// Aggregated values for query `q` (`values`: `n x cv` HWC) into `out` (`cv`), in the values'
@@ -102,13 +144,7 @@ fn aggregate_blocked(q: &[i16], keys: &[i16], values: &[i16], cv: usize, max: i6
     let (kstep, vstep) = (c.saturating_mul(KEY_BLOCK).max(1), cv.saturating_mul(KEY_BLOCK).max(1));
     let mut e = [0i32; KEY_BLOCK];
     for (kb, vb) in keys.chunks(kstep).zip(values.chunks(vstep)) {
-        let mut any = false;
-        let mut nb = 0;
-        for (w, k) in e.iter_mut().zip(kb.chunks_exact(c)) {
-            *w = weight(logit(q, k), max, m);
-            any |= *w != 0;
-            nb += 1;
-        }
+        let (nb, _, any) = block_weights(q, kb, max, m, &mut e);
         if !any {
             continue; // far keys: every weight rounds to 0
         }

@@ -98,26 +98,63 @@ pub fn grey_at(img: &ImageView<'_>, x: usize, y: usize) -> u8 {
 
 /// Census codes of image row `clamp(y)` into `out` (`img.width` codes). `grey` is scratch of
 /// `(2 * CENSUS_RADIUS + 1) * img.width` bytes (the grey rows `y - 3 ..= y + 3`; with less, the
-/// codes stop where the centre row does).
+/// codes stop where the centre row does). On Cortex-M55 with Helium the interior pixels' codes
+/// come from `mve::census`, the same integers as [`census_row_portable`].
 pub fn census_row(img: &ImageView<'_>, y: isize, grey: &mut [u8], out: &mut [u64]) {
+    let w = img.width;
+    if !grey_rows(img, y, grey) {
+        return;
+    }
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    if w > 2 * CENSUS_RADIUS && grey.len() >= (2 * CENSUS_RADIUS + 1) * w && out.len() >= w {
+        super::mve::census(grey, w, out);
+        census_codes(grey, w, (0..CENSUS_RADIUS).chain(w - CENSUS_RADIUS..w), out);
+        return;
+    }
+    census_codes(grey, w, 0..w, out);
+}
+
+/// [`census_row`] without vector kernels: the specification.
+pub fn census_row_portable(img: &ImageView<'_>, y: isize, grey: &mut [u8], out: &mut [u64]) {
+    if grey_rows(img, y, grey) {
+        census_codes(grey, img.width, 0..img.width, out);
+    }
+}
+
+/// The grey rows `clamp(y) - 3 ..= clamp(y) + 3` (clamped) of [`census_row`] into `grey`;
+/// `false` for an empty image (no codes).
+#[inline(always)]
+fn grey_rows(img: &ImageView<'_>, y: isize, grey: &mut [u8]) -> bool {
     let w = img.width;
     let n = 2 * CENSUS_RADIUS + 1;
     if w == 0 || img.height == 0 {
-        return; // an empty image has no codes
+        return false; // an empty image has no codes
     }
     let clamp_y = |yy: isize| yy.clamp(0, (img.height as isize - 1).max(0)) as usize;
     // A row outside the image is the edge row's codes (the window replicates borders).
     let y = clamp_y(y) as isize;
     for (k, row) in grey.chunks_exact_mut(w).take(n).enumerate() {
         let yy = clamp_y(y + k as isize - CENSUS_RADIUS as isize);
+        // A grey image's row is its bytes (a copy; `grey_at` per pixel otherwise).
+        #[cfg(all(target_arch = "arm", feature = "mve"))]
+        if let (PixelFormat::Gray8, Some(src)) = (img.format, img.data.get(yy * w..yy * w + w)) {
+            super::mve::copy(row, src);
+            continue;
+        }
         for (x, g) in row.iter_mut().enumerate() {
             *g = grey_at(img, x, yy);
         }
     }
+    true
+}
+
+/// The census codes of the columns `xs` (each below `w`) from the seven grey rows in `grey`.
+#[inline(always)]
+fn census_codes(grey: &[u8], w: usize, xs: impl Iterator<Item = usize>, out: &mut [u64]) {
+    let n = 2 * CENSUS_RADIUS + 1;
     let r = CENSUS_RADIUS as isize;
-    let grey = &*grey;
-    for (x, code) in out.iter_mut().enumerate().take(w) {
-        let Some(&centre) = grey.get(CENSUS_RADIUS * w + x) else {
+    for x in xs {
+        let (Some(&centre), Some(code)) = (grey.get(CENSUS_RADIUS * w + x), out.get_mut(x)) else {
             break;
         };
         let mut c = 0u64;
@@ -148,9 +185,9 @@ pub fn band_radius(u: i16) -> usize {
 /// code past the end of a shorter row adds nothing).
 #[inline(always)]
 fn cost(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w: usize, x: usize, d: usize) -> u16 {
-    let cols = [x.saturating_sub(1), x, (x + 1).min(w.saturating_sub(1))];
     #[cfg(all(target_arch = "arm", feature = "mve"))]
     {
+        let cols = [x.saturating_sub(1), x, (x + 1).min(w.saturating_sub(1))];
         // Helium: the nine distances' codes as words, one vector popcount (`mve::popcount20`).
         let mut words = [0u32; 20];
         let mut slots = words.chunks_exact_mut(2);
@@ -168,6 +205,13 @@ fn cost(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w: usize, x
         return super::mve::popcount20(&words) as u16;
     }
     #[allow(unreachable_code)]
+    cost_plain(left, right, w, x, d)
+}
+
+/// [`cost`] by `count_ones`: the specification.
+#[inline(always)]
+fn cost_plain(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w: usize, x: usize, d: usize) -> u16 {
+    let cols = [x.saturating_sub(1), x, (x + 1).min(w.saturating_sub(1))];
     let mut s = 0u32;
     for (cl, cr) in left.iter().zip(right.iter()) {
         for q in cols {
@@ -177,6 +221,36 @@ fn cost(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w: usize, x
         }
     }
     s as u16
+}
+
+/// The costs of the candidates of band `b` at column `x` into `out[..b.n()]` (as far as `out`
+/// reaches): `out[k] = cost(first + k)`. On Cortex-M55 with Helium the candidates whose columns
+/// need no clamping go two at a time through `mve::cost_pairs`, the same integers.
+#[inline(always)]
+pub fn pixel_costs(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w: usize, x: usize, b: Band, out: &mut [u16]) {
+    let out = head_mut(out, b.n());
+    #[allow(unused_mut)]
+    let mut done = 0;
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    if b.first >= 0 && x >= 1 {
+        // Pairs `(d, d + 1)` with `d + 2 <= x`: no right column clamped at 0.
+        let pairs = out.len().min(x.saturating_sub(b.first as usize)) / 2;
+        let [l0, l1, l2] = *left;
+        let [r0, r1, r2] = *right;
+        if pairs > 0 && super::mve::cost_pairs([l0, l1, l2], [r0, r1, r2], w, x, b.first as usize, pairs, out) {
+            done = 2 * pairs;
+        }
+    }
+    for (k, c) in out.iter_mut().enumerate().skip(done) {
+        *c = cost(left, right, w, x, b.first as usize + k);
+    }
+}
+
+/// [`pixel_costs`] by `count_ones`, candidate by candidate: the specification.
+pub fn pixel_costs_portable(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w: usize, x: usize, b: Band, out: &mut [u16]) {
+    for (k, c) in head_mut(out, b.n()).iter_mut().enumerate() {
+        *c = cost_plain(left, right, w, x, b.first as usize + k);
+    }
 }
 
 /// The large-jump penalty between neighbours of grey levels `a` and `b`.
@@ -221,9 +295,43 @@ fn copy_head(out: &mut [u16], src: &[u16], n: usize) {
 
 /// One step along a path: `out` (the current pixel's `L_r`, `band.len` values) from the
 /// predecessor's `prev` (`pband.len` values) and the current costs `cost` (each slice read or
-/// written only as far as it reaches).
+/// written only as far as it reaches). On Cortex-M55 with Helium eight candidates a vector
+/// (`mve::path_update`), the same integers as [`path_step_portable`].
 #[inline(always)]
-fn path_step(prev: &[u16], pband: Band, cost: &[u16], band: Band, p2: u32, out: &mut [u16]) {
+pub fn path_step(prev: &[u16], pband: Band, cost: &[u16], band: Band, p2: u32, out: &mut [u16]) {
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    {
+        let (prev, cost) = (head(prev, pband.n()), head(cost, band.n()));
+        let out = head_mut(out, band.n());
+        if let Some(m) = super::mve::min_u16(prev) {
+            let mp2 = (m as u32).saturating_add(p2);
+            // (larger values: the portable step, whose u32 sums the u16 lanes would not hold)
+            if mp2 <= u16::MAX as u32 - P1 {
+                // `win[i] = prev[i - 1 + shift]` for `i < n + 2` where that exists, `u16::MAX`
+                // (no term: it never beats `m + p2`) elsewhere.
+                let n = out.len().min(cost.len());
+                let shift = band.first as isize - pband.first as isize;
+                let mut win = [u16::MAX; SLOTS + 2];
+                let lo = (1 - shift).max(0);
+                let hi = (n as isize + 2).min(prev.len() as isize + 1 - shift);
+                if lo < hi {
+                    let (lo, hi) = (lo as usize, hi as usize);
+                    if let (Some(dst), Some(src)) = (win.get_mut(lo..hi), prev.get((lo as isize - 1 + shift) as usize..)) {
+                        super::mve::copy(dst, src);
+                    }
+                }
+                super::mve::path_update(&win, cost, P1 as u16, m, mp2 as u16, out);
+                return;
+            }
+        }
+    }
+    #[allow(unreachable_code)]
+    path_step_portable(prev, pband, cost, band, p2, out)
+}
+
+/// [`path_step`] value by value: the specification.
+#[inline(always)]
+pub fn path_step_portable(prev: &[u16], pband: Band, cost: &[u16], band: Band, p2: u32, out: &mut [u16]) {
     let (prev, cost) = (head(prev, pband.n()), head(cost, band.n()));
     let out = head_mut(out, band.n());
     let Some(m) = prev.iter().min().map(|m| *m as u32) else {
@@ -440,9 +548,7 @@ fn refine_rows(left: &ImageView<'_>, right: &ImageView<'_>, disparity: &mut [i16
             set_at(b_cur, x, b.first);
             set_at(b_cur, w + x, b.len);
             set_at(g_cur, x, grey_at(left, x, y));
-            for (k, c) in head_mut(c, b.n()).iter_mut().enumerate() {
-                *c = cost(&lrows, &rrows, w, x, b.first as usize + k);
-            }
+            pixel_costs(&lrows, &rrows, w, x, b, c);
         }
         // The three downward paths (from above-left, above, above-right).
         for (p, (prev_plane, cur_plane)) in top_prev.chunks_exact(sw).zip(top_cur.chunks_exact_mut(sw)).enumerate() {

@@ -574,3 +574,532 @@ pub fn popcount20(w: &[u32; 20]) -> u32 {
     }
     n
 }
+
+/// Census codes of the interior pixels of one image row (the full-resolution refinement's
+/// `fullres::census_row`): `grey` holds the seven grey rows `y - 3 ..= y + 3` (`w` bytes each),
+/// and for every `x` in `3 .. w - 3` (no clamped neighbour) `out[x]` gets the 48-bit code (bit
+/// `b` set when the `b`-th neighbour of the 7x7 window, row-major without the centre, is darker
+/// than the centre). Sixteen pixels per vector: per bit one load of the sixteen neighbours,
+/// `VHSUB.U8` (`(n - c) >> 1` in full precision: bit 7 set exactly when `n < c`) and `VSRI.8 #1`,
+/// which shifts the byte being built right and inserts that bit at the top, so after eight bits a
+/// byte lane holds one byte of a code; a scatter store (`VSTRB.8` with offsets `8 i + k`) puts byte
+/// `k` of the sixteen codes in place (bytes 6 and 7 are 0). Tail-predicated: no scalar tail.
+/// Nothing happens unless `w >= 7`, `grey.len() >= 7 w` and `out.len() >= w`; `out[..3]` and
+/// `out[w - 3..]` are left as they are.
+pub fn census(grey: &[u8], w: usize, out: &mut [u64]) {
+    if w < 7 || grey.len() < 7 * w || out.len() < w {
+        return;
+    }
+    let rows: [*const u8; 7] = core::array::from_fn(|k| grey.as_ptr().wrapping_add(k * w));
+    // SAFETY: pixel `x` in `3 .. w - 3` reads bytes `x - 3 ..= x + 3` of each of the seven rows
+    // (inside `grey` by the check above; the last vector is tail-predicated, so no lane past
+    // `w - 4` is read) and writes the eight bytes of `out[x]` (inside `out`).
+    unsafe { muir_mve_census(&rows, w - 6, out.as_mut_ptr().wrapping_add(3)) };
+}
+
+core::arch::global_asm!(
+    ".syntax unified",
+    ".thumb",
+    ".cpu cortex-m55",
+    ".section .text.muir_mve_census,\"ax\",%progbits",
+    ".global muir_mve_census",
+    ".type muir_mve_census,%function",
+    ".p2align 2",
+    ".thumb_func",
+    // r0 = the seven row pointers (column 0 = the first pixel's left neighbour at dx = -3),
+    // r1 = pixels, r2 = out. Rows in r0-r6, out in r8, q7 the scatter offsets 0, 8, .., 120, q6
+    // the centres, q5 zero; the code byte being built alternates between q0 and q1.
+    "muir_mve_census:",
+    "    push {{r4-r11, lr}}",
+    "    mov r12, r0",
+    "    mov r10, r1",
+    "    mov r8, r2",
+    "    ldr r0, [r12]",
+    "    ldr r1, [r12, #4]",
+    "    ldr r2, [r12, #8]",
+    "    ldr r3, [r12, #12]",
+    "    ldr r4, [r12, #16]",
+    "    ldr r5, [r12, #20]",
+    "    ldr r6, [r12, #24]",
+    "    mov.w r12, #0",
+    "    vidup.u8 q7, r12, #8",
+    "    vmov.i8 q5, #0",
+    "    dlstp.8 lr, r10",
+    "1:",
+    "    vldrb.u8 q6, [r3, #3]",
+    "    vldrb.u8 q1, [r0, #0]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r0, #1]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    vldrb.u8 q1, [r0, #2]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r0, #3]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    vldrb.u8 q1, [r0, #4]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r0, #5]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    vldrb.u8 q1, [r0, #6]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r1, #0]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    add.w r9, r8, #0",
+    "    vstrb.8 q0, [r9, q7]",
+    "    vldrb.u8 q1, [r1, #1]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r1, #2]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    vldrb.u8 q1, [r1, #3]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r1, #4]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    vldrb.u8 q1, [r1, #5]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r1, #6]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    vldrb.u8 q1, [r2, #0]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r2, #1]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    add.w r9, r8, #1",
+    "    vstrb.8 q0, [r9, q7]",
+    "    vldrb.u8 q1, [r2, #2]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r2, #3]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    vldrb.u8 q1, [r2, #4]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r2, #5]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    vldrb.u8 q1, [r2, #6]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r3, #0]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    vldrb.u8 q1, [r3, #1]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r3, #2]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    add.w r9, r8, #2",
+    "    vstrb.8 q0, [r9, q7]",
+    "    vldrb.u8 q1, [r3, #4]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r3, #5]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    vldrb.u8 q1, [r3, #6]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r4, #0]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    vldrb.u8 q1, [r4, #1]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r4, #2]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    vldrb.u8 q1, [r4, #3]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r4, #4]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    add.w r9, r8, #3",
+    "    vstrb.8 q0, [r9, q7]",
+    "    vldrb.u8 q1, [r4, #5]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r4, #6]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    vldrb.u8 q1, [r5, #0]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r5, #1]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    vldrb.u8 q1, [r5, #2]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r5, #3]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    vldrb.u8 q1, [r5, #4]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r5, #5]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    add.w r9, r8, #4",
+    "    vstrb.8 q0, [r9, q7]",
+    "    vldrb.u8 q1, [r5, #6]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r6, #0]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    vldrb.u8 q1, [r6, #1]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r6, #2]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    vldrb.u8 q1, [r6, #3]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r6, #4]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    vldrb.u8 q1, [r6, #5]",
+    "    vhsub.u8 q1, q1, q6",
+    "    vsri.8 q1, q0, #1",
+    "    vldrb.u8 q0, [r6, #6]",
+    "    vhsub.u8 q0, q0, q6",
+    "    vsri.8 q0, q1, #1",
+    "    add.w r9, r8, #5",
+    "    vstrb.8 q0, [r9, q7]",
+    "    add.w r9, r8, #6",
+    "    vstrb.8 q5, [r9, q7]",
+    "    add.w r9, r8, #7",
+    "    vstrb.8 q5, [r9, q7]",
+    "    add.w r8, r8, #128",
+    "    adds r0, #16",
+    "    adds r1, #16",
+    "    adds r2, #16",
+    "    adds r3, #16",
+    "    adds r4, #16",
+    "    adds r5, #16",
+    "    adds r6, #16",
+    "    letp lr, 1b",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_mve_census, . - muir_mve_census",
+);
+
+/// Population counts of the bytes 0..=255 (a gather load counts sixteen bytes at once).
+// Evaluated at compile time: an index out of range would be a build error, not a panic.
+#[allow(clippy::indexing_slicing)]
+static POPCOUNT8: [u8; 256] = {
+    let mut t = [0u8; 256];
+    let mut i = 0;
+    while i < 256 {
+        t[i] = (i as u32).count_ones() as u8;
+        i += 1;
+    }
+    t
+};
+
+/// Arguments of `muir_mve_cost_pairs` (one pointer for the assembly function).
+#[repr(C)]
+struct CostArgs {
+    /// The nine left codes, each twice (`[L, L]`, 16 bytes), rows then columns.
+    ld: *const u64,
+    /// Per census row, the right code at column `x - 2 - d` of the first pair.
+    right: [*const u64; 3],
+    tab: *const u8,
+    out: *mut u16,
+    pairs: usize,
+}
+
+/// The refinement's costs (`fullres::cost`: the 3x3 box sum of census Hamming distances between
+/// the left codes at columns `x - 1 ..= x + 1` and the right codes `d` columns to the left) of the
+/// candidates `d0 .. d0 + 2 pairs` of pixel `x` into `out[..2 pairs]`, for `1 <= x`,
+/// `x + 1 < w` and `d0 + 2 pairs <= x` (no clamped column). Two candidates per vector: sixteen
+/// bytes of right codes `[R(q - d - 1), R(q - d)]` XOR the left code twice, the bytes' population
+/// counts by one gather load from a 256-entry table, nine such byte vectors summed (at most 72 a
+/// byte); `VADDV` and `VMLADAV` with a mask of the low eight lanes split the two sums. The same
+/// integers as the portable cost. `left` and `right` are the three census rows (`w` codes each
+/// at least); returns `false`, having done nothing, when a precondition fails.
+pub fn cost_pairs(left: [&[u64]; 3], right: [&[u64]; 3], w: usize, x: usize, d0: usize, pairs: usize, out: &mut [u16]) -> bool {
+    if pairs == 0 || x == 0 || x + 1 >= w || d0.saturating_add(2 * pairs) > x || out.len() < 2 * pairs || left.iter().chain(right.iter()).any(|r| r.len() < w) {
+        return false;
+    }
+    let mut ld = [0u64; 18];
+    for (slots, row) in ld.chunks_exact_mut(6).zip(left) {
+        if let Some(cols) = row.get(x - 1..x + 2) {
+            for (slot, c) in slots.chunks_exact_mut(2).zip(cols) {
+                slot.fill(*c);
+            }
+        }
+    }
+    let args = CostArgs {
+        ld: ld.as_ptr(),
+        right: right.map(|r| r.as_ptr().wrapping_add(x - 2 - d0)),
+        tab: POPCOUNT8.as_ptr(),
+        out: out.as_mut_ptr(),
+        pairs,
+    };
+    // SAFETY: pair `i` reads right codes `x - 2 - d0 - 2 i ..= x - d0 - 2 i + 1 <= x + 1 < w`,
+    // the lowest `x - d0 - 2 pairs >= 0`, inside each row (`w` codes at least); the table's
+    // gathers index bytes (at most 255); it writes `out[..2 pairs]`.
+    unsafe { muir_mve_cost_pairs(&args) };
+    true
+}
+
+core::arch::global_asm!(
+    ".syntax unified",
+    ".thumb",
+    ".cpu cortex-m55",
+    ".section .text.muir_mve_cost_pairs,\"ax\",%progbits",
+    ".global muir_mve_cost_pairs",
+    ".type muir_mve_cost_pairs,%function",
+    ".p2align 2",
+    ".thumb_func",
+    // r0 = `CostArgs`. r4 the doubled left codes, r5-r7 the right rows, r8 the table, r10 out,
+    // q7 the mask of lanes 0..7 (ones), q3 the byte sums. Lanes 0..7 hold candidate d + 1, lanes
+    // 8..15 candidate d.
+    "muir_mve_cost_pairs:",
+    "    push {{r4-r11, lr}}",
+    "    ldr r4, [r0]",
+    "    ldr r5, [r0, #4]",
+    "    ldr r6, [r0, #8]",
+    "    ldr r7, [r0, #12]",
+    "    ldr r8, [r0, #16]",
+    "    ldr r10, [r0, #20]",
+    "    ldr r11, [r0, #24]",
+    "    movs r9, #0",
+    "    vmov.i8 q7, #1",
+    "    vmov.32 q7[2], r9",
+    "    vmov.32 q7[3], r9",
+    "    dls lr, r11",
+    "1:",
+    "    vldrw.u32 q0, [r4, #0]",
+    "    vldrw.u32 q1, [r5, #0]",
+    "    veor q1, q1, q0",
+    "    vldrb.u8 q3, [r8, q1]",
+    "    vldrw.u32 q0, [r4, #16]",
+    "    vldrw.u32 q1, [r5, #8]",
+    "    veor q1, q1, q0",
+    "    vldrb.u8 q2, [r8, q1]",
+    "    vadd.i8 q3, q3, q2",
+    "    vldrw.u32 q0, [r4, #32]",
+    "    vldrw.u32 q1, [r5, #16]",
+    "    veor q1, q1, q0",
+    "    vldrb.u8 q2, [r8, q1]",
+    "    vadd.i8 q3, q3, q2",
+    "    vldrw.u32 q0, [r4, #48]",
+    "    vldrw.u32 q1, [r6, #0]",
+    "    veor q1, q1, q0",
+    "    vldrb.u8 q2, [r8, q1]",
+    "    vadd.i8 q3, q3, q2",
+    "    vldrw.u32 q0, [r4, #64]",
+    "    vldrw.u32 q1, [r6, #8]",
+    "    veor q1, q1, q0",
+    "    vldrb.u8 q2, [r8, q1]",
+    "    vadd.i8 q3, q3, q2",
+    "    vldrw.u32 q0, [r4, #80]",
+    "    vldrw.u32 q1, [r6, #16]",
+    "    veor q1, q1, q0",
+    "    vldrb.u8 q2, [r8, q1]",
+    "    vadd.i8 q3, q3, q2",
+    "    vldrw.u32 q0, [r4, #96]",
+    "    vldrw.u32 q1, [r7, #0]",
+    "    veor q1, q1, q0",
+    "    vldrb.u8 q2, [r8, q1]",
+    "    vadd.i8 q3, q3, q2",
+    "    vldrw.u32 q0, [r4, #112]",
+    "    vldrw.u32 q1, [r7, #8]",
+    "    veor q1, q1, q0",
+    "    vldrb.u8 q2, [r8, q1]",
+    "    vadd.i8 q3, q3, q2",
+    "    vldrw.u32 q0, [r4, #128]",
+    "    vldrw.u32 q1, [r7, #16]",
+    "    veor q1, q1, q0",
+    "    vldrb.u8 q2, [r8, q1]",
+    "    vadd.i8 q3, q3, q2",
+    "    vaddv.u8 r0, q3",
+    "    vmladav.u8 r2, q3, q7",
+    "    subs r0, r0, r2",
+    "    strh r0, [r10], #2",
+    "    strh r2, [r10], #2",
+    "    subs r5, #16",
+    "    subs r6, #16",
+    "    subs r7, #16",
+    "    le lr, 1b",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_mve_cost_pairs, . - muir_mve_cost_pairs",
+);
+
+unsafe extern "C" {
+    fn muir_mve_census(rows: *const [*const u8; 7], n: usize, out: *mut u64);
+    fn muir_mve_cost_pairs(args: *const CostArgs);
+}
+
+/// The least of `s`'s values (`None` when empty): eight lanes per `VMINV.U16`, tail-predicated.
+#[inline]
+pub fn min_u16(s: &[u16]) -> Option<u16> {
+    if s.is_empty() {
+        return None;
+    }
+    let mut m = u16::MAX as u32;
+    // SAFETY: reads `s.len()` values (tail-predicated: disabled lanes are neither loaded nor
+    // compared).
+    unsafe {
+        asm!(
+            "dlstp.16 lr, {n}",
+            "2:",
+            "vldrh.u16 q0, [{p}], #16",
+            "vminv.u16 {m}, q0",
+            "letp lr, 2b",
+            n = in(reg) s.len(),
+            p = inout(reg) s.as_ptr() => _,
+            m = inout(reg) m,
+            out("lr") _,
+            out("d0") _, out("d1") _,
+            options(nostack, readonly),
+        );
+    }
+    Some(m as u16)
+}
+
+/// One step of a semi-global matching path on eight candidates a vector (the refinement's
+/// `fullres::path_step` once its predecessor's costs are laid out as a window):
+/// `out[k] = cost[k] + min(win[k + 1], min(win[k], win[k + 2], mp2) + p1, mp2) - m` in wrapping
+/// `u16` arithmetic, for `k < min(cost.len(), out.len(), win.len() - 2)`. With `mp2 + p1 <= 0xFFFF`
+/// no step overflows: it is `min(mp2, win[k + 1], win[k] + p1, win[k + 2] + p1)` computed exactly
+/// (adding `p1` to the smaller neighbour after capping it at `mp2`, which changes nothing since
+/// `mp2 + p1 > mp2`). Tail-predicated, no saturating instruction.
+#[inline]
+pub fn path_update(win: &[u16], cost: &[u16], p1: u16, m: u16, mp2: u16, out: &mut [u16]) {
+    let n = cost.len().min(out.len()).min(win.len().saturating_sub(2));
+    if n == 0 {
+        return;
+    }
+    // SAFETY: lane `k < n` reads `win[k ..= k + 2]` (`k + 2 < win.len()`), `cost[k]` and writes
+    // `out[k]` (tail-predicated: disabled lanes are neither loaded nor stored).
+    unsafe {
+        asm!(
+            "vdup.16 q3, {mp2}",
+            "dlstp.16 lr, {n}",
+            "2:",
+            "vldrh.u16 q1, [{w}, #4]",
+            "vldrh.u16 q2, [{w}, #2]",
+            "vldrh.u16 q0, [{w}], #16",
+            "vmin.u16 q0, q0, q1",
+            "vmin.u16 q0, q0, q3",
+            "vadd.i16 q0, q0, {p1}",
+            "vmin.u16 q0, q0, q2",
+            "vmin.u16 q0, q0, q3",
+            "vsub.i16 q0, q0, {m}",
+            "vldrh.u16 q1, [{c}], #16",
+            "vadd.i16 q0, q0, q1",
+            "vstrh.16 q0, [{o}], #16",
+            "letp lr, 2b",
+            n = in(reg) n,
+            mp2 = in(reg) mp2 as u32,
+            p1 = in(reg) p1 as u32,
+            m = in(reg) m as u32,
+            w = inout(reg) win.as_ptr() => _,
+            c = inout(reg) cost.as_ptr() => _,
+            o = inout(reg) out.as_mut_ptr() => _,
+            out("lr") _,
+            out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+            options(nostack),
+        );
+    }
+}
+
+/// The MGA softmax weights, four keys a vector, in place: each `e[k]`, the logit minus the
+/// query's maximum, becomes `exp_q11(clamp(requantize_i32(e[k], m), -32768, 0))`, for shifts
+/// `2..=62` (other shifts: nothing is written, `None`). Returns the largest weight and the sum
+/// of the weights.
+///
+/// The requantisation is [`requant4`]'s formula, `VQRSHL(h, 32 - s) + VRSHL_u(l, -s)` on the
+/// product's high and low words. It is exact where nothing saturates; where `VQRSHL` or `VQADD`
+/// saturates the exact value lies beyond `i32` on the same side (the shifted high word is a
+/// multiple of `2^(32 - s)` and the rounded low word is in `0 ..= 2^(32 - s) <= 2^30`), so after
+/// the clamp to `-32768 ..= 0` both give the same value. `FPSCR.QC` is cleared afterwards (the
+/// convolution epilogue reads it). The table read is `exp_q11`'s: index `i = min(u >> 5, 1023)`
+/// and fraction `u - 32 i` (32 at `u = 32768`, which gives the last entry exactly), two gather
+/// loads and `a + rshift_round((b - a) f, 5)`.
+#[inline]
+pub fn exp_weights(e: &mut [i32], m: i32, shift: u8) -> Option<(i32, i64)> {
+    let n = e.len();
+    if !(2..=62).contains(&shift) {
+        return None;
+    }
+    if n == 0 {
+        return Some((0, 0));
+    }
+    let t = crate::arith::lut::exp_table();
+    let (mut max, mut lo, mut hi) = (0i32, 0u32, 0u32);
+    // SAFETY: lane `k < n` reads and then writes `e[k]` (tail-predicated: disabled lanes are
+    // neither loaded nor stored) and gathers table entries `i` and `i + 1` with `i <= 1023`
+    // (1025 entries). VADDLVA takes an even/odd register pair (r0/r1).
+    unsafe {
+        asm!(
+            "vdup.32 q7, {m}",
+            "vmov.i32 q6, #0x8000",
+            "vneg.s32 q6, q6",
+            "vmov.i32 q5, #0",
+            "mov {m}, #1023",
+            "vdup.32 q4, {m}",
+            "dlstp.32 lr, {n}",
+            "2:",
+            "vldrw.u32 q0, [{d}], #16",
+            "vmulh.s32 q1, q0, q7",
+            "vmul.i32 q0, q0, q7",
+            "vqrshl.s32 q1, {sl}",
+            "vrshl.u32 q0, {sr}",
+            "vqadd.s32 q0, q1, q0",
+            "vmax.s32 q0, q0, q6",
+            "vmin.s32 q0, q0, q5",
+            "vsub.i32 q0, q0, q6",
+            "vshr.u32 q1, q0, #5",
+            "vmin.u32 q1, q1, q4",
+            "vshl.i32 q2, q1, #5",
+            "vsub.i32 q0, q0, q2",
+            "vldrh.u32 q2, [{tab}, q1, uxtw #1]",
+            "vldrh.u32 q3, [{tab1}, q1, uxtw #1]",
+            "vsub.i32 q3, q3, q2",
+            "vmul.i32 q3, q3, q0",
+            "vrshr.s32 q3, q3, #5",
+            "vadd.i32 q2, q2, q3",
+            "vmaxv.s32 {max}, q2",
+            "vaddlva.s32 r0, r1, q2",
+            "vstrw.32 q2, [{e}], #16",
+            "letp lr, 2b",
+            m = inout(reg) m => _,
+            n = in(reg) n,
+            d = inout(reg) e.as_ptr() => _,
+            e = inout(reg) e.as_mut_ptr() => _,
+            sl = in(reg) 32 - shift as i32,
+            sr = in(reg) -(shift as i32),
+            tab = in(reg) t.as_ptr(),
+            tab1 = in(reg) t.as_ptr().wrapping_add(1),
+            max = inout(reg) max,
+            inout("r0") lo,
+            inout("r1") hi,
+            out("lr") _,
+            out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+            out("d8") _, out("d9") _, out("d10") _, out("d11") _, out("d12") _, out("d13") _, out("d14") _, out("d15") _,
+            options(nostack),
+        );
+    }
+    take_qc();
+    Some((max, ((hi as u64) << 32 | lo as u64) as i64))
+}
