@@ -25,12 +25,12 @@ const SPINS: usize = 200;
 
 /// Spins of the caller's wait for a worker's last task before it yields its core ([`pause`]).
 const SPINS_BEFORE_YIELD: u32 = 4096;
-/// Waits (the spins, then 2048 yields: a millisecond or more, where a task takes at most tens of
-/// microseconds) after which the worker counts as descheduled ([`run`]).
+/// Waits (the spins, then 2048 yields: a millisecond or more) after which a worker, if it also
+/// took three times as long as the caller's share of the job, counts as descheduled ([`run`]).
 const STALLED: u32 = SPINS_BEFORE_YIELD + 2048;
 /// Jobs that then run on the caller alone before the pool is tried again (about a quarter of a
 /// 450x375 frame's). With another process busy on one of two cores, Teddy took 0.63-0.83 s on two
-/// threads without this against 0.53 s on one; with it, 0.52-0.57 s.
+/// threads without this against 0.53 s on one; with it, 0.53-0.55 s.
 const BACK_OFF_JOBS: u32 = 4096;
 /// Jobs left to run on the caller alone (see [`STALLED`]).
 static INLINE_JOBS: AtomicU32 = AtomicU32::new(0);
@@ -138,7 +138,9 @@ pub fn run(tasks: usize, f: &(dyn Fn(usize) + Sync)) {
         let _g = p.lock.lock();
         p.wake.notify_all();
     }
+    let start = std::time::Instant::now();
     work(&job);
+    let worked = start.elapsed();
     let mut waits = 0u32;
     while job.done.load(Ordering::Acquire) < tasks {
         pause(&mut waits);
@@ -149,10 +151,12 @@ pub fn run(tasks: usize, f: &(dyn Fn(usize) + Sync)) {
         pause(&mut waits);
     }
     p.busy.store(false, Ordering::Release);
-    if waits >= STALLED {
-        // A worker held a task far longer than any task takes: the OS had descheduled it (the
-        // cores are busy with other processes). Waiting on it again would make the frame slower
-        // than one thread, so the next jobs run on the caller alone.
+    if waits >= STALLED && start.elapsed() > 3 * worked {
+        // A worker held its task far longer than the caller's own share took (and over a
+        // millisecond): the OS had descheduled it (the cores are busy with other processes).
+        // Waiting on it again would make the frame slower than one thread, so the next jobs run
+        // on the caller alone. (Coarse jobs, e.g. the float engine's halves of a product, wait
+        // long but not for longer than they worked.)
         INLINE_JOBS.store(BACK_OFF_JOBS, Ordering::Relaxed);
     }
     if job.panicked.load(Ordering::Relaxed) {
