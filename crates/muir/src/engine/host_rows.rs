@@ -214,15 +214,7 @@ pub fn aggregate_row(
         let (q, out) = (&*q, Shared(d.as_mut_ptr()));
         let n = w.min(d.len() / cv.max(1)).min(stats.len() / 2);
         #[cfg(target_arch = "x86_64")]
-        let batched = PREPARED.with_borrow_mut(|(prep, fresh)| {
-            // Laid out once per pass (`new_values`): the keys and values do not change in it.
-            if !*fresh {
-                if !prep.fill(keys, values, qk, cv) {
-                    return false;
-                }
-                *fresh = true;
-            }
-            let prep = &*prep;
+        let batched = with_pass_layout(keys, values, qk, cv, |prep| {
             // Four queries a task, two at a time in the kernel.
             per_pixels(n, &|px| {
                 let (x0, x1) = (px.start, px.end);
@@ -254,6 +246,22 @@ pub fn aggregate_row(
     });
 }
 
+/// `f` of this pass's keys and values laid out for the batched aggregation (laid out on the
+/// pass's first call, [`new_values`]: they do not change in it); `false` where that layout does
+/// not apply (see [`Prepared::fill`]) or `f` says so.
+#[cfg(target_arch = "x86_64")]
+fn with_pass_layout(keys: &[i16], values: &[i16], qk: usize, cv: usize, f: impl FnOnce(&Prepared) -> bool) -> bool {
+    PREPARED.with_borrow_mut(|(prep, fresh)| {
+        if !*fresh {
+            if !prep.fill(keys, values, qk, cv) {
+                return false;
+            }
+            *fresh = true;
+        }
+        f(prep)
+    })
+}
+
 /// [`aggregate_row`] from the weights the statistics pass kept for row `y`'s queries (`qk`
 /// channels each); `false` (nothing written) where they were not kept.
 #[cfg(target_arch = "x86_64")]
@@ -265,17 +273,11 @@ fn aggregate_kept(qk: usize, y: usize, w: usize, keys: &[i16], values: &[i16], c
         if row == 0 || !kept.filled.get(base..base + n).is_some_and(|f| f.iter().all(|&f| f)) {
             return false;
         }
-        PREPARED.with_borrow_mut(|(prep, fresh)| {
-            if !*fresh {
-                if !prep.fill(keys, values, qk, cv) {
-                    return false;
-                }
-                *fresh = true;
-            }
+        with_pass_layout(keys, values, qk, cv, |prep| {
             if prep.kept_row() != row {
                 return false;
             }
-            let (prep, out) = (&*prep, Shared(d.as_mut_ptr()));
+            let out = Shared(d.as_mut_ptr());
             per_pixels(n, &|px| {
                 let (x0, x1) = (px.start, px.end);
                 // SAFETY: values `x0 cv .. x1 cv <= d.len()`, this task's pixels only.

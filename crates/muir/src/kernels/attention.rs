@@ -122,8 +122,15 @@ pub fn aggregate_query(q: &[i16], keys: &[i16], values: &[i16], cv: usize, stats
         aggregate_blocked(q, keys, values, cv, stats.0, m, acc);
     }
     for (o, a) in out.iter_mut().zip(acc.iter()) {
-        *o = sat_i16(div_round(shift_round(*a, shift as i32), stats.1));
+        *o = aggregated(*a, shift, stats.1);
     }
+}
+
+/// An aggregated value from its weighted sum `acc = sum_j e_j v_j` and the query's sum of
+/// weights `sum`, in the values' format shifted by `shift` fraction bits.
+#[inline(always)]
+pub fn aggregated(acc: i64, shift: i8, sum: i64) -> i16 {
+    sat_i16(div_round(shift_round(acc, shift as i32), sum))
 }
 
 /// Keys per block of [`aggregate_blocked`]: their softmax weights wait on the stack (128 bytes).

@@ -21,8 +21,8 @@
 use core::arch::x86_64::*;
 use core::cell::RefCell;
 
-use super::weight;
-use crate::arith::{Multiplier, div_round, sat_i16, shift_round};
+use super::{aggregated, weight};
+use crate::arith::Multiplier;
 use crate::kernels::pool::scratch;
 use crate::kernels::x86::has_avx512;
 
@@ -268,12 +268,7 @@ impl Prepared {
                 // SAFETY: the CPU has AVX-512 F/BW/VNNI (`new` checked); the buffers have the
                 // sizes `block` needs.
                 unsafe { self.queries(q, r, st, m, e, eh, el, acc) };
-                for ((o, a), st) in out.get_mut(i * cv..(i + r) * cv).unwrap_or_default().chunks_exact_mut(cv).zip(acc.chunks_exact(cv)).zip(st.chunks_exact(2)) {
-                    let sum = st.get(1).copied().unwrap_or(0);
-                    for (o, a) in o.iter_mut().zip(a) {
-                        *o = sat_i16(div_round(shift_round(*a, shift as i32), sum));
-                    }
-                }
+                outputs(out.get_mut(i * cv..(i + r) * cv).unwrap_or_default(), acc, st, cv, shift);
                 i += r;
             }
         });
@@ -315,12 +310,7 @@ impl Prepared {
                     j0 += KEYS;
                 }
                 let st = stats.get(2 * i..2 * (i + r)).unwrap_or_default();
-                for ((o, a), st) in out.get_mut(i * cv..(i + r) * cv).unwrap_or_default().chunks_exact_mut(cv).zip(acc.chunks_exact(cv)).zip(st.chunks_exact(2)) {
-                    let sum = st.get(1).copied().unwrap_or(0);
-                    for (o, a) in o.iter_mut().zip(a) {
-                        *o = sat_i16(div_round(shift_round(*a, shift as i32), sum));
-                    }
-                }
+                outputs(out.get_mut(i * cv..(i + r) * cv).unwrap_or_default(), acc, st, cv, shift);
                 i += r;
             }
         });
@@ -455,6 +445,17 @@ impl Prepared {
                 }
             }
             j0 += KEYS;
+        }
+    }
+}
+
+/// The queries' aggregated values into `out` (`cv` each) from their sums `acc` (`cv` each) and
+/// statistics `stats` (`max, sum` each), as [`super::aggregate_query`] finishes them.
+fn outputs(out: &mut [i16], acc: &[i64], stats: &[i64], cv: usize, shift: i8) {
+    for ((o, a), st) in out.chunks_exact_mut(cv.max(1)).zip(acc.chunks_exact(cv.max(1))).zip(stats.chunks_exact(2)) {
+        let sum = st.get(1).copied().unwrap_or(0);
+        for (o, a) in o.iter_mut().zip(a) {
+            *o = aggregated(*a, shift, sum);
         }
     }
 }

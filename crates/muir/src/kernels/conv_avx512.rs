@@ -305,6 +305,14 @@ struct PartPlan {
     tasks: usize,
 }
 
+impl PartPlan {
+    /// Whether the product reads a copy of the part's weights (widened to i16, or padded to whole
+    /// groups) rather than the blob's own.
+    fn copied(&self, kind: Kind) -> bool {
+        kind == Kind::I16 || self.ch != self.chp
+    }
+}
+
 /// Indices of a plane per transposition task.
 const INDICES: usize = 64;
 
@@ -365,9 +373,7 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
                 // SAFETY: forwarded (this function's contract).
                 return unsafe { run_with(p, inputs, w_in, w_out, kind, out, s, plans, xt_len, tasks, None, None) };
             };
-            let copied = plans.iter().any(|pl| kind == Kind::I16 || pl.ch != pl.chp);
-            let weights = copied.then_some((l.buf.as_slice(), l.at));
-            let pixpad = w_out.div_ceil(LANES) * LANES;
+            let weights = plans.iter().any(|pl| pl.copied(kind)).then_some((l.buf.as_slice(), l.at));
             let memo = constant.and_then(|(part, row)| {
                 let rows = inputs.get(part)?.rows.get(..p.k)?;
                 // This frame's sums of the part for the row where its rows are as kept, else a
@@ -405,7 +411,6 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
 /// The CPU has AVX-512 F and BW.
 #[target_feature(enable = "avx512f,avx512bw")]
 unsafe fn layer<'a>(layers: &'a mut Vec<Relaid>, p: &ConvParams<'_>, plans: &[PartPlan], kind: Kind) -> Option<&'a mut Relaid> {
-    let copied = |pl: &PartPlan| kind == Kind::I16 || pl.ch != pl.chp;
     let mut parts = [0; MAX_PARTS];
     parts.iter_mut().zip(plans).for_each(|(c, pl)| *c = pl.ch);
     let key = (p.weights.as_ptr() as usize, p.weights.len(), kind, p.cout, p.k, parts);
@@ -429,14 +434,14 @@ unsafe fn layer<'a>(layers: &'a mut Vec<Relaid>, p: &ConvParams<'_>, plans: &[Pa
         let mut len = 0;
         for (at, pl) in l.at.iter_mut().zip(plans) {
             *at = len;
-            if copied(pl) {
+            if pl.copied(kind) {
                 len += cout * taps * pl.chp;
             }
         }
         let mut part = Vec::new();
         core::mem::swap(&mut part, &mut l.buf);
         let buf = scratch(&mut part, len);
-        for (&at, pl) in l.at.iter().zip(plans).filter(|(_, pl)| copied(pl)) {
+        for (&at, pl) in l.at.iter().zip(plans).filter(|(_, pl)| pl.copied(kind)) {
             let n = cout * taps * pl.chp;
             if let Some(dst) = buf.get_mut(at..at + n) {
                 // SAFETY: the CPU has AVX-512 F and BW (this function's contract).
@@ -530,7 +535,7 @@ unsafe fn run_with<T: Elem>(
             WEIGHTS.with_borrow_mut(|buf| {
                 let mut wp = [core::ptr::null::<u8>(); BLOCK_C];
                 let kept = relaid.and_then(|(buf, at)| Some((buf, *at.get(part)?)));
-                if let (Some((buf, at)), true) = (kept, kind == Kind::I16 || ch != chp) {
+                if let (Some((buf, at)), true) = (kept, plan.copied(kind)) {
                     // This frame's copy: `cout` rows of `k k chp` i16 (or i8 in their first half).
                     let bytes: &[u8] = bytemuck::cast_slice(buf);
                     let wrow = 2 * k * k * chp;

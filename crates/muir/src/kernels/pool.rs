@@ -180,18 +180,11 @@ fn pause(waits: &mut u32) {
     }
 }
 
-/// Runs `f` with the pool held: every [`run`] meanwhile, on any thread, runs its tasks on its
-/// caller. For work that is split coarsely already (the two image encoders on two threads): the
-/// pool's workers would only compete with it for the cores.
-pub fn inline_while<R>(f: impl FnOnce() -> R) -> R {
-    let _held = hold();
-    f()
-}
-
 /// Holds the pool until the returned guard is dropped, on any thread: meanwhile every [`run`]
-/// runs its tasks on its caller (see [`inline_while`]). The image encoders' pair hands it to the
-/// shorter of its two threads, so that the longer one's kernels get the pool's workers back as
-/// soon as the other is done.
+/// runs its tasks on its caller. For work that is split coarsely already (the two image encoders
+/// on two threads), whose threads the pool's workers would only compete with for the cores. The
+/// encoders' pair hands the guard to the shorter of its two threads, so that the longer one's
+/// kernels get the pool's workers back as soon as the other is done.
 pub fn hold() -> Hold {
     Hold(!pool().busy.swap(true, Ordering::Acquire))
 }
