@@ -44,6 +44,9 @@
 #![deny(clippy::indexing_slicing)]
 
 use super::{chunk, chunk_mut, head, head_mut, set_at};
+#[cfg(feature = "std")]
+#[path = "fullres_threads.rs"]
+mod threads;
 use crate::arith::{DISP_FRAC, div_round, sat_i16};
 use crate::input::{ImageView, PixelFormat};
 
@@ -478,6 +481,16 @@ impl ScratchVec {
 /// `uncertainty` Q4.11 or `None`), streaming over rows in `scratch` (lengths from
 /// [`ScratchLen::new`] for the width). Returns the number of pixels the matching decided.
 pub fn refine_image(left: &ImageView<'_>, right: &ImageView<'_>, disparity: &mut [i16], uncertainty: Option<&[i16]>, scratch: Scratch<'_>) -> usize {
+    // On the host's kernel pool when it has several threads (the same integers, each row's work
+    // split into tasks; scratch of its own).
+    #[cfg(feature = "std")]
+    {
+        let (w, h) = (left.width, left.height);
+        let fits = right.width == w && right.height == h && disparity.len() >= w * h && uncertainty.is_none_or(|u| u.len() >= w * h);
+        if super::pool::threads() > 1 && w >= threads::MIN_WIDTH && h >= 1 && fits {
+            return threads::refine(left, right, disparity, uncertainty);
+        }
+    }
     // The x86-64 baseline has no POPCNT instruction (`count_ones` becomes a dozen instructions):
     // the same code compiled with it where the CPU has it.
     #[cfg(all(target_arch = "x86_64", feature = "std"))]
@@ -735,6 +748,50 @@ mod tests {
             let nb = refine_image_plain(&lv, &rv, &mut b, Some(&u));
             assert_eq!(a, b, "{w}x{h}");
             assert_eq!(na, nb);
+        }
+    }
+
+    /// The pool's schedule ([`threads::refine`]) against the plain twin, on 1 to 3 threads:
+    /// textured pairs shifted by a few pixels plus noise (many decided pixels), widths that are
+    /// and are not multiples of its column ranges, 1 to 17 rows, with and without uncertainty.
+    #[cfg(feature = "std")]
+    #[test]
+    fn threads_match_plain_twin() {
+        let mut r = crate::kernels::testutil::Rng(5);
+        for &(w, h, rgb, with_u) in &[(128usize, 1usize, false, true), (128, 2, true, true), (130, 3, false, false), (200, 17, true, true), (333, 12, false, true), (257, 5, true, false)] {
+            let ch = if rgb { 3 } else { 1 };
+            let shift = 3 + (r.i16() & 7) as usize;
+            let tex = |x: usize, y: usize, c: usize| (128.0 + 70.0 * ((x * (c + 2)) as f64 * 0.37).sin() * ((y as f64) * 0.29 + 0.5).cos()) as i32;
+            let mut img = |dx: usize| -> Vec<u8> {
+                let mut v = Vec::with_capacity(w * h * ch);
+                for y in 0..h {
+                    for x in 0..w {
+                        for c in 0..ch {
+                            v.push((tex(x + dx, y, c) + (r.i16() >> 12) as i32).clamp(0, 255) as u8);
+                        }
+                    }
+                }
+                v
+            };
+            let (l, rr) = (img(0), img(shift));
+            let fmt = if rgb { PixelFormat::Rgb8 } else { PixelFormat::Gray8 };
+            let (lv, rv) = (ImageView::new(w, h, fmt, &l).unwrap(), ImageView::new(w, h, fmt, &rr).unwrap());
+            let d0: Vec<i16> = (0..w * h).map(|i| if i % 11 == 3 { r.i16() >> 6 } else { (shift as i16) * 32 + (r.i16() >> 10) }).collect();
+            let u: Vec<i16> = (0..w * h).map(|_| r.i16() >> 2).collect();
+            let u = with_u.then_some(&u[..]);
+            let mut want = d0.clone();
+            let n_want = refine_image_plain(&lv, &rv, &mut want, u);
+            assert!(n_want > w * h / 4, "{w}x{h}: {n_want} decided");
+            for t in 1..=3 {
+                crate::kernels::pool::set_threads(t);
+                let mut got = d0.clone();
+                let n = threads::refine(&lv, &rv, &mut got, u);
+                assert_eq!((n, &got), (n_want, &want), "{w}x{h}, {t} threads");
+                let mut got = d0.clone();
+                let n = refine_image(&lv, &rv, &mut got, u, ScratchVec::new(w).view());
+                assert_eq!((n, &got), (n_want, &want), "{w}x{h}, {t} threads, refine_image");
+            }
+            crate::kernels::pool::set_threads(1);
         }
     }
 
