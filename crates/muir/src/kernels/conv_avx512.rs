@@ -765,24 +765,45 @@ unsafe fn copy_weights_into(w: &[i8], kl: usize, off: usize, ch: usize, chp: usi
 }
 
 /// `fin[x] = clamp(finish_with(post, bias, sum[x]), lo, hi)` for every pixel (`lo..=hi` the output
-/// type's range, as [`OutRow::set`] saturates). Sixteen pixels at a time for `None` and `Relu`
-/// when the sums are small (`!wild`, see [`add_part`]) and `|bias| <` [`super::SHORT_MAX_BIAS`]:
-/// then `sum + bias + 2^7` cannot overflow, so `>> 8` of it is [`finish_with`]'s rounding.
+/// type's range, as [`OutRow::set`] saturates). Eight pixels at a time when the sums are small
+/// (`!wild`, see [`add_part`]) and `|bias| <` [`super::SHORT_MAX_BIAS`]: then `sum + bias + 2^7`
+/// cannot overflow, so `>> 8` of it is [`finish_with`]'s rounding. `Sigmoid` and `Tanh` then read
+/// their tables as [`crate::arith::lut`] does: the value saturated to i16, `u = v + 2^15`, the
+/// entry pair at `u >> 6` by one 32-bit gather, `a + ((b - a) (u & 63) + 32) >> 6`.
 ///
 /// # Safety
 /// The CPU has AVX-512 F.
 #[target_feature(enable = "avx512f")]
 unsafe fn finish_channel(post: PostOp, bias: i64, wild: bool, sum: &[i64], fin: &mut [i32], lo: i32, hi: i32) {
-    let fast = !wild && bias.unsigned_abs() < super::SHORT_MAX_BIAS && matches!(post, PostOp::None | PostOp::Relu);
-    let lo = if post == PostOp::Relu { lo.max(0) } else { lo };
-    let (b, l, h) = (_mm512_set1_epi64(bias + (1 << (super::EXTRA_BITS - 1))), _mm512_set1_epi64(lo as i64), _mm512_set1_epi64(hi as i64));
+    let fast = !wild && bias.unsigned_abs() < super::SHORT_MAX_BIAS;
+    let (sig, tanh) = crate::arith::lut::sigmoid_tanh_tables();
+    let table = match post {
+        PostOp::None | PostOp::Relu => None,
+        PostOp::Sigmoid => Some(sig.as_ptr()),
+        PostOp::Tanh => Some(tanh.as_ptr()),
+    };
+    let lo_v = if post == PostOp::Relu { lo.max(0) } else { lo };
+    let (b, l, h) = (_mm512_set1_epi64(bias + (1 << (super::EXTRA_BITS - 1))), _mm512_set1_epi64(lo_v as i64), _mm512_set1_epi64(hi as i64));
+    let (i16_lo, i16_hi) = (_mm512_set1_epi64(i16::MIN as i64), _mm512_set1_epi64(i16::MAX as i64));
+    let (lo8, hi8) = (_mm256_set1_epi32(lo), _mm256_set1_epi32(hi));
     for (s, f) in sum.chunks(8).zip(fin.chunks_mut(8)) {
         if let (Ok(s8), Ok(f8), true) = (<&[i64; 8]>::try_from(s), <&mut [i32; 8]>::try_from(&mut *f), fast) {
-            // SAFETY: `s8` is 8 i64, `f8` 8 i32; the CPU has AVX-512 F.
+            // SAFETY: `s8` is 8 i64, `f8` 8 i32; the CPU has AVX-512 F (and so AVX2); a table
+            // holds 1025 i16 and each gather reads the 4 bytes at `2 i` for `i <= 1023`.
             unsafe {
                 let v = _mm512_srai_epi64::<{ super::EXTRA_BITS }>(_mm512_add_epi64(_mm512_loadu_si512(s8.as_ptr().cast()), b));
-                let v = _mm512_min_epi64(_mm512_max_epi64(v, l), h);
-                _mm256_storeu_si256(f8.as_mut_ptr().cast(), _mm512_cvtepi64_epi32(v));
+                let out = match table {
+                    None => _mm512_cvtepi64_epi32(_mm512_min_epi64(_mm512_max_epi64(v, l), h)),
+                    Some(t) => {
+                        let u = _mm256_add_epi32(_mm512_cvtepi64_epi32(_mm512_min_epi64(_mm512_max_epi64(v, i16_lo), i16_hi)), _mm256_set1_epi32(1 << 15));
+                        let pair = _mm256_i32gather_epi32::<2>(t.cast(), _mm256_srli_epi32::<6>(u));
+                        let (a, bb) = (_mm256_srai_epi32::<16>(_mm256_slli_epi32::<16>(pair)), _mm256_srai_epi32::<16>(pair));
+                        let frac = _mm256_and_si256(u, _mm256_set1_epi32(63));
+                        let step = _mm256_srai_epi32::<6>(_mm256_add_epi32(_mm256_mullo_epi32(_mm256_sub_epi32(bb, a), frac), _mm256_set1_epi32(32)));
+                        _mm256_min_epi32(_mm256_max_epi32(_mm256_add_epi32(a, step), lo8), hi8)
+                    }
+                };
+                _mm256_storeu_si256(f8.as_mut_ptr().cast(), out);
             }
             continue;
         }
@@ -1132,6 +1153,29 @@ mod tests {
         assert!(nonzero.iter().any(|n| *n), "all zero");
     }
 
+    /// The epilogue against [`finish_with`] for every activation, on sums whose rounded value
+    /// sweeps the whole i16 range and beyond (the tables' every entry pair and fraction, the
+    /// saturation to i16 before them), for each output type's range.
+    #[test]
+    fn finish_matches_the_formula() {
+        if !has_avx512() {
+            return;
+        }
+        let sums: Vec<i64> = (-(40_000i64 << 8)..(40_000i64 << 8)).step_by(37).chain([i64::MIN / 4, i64::MAX / 4, 1 << 40, -(1 << 40)]).collect();
+        let mut fin = vec![0i32; sums.len()];
+        for post in [PostOp::None, PostOp::Relu, PostOp::Sigmoid, PostOp::Tanh] {
+            for (lo, hi) in [(i16::MIN as i32, i16::MAX as i32), (i8::MIN as i32, i8::MAX as i32), (0, 255)] {
+                for bias in [0, -300, 77 << 8] {
+                    // SAFETY: the CPU has AVX-512 F (checked).
+                    unsafe { finish_channel(post, bias, false, &sums, &mut fin, lo, hi) };
+                    for (s, f) in sums.iter().zip(&fin) {
+                        assert_eq!(*f as i64, finish_with(post, bias, *s).clamp(lo as i64, hi as i64), "{post:?} sum {s} bias {bias}");
+                    }
+                }
+            }
+        }
+    }
+
     /// A frame's re-laid weights are its own: the next frame sees a table changed in place (the
     /// same address and length), and two layers of one frame do not share copies.
     #[test]
@@ -1220,7 +1264,7 @@ mod tests {
         let i8s = |r: &mut Rng| r.i8();
         let i16s = |r: &mut Rng| r.i16();
         let mut seed = 1;
-        for post in [PostOp::None, PostOp::Relu, PostOp::Tanh] {
+        for post in [PostOp::None, PostOp::Relu, PostOp::Tanh, PostOp::Sigmoid] {
             for w in [1, 9, 16, 33, 57] {
                 for (k, stride, parts, cout) in
                     [
