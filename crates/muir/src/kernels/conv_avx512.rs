@@ -827,23 +827,31 @@ unsafe fn finish_channel(post: PostOp, bias: i64, wild: bool, sum: &[i64], fin: 
 #[target_feature(enable = "avx512f")]
 unsafe fn add_part(acc: &[i64], sum: &mut [i64], m: crate::arith::Multiplier, mut wild: bool, first: bool) -> bool {
     let short = super::short_ok(m);
-    let (mv, half, count) = (_mm512_set1_epi64(m.m as i64), _mm512_set1_epi64(1i64 << (m.shift.clamp(1, 63) - 1)), _mm_cvtsi64_si128(m.shift as i64));
-    for (a, s) in acc.chunks(8).zip(sum.chunks_mut(8)) {
-        if let (Ok(a8), Ok(s8), true, false) = (<&[i64; 8]>::try_from(a), <&mut [i64; 8]>::try_from(&mut *s), short, wild) {
-            // SAFETY: `a8` and `s8` are 8 i64 each; the CPU has AVX-512 F.
-            let (v, t) = unsafe { (_mm512_loadu_si512(a8.as_ptr().cast()), _mm512_loadu_si512(s8.as_ptr().cast())) };
-            if _mm512_cmpeq_epi64_mask(v, _mm512_cvtepi32_epi64(_mm512_cvtepi64_epi32(v))) == 0xFF {
+    let n = acc.len().min(sum.len());
+    // Vectors while the contributions are short (the first accumulator beyond i32 ends them:
+    // from there on the sums may be large, so the rest takes the saturating formula).
+    let mut x = 0;
+    if short && !wild {
+        let (mv, half, count) = (_mm512_set1_epi64(m.m as i64), _mm512_set1_epi64(1i64 << (m.shift - 1)), _mm_cvtsi64_si128(m.shift as i64));
+        let (a, s) = (acc.as_ptr(), sum.as_mut_ptr());
+        while x + 8 <= n {
+            // SAFETY: `x + 8 <= n` values of both; the CPU has AVX-512 F.
+            unsafe {
+                let v = _mm512_loadu_si512(a.add(x).cast());
+                if _mm512_cmpeq_epi64_mask(v, _mm512_cvtepi32_epi64(_mm512_cvtepi64_epi32(v))) != 0xFF {
+                    break;
+                }
                 let r = _mm512_sra_epi64(_mm512_add_epi64(_mm512_mul_epi32(v, mv), half), count);
-                // SAFETY: as above.
-                unsafe { _mm512_storeu_si512(s8.as_mut_ptr().cast(), if first { r } else { _mm512_add_epi64(t, r) }) };
-                continue;
+                let r = if first { r } else { _mm512_add_epi64(_mm512_loadu_si512(s.add(x).cast()), r) };
+                _mm512_storeu_si512(s.add(x).cast(), r);
             }
+            x += 8;
         }
-        for (a, s) in a.iter().zip(s.iter_mut()) {
-            let r = requantize(*a, m);
-            wild |= !short || *a != *a as i32 as i64;
-            *s = if first { r } else { s.saturating_add(r) };
-        }
+    }
+    for (a, s) in acc.iter().zip(sum.iter_mut()).skip(x) {
+        let r = requantize(*a, m);
+        wild |= !short || *a != *a as i32 as i64;
+        *s = if first { r } else { s.saturating_add(r) };
     }
     wild
 }
