@@ -786,12 +786,15 @@ unsafe fn finish_channel(post: PostOp, bias: i64, wild: bool, sum: &[i64], fin: 
     let (b, l, h) = (_mm512_set1_epi64(bias + (1 << (super::EXTRA_BITS - 1))), _mm512_set1_epi64(lo_v as i64), _mm512_set1_epi64(hi as i64));
     let (i16_lo, i16_hi) = (_mm512_set1_epi64(i16::MIN as i64), _mm512_set1_epi64(i16::MAX as i64));
     let (lo8, hi8) = (_mm256_set1_epi32(lo), _mm256_set1_epi32(hi));
-    for (s, f) in sum.chunks(8).zip(fin.chunks_mut(8)) {
-        if let (Ok(s8), Ok(f8), true) = (<&[i64; 8]>::try_from(s), <&mut [i32; 8]>::try_from(&mut *f), fast) {
-            // SAFETY: `s8` is 8 i64, `f8` 8 i32; the CPU has AVX-512 F (and so AVX2); a table
+    let n = sum.len().min(fin.len());
+    let mut x = 0;
+    if fast {
+        let (sp, fp) = (sum.as_ptr(), fin.as_mut_ptr());
+        while x + 8 <= n {
+            // SAFETY: `x + 8 <= n` values of both; the CPU has AVX-512 F (and so AVX2); a table
             // holds 1025 i16 and each gather reads the 4 bytes at `2 i` for `i <= 1023`.
             unsafe {
-                let v = _mm512_srai_epi64::<{ super::EXTRA_BITS }>(_mm512_add_epi64(_mm512_loadu_si512(s8.as_ptr().cast()), b));
+                let v = _mm512_srai_epi64::<{ super::EXTRA_BITS }>(_mm512_add_epi64(_mm512_loadu_si512(sp.add(x).cast()), b));
                 let out = match table {
                     None => _mm512_cvtepi64_epi32(_mm512_min_epi64(_mm512_max_epi64(v, l), h)),
                     Some(t) => {
@@ -803,13 +806,13 @@ unsafe fn finish_channel(post: PostOp, bias: i64, wild: bool, sum: &[i64], fin: 
                         _mm256_min_epi32(_mm256_max_epi32(_mm256_add_epi32(a, step), lo8), hi8)
                     }
                 };
-                _mm256_storeu_si256(f8.as_mut_ptr().cast(), out);
+                _mm256_storeu_si256(fp.add(x).cast(), out);
             }
-            continue;
+            x += 8;
         }
-        for (s, f) in s.iter().zip(f.iter_mut()) {
-            *f = finish_with(post, bias, *s).clamp(lo as i64, hi as i64) as i32;
-        }
+    }
+    for (s, f) in sum.iter().zip(fin.iter_mut()).skip(x) {
+        *f = finish_with(post, bias, *s).clamp(lo as i64, hi as i64) as i32;
     }
 }
 
