@@ -532,7 +532,19 @@ unsafe fn run_with<T: Elem>(
             // The block's weights of this part, `[ky][kx][c]` with `chp` values a tap (4 bytes a
             // group): the blob's own (u8 of whole groups), else a copy with the channels padded
             // (u8) or widened to i16, in this thread's buffer.
+            // The exact sums of the part: the memo's rows for the constant part (kept, or
+            // computed into them), else `sp`.
+            // SAFETY: the memo's sums hold `cout pixpad` (the caller's); rows `c0 .. c0 + r` are
+            // this task's only.
+            let mut memo_rows = (memo_part == Some(part)).then(|| unsafe { memo_sums.slice(c0 * pixpad, r * pixpad) });
+            let dst = match &mut memo_rows {
+                Some(m) => m.as_mut_ptr(),
+                None => sp.as_mut_ptr(),
+            };
             WEIGHTS.with_borrow_mut(|buf| {
+                if hit && memo_rows.is_some() {
+                    return; // this frame's sums of the row, kept
+                }
                 let mut wp = [core::ptr::null::<u8>(); BLOCK_C];
                 let kept = relaid.and_then(|(buf, at)| Some((buf, *at.get(part)?)));
                 if let (Some((buf, at)), true) = (kept, plan.copied(kind)) {
@@ -555,43 +567,30 @@ unsafe fn run_with<T: Elem>(
                         *wp = bytes.get(i * wrow..).unwrap_or_default().as_ptr();
                     }
                 }
-                if memo_part == Some(part) {
-                    // SAFETY: the memo's sums hold `cout pixpad` (the caller's); rows `c0 ..
-                    // c0 + r` are this task's only.
-                    let kept = unsafe { memo_sums.slice(c0 * pixpad, r * pixpad) };
-                    if hit {
-                        sp.copy_from_slice(kept);
-                        return;
-                    }
-                }
                 // SAFETY: the CPU has AVX-512 F/BW/VNNI (this function's contract); each `wp`
                 // points at `k k chp` weights of its channel (the blob's, `weights.len() >=
                 // cout kl` checked, or this thread's copy), which the taps' groups cover; the
                 // taps lie inside `xt` for every pixel below `pixpad` (see `transpose_task`);
-                // `sp` holds `r` rows of `pixpad`.
+                // `dst` holds `r` rows of `pixpad`.
                 unsafe {
                     match kind {
-                        Kind::U8 => block_dispatch::<true>(r, xtp as *const i32, taps, pixpad, &wp, sp.as_mut_ptr()),
-                        Kind::I16 => block_dispatch::<false>(r, xtp as *const i32, taps, pixpad, &wp, sp.as_mut_ptr()),
+                        Kind::U8 => block_dispatch::<true>(r, xtp as *const i32, taps, pixpad, &wp, dst),
+                        Kind::I16 => block_dispatch::<false>(r, xtp as *const i32, taps, pixpad, &wp, dst),
                     }
                 }
-                if memo_part == Some(part) {
-                    // SAFETY: as above.
-                    unsafe { memo_sums.slice(c0 * pixpad, r * pixpad) }.copy_from_slice(sp);
-                }
             });
-            for (i, ((acc, sum), wild)) in sp.chunks_exact_mut(pixpad).zip(sums.chunks_exact_mut(pixpad)).zip(wild.iter_mut()).enumerate() {
+            let src: &[i64] = match &memo_rows {
+                Some(m) => m,
+                None => sp,
+            };
+            for (i, ((acc, sum), wild)) in src.chunks_exact(pixpad).zip(sums.chunks_exact_mut(pixpad)).zip(wild.iter_mut()).enumerate() {
                 let c = c0 + i;
-                if signed8 {
-                    // i8 activations were packed as `x + 128` (u8): take `128 sum(w)` back.
-                    let w = p.weights.get(c * kl + off..c * kl + off + n).unwrap_or_default();
-                    let bias = 128 * w.iter().map(|w| *w as i64).sum::<i64>();
-                    acc.iter_mut().for_each(|v| *v -= bias);
-                }
+                // i8 activations were packed as `x + 128` (u8): `128 sum(w)` comes off.
+                let corr = if signed8 { 128 * p.weights.get(c * kl + off..c * kl + off + n).unwrap_or_default().iter().map(|w| *w as i64).sum::<i64>() } else { 0 };
                 // The part's requantised contribution, as the portable path adds it.
                 let m = mult_at(p.mult.0.get(8 * (c * np + part)..).unwrap_or_default());
                 // SAFETY: the CPU has AVX-512 F (this function's contract).
-                *wild = unsafe { add_part(acc, sum, m, *wild, part == 0) };
+                *wild = unsafe { add_part(acc, corr, sum, m, *wild, part == 0) };
             }
         }
         for (i, ((sum, fin), wild)) in sums.chunks_exact(pixpad).zip(fin.chunks_exact_mut(pixpad)).zip(wild).enumerate() {
@@ -816,8 +815,9 @@ unsafe fn finish_channel(post: PostOp, bias: i64, wild: bool, sum: &[i64], fin: 
     }
 }
 
-/// `sum[x] = sum[x].saturating_add(requantize(acc[x], m))` for every pixel (`sum[x] =
-/// requantize(acc[x], m)` for the `first` part: the sums need no zeroing); returns whether a sum
+/// `sum[x] = sum[x].saturating_add(requantize(acc[x] - corr, m))` for every pixel (`sum[x] =
+/// requantize(acc[x] - corr, m)` for the `first` part: the sums need no zeroing; `corr` takes
+/// the `x + 128` packing of i8 activations back); returns whether a sum
 /// may now be large (`wild`: some contribution took the scalar path).
 ///
 /// Eight pixels at a time when `m` is short ([`super::short_ok`]), the eight accumulators fit in
@@ -828,7 +828,7 @@ unsafe fn finish_channel(post: PostOp, bias: i64, wild: bool, sum: &[i64], fin: 
 /// # Safety
 /// The CPU has AVX-512 F.
 #[target_feature(enable = "avx512f")]
-unsafe fn add_part(acc: &[i64], sum: &mut [i64], m: crate::arith::Multiplier, mut wild: bool, first: bool) -> bool {
+unsafe fn add_part(acc: &[i64], corr: i64, sum: &mut [i64], m: crate::arith::Multiplier, mut wild: bool, first: bool) -> bool {
     let short = super::short_ok(m);
     let n = acc.len().min(sum.len());
     // Vectors while the contributions are short (the first accumulator beyond i32 ends them:
@@ -836,11 +836,11 @@ unsafe fn add_part(acc: &[i64], sum: &mut [i64], m: crate::arith::Multiplier, mu
     let mut x = 0;
     if short && !wild {
         let (mv, half, count) = (_mm512_set1_epi64(m.m as i64), _mm512_set1_epi64(1i64 << (m.shift - 1)), _mm_cvtsi64_si128(m.shift as i64));
-        let (a, s) = (acc.as_ptr(), sum.as_mut_ptr());
+        let (a, s, cv) = (acc.as_ptr(), sum.as_mut_ptr(), _mm512_set1_epi64(corr));
         while x + 8 <= n {
             // SAFETY: `x + 8 <= n` values of both; the CPU has AVX-512 F.
             unsafe {
-                let v = _mm512_loadu_si512(a.add(x).cast());
+                let v = _mm512_sub_epi64(_mm512_loadu_si512(a.add(x).cast()), cv);
                 if _mm512_cmpeq_epi64_mask(v, _mm512_cvtepi32_epi64(_mm512_cvtepi64_epi32(v))) != 0xFF {
                     break;
                 }
@@ -852,8 +852,9 @@ unsafe fn add_part(acc: &[i64], sum: &mut [i64], m: crate::arith::Multiplier, mu
         }
     }
     for (a, s) in acc.iter().zip(sum.iter_mut()).skip(x) {
-        let r = requantize(*a, m);
-        wild |= !short || *a != *a as i32 as i64;
+        let a = a - corr;
+        let r = requantize(a, m);
+        wild |= !short || a != a as i32 as i64;
         *s = if first { r } else { s.saturating_add(r) };
     }
     wild
