@@ -138,14 +138,29 @@ fn grey_rows(img: &ImageView<'_>, y: isize, grey: &mut [u8]) -> bool {
     let y = clamp_y(y) as isize;
     for (k, row) in grey.chunks_exact_mut(w).take(n).enumerate() {
         let yy = clamp_y(y + k as isize - CENSUS_RADIUS as isize);
-        // A grey image's row is its bytes (a copy; `grey_at` per pixel otherwise).
-        #[cfg(all(target_arch = "arm", feature = "mve"))]
-        if let (PixelFormat::Gray8, Some(src)) = (img.format, img.data.get(yy * w..yy * w + w)) {
-            super::mve::copy(row, src);
-            continue;
-        }
-        for (x, g) in row.iter_mut().enumerate() {
-            *g = grey_at(img, x, yy);
+        let ch = img.format.channels();
+        // A whole row of the image: a grey image's row is its bytes (a copy), an RGB row is
+        // converted pixel by pixel as `grey_at` does; a row the buffer lacks goes through
+        // `grey_at` (0 past its end).
+        match (img.format, img.data.get(yy * w * ch..(yy + 1) * w * ch)) {
+            (PixelFormat::Gray8, Some(src)) => {
+                #[cfg(all(target_arch = "arm", feature = "mve"))]
+                super::mve::copy(row, src);
+                #[cfg(not(all(target_arch = "arm", feature = "mve")))]
+                row.iter_mut().zip(src).for_each(|(g, s)| *g = *s);
+            }
+            (PixelFormat::Rgb8, Some(src)) => {
+                for (g, p) in row.iter_mut().zip(src.chunks_exact(3)) {
+                    if let &[r, gg, b] = p {
+                        *g = ((77 * r as u32 + 150 * gg as u32 + 29 * b as u32) >> 8) as u8;
+                    }
+                }
+            }
+            _ => {
+                for (x, g) in row.iter_mut().enumerate() {
+                    *g = grey_at(img, x, yy);
+                }
+            }
         }
     }
     true
