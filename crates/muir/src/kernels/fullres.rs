@@ -47,6 +47,9 @@ use super::{chunk, chunk_mut, head, head_mut, set_at};
 #[cfg(feature = "std")]
 #[path = "fullres_threads.rs"]
 mod threads;
+#[cfg(all(target_arch = "x86_64", feature = "std"))]
+#[path = "census_avx512.rs"]
+mod census_avx512;
 use crate::arith::{DISP_FRAC, div_round, sat_i16};
 use crate::input::{ImageView, PixelFormat};
 
@@ -114,6 +117,13 @@ pub fn census_row(img: &ImageView<'_>, y: isize, grey: &mut [u8], out: &mut [u64
         census_codes(grey, w, (0..CENSUS_RADIUS).chain(w - CENSUS_RADIUS..w), out);
         return;
     }
+    #[cfg(all(target_arch = "x86_64", feature = "std"))]
+    {
+        let done = census_avx512::interior(grey, w, out);
+        census_codes(grey, w, (0..CENSUS_RADIUS.min(w)).chain(done..w), out);
+        return;
+    }
+    #[allow(unreachable_code)]
     census_codes(grey, w, 0..w, out);
 }
 
@@ -807,6 +817,35 @@ mod tests {
                 assert_eq!((n, &got), (n_want, &want), "{w}x{h}, {t} threads, refine_image");
             }
             crate::kernels::pool::set_threads(1);
+        }
+    }
+
+    /// [`census_row`] (vector kernels where the target has them) against the portable codes:
+    /// random rows, flat rows (ties are not darker) and rows of extremes, every width from 1 to
+    /// 80 and a few rows near the borders.
+    #[cfg(feature = "std")]
+    #[test]
+    fn census_matches_portable() {
+        let mut r = crate::kernels::testutil::Rng(3);
+        for w in (1..=80).chain([127, 128, 129, 450]) {
+            let h = 9;
+            for kind in 0..3 {
+                let img: Vec<u8> = (0..w * h)
+                    .map(|i| match kind {
+                        0 => r.i8() as u8,
+                        1 => 100 + (i % 2) as u8,
+                        _ => if r.i16() > 0 { 255 } else { 0 },
+                    })
+                    .collect();
+                let v = ImageView::new(w, h, PixelFormat::Gray8, &img).unwrap();
+                let mut grey = vec![0u8; 7 * w];
+                for y in [-1isize, 0, 2, 4, 8, 9] {
+                    let (mut a, mut b) = (vec![1u64; w], vec![2u64; w]);
+                    census_row(&v, y, &mut grey, &mut a);
+                    census_row_portable(&v, y, &mut grey, &mut b);
+                    assert_eq!(a, b, "w {w} kind {kind} y {y}");
+                }
+            }
         }
     }
 
