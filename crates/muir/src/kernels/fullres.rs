@@ -413,11 +413,38 @@ fn decide(s: &[u32], band: Band) -> Option<i16> {
     Some(sat_i16(((band.first as i64 + i as i64) << DISP_FRAC) + off))
 }
 
-/// The median of nine values.
+/// The median of nine values: a selection network of 19 compare-exchanges (the middle value
+/// only; branch-free minima and maxima instead of a sort per pixel; the tests check it against a
+/// sort on every order of nine distinct values and every 0/1 input).
 #[inline(always)]
-fn median9(mut v: [i16; 9]) -> i16 {
-    v.sort_unstable();
-    v[4]
+#[allow(unused_assignments)] // the network's last exchanges also order values that are not the median
+fn median9(v: [i16; 9]) -> i16 {
+    let [mut p0, mut p1, mut p2, mut p3, mut p4, mut p5, mut p6, mut p7, mut p8] = v;
+    macro_rules! order {
+        ($a:ident, $b:ident) => {
+            ($a, $b) = ($a.min($b), $a.max($b));
+        };
+    }
+    order!(p1, p2);
+    order!(p4, p5);
+    order!(p7, p8);
+    order!(p0, p1);
+    order!(p3, p4);
+    order!(p6, p7);
+    order!(p1, p2);
+    order!(p4, p5);
+    order!(p7, p8);
+    order!(p0, p3);
+    order!(p5, p8);
+    order!(p4, p7);
+    order!(p3, p6);
+    order!(p1, p4);
+    order!(p2, p5);
+    order!(p4, p7);
+    order!(p2, p4);
+    order!(p4, p6);
+    order!(p2, p4);
+    p4
 }
 
 /// Row `y` of the 3x3 median of `rows` (`[above, row, below]`, each `w` values, borders
@@ -846,6 +873,45 @@ mod tests {
                     assert_eq!(a, b, "w {w} kind {kind} y {y}");
                 }
             }
+        }
+    }
+
+    /// The selection network against a sort: every 0/1 input (the 0-1 principle), every
+    /// permutation of nine distinct values, random values with ties and extremes.
+    #[test]
+    fn median9_is_the_middle_value() {
+        let by_sort = |mut v: [i16; 9]| {
+            v.sort_unstable();
+            v[4]
+        };
+        for bits in 0u32..512 {
+            let v: [i16; 9] = core::array::from_fn(|i| ((bits >> i) & 1) as i16);
+            assert_eq!(median9(v), by_sort(v), "{v:?}");
+        }
+        // Heap's algorithm over the 9! orders of 0..9.
+        let mut v: [i16; 9] = core::array::from_fn(|i| i as i16 * 3 - 12);
+        let mut c = [0usize; 9];
+        assert_eq!(median9(v), by_sort(v));
+        let mut i = 1;
+        while i < 9 {
+            if c[i] < i {
+                if i % 2 == 0 { v.swap(0, i) } else { v.swap(c[i], i) }
+                assert_eq!(median9(v), by_sort(v), "{v:?}");
+                c[i] += 1;
+                i = 1;
+            } else {
+                c[i] = 0;
+                i += 1;
+            }
+        }
+        let mut r = crate::kernels::testutil::Rng(9);
+        for _ in 0..20000 {
+            let v: [i16; 9] = core::array::from_fn(|_| match r.below(4) {
+                0 => i16::MIN,
+                1 => i16::MAX,
+                _ => r.i16() >> r.below(14),
+            });
+            assert_eq!(median9(v), by_sort(v), "{v:?}");
         }
     }
 
