@@ -48,8 +48,8 @@ use super::{chunk, chunk_mut, head, head_mut, set_at};
 #[path = "fullres_threads.rs"]
 mod threads;
 #[cfg(all(target_arch = "x86_64", feature = "std"))]
-#[path = "census_avx512.rs"]
-mod census_avx512;
+#[path = "fullres_avx512.rs"]
+mod avx512;
 use crate::arith::{DISP_FRAC, div_round, sat_i16};
 use crate::input::{ImageView, PixelFormat};
 
@@ -119,7 +119,7 @@ pub fn census_row(img: &ImageView<'_>, y: isize, grey: &mut [u8], out: &mut [u64
     }
     #[cfg(all(target_arch = "x86_64", feature = "std"))]
     {
-        let done = census_avx512::interior(grey, w, out);
+        let done = avx512::census_interior(grey, w, out);
         census_codes(grey, w, (0..CENSUS_RADIUS.min(w)).chain(done..w), out);
         return;
     }
@@ -352,6 +352,10 @@ pub fn path_step(prev: &[u16], pband: Band, cost: &[u16], band: Band, p2: u32, o
                 return;
             }
         }
+    }
+    #[cfg(all(target_arch = "x86_64", feature = "std"))]
+    if avx512::path_step(prev, pband, cost, band, p2, out) {
+        return;
     }
     #[allow(unreachable_code)]
     path_step_portable(prev, pband, cost, band, p2, out)
@@ -913,6 +917,34 @@ mod tests {
             });
             assert_eq!(median9(v), by_sort(v), "{v:?}");
         }
+    }
+
+    /// [`path_step`] (vector kernels where the target has them) against the portable step: bands
+    /// of every length and relative offset (overlapping, adjacent, disjoint), costs and
+    /// predecessor values across their range and beyond the stage's (the vector step's u16 limit).
+    #[test]
+    fn path_step_matches_portable() {
+        let mut r = crate::kernels::testutil::Rng(17);
+        let mut cases = 0;
+        for np in 0..=SLOTS {
+            for n in 0..=SLOTS {
+                for _ in 0..40 {
+                    let pfirst = r.below(60) as i16;
+                    let first = (pfirst as i64 + r.below(80) as i64 - 40).max(0) as i16;
+                    let (pband, band) = (Band { first: pfirst, len: np as i16 }, Band { first, len: n as i16 });
+                    let big = r.below(8) == 0;
+                    let prev: Vec<u16> = (0..SLOTS).map(|_| if big { u16::MAX - r.below(3000) as u16 } else { r.below(4500) as u16 }).collect();
+                    let cost: Vec<u16> = (0..SLOTS).map(|_| r.below(433) as u16).collect();
+                    let p2 = penalty2(r.below(256) as u8, r.below(256) as u8);
+                    let (mut a, mut b) = (vec![7u16; SLOTS], vec![7u16; SLOTS]);
+                    path_step(&prev, pband, &cost, band, p2, &mut a);
+                    path_step_portable(&prev, pband, &cost, band, p2, &mut b);
+                    assert_eq!(a, b, "pband {pband:?} band {band:?} p2 {p2}");
+                    cases += 1;
+                }
+            }
+        }
+        assert!(cases > 30_000);
     }
 
     #[test]

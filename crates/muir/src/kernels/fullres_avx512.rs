@@ -1,0 +1,131 @@
+//! The refinement's kernels on AVX-512 (host, x86-64), the same integers as the portable ones.
+//!
+//! **Census codes**, sixteen pixels a vector: for each of the 48 neighbours (row-major over the 7x7 window, the centre skipped: bit `b` of
+//! [`super::census_codes`]' order) the sixteen neighbour bytes are widened to i32 lanes and
+//! compared with the centres (`n < c`, unsigned); the lane mask sets bit `b` of the low or high
+//! 32-bit half of each pixel's code. The halves are then interleaved into the sixteen u64 codes.
+//! Only columns whose whole window lies inside the row take this path (no clamping); the
+//! portable loop does the others.
+//!
+//! **Path steps**, a pixel's candidates (at most [`SLOTS`] = 30) in one vector of 32 u16: the
+//! predecessor's costs laid out as a window (`u16::MAX` where no term exists, see
+//! [`super::path_step_portable`]), `min(win[k + 1], min(win[k], win[k + 2]) + P1, m + P2') - m + C`
+//! with saturating adds (`u16::MAX + P1` stays `u16::MAX` and never wins: every real term is below
+//! `432 + P2`).
+#![deny(clippy::indexing_slicing)]
+
+use core::arch::x86_64::*;
+
+use super::{Band, CENSUS_RADIUS, P1, SLOTS};
+
+/// Census codes of columns `CENSUS_RADIUS ..` in blocks of 16 while a block's window stays inside
+/// the row, from the seven grey rows in `grey` (`w` each) into `out`; returns the first column
+/// it did not do (`CENSUS_RADIUS` when it did none).
+pub(super) fn census_interior(grey: &[u8], w: usize, out: &mut [u64]) -> usize {
+    let r = CENSUS_RADIUS;
+    let n = 2 * r + 1;
+    if !super::super::x86::has_avx512() || grey.len() < n * w || out.len() < w {
+        return r;
+    }
+    // SAFETY: the CPU has AVX-512 F and BW; `grey` holds seven rows of `w`, `out` `w` codes.
+    unsafe { blocks(grey, w, out) }
+}
+
+/// [`census_interior`]'s blocks.
+///
+/// # Safety
+/// The CPU has AVX-512 F and BW; `grey.len() >= 7 w`, `out.len() >= w`.
+#[target_feature(enable = "avx512f,avx512bw")]
+unsafe fn blocks(grey: &[u8], w: usize, out: &mut [u64]) -> usize {
+    let r = CENSUS_RADIUS;
+    let mut x = r;
+    // Pixels `x .. x + 16` read columns `x - 3 .. x + 19`, all inside the row.
+    let lo_idx = _mm512_setr_epi32(0, 16, 1, 17, 2, 18, 3, 19, 4, 20, 5, 21, 6, 22, 7, 23);
+    let hi_idx = _mm512_setr_epi32(8, 24, 9, 25, 10, 26, 11, 27, 12, 28, 13, 29, 14, 30, 15, 31);
+    let (g, o) = (grey.as_ptr(), out.as_mut_ptr());
+    while x + 16 + r <= w {
+        // SAFETY: every load reads 16 bytes at row `dy`, columns `x + dx - 3 .. x + dx + 13` with
+        // `dx <= 6`: below `x + 19 <= w` (the loop bound), inside the row; the stores write codes
+        // `x .. x + 16 <= w`.
+        unsafe {
+            let at = |dy: usize, c: usize| _mm512_cvtepu8_epi32(_mm_loadu_si128(g.add(dy * w + c).cast()));
+            let centre = at(r, x);
+            let (mut lo, mut hi) = (_mm512_setzero_si512(), _mm512_setzero_si512());
+            let mut bit = 0u32;
+            for dy in 0..2 * r + 1 {
+                for dx in 0..2 * r + 1 {
+                    if dy == r && dx == r {
+                        continue;
+                    }
+                    let k = _mm512_cmplt_epu32_mask(at(dy, x + dx - r), centre);
+                    if bit < 32 {
+                        lo = _mm512_mask_or_epi32(lo, k, lo, _mm512_set1_epi32((1u32 << bit) as i32));
+                    } else {
+                        hi = _mm512_mask_or_epi32(hi, k, hi, _mm512_set1_epi32((1u32 << (bit - 32)) as i32));
+                    }
+                    bit += 1;
+                }
+            }
+            _mm512_storeu_si512(o.add(x).cast(), _mm512_permutex2var_epi32(lo, lo_idx, hi));
+            _mm512_storeu_si512(o.add(x + 8).cast(), _mm512_permutex2var_epi32(lo, hi_idx, hi));
+        }
+        x += 16;
+    }
+    x
+}
+
+/// [`super::path_step`] when the CPU has AVX-512 BW, the slices hold the bands' values and the
+/// sums stay inside u16 (`m + P2' + P1 <= u16::MAX`; the stage's are below 2^13); `false`
+/// (nothing written) otherwise.
+pub(super) fn path_step(prev: &[u16], pband: Band, cost: &[u16], band: Band, p2: u32, out: &mut [u16]) -> bool {
+    let (np, n) = (pband.n(), band.n());
+    if !super::super::x86::has_avx512() || np == 0 || prev.len() < np || cost.len() < n || out.len() < n || p2 > u16::MAX as u32 / 2 {
+        return false;
+    }
+    // SAFETY: the CPU has AVX-512 F and BW; the slices hold `np` and `n` values.
+    unsafe { step(prev, np, (band.first as isize) - (pband.first as isize), cost, n, p2 as u16, out) }
+}
+
+/// [`path_step`]'s vector step (`false`: the sums would leave u16, nothing written).
+///
+/// # Safety
+/// The CPU has AVX-512 F and BW; `1 <= np <= prev.len()`, `np <= SLOTS`, `n <= cost.len()`,
+/// `n <= out.len()`, `n <= SLOTS`.
+#[target_feature(enable = "avx512f,avx512bw")]
+unsafe fn step(prev: &[u16], np: usize, shift: isize, cost: &[u16], n: usize, p2: u16, out: &mut [u16]) -> bool {
+    const _: () = assert!(SLOTS + 2 <= 32);
+    let pmask: __mmask32 = (1u32 << np) - 1;
+    let nmask: __mmask32 = (1u32 << n) - 1;
+    // SAFETY: the masked loads and stores touch the first `np` (`n`) values of the slices, the
+    // window's stores 32 lanes at `at <= 64` of its 96.
+    unsafe {
+        let p = _mm512_mask_loadu_epi16(_mm512_set1_epi16(-1), pmask, prev.as_ptr().cast());
+        // m: the least of the predecessor's values (absent lanes are u16::MAX).
+        let mut mv = _mm512_min_epu16(p, _mm512_shuffle_i64x2::<0b01_00_11_10>(p, p));
+        mv = _mm512_min_epu16(mv, _mm512_shuffle_i64x2::<0b10_11_00_01>(mv, mv));
+        mv = _mm512_min_epu16(mv, _mm512_bsrli_epi128::<8>(mv));
+        mv = _mm512_min_epu16(mv, _mm512_bsrli_epi128::<4>(mv));
+        mv = _mm512_min_epu16(mv, _mm512_bsrli_epi128::<2>(mv));
+        let m16 = _mm_extract_epi16::<0>(_mm512_castsi512_si128(mv)) as u32;
+        if m16 + p2 as u32 + P1 > u16::MAX as u32 {
+            return false;
+        }
+        let m = _mm512_set1_epi16(m16 as i16);
+        let far = _mm512_adds_epu16(m, _mm512_set1_epi16(p2 as i16));
+        // The window: `win[i] = prev[i - 1 + shift]` (offset by 32), `u16::MAX` where no term
+        // exists. Lanes `k < n <= 30` read `win[32 + k ..= 34 + k]`: a predecessor stored from
+        // `at` outside `0 ..= 64` has no value there.
+        let mut win = [u16::MAX; 96];
+        let at = 32 + 1 - shift;
+        if (0..=64).contains(&at) {
+            _mm512_mask_storeu_epi16(win.as_mut_ptr().add(at as usize).cast(), pmask, p);
+        }
+        let w = win.as_ptr().add(32);
+        let (w0, w1, w2) = (_mm512_loadu_si512(w.cast()), _mm512_loadu_si512(w.add(1).cast()), _mm512_loadu_si512(w.add(2).cast()));
+        let p1 = _mm512_set1_epi16(P1 as i16);
+        let best = _mm512_min_epu16(_mm512_min_epu16(w1, _mm512_adds_epu16(_mm512_min_epu16(w0, w2), p1)), far);
+        let c = _mm512_maskz_loadu_epi16(nmask, cost.as_ptr().cast());
+        _mm512_mask_storeu_epi16(out.as_mut_ptr().cast(), nmask, _mm512_sub_epi16(_mm512_add_epi16(c, best), m));
+    }
+    true
+}
