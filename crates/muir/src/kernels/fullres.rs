@@ -257,7 +257,7 @@ fn cost_plain(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w: us
 #[inline(always)]
 pub fn pixel_costs(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w: usize, x: usize, b: Band, out: &mut [u16]) {
     let out = head_mut(out, b.n());
-    #[allow(unused_mut)]
+    #[allow(unused_mut, unused_assignments)]
     let mut done = 0;
     #[cfg(all(target_arch = "arm", feature = "mve"))]
     if b.first >= 0 && x >= 1 {
@@ -268,6 +268,10 @@ pub fn pixel_costs(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], 
         if pairs > 0 && super::mve::cost_pairs([l0, l1, l2], [r0, r1, r2], w, x, b.first as usize, pairs, out) {
             done = 2 * pairs;
         }
+    }
+    #[cfg(all(target_arch = "x86_64", feature = "std"))]
+    {
+        done = avx512::costs(left, right, w, x, b, out);
     }
     for (k, c) in out.iter_mut().enumerate().skip(done) {
         *c = cost(left, right, w, x, b.first as usize + k);
@@ -945,6 +949,30 @@ mod tests {
             }
         }
         assert!(cases > 30_000);
+    }
+
+    /// [`pixel_costs`] (vector kernels where the target has them) against the portable costs:
+    /// random codes, every column of rows 1 to 90 wide, bands from 0 to past the column (right
+    /// columns clamped at 0 or not), the longest band.
+    #[test]
+    fn costs_match_portable() {
+        let mut r = crate::kernels::testutil::Rng(23);
+        for w in [1usize, 2, 9, 17, 40, 90] {
+            let rows: Vec<Vec<u64>> = (0..6).map(|_| (0..w).map(|_| r.next() & ((1 << 48) - 1)).collect()).collect();
+            let left: [&[u64]; WINDOW_ROWS] = [&rows[0], &rows[1], &rows[2]];
+            let right: [&[u64]; WINDOW_ROWS] = [&rows[3], &rows[4], &rows[5]];
+            for x in 0..w {
+                for first in [0i16, 1, 3, 8, 20, x as i16 - 9, x as i16 - 8, x as i16 - 40, x as i16] {
+                    for len in [1i16, 7, 8, 9, 16, 17, SLOTS as i16] {
+                        let b = Band { first: first.max(0), len };
+                        let (mut a, mut c) = (vec![9u16; SLOTS], vec![9u16; SLOTS]);
+                        pixel_costs(&left, &right, w, x, b, &mut a);
+                        pixel_costs_portable(&left, &right, w, x, b, &mut c);
+                        assert_eq!(a, c, "w {w} x {x} band {b:?}");
+                    }
+                }
+            }
+        }
     }
 
     #[test]

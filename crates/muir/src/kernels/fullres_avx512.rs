@@ -7,6 +7,11 @@
 //! Only columns whose whole window lies inside the row take this path (no clamping); the
 //! portable loop does the others.
 //!
+//! **Costs**, eight candidates a vector (AVX-512 VPOPCNTDQ): for each of the nine window
+//! positions, the left code broadcast, XOR the right codes of eight consecutive columns (one
+//! load: candidates in reverse order, reversed once at the end), population counts added.
+//! Candidates whose right columns would clamp at 0 take the portable cost.
+//!
 //! **Path steps**, a pixel's candidates (at most [`SLOTS`] = 30) in one vector of 32 u16: the
 //! predecessor's costs laid out as a window (`u16::MAX` where no term exists, see
 //! [`super::path_step_portable`]), `min(win[k + 1], min(win[k], win[k + 2]) + P1, m + P2') - m + C`
@@ -16,7 +21,7 @@
 
 use core::arch::x86_64::*;
 
-use super::{Band, CENSUS_RADIUS, P1, SLOTS};
+use super::{Band, CENSUS_RADIUS, P1, SLOTS, WINDOW_ROWS};
 
 /// Census codes of columns `CENSUS_RADIUS ..` in blocks of 16 while a block's window stays inside
 /// the row, from the seven grey rows in `grey` (`w` each) into `out`; returns the first column
@@ -128,4 +133,54 @@ unsafe fn step(prev: &[u16], np: usize, shift: isize, cost: &[u16], n: usize, p2
         _mm512_mask_storeu_epi16(out.as_mut_ptr().cast(), nmask, _mm512_sub_epi16(_mm512_add_epi16(c, best), m));
     }
     true
+}
+
+/// The costs of the first candidates of band `b` at column `x` ([`super::pixel_costs`]'s
+/// `out[k]`) in blocks of eight while no right column clamps at 0 (`first + k + 7 <= x - 1`);
+/// returns how many it wrote (0 without AVX-512 VPOPCNTDQ).
+pub(super) fn costs(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w: usize, x: usize, b: Band, out: &mut [u16]) -> usize {
+    let n = b.n().min(out.len());
+    if x == 0 || b.first < 0 || x >= w || !super::super::x86::has_avx512() || !std::is_x86_feature_detected!("avx512vpopcntdq") {
+        return 0;
+    }
+    if left.iter().chain(right.iter()).any(|r| r.len() < w) {
+        return 0;
+    }
+    // Blocks of eight candidates `d0 .. d0 + 8` with `d0 + 7 <= x - 1`.
+    let first = b.first as usize;
+    let blocks = match (x - 1).checked_sub(first + 7) {
+        Some(room) => (n / 8).min(room / 8 + 1),
+        None => 0,
+    };
+    // SAFETY: the CPU has AVX-512 F and VPOPCNTDQ; every row holds `w` codes; columns `q - d0 -
+    // 7 .. q - d0 + 1` lie in `0 ..= w - 1` for `q` in the clamped window and `d0 + 7 <= x - 1`;
+    // `out` holds `8 blocks <= n` values.
+    unsafe { cost_blocks(left, right, w, x, first, blocks, out) };
+    8 * blocks
+}
+
+/// [`costs`]' blocks.
+///
+/// # Safety
+/// As [`costs`] says.
+#[target_feature(enable = "avx512f,avx512vpopcntdq")]
+unsafe fn cost_blocks(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w: usize, x: usize, first: usize, blocks: usize, out: &mut [u16]) {
+    let cols = [x - 1, x, (x + 1).min(w - 1)];
+    let reverse = _mm512_setr_epi64(7, 6, 5, 4, 3, 2, 1, 0);
+    for k in 0..blocks {
+        let d0 = first + 8 * k;
+        let mut acc = _mm512_setzero_si512();
+        for (l, r) in left.iter().zip(right.iter()) {
+            for q in cols {
+                // SAFETY: the contract: `q < w`, `q - d0 - 7 >= 0`.
+                unsafe {
+                    let a = _mm512_set1_epi64(*l.as_ptr().add(q) as i64);
+                    let v = _mm512_loadu_si512(r.as_ptr().add(q - d0 - 7).cast());
+                    acc = _mm512_add_epi64(acc, _mm512_popcnt_epi64(_mm512_xor_si512(a, v)));
+                }
+            }
+        }
+        // SAFETY: `out` holds `8 blocks` values.
+        unsafe { _mm_storeu_si128(out.as_mut_ptr().add(8 * k).cast(), _mm512_cvtepi64_epi16(_mm512_permutexvar_epi64(reverse, acc))) };
+    }
 }
