@@ -137,34 +137,37 @@ unsafe fn step(prev: &[u16], np: usize, shift: isize, cost: &[u16], n: usize, p2
 
 /// The costs of the first candidates of band `b` at column `x` ([`super::pixel_costs`]'s
 /// `out[k]`) in blocks of eight while no right column clamps at 0 (`first + k + 7 <= x - 1`);
-/// returns how many it wrote (0 without AVX-512 VPOPCNTDQ).
+/// returns how many it wrote (0 without AVX-512 BW, VL and VPOPCNTDQ).
 pub(super) fn costs(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w: usize, x: usize, b: Band, out: &mut [u16]) -> usize {
     let n = b.n().min(out.len());
-    if x == 0 || b.first < 0 || x >= w || !super::super::x86::has_avx512() || !std::is_x86_feature_detected!("avx512vpopcntdq") {
+    if x == 0 || b.first < 0 || x >= w || !super::super::x86::has_avx512() || !std::is_x86_feature_detected!("avx512vpopcntdq") || !std::is_x86_feature_detected!("avx512vl") {
         return 0;
     }
     if left.iter().chain(right.iter()).any(|r| r.len() < w) {
         return 0;
     }
-    // Blocks of eight candidates `d0 .. d0 + 8` with `d0 + 7 <= x - 1`.
+    // Blocks of eight candidates `d0 .. d0 + 8` with `d0 + 7 <= x - 1` (the last one may hold
+    // fewer than eight of the band's: its other lanes read columns that exist and are not stored).
     let first = b.first as usize;
     let blocks = match (x - 1).checked_sub(first + 7) {
-        Some(room) => (n / 8).min(room / 8 + 1),
+        Some(room) => n.div_ceil(8).min(room / 8 + 1),
         None => 0,
     };
+    let done = (8 * blocks).min(n);
     // SAFETY: the CPU has AVX-512 F and VPOPCNTDQ; every row holds `w` codes; columns `q - d0 -
     // 7 .. q - d0 + 1` lie in `0 ..= w - 1` for `q` in the clamped window and `d0 + 7 <= x - 1`;
-    // `out` holds `8 blocks <= n` values.
-    unsafe { cost_blocks(left, right, w, x, first, blocks, out) };
-    8 * blocks
+    // `out` holds `done` values.
+    unsafe { cost_blocks(left, right, w, x, first, blocks, done, out) };
+    done
 }
 
 /// [`costs`]' blocks.
 ///
 /// # Safety
 /// As [`costs`] says.
-#[target_feature(enable = "avx512f,avx512vpopcntdq")]
-unsafe fn cost_blocks(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w: usize, x: usize, first: usize, blocks: usize, out: &mut [u16]) {
+#[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512vpopcntdq")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn cost_blocks(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w: usize, x: usize, first: usize, blocks: usize, done: usize, out: &mut [u16]) {
     let cols = [x - 1, x, (x + 1).min(w - 1)];
     let reverse = _mm512_setr_epi64(7, 6, 5, 4, 3, 2, 1, 0);
     for k in 0..blocks {
@@ -180,7 +183,8 @@ unsafe fn cost_blocks(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS
                 }
             }
         }
-        // SAFETY: `out` holds `8 blocks` values.
-        unsafe { _mm_storeu_si128(out.as_mut_ptr().add(8 * k).cast(), _mm512_cvtepi64_epi16(_mm512_permutexvar_epi64(reverse, acc))) };
+        let keep = ((1u32 << (done - 8 * k).min(8)) - 1) as __mmask8;
+        // SAFETY: the mask keeps the store inside `out[.. done]`.
+        unsafe { _mm_mask_storeu_epi16(out.as_mut_ptr().add(8 * k).cast(), keep, _mm512_cvtepi64_epi16(_mm512_permutexvar_epi64(reverse, acc))) };
     }
 }
