@@ -392,6 +392,23 @@ pub fn path_step_portable(prev: &[u16], pband: Band, cost: &[u16], band: Band, p
     }
 }
 
+/// The decision ([`decide`]) on the sums of the five paths' costs `p` of a pixel of band `band`
+/// (as far as each slice reaches); on the x86-64 host the sums and their first least value by one
+/// vector.
+#[inline(always)]
+fn sum_decide(p: [&[u16]; 5], band: Band) -> Option<i16> {
+    let mut sum = [0u32; SLOTS];
+    #[cfg(all(target_arch = "x86_64", feature = "std"))]
+    if let Some(i) = avx512::path_sums(p, band.n(), &mut sum) {
+        return decide_at(head(&sum, band.n()), band, i);
+    }
+    let [a, r, t0, t1, t2] = p;
+    for (((((s, a), r), t0), t1), t2) in sum.iter_mut().zip(a).zip(r).zip(t0).zip(t1).zip(t2).take(band.n()) {
+        *s = *a as u32 + *r as u32 + *t0 as u32 + *t1 as u32 + *t2 as u32;
+    }
+    decide(&sum, band)
+}
+
 /// The decision on summed path costs `s` (`band.len` values): the refined disparity (Q10.5), or
 /// `None` where the network's value stays.
 #[inline(always)]
@@ -403,6 +420,12 @@ fn decide(s: &[u32], band: Band) -> Option<i16> {
             (i, least) = (k, *v);
         }
     }
+    decide_at(s, band, i)
+}
+
+/// [`decide`] once the first least sum `s[i]` is known (`s`: the band's sums).
+#[inline(always)]
+fn decide_at(s: &[u32], band: Band, i: usize) -> Option<i16> {
     if i == 0 {
         return None;
     }
@@ -659,12 +682,8 @@ fn refine_rows(left: &ImageView<'_>, right: &ImageView<'_>, disparity: &mut [i16
             } else {
                 path_step(&lr_prev, band_at(b_cur, x - 1), c, b, penalty2(grey_of(g_cur, x), grey_of(g_cur, x - 1)), &mut lr_cur);
             }
-            let mut sum = [0u32; SLOTS];
             let (rl_x, t0, t1, t2) = (chunk(rl, x, SLOTS), chunk(top_cur, x, SLOTS), chunk(top_cur, w + x, SLOTS), chunk(top_cur, 2 * w + x, SLOTS));
-            for (((((s, a), r), t0), t1), t2) in sum.iter_mut().zip(&lr_cur).zip(rl_x).zip(t0).zip(t1).zip(t2).take(b.n()) {
-                *s = *a as u32 + *r as u32 + *t0 as u32 + *t1 as u32 + *t2 as u32;
-            }
-            *dec = match decide(&sum, b) {
+            *dec = match sum_decide([&lr_cur, rl_x, t0, t1, t2], b) {
                 Some(d) => {
                     decided += 1;
                     d

@@ -12,6 +12,10 @@
 //! load: candidates in reverse order, reversed once at the end), population counts added.
 //! Candidates whose right columns would clamp at 0 take the portable cost.
 //!
+//! **Path sums**: the five paths' costs of a pixel's candidates added in one vector of 32 u16
+//! (below `5 (432 + P2) < 2^16`, see the stage's assertion), widened to the u32 sums `decide`
+//! reads.
+//!
 //! **Path steps**, a pixel's candidates (at most [`SLOTS`] = 30) in one vector of 32 u16: the
 //! predecessor's costs laid out as a window (`u16::MAX` where no term exists, see
 //! [`super::path_step_portable`]), `min(win[k + 1], min(win[k], win[k + 2]) + P1, m + P2') - m + C`
@@ -106,12 +110,7 @@ unsafe fn step(prev: &[u16], np: usize, shift: isize, cost: &[u16], n: usize, p2
     unsafe {
         let p = _mm512_mask_loadu_epi16(_mm512_set1_epi16(-1), pmask, prev.as_ptr().cast());
         // m: the least of the predecessor's values (absent lanes are u16::MAX).
-        let mut mv = _mm512_min_epu16(p, _mm512_shuffle_i64x2::<0b01_00_11_10>(p, p));
-        mv = _mm512_min_epu16(mv, _mm512_shuffle_i64x2::<0b10_11_00_01>(mv, mv));
-        mv = _mm512_min_epu16(mv, _mm512_bsrli_epi128::<8>(mv));
-        mv = _mm512_min_epu16(mv, _mm512_bsrli_epi128::<4>(mv));
-        mv = _mm512_min_epu16(mv, _mm512_bsrli_epi128::<2>(mv));
-        let m16 = _mm_extract_epi16::<0>(_mm512_castsi512_si128(mv)) as u32;
+        let m16 = _mm_extract_epi16::<0>(_mm512_castsi512_si128(least_u16(p))) as u32;
         if m16 + p2 as u32 + P1 > u16::MAX as u32 {
             return false;
         }
@@ -187,4 +186,50 @@ unsafe fn cost_blocks(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS
         // SAFETY: the mask keeps the store inside `out[.. done]`.
         unsafe { _mm_mask_storeu_epi16(out.as_mut_ptr().add(8 * k).cast(), keep, _mm512_cvtepi64_epi16(_mm512_permutexvar_epi64(reverse, acc))) };
     }
+}
+
+/// `sum[k] = a[k] + b[k] + c[k] + d[k] + e[k]` for `k < n` of the five paths' costs `p` (as the
+/// portable loop sums them) and the index of the first least sum; `None` (nothing written) for
+/// `n = 0`, without AVX-512 BW or where a slice is shorter than `n`.
+pub(super) fn path_sums(p: [&[u16]; 5], n: usize, sum: &mut [u32; SLOTS]) -> Option<usize> {
+    if n == 0 || n > SLOTS || p.iter().any(|p| p.len() < n) || !super::super::x86::has_avx512() {
+        return None;
+    }
+    // SAFETY: the CPU has AVX-512 F and BW; every slice holds `1 <= n <= SLOTS` values.
+    Some(unsafe { sums(p, n, sum) })
+}
+
+/// [`path_sums`]' vector.
+///
+/// # Safety
+/// The CPU has AVX-512 F and BW; every slice of `p` holds `1 <= n <= SLOTS` values.
+#[target_feature(enable = "avx512f,avx512bw")]
+unsafe fn sums(p: [&[u16]; 5], n: usize, sum: &mut [u32; SLOTS]) -> usize {
+    let mask: __mmask32 = (1u32 << n) - 1;
+    // SAFETY: the loads are masked to `n` values; `sum` holds 30 u32: the second half's store is
+    // masked to its first 14.
+    unsafe {
+        let mut t = _mm512_setzero_si512();
+        for p in p {
+            t = _mm512_add_epi16(t, _mm512_maskz_loadu_epi16(mask, p.as_ptr().cast()));
+        }
+        _mm512_storeu_si512(sum.as_mut_ptr().cast(), _mm512_cvtepu16_epi32(_mm512_castsi512_si256(t)));
+        _mm512_mask_storeu_epi32(sum.as_mut_ptr().add(16).cast(), (1u16 << (SLOTS - 16)) - 1, _mm512_cvtepu16_epi32(_mm512_extracti64x4_epi64::<1>(t)));
+        // The first least of the `n` sums (the others as u16::MAX).
+        let v = _mm512_mask_mov_epi16(_mm512_set1_epi16(-1), mask, t);
+        let least = _mm512_cmpeq_epi16_mask(v, least_u16(v)) & mask;
+        least.trailing_zeros() as usize
+    }
+}
+
+/// The least of the 32 u16 lanes of `v`, in every lane.
+#[target_feature(enable = "avx512f,avx512bw")]
+#[inline]
+fn least_u16(v: __m512i) -> __m512i {
+    let mut m = _mm512_min_epu16(v, _mm512_shuffle_i64x2::<0b01_00_11_10>(v, v));
+    m = _mm512_min_epu16(m, _mm512_shuffle_i64x2::<0b10_11_00_01>(m, m));
+    m = _mm512_min_epu16(m, _mm512_bsrli_epi128::<8>(m));
+    m = _mm512_min_epu16(m, _mm512_bsrli_epi128::<4>(m));
+    m = _mm512_min_epu16(m, _mm512_bsrli_epi128::<2>(m));
+    _mm512_broadcastw_epi16(_mm512_castsi512_si128(m))
 }

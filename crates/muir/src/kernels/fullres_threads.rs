@@ -21,7 +21,7 @@
 use core::sync::atomic::{AtomicUsize, Ordering};
 
 use super::super::pool::{self, Shared};
-use super::{Band, CENSUS_RADIUS, SLOTS, WINDOW_ROWS, census_row, copy_head, decide, grey_at, median_row, path_step, penalty2, pixel_costs};
+use super::{Band, CENSUS_RADIUS, SLOTS, WINDOW_ROWS, census_row, copy_head, grey_at, median_row, path_step, penalty2, pixel_costs, sum_decide};
 use crate::input::ImageView;
 
 /// Columns of one cost, downward-path or decision task.
@@ -134,13 +134,8 @@ pub(super) fn refine(left: &ImageView<'_>, right: &ImageView<'_>, disparity: &mu
         };
         for (x, o) in (x0..).zip(dec.iter_mut()) {
             let b = band(y, x);
-            let mut sum = [0u32; SLOTS];
-            let n = b.n();
-            let (a, r, t0, t1, t2) = (super::chunk(lr, x, SLOTS), super::chunk(rl, x, SLOTS), super::chunk(t0, x, SLOTS), super::chunk(t1, x, SLOTS), super::chunk(t2, x, SLOTS));
-            for (((((s, a), r), t0), t1), t2) in sum.iter_mut().zip(a).zip(r).zip(t0).zip(t1).zip(t2).take(n) {
-                *s = *a as u32 + *r as u32 + *t0 as u32 + *t1 as u32 + *t2 as u32;
-            }
-            *o = match decide(&sum, b) {
+            let planes = [lr, rl, t0, t1, t2].map(|p| super::chunk(p, x, SLOTS));
+            *o = match sum_decide(planes, b) {
                 Some(d) => {
                     count += 1;
                     d
