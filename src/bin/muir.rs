@@ -140,7 +140,8 @@ struct RunArgs {
     max_disparity: MaxDisparity,
     /// Threads (1 to 4; the results are the same bits for any count): the float engine's matrix
     /// products; the fixed-point engine's kernels (convolution rows, attention, correlation
-    /// lookup split over a worker pool) and its two image encoders side by side.
+    /// lookup split over a worker pool) and its two image encoders side by side; in both engines
+    /// the full-resolution refinement's rows.
     #[arg(long, value_name = "N", default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=4))]
     threads: u8,
     /// Fixed engine: adaptive iterations, stop once at most P per mille of the 1/8-grid pixels
