@@ -1,6 +1,7 @@
 //! Engine benchmarks on the host: whole frames (fixed-point engine against the float reference,
-//! one criterion group so the ratio comes from one run), the fixed engine's phases, and the
-//! kernels against their plain twins.
+//! one criterion group so the ratio comes from one run), the fixed engine's phases, the
+//! kernels against their plain twins, and the full-resolution refinement (one and two threads,
+//! its plain twin; `cargo bench --bench engine -- refinement`).
 //!
 //! `cargo bench --bench engine -- --quick` (a few minutes on 2 cores). Models are seeded
 //! (`float::seeded`) and quantised by `calib::calibrate` on a crop of Middlebury 2003 teddy
@@ -418,6 +419,43 @@ fn kernels(c: &mut Criterion, fast: &Model, att: Option<&Attention>) {
     g.finish();
 }
 
+/// (d) The full-resolution refinement on the network's output for the pair (the fixed engine's
+/// disparity and uncertainty before it): the streaming stage on one thread (vector kernels where
+/// the CPU has them), its plain twin, and the pool's schedule on two threads. Elements = pixels.
+fn refinement(c: &mut Criterion, md: &Model, pair: &(OwnedImage, OwnedImage)) {
+    use muir::kernels::{fullres, pool};
+    let (lv, rv) = (pair.0.view(), pair.1.view());
+    let qm = QuantModel::parse(&md.blob).unwrap();
+    let plan = Plan::new(&md.cfg, W, H);
+    let mut arena = vec![0u64; plan.ram_bytes.div_ceil(8)];
+    let (mut d0, mut u) = (vec![0i16; W * H], vec![0i16; W * H]);
+    let mut e = Engine::new(&qm, bytemuck::cast_slice_mut(&mut arena)).unwrap();
+    e.set_full_res_refinement(false);
+    e.run(&lv, &rv, &mut Output { disparity: &mut d0, uncertainty: Some(&mut u) }).unwrap();
+    let mut g = c.benchmark_group(format!("refinement {} 320x240", md.name()));
+    g.sample_size(20).warm_up_time(Duration::from_millis(300)).measurement_time(Duration::from_secs(2));
+    g.throughput(Throughput::Elements((W * H) as u64));
+    let mut d = d0.clone();
+    let mut scratch = fullres::ScratchVec::new(W);
+    for threads in [1, 2] {
+        pool::set_threads(threads);
+        g.bench_function(format!("refine_image, {threads} thread(s)"), |b| {
+            b.iter(|| {
+                d.copy_from_slice(&d0);
+                black_box(fullres::refine_image(&lv, &rv, &mut d, Some(&u), scratch.view()))
+            })
+        });
+    }
+    pool::set_threads(1);
+    g.bench_function("refine_image_plain (portable twin)", |b| {
+        b.iter(|| {
+            d.copy_from_slice(&d0);
+            black_box(fullres::refine_image_plain(&lv, &rv, &mut d, Some(&u)))
+        })
+    });
+    g.finish();
+}
+
 fn all(c: &mut Criterion) {
     let (pair, calib, source) = images();
     println!("pair: {source}; models: seeded weights, calibrated on another crop");
@@ -428,6 +466,7 @@ fn all(c: &mut Criterion) {
     frames(c, &models, &pair);
     let att = stages(c, &models, &pair);
     kernels(c, &models[1], att.as_ref());
+    refinement(c, &models[0], &pair);
 }
 
 criterion_group!(benches, all);
