@@ -213,6 +213,97 @@ fn check_attention(q: &mut [i16; MAX_N], k: &mut [i16; MAX_N], r: &mut Rng) -> u
 }
 
 /// Multiplier and bias tables of one block of four channels, aligned as the blob's are.
+/// The i16 convolution block's dot products in one call per channel pair (`mve::PartLens::dots4`:
+/// four weight rows, 1 to 6 parts of random lengths 1..=140, one of 500..=699 in some extreme
+/// cases, the split pair layout) against the plain dot products: random fills, all-extreme fills
+/// (sums beyond i32, which must be reported) and one extreme channel and patch of one part among
+/// random values. `true` must
+/// mean every sum fits in i32 and equals the plain one; `false` that some sum does not fit. Both
+/// outcomes must occur.
+#[cfg(feature = "mve")]
+fn check_dots4(buf: &mut Buffers<i16>, r: &mut Rng) -> usize {
+    use muir::kernels::mve::PartLens;
+    use muir::model::graph::MAX_PARTS;
+    let (mut fits, mut over) = (0, 0);
+    for case in 0..400u32 {
+        let np = 1 + (r.next() % MAX_PARTS as u64) as usize;
+        let mut lens = [0usize; MAX_PARTS];
+        for l in lens.iter_mut().take(np) {
+            *l = match r.next() % 4 {
+                0 => 1 + (r.next() % 8) as usize,
+                _ => 1 + (r.next() % 140) as usize,
+            };
+        }
+        let mode = case % 4; // 0, 1 random; 2 all extreme; 3 one extreme part
+        let hot = (r.next() % np as u64) as usize;
+        if mode >= 2 && case % 8 < 6 {
+            // Long enough for an extreme sum beyond i32 (2^22 per term).
+            lens[hot] = 500 + (r.next() % 200) as usize;
+        }
+        let kl: usize = lens[..np].iter().sum();
+        // In mode 3 only one channel's weights and one patch of the extreme part are extreme:
+        // a single sum of the eight goes beyond i32.
+        let (hc, hb) = ((r.next() % 4) as usize, r.next() % 2 == 0);
+        let mut o = 0;
+        for (p, &n) in lens[..np].iter().enumerate() {
+            let ext = |one: bool| if mode == 2 || (mode == 3 && p == hot && one) { Fill::Min } else { Fill::Random };
+            for c in 0..4 {
+                let f = ext(c == hc);
+                for v in &mut buf.w0[c * kl + o..c * kl + o + n] {
+                    *v = i8::sample(r, f);
+                }
+            }
+            for (i, v) in buf.pair[2 * o..2 * o + 2 * n].iter_mut().enumerate() {
+                *v = i16::sample(r, ext((i >= n) == hb));
+            }
+            o += n;
+        }
+        let Some(l) = PartLens::new(lens[..np].iter().copied(), kl) else {
+            println!("MUIR-KERNELS FAILED dots4 case {case}: PartLens::new refused {:?}", &lens[..np]);
+            process::exit(1)
+        };
+        let mut d = [0i32; 8 * MAX_PARTS];
+        let ok = l.dots4(&buf.w0[..4 * kl], &buf.pair[..2 * kl], &mut d);
+        let mut all_fit = true;
+        let mut o = 0;
+        for (p, &n) in lens[..np].iter().enumerate() {
+            let (a, b) = (&buf.pair[2 * o..2 * o + n], &buf.pair[2 * o + n..2 * o + 2 * n]);
+            for c in 0..4 {
+                let w = &buf.w0[c * kl + o..c * kl + o + n];
+                for (x, at) in [(a, 8 * p + c), (b, 8 * p + 4 + c)] {
+                    let want = dot_plain(w, x);
+                    all_fit &= i32::try_from(want).is_ok();
+                    if ok && d[at] as i64 != want {
+                        fail("dots4", kl, &[d[at] as i64], &[want]);
+                    }
+                }
+            }
+            o += n;
+        }
+        if ok != all_fit {
+            println!("MUIR-KERNELS FAILED dots4 case {case}: reported fit {ok}, plain sums fit {all_fit}");
+            process::exit(1);
+        }
+        if ok {
+            fits += 1;
+        } else {
+            over += 1;
+        }
+    }
+    // Short slices are refused.
+    let l = PartLens::new([3usize, 5].into_iter(), 8);
+    let mut d = [0i32; 8 * MAX_PARTS];
+    if fits == 0 || over == 0 || l.is_none_or(|l| l.dots4(&buf.w0[..31], &buf.pair[..16], &mut d) || l.dots4(&buf.w0[..32], &buf.pair[..15], &mut d)) {
+        println!("MUIR-KERNELS FAILED dots4: fits {fits}, beyond i32 {over}, or a short slice accepted");
+        process::exit(1);
+    }
+    if PartLens::new([3usize, 0, 5].into_iter(), 8).is_some() || PartLens::new([3usize, 5].into_iter(), 9).is_some() {
+        println!("MUIR-KERNELS FAILED dots4: PartLens::new accepted a zero length or a wrong sum");
+        process::exit(1);
+    }
+    400
+}
+
 #[cfg(feature = "mve")]
 #[repr(C, align(8))]
 struct Tables {
@@ -864,6 +955,7 @@ fn main() -> ! {
     }
     #[cfg(feature = "mve")]
     {
+        cases += check_dots4(&mut i16s, &mut r);
         cases += check_attention(i16s.a, i16s.b, &mut r);
         cases += check_requant(&mut r);
         cases += check_popcount(&mut r);

@@ -35,6 +35,9 @@ pub(super) struct Layer {
     k: Requant4,
     /// The lookup table of a sigmoid or tanh activation (applied to the clamped vector).
     lut: Option<fn(i16) -> i16>,
+    /// The parts' patch lengths for [`Elem::dots4`] (i16 activations: one assembly call per
+    /// channel pair for all parts).
+    lens: Option<mve::PartLens>,
 }
 
 impl Layer {
@@ -64,7 +67,8 @@ impl Layer {
             PostOp::Sigmoid => (-32768, 32767, Some(lut::sigmoid_q12 as fn(i16) -> i16)),
             PostOp::Tanh => (-32768, 32767, Some(lut::tanh_q12 as fn(i16) -> i16)),
         };
-        Some(Layer { k: Requant4::new(np, lo, hi), lut })
+        let lens = mve::PartLens::new(p.parts.iter().map(|&ch| ch * p.k * p.k), p.patch_len());
+        Some(Layer { k: Requant4::new(np, lo, hi), lut, lens })
     }
 
     /// Output channels `0 .. 4 (cout / 4)` of pixels `a` and `b` (at `at_a` and `at_b` of `out`)
@@ -76,7 +80,11 @@ impl Layer {
         // Filled by `dots` for the block's parts before every read (no per-block clearing).
         let mut d: Dots = [0; MAX_PARTS * 8];
         for ((w, m), b) in blocks.take(p.cout / 4) {
-            if dots(p, pair, w, &mut d) {
+            let fits = match self.lens.as_ref().and_then(|l| T::dots4(l, w, pair, &mut d)) {
+                Some(fits) => fits,
+                None => dots(p, pair, w, &mut d),
+            };
+            if fits {
                 self.store(&d, 0, m, b, out, at_a + c);
                 self.store(&d, 4, m, b, out, at_b + c);
                 if mve::take_qc() {

@@ -32,6 +32,8 @@
 
 use core::arch::asm;
 
+use crate::model::graph::MAX_PARTS;
+
 /// An activation type with a Helium kernel.
 pub trait Lanes: Copy + Into<i32> {
     /// `sum w[i] * x[i]` over `i < n`, `n >= 1`, `n <= w.len()`, `n <= x.len()`.
@@ -399,6 +401,160 @@ core::arch::global_asm!(
 
 unsafe extern "C" {
     fn muir_mve_dot2x2_i16(a: *const i16, b: *const i16, w0: *const i8, w1: *const i8, n: usize, out: *mut [i64; 4]);
+}
+
+/// The part lengths of an i16 layer for [`PartLens::dots4`] (each `ch k k`, at least 1), checked
+/// once per layer: at most `MAX_PARTS` parts summing to the patch length `kl`.
+#[derive(Clone, Copy, Debug)]
+pub struct PartLens {
+    lens: [u32; MAX_PARTS],
+    np: usize,
+    kl: usize,
+}
+
+/// The arguments of `muir_mve_dots_i16`, which advances `a`, `w0`, `lens` and `out` part by part.
+#[repr(C)]
+struct DotsArgs {
+    a: *const i16,
+    w0: *const i8,
+    kl: usize,
+    lens: *const u32,
+    np: usize,
+    out: *mut i32,
+}
+
+impl PartLens {
+    /// The lengths `lens` (one per part) of a patch of `kl` values, or `None` where a length is
+    /// 0, there are no or more than `MAX_PARTS` parts, they do not sum to `kl`, or `kl` reaches
+    /// `2^26` (far beyond any layer; the byte offsets stay in `u32`).
+    pub fn new(lens: impl Iterator<Item = usize>, kl: usize) -> Option<PartLens> {
+        let mut l = PartLens { lens: [0; MAX_PARTS], np: 0, kl };
+        let mut sum = 0usize;
+        for n in lens {
+            if n == 0 || kl >= 1 << 26 {
+                return None;
+            }
+            *l.lens.get_mut(l.np)? = n as u32;
+            l.np += 1;
+            sum += n;
+        }
+        (l.np > 0 && sum == kl).then_some(l)
+    }
+
+    /// The i32 dot products of a block of four output channels at two pixels, part by part:
+    /// `d[8 p + c] = w_c . a_p` and `d[8 p + 4 + c] = w_c . b_p` for channel `c < 4` (weight row
+    /// `c` of `w`, `kl` values each, part `p` at offset `o_p`, the sum of the lengths before
+    /// it) and part `p`'s pair block at `2 o_p` of `pair` (patch `a_p`, then `b_p`, the split
+    /// pair layout). One call per channel pair for all parts (`muir_mve_dots_i16`: the
+    /// [`dot2x2_split_i16`] loop, 64-bit sums, each checked to fit in i32 and stored as i32).
+    /// Returns false, with `d` partly written, when a sum does not fit in i32 or `w` or `pair`
+    /// is shorter than `4 kl` and `2 kl`.
+    #[inline]
+    pub fn dots4(&self, w: &[i8], pair: &[i16], d: &mut [i32; 8 * MAX_PARTS]) -> bool {
+        let kl = self.kl;
+        if w.len() < 4 * kl || pair.len() < 2 * kl {
+            return false;
+        }
+        let mut bad = 0;
+        for j in 0..2 {
+            let mut args = DotsArgs {
+                a: pair.as_ptr(),
+                w0: w.as_ptr().wrapping_add(2 * j * kl),
+                kl,
+                lens: self.lens.as_ptr(),
+                np: self.np,
+                out: d.as_mut_ptr().wrapping_add(2 * j),
+            };
+            // SAFETY: part `p` reads `lens[p] >= 1` values at `2 o_p` and `2 o_p + lens[p]` of
+            // `pair` and at `o_p` of weight rows `2j` and `2j + 1` (`2 j kl + o_p`, `+ kl`), all
+            // inside the slices since the lengths sum to `kl` (`PartLens::new`) and the lengths
+            // were checked above; it writes `d[8 p + 2 j + {0, 1, 4, 5}]`, inside `d` for
+            // `p < np <= MAX_PARTS`, `j < 2`.
+            bad |= unsafe { muir_mve_dots_i16(&mut args) };
+        }
+        bad == 0
+    }
+}
+
+core::arch::global_asm!(
+    ".syntax unified",
+    ".thumb",
+    ".cpu cortex-m55",
+    ".section .text.muir_mve_dots_i16,\"ax\",%progbits",
+    ".global muir_mve_dots_i16",
+    ".type muir_mve_dots_i16,%function",
+    ".p2align 2",
+    ".thumb_func",
+    // r0 = &mut DotsArgs (kept in r12). Per part: the loop of `muir_mve_dot2x2_i16` (sums w0.a
+    // r0:r1, w0.b r2:r3, w1.a r8:r9, w1.b r10:r11; weights r4, r5; activations r6, r7; LR the
+    // part's length, then the loop count), then the four low words stored, and each high word
+    // XOR the low word's sign (zero when the sum fits in i32) ORed into [sp]; returns that OR.
+    "muir_mve_dots_i16:",
+    "    push {{r4-r11, lr}}",
+    "    sub sp, #4",
+    "    mov r12, r0",
+    "    movs r0, #0",
+    "    str r0, [sp]",
+    "1:",
+    "    ldr r1, [r12, #12]",
+    "    ldr lr, [r1], #4",
+    "    str r1, [r12, #12]",
+    "    ldr r6, [r12]",
+    "    add.w r7, r6, lr, lsl #1",
+    "    add.w r1, r7, lr, lsl #1",
+    "    str r1, [r12]",
+    "    ldrd r4, r5, [r12, #4]",
+    "    add r5, r4",
+    "    add.w r1, r4, lr",
+    "    str r1, [r12, #4]",
+    "    movs r0, #0",
+    "    movs r1, #0",
+    "    movs r2, #0",
+    "    movs r3, #0",
+    "    mov.w r8, #0",
+    "    mov.w r9, #0",
+    "    mov.w r10, #0",
+    "    mov.w r11, #0",
+    "    dlstp.16 lr, lr",
+    "2:",
+    "    vldrh.u16 q0, [r6], #16",
+    "    vldrh.u16 q1, [r7], #16",
+    "    vldrb.s16 q2, [r4], #8",
+    "    vmlaldava.s16 r0, r1, q0, q2",
+    "    vmlaldava.s16 r2, r3, q1, q2",
+    "    vldrb.s16 q2, [r5], #8",
+    "    vmlaldava.s16 r8, r9, q0, q2",
+    "    vmlaldava.s16 r10, r11, q1, q2",
+    "    letp lr, 2b",
+    "    ldr.w lr, [r12, #20]",
+    "    str.w r0, [lr]",
+    "    str.w r8, [lr, #4]",
+    "    str.w r2, [lr, #16]",
+    "    str.w r10, [lr, #20]",
+    "    add.w lr, lr, #32",
+    "    str.w lr, [r12, #20]",
+    "    eor.w r1, r1, r0, asr #31",
+    "    eor.w r3, r3, r2, asr #31",
+    "    eor.w r9, r9, r8, asr #31",
+    "    eor.w r11, r11, r10, asr #31",
+    "    orrs r1, r3",
+    "    orr.w r9, r9, r11",
+    "    orr.w r1, r1, r9",
+    "    ldr r0, [sp]",
+    "    orrs r0, r1",
+    "    str r0, [sp]",
+    "    ldr.w r0, [r12, #16]",
+    "    subs r0, #1",
+    "    str.w r0, [r12, #16]",
+    "    bne 1b",
+    "    ldr r0, [sp]",
+    "    add sp, #4",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_mve_dots_i16, . - muir_mve_dots_i16",
+);
+
+unsafe extern "C" {
+    fn muir_mve_dots_i16(args: *mut DotsArgs) -> u32;
 }
 
 /// The per-layer constants of [`requant4`]: four 32-bit lanes each.
