@@ -443,6 +443,15 @@ impl OutRow<'_> {
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
+    /// The first `n` elements (all of them when the row is shorter).
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    pub(crate) fn head(&mut self, n: usize) -> OutRow<'_> {
+        match self {
+            OutRow::I8(r) => OutRow::I8(head_mut(r, n)),
+            OutRow::U8(r) => OutRow::U8(head_mut(r, n)),
+            OutRow::I16(r) => OutRow::I16(head_mut(r, n)),
+        }
+    }
 }
 
 #[cfg(test)]
