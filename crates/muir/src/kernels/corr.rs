@@ -146,6 +146,27 @@ pub fn lookup_with(p: &LookupParams<'_>, w: usize, x: usize, flow: i16, s: &mut 
     let r = p.radius as i64;
     for ((lvl, &mult), out) in p.mults.iter().enumerate().take(p.levels).zip(out.chunks_exact_mut(k)) {
         let s_l = 1i64 << lvl;
+        if p.post_pool {
+            // The level's samples `j = -r..=r` share the sub-pixel phase `a` (their offsets `j
+            // 2^(8 + lvl)` are whole multiples of `s_l` columns) and their first columns `m` step
+            // by `s_l`: sample `t = j + r` reads `pre` at `i0 + t s_l + {0, s_l, 1, 1 + s_l}`.
+            // Where all of these lie inside `pre` (always: the window spans the widest level)
+            // no clamp applies and `box_sum` is a difference of two of them, walked by strides.
+            let p0 = centre - (r << (8 + lvl)) - ((s_l - 1) << 7);
+            let (i0, a) = ((p0 >> 8) - lo, p0 & 255);
+            let (sl, last) = (s_l as usize, i0 + 2 * r * s_l + 1 + s_l);
+            if i0 >= 0
+                && last <= n as i64
+                && let Some(pre) = pre.get(i0 as usize..=last as usize)
+            {
+                let (x0, x1) = (pre.iter().step_by(sl), pre.get(sl..).unwrap_or_default().iter().step_by(sl));
+                let (y0, y1) = (pre.get(1..).unwrap_or_default().iter().step_by(sl), pre.get(1 + sl..).unwrap_or_default().iter().step_by(sl));
+                for ((((o, x0), x1), y0), y1) in out.iter_mut().zip(x0).zip(x1).zip(y0).zip(y1) {
+                    *o = sat_i16(requantize((256 - a) * (x1 - x0) + a * (y1 - y0), mult));
+                }
+                continue;
+            }
+        }
         for (j, o) in (-r..=r).zip(out) {
             let num = if p.post_pool {
                 let p0 = centre + (j << (8 + lvl)) - ((s_l - 1) << 7);
