@@ -316,13 +316,16 @@ struct Tables {
 /// 1 to 6 parts, shifts 8 to 62, random and extreme dot products, multipliers and biases, every
 /// output type. Where `FPSCR.QC` reports a saturation the engine recomputes the block, so only
 /// the unsaturated results must match; both kinds of case must occur (counted), and small
-/// operands must never report one.
+/// operands must never report one. The same operands through `mve::requant4_lut` (sigmoid or
+/// tanh table, then the output type's clamp) against the scalar `sigmoid_q12` / `tanh_q12`.
 #[cfg(feature = "mve")]
 fn check_requant(r: &mut Rng) -> usize {
     use muir::arith::{Multiplier, requantize_i32, rshift_round};
+    use muir::arith::lut;
     use muir::kernels::mve::{self, Requant4};
     let mut t = Tables { mult: [0; 8 * 4 * 6], bias: [0; 32] };
     let (mut exact, mut saturated) = (0usize, 0usize);
+    let (mut lut_exact, mut lut_mid) = (0usize, 0usize);
     let _ = mve::take_qc();
     for case in 0..6000u32 {
         let np = 1 + (case % 6) as usize;
@@ -403,12 +406,58 @@ fn check_requant(r: &mut Rng) -> usize {
             }
             exact += 1;
         }
+        // The same operands with a sigmoid or tanh table after the clamp to i16
+        // (`mve::requant4_lut`), into each output type (saturating to it, as `OutRow::set`).
+        let (f, table): (fn(i16) -> i16, _) = if case % 2 == 0 { (lut::sigmoid_q12, lut::sigmoid_table()) } else { (lut::tanh_q12, lut::tanh_table()) };
+        let (olo, ohi) = [(0i64, 255i64), (-128, 127), (-32768, 32767)][(case / 2 % 3) as usize];
+        let k = Requant4::new(np, -32768, 32767).with_out(olo as i32, ohi as i32);
+        for (ch, w) in want.iter_mut().enumerate() {
+            let s: i64 = (0..np).map(|p| requantize_i32(d[8 * p + ch], ms[ch * np + p])).sum();
+            let b = i64::from_le_bytes(t.bias[8 * ch..8 * ch + 8].try_into().unwrap_or_default());
+            *w = (f(rshift_round(s + b, 8).clamp(-32768, 32767) as i16) as i64).clamp(olo, ohi);
+        }
+        let got: [i64; 4] = match olo {
+            -128 => {
+                let mut o = [0i8; 4];
+                // SAFETY: as above; the table's input range.
+                unsafe { mve::requant4_lut(d.as_ptr(), t.mult.as_ptr(), &k, np, t.bias.as_ptr(), table, o.as_mut_ptr()) };
+                o.map(i64::from)
+            }
+            0 => {
+                let mut o = [0u8; 4];
+                // SAFETY: as above.
+                unsafe { mve::requant4_lut(d.as_ptr(), t.mult.as_ptr(), &k, np, t.bias.as_ptr(), table, o.as_mut_ptr()) };
+                o.map(i64::from)
+            }
+            _ => {
+                let mut o = [0i16; 4];
+                // SAFETY: as above.
+                unsafe { mve::requant4_lut(d.as_ptr(), t.mult.as_ptr(), &k, np, t.bias.as_ptr(), table, o.as_mut_ptr()) };
+                o.map(i64::from)
+            }
+        };
+        if mve::take_qc() {
+            if kind == 3 {
+                println!("MUIR-KERNELS FAILED requant4_lut case {case}: saturation reported for small operands");
+                process::exit(1);
+            }
+        } else {
+            if got != want {
+                fail("requant4_lut", case as usize, &got, &want);
+            }
+            lut_exact += 1;
+            lut_mid += want.iter().filter(|&&w| w > olo && w < ohi).count();
+        }
+    }
+    if lut_exact < 1000 || lut_mid < 1000 {
+        println!("MUIR-KERNELS FAILED requant4_lut: {lut_exact} exact cases, {lut_mid} outputs inside the type's range");
+        process::exit(1);
     }
     if exact < 1000 || saturated < 100 {
         println!("MUIR-KERNELS FAILED requant4: {exact} exact and {saturated} saturated cases (both kinds must occur)");
         process::exit(1);
     }
-    exact + saturated
+    exact + saturated + lut_exact
 }
 
 /// `mve::popcount20` (the refinement's census distances) against `count_ones`: random words,

@@ -569,13 +569,23 @@ pub struct Requant4 {
     pub hi: [i32; 4],
     /// Byte offsets of four consecutive biases: `8 i`.
     pub bias_offsets: [u32; 4],
+    /// Lower clamp of the output type after a table ([`requant4_lut`]).
+    pub out_lo: [i32; 4],
+    /// Upper clamp of the output type after a table.
+    pub out_hi: [i32; 4],
 }
 
 impl Requant4 {
     /// The constants of a layer of `np` parts clamping to `lo..=hi`.
     pub const fn new(np: usize, lo: i32, hi: i32) -> Self {
         let s = 8 * np as u32;
-        Requant4 { mult_offsets: [0, s, 2 * s, 3 * s], lo: [lo; 4], hi: [hi; 4], bias_offsets: [0, 8, 16, 24] }
+        Requant4 { mult_offsets: [0, s, 2 * s, 3 * s], lo: [lo; 4], hi: [hi; 4], bias_offsets: [0, 8, 16, 24], out_lo: [lo; 4], out_hi: [hi; 4] }
+    }
+
+    /// The same with the output type's range `out_lo..=out_hi` for [`requant4_lut`] (`lo..=hi`
+    /// is then the table's input range).
+    pub const fn with_out(self, out_lo: i32, out_hi: i32) -> Self {
+        Requant4 { out_lo: [out_lo; 4], out_hi: [out_hi; 4], ..self }
     }
 }
 
@@ -586,6 +596,11 @@ pub trait Narrow: Copy {
     /// # Safety
     /// See [`requant4`].
     unsafe fn requant4_n(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, out: *mut Self);
+    /// [`requant4_lut`] for this output type.
+    ///
+    /// # Safety
+    /// See [`requant4_lut`].
+    unsafe fn requant4_lut_n(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: &[i16; 1025], out: *mut Self);
 }
 
 /// The [`Narrow`] kernel of one output type: `$store` is the narrowing store of four 32-bit lanes
@@ -638,6 +653,70 @@ macro_rules! narrow {
                     );
                 }
             }
+            #[inline(always)]
+            unsafe fn requant4_lut_n(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: &[i16; 1025], out: *mut $t) {
+                // SAFETY: the caller's bounds (`requant4_lut`); the gathers read entries `i` and
+                // `i + 1` of the 1025-entry table for `i = (x + 32768) >> 6 <= 1023`, `x` clamped
+                // to `lo..=hi` within `-32768..=32767` first (`Requant4` of `requant4_lut`).
+                unsafe {
+                    asm!(
+                        "vldrw.u32 q0, [{k}, #48]",
+                        "vldrw.u32 q6, [{bias}, q0]",
+                        "vldrw.u32 q7, [{k}]",
+                        "vmov.i32 q0, #4",
+                        "vadd.i32 q0, q7, q0",
+                        "vmov.i32 q5, #32",
+                        "2:",
+                        "vldrw.u32 q1, [{d}], #32",
+                        "vldrw.u32 q2, [r1, q7]",
+                        "vldrb.u32 q3, [r1, q0]",
+                        "vmulh.s32 q4, q1, q2",
+                        "vmul.i32 q1, q1, q2",
+                        "vsub.i32 q2, q5, q3",
+                        "vneg.s32 q3, q3",
+                        "vrshl.u32 q1, q1, q3",
+                        "vqrshl.s32 q4, q4, q2",
+                        "vqadd.s32 q4, q4, q1",
+                        "vqadd.s32 q6, q6, q4",
+                        "add r1, r1, #8",
+                        "subs {n}, {n}, #1",
+                        "bne 2b",
+                        "vrshr.s32 q6, q6, #8",
+                        "vldrw.u32 q1, [{k}, #16]",
+                        "vmax.s32 q6, q6, q1",
+                        "vldrw.u32 q1, [{k}, #32]",
+                        "vmin.s32 q6, q6, q1",
+                        // The table: u = x + 32768, entries u >> 6 and the next, fraction u & 63.
+                        "vmov.i32 q1, #0x8000",
+                        "vadd.i32 q6, q6, q1",
+                        "vshr.u32 q2, q6, #6",
+                        "vmov.i32 q1, #63",
+                        "vand q6, q6, q1",
+                        "vldrh.s32 q3, [{tab}, q2, uxtw #1]",
+                        "vldrh.s32 q4, [{tab1}, q2, uxtw #1]",
+                        "vsub.i32 q4, q4, q3",
+                        "vmul.i32 q4, q4, q6",
+                        "vrshr.s32 q4, q4, #6",
+                        "vadd.i32 q6, q3, q4",
+                        "vldrw.u32 q1, [{k}, #64]",
+                        "vmax.s32 q6, q6, q1",
+                        "vldrw.u32 q1, [{k}, #80]",
+                        "vmin.s32 q6, q6, q1",
+                        concat!($store, " q6, [r0]"),
+                        k = in(reg) k as *const Requant4,
+                        bias = in(reg) bias,
+                        d = inout(reg) d => _,
+                        n = inout(reg) np => _,
+                        tab = in(reg) table.as_ptr(),
+                        tab1 = in(reg) table.as_ptr().wrapping_add(1),
+                        inout("r1") mult => _,
+                        in("r0") out,
+                        out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+                        out("d8") _, out("d9") _, out("d10") _, out("d11") _, out("d12") _, out("d13") _, out("d14") _, out("d15") _,
+                        options(nostack),
+                    );
+                }
+            }
         }
     };
 }
@@ -673,6 +752,19 @@ narrow!(i16, "vstrh.32");
 pub unsafe fn requant4<O: Narrow>(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, out: *mut O) {
     // SAFETY: forwarded.
     unsafe { O::requant4_n(d, mult, k, np, bias, out) }
+}
+
+/// [`requant4`] followed by a sigmoid or tanh table (`arith::lut`'s `table16`: entries `i` and
+/// `i + 1` of `table` at `u = x + 32768`, `i = u >> 6`, `a + rshift_round((b - a) (u & 63), 6)`)
+/// of the clamped value `x`, then the clamp to `k.out_lo..=k.out_hi` (the output type's range,
+/// [`Requant4::with_out`]) and the narrowing store: `out[i] = clamp(f(requant4's value))`.
+///
+/// # Safety
+/// As [`requant4`], and `k.lo..=k.hi` within `-32768..=32767` (the table's input range).
+#[inline(always)]
+pub unsafe fn requant4_lut<O: Narrow>(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: &[i16; 1025], out: *mut O) {
+    // SAFETY: forwarded.
+    unsafe { O::requant4_lut_n(d, mult, k, np, bias, table, out) }
 }
 
 /// Whether a saturating vector instruction saturated since the flag was last cleared
