@@ -154,7 +154,8 @@ pub fn lookup_with(p: &LookupParams<'_>, w: usize, x: usize, flow: i16, s: &mut 
             // no clamp applies and `box_sum` is a difference of two of them, walked by strides.
             let p0 = centre - (r << (8 + lvl)) - ((s_l - 1) << 7);
             let (i0, a) = ((p0 >> 8) - lo, p0 & 255);
-            let (sl, last) = (s_l as usize, i0 + 2 * r * s_l + 1 + s_l);
+            // (`max`: a stride the compiler sees is not 0, no panic path in `step_by`.)
+            let (sl, last) = ((s_l as usize).max(1), i0 + 2 * r * s_l + 1 + s_l);
             if i0 >= 0
                 && last <= n as i64
                 && let Some(pre) = pre.get(i0 as usize..=last as usize)
