@@ -412,9 +412,11 @@ pub struct PartLens {
     kl: usize,
 }
 
-/// The arguments of `muir_mve_dots_i16`, which advances `a`, `w0`, `lens` and `out` part by part.
+/// The arguments of `muir_mve_dots_i16`, which advances `a`, `w0`, `lens` and `out` part by part
+/// (`zero`: eight zero words, loaded into the sums by one `LDM` per part).
 #[repr(C)]
 struct DotsArgs {
+    zero: [u32; 8],
     a: *const i16,
     w0: *const i8,
     kl: usize,
@@ -458,6 +460,7 @@ impl PartLens {
         let mut bad = 0;
         for j in 0..2 {
             let mut args = DotsArgs {
+                zero: [0; 8],
                 a: pair.as_ptr(),
                 w0: w.as_ptr().wrapping_add(2 * j * kl),
                 kl,
@@ -485,10 +488,11 @@ core::arch::global_asm!(
     ".type muir_mve_dots_i16,%function",
     ".p2align 2",
     ".thumb_func",
-    // r0 = &mut DotsArgs (kept in r12). Per part: the loop of `muir_mve_dot2x2_i16` (sums w0.a
-    // r0:r1, w0.b r2:r3, w1.a r8:r9, w1.b r10:r11; weights r4, r5; activations r6, r7; LR the
-    // part's length, then the loop count), then the four low words stored, and each high word
-    // XOR the low word's sign (zero when the sum fits in i32) ORed into [sp]; returns that OR.
+    // r0 = &mut DotsArgs (kept in r12). Per part: the sums cleared by one LDM of `zero`, the loop
+    // of `muir_mve_dot2x2_i16` (sums w0.a r0:r1, w0.b r2:r3, w1.a r8:r9, w1.b r10:r11; weights r4,
+    // r5; activations r6, r7; LR the part's length, then the loop count), then the four low words
+    // stored, and each high word XOR the low word's sign (zero when the sum fits in i32) ORed into
+    // [sp]; returns that OR.
     "muir_mve_dots_i16:",
     "    push {{r4-r11, lr}}",
     "    sub sp, #4",
@@ -496,25 +500,18 @@ core::arch::global_asm!(
     "    movs r0, #0",
     "    str r0, [sp]",
     "1:",
-    "    ldr r1, [r12, #12]",
+    "    ldr.w r1, [r12, #44]",
     "    ldr lr, [r1], #4",
-    "    str r1, [r12, #12]",
-    "    ldr r6, [r12]",
+    "    str.w r1, [r12, #44]",
+    "    ldr.w r6, [r12, #32]",
     "    add.w r7, r6, lr, lsl #1",
     "    add.w r1, r7, lr, lsl #1",
-    "    str r1, [r12]",
-    "    ldrd r4, r5, [r12, #4]",
+    "    str.w r1, [r12, #32]",
+    "    ldrd r4, r5, [r12, #36]",
     "    add r5, r4",
     "    add.w r1, r4, lr",
-    "    str r1, [r12, #4]",
-    "    movs r0, #0",
-    "    movs r1, #0",
-    "    movs r2, #0",
-    "    movs r3, #0",
-    "    mov.w r8, #0",
-    "    mov.w r9, #0",
-    "    mov.w r10, #0",
-    "    mov.w r11, #0",
+    "    str.w r1, [r12, #36]",
+    "    ldm.w r12, {{r0-r3, r8-r11}}",
     "    dlstp.16 lr, lr",
     "2:",
     "    vldrh.u16 q0, [r6], #16",
@@ -526,13 +523,11 @@ core::arch::global_asm!(
     "    vmlaldava.s16 r8, r9, q0, q2",
     "    vmlaldava.s16 r10, r11, q1, q2",
     "    letp lr, 2b",
-    "    ldr.w lr, [r12, #20]",
-    "    str.w r0, [lr]",
-    "    str.w r8, [lr, #4]",
-    "    str.w r2, [lr, #16]",
-    "    str.w r10, [lr, #20]",
+    "    ldr.w lr, [r12, #52]",
+    "    strd r0, r8, [lr]",
+    "    strd r2, r10, [lr, #16]",
     "    add.w lr, lr, #32",
-    "    str.w lr, [r12, #20]",
+    "    str.w lr, [r12, #52]",
     "    eor.w r1, r1, r0, asr #31",
     "    eor.w r3, r3, r2, asr #31",
     "    eor.w r9, r9, r8, asr #31",
@@ -543,9 +538,9 @@ core::arch::global_asm!(
     "    ldr r0, [sp]",
     "    orrs r0, r1",
     "    str r0, [sp]",
-    "    ldr.w r0, [r12, #16]",
+    "    ldr.w r0, [r12, #48]",
     "    subs r0, #1",
-    "    str.w r0, [r12, #16]",
+    "    str.w r0, [r12, #48]",
     "    bne 1b",
     "    ldr r0, [sp]",
     "    add sp, #4",
