@@ -178,7 +178,7 @@ fn check_attention(q: &mut [i16; MAX_N], k: &mut [i16; MAX_N], r: &mut Rng) -> u
         }
     }
     let v = q;
-    for cv in [1usize, 2, 3, 5, 64, 128] {
+    for cv in [1usize, 2, 3, 4, 5, 6, 7, 64, 128] {
         for nb in 1..=33usize {
             for fill in [Fill::Random, Fill::Max, Fill::Min] {
                 let mut e = [0i32; 33];

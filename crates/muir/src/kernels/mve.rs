@@ -170,8 +170,9 @@ pub fn dot_i16_i64(q: &[i16], k: &[i16]) -> i64 {
 /// `ch < acc.len()` and key `j < e.len()` (`v` key-major, `cv` values per key; the softmax
 /// weights `e` are `0..=32768`). Lanes run over four keys: a gather load (`VLDRH.S32` with the
 /// offsets `j cv`) picks one channel of four keys, `VMLALDAVA.S32` adds the four products
-/// `e_j v_j` to that channel's 64-bit sum in two general registers; two channels per pass share
-/// the weights' load and the offsets' step. Exact, so the same integers as the portable loop.
+/// `e_j v_j` to that channel's 64-bit sum in two general registers; four channels per pass
+/// (`muir_mve_aggregate4`, 11 instructions per 16 MACs), then two (inline, 7 per 8) share the
+/// weights' load and the offsets' step. Exact, so the same integers as the portable loop.
 /// Channels the slices do not cover are left as they are (the engine's always are).
 pub fn aggregate(e: &[i32], v: &[i16], cv: usize, acc: &mut [i64]) {
     let nb = e.len();
@@ -183,6 +184,17 @@ pub fn aggregate(e: &[i32], v: &[i16], cv: usize, acc: &mut [i64]) {
     let offs: [u32; 4] = [0, cv as u32, 2 * cv as u32, 3 * cv as u32];
     let step = 4 * cv as u32;
     let mut ch = 0;
+    // Four channels per pass (`muir_mve_aggregate4`: one weight load for four gathers).
+    while ch + 4 <= chans {
+        if let Some(a) = acc.get_mut(ch..ch + 4) {
+            let args = Agg4Args { e: e.as_ptr(), base: v.as_ptr().wrapping_add(ch), nb, offs: offs.as_ptr(), step, acc: a.as_mut_ptr() };
+            // SAFETY: `nb` lanes (tail-predicated) of `e`, gathers of `v[j cv + ch + i]` for
+            // `j < nb`, `i < 4` only, inside `v` by the check above since `ch + 3 < chans`; it
+            // adds to the four sums at `a`.
+            unsafe { muir_mve_aggregate4(&args) };
+        }
+        ch += 4;
+    }
     while ch + 2 <= chans {
         let (mut l0, mut h0, mut l1, mut h1) = (0u32, 0u32, 0u32, 0u32);
         // SAFETY: `nb` lanes (tail-predicated) of `e`, and gathers of `v[j cv + ch]` and
@@ -300,6 +312,91 @@ pub fn dot2x2_split(w0: &[i8], w1: &[i8], a: &[u8], b: &[u8]) -> [i32; 4] {
     }
     // SAFETY: 1 <= n <= every length.
     unsafe { dot2x2_u8_n(w0, w1, a, b, n) }
+}
+
+/// The arguments of `muir_mve_aggregate4`.
+#[repr(C)]
+struct Agg4Args {
+    e: *const i32,
+    base: *const i16,
+    nb: usize,
+    offs: *const u32,
+    step: u32,
+    acc: *mut i64,
+}
+
+core::arch::global_asm!(
+    ".syntax unified",
+    ".thumb",
+    ".cpu cortex-m55",
+    ".section .text.muir_mve_aggregate4,\"ax\",%progbits",
+    ".global muir_mve_aggregate4",
+    ".type muir_mve_aggregate4,%function",
+    ".p2align 2",
+    ".thumb_func",
+    // r0 = &Agg4Args. [`aggregate`]'s loop for four channels: the weights of four keys (r10),
+    // gathers of one channel of the four keys from bases r6, r7, r11, r12 (channels ch .. ch + 3)
+    // at the offsets q3 (stepped by q4), 64-bit sums r0:r1, r2:r3, r4:r5, r8:r9 added to acc.
+    "muir_mve_aggregate4:",
+    "    push {{r4-r11, lr}}",
+    "    vpush {{d8-d9}}",
+    "    ldr.w r10, [r0]",
+    "    ldr r6, [r0, #4]",
+    "    ldr.w lr, [r0, #8]",
+    "    ldr r1, [r0, #12]",
+    "    vldrw.u32 q3, [r1]",
+    "    ldr r1, [r0, #16]",
+    "    vdup.32 q4, r1",
+    "    str r0, [sp, #-8]!",
+    "    adds r7, r6, #2",
+    "    add.w r11, r6, #4",
+    "    add.w r12, r6, #6",
+    "    movs r0, #0",
+    "    movs r1, #0",
+    "    movs r2, #0",
+    "    movs r3, #0",
+    "    movs r4, #0",
+    "    movs r5, #0",
+    "    mov.w r8, #0",
+    "    mov.w r9, #0",
+    "    dlstp.32 lr, lr",
+    "2:",
+    "    vldrw.u32 q0, [r10], #16",
+    "    vldrh.s32 q1, [r6, q3, uxtw #1]",
+    "    vldrh.s32 q2, [r7, q3, uxtw #1]",
+    "    vmlalva.s32 r0, r1, q0, q1",
+    "    vmlalva.s32 r2, r3, q0, q2",
+    "    vldrh.s32 q1, [r11, q3, uxtw #1]",
+    "    vldrh.s32 q2, [r12, q3, uxtw #1]",
+    "    vmlalva.s32 r4, r5, q0, q1",
+    "    vmlalva.s32 r8, r9, q0, q2",
+    "    vadd.i32 q3, q3, q4",
+    "    letp lr, 2b",
+    "    ldr r12, [sp], #8",
+    "    ldr.w r12, [r12, #20]",
+    "    ldrd r6, r7, [r12]",
+    "    adds r6, r6, r0",
+    "    adcs r7, r1",
+    "    strd r6, r7, [r12]",
+    "    ldrd r6, r7, [r12, #8]",
+    "    adds r6, r6, r2",
+    "    adcs r7, r3",
+    "    strd r6, r7, [r12, #8]",
+    "    ldrd r6, r7, [r12, #16]",
+    "    adds r6, r6, r4",
+    "    adcs r7, r5",
+    "    strd r6, r7, [r12, #16]",
+    "    ldrd r6, r7, [r12, #24]",
+    "    adds.w r6, r6, r8",
+    "    adc.w r7, r7, r9",
+    "    strd r6, r7, [r12, #24]",
+    "    vpop {{d8-d9}}",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_mve_aggregate4, . - muir_mve_aggregate4",
+);
+
+unsafe extern "C" {
+    fn muir_mve_aggregate4(args: *const Agg4Args);
 }
 
 /// `dst[..n] = src[..n]` for `n = min` of the lengths, sixteen bytes per load/store pair in a
