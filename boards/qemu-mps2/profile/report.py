@@ -15,7 +15,7 @@ import sys
 # (family, substrings of a frame's function path), checked innermost frame first.
 FAMILIES = [
     ("convolutions", ("kernels::conv::", "encoder::run_conv")),
-    ("attention", ("kernels::attention::",)),
+    ("attention", ("kernels::attention::", "muir_mve_aggregate")),
     ("correlation", ("kernels::corr::", "refine::lookup_row")),
     ("upsampling", ("kernels::upsample::", "refine::upsample")),
     ("full-resolution refinement", ("kernels::fullres::",)),
