@@ -15,7 +15,7 @@ import sys
 # (family, substrings of a frame's function path), checked innermost frame first.
 FAMILIES = [
     ("convolutions", ("kernels::conv::", "encoder::run_conv")),
-    ("attention", ("kernels::attention::",)),
+    ("attention", ("kernels::attention::", "muir_mve_aggregate")),
     ("correlation", ("kernels::corr::", "refine::lookup_row")),
     ("upsampling", ("kernels::upsample::", "refine::upsample")),
     ("full-resolution refinement", ("kernels::fullres::",)),
@@ -31,9 +31,10 @@ PRIMITIVES = ("kernels::dsp::", "kernels::mve::", "kernels..Elem", "kernels::Ele
 
 
 def family_of(frames):
-    # The 2x2 (two pixels x two channels) dot products and the widening of their weights
-    # (`muir_dsp_widen_w16`) exist only for the convolutions.
-    if any("dot2x2" in f or "widen_w16" in f for f in frames):
+    # The 2x2 (two pixels x two channels) dot products, the widening of their weights
+    # (`muir_dsp_widen_w16`) and the Helium block products (`muir_mve_dots_i16`) exist only for
+    # the convolutions.
+    if any("dot2x2" in f or "widen_w16" in f or "muir_mve_dots_" in f for f in frames):
         return "convolutions"
     for fn in frames:
         if any(p in fn for p in PRIMITIVES):

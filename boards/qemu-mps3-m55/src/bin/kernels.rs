@@ -178,7 +178,7 @@ fn check_attention(q: &mut [i16; MAX_N], k: &mut [i16; MAX_N], r: &mut Rng) -> u
         }
     }
     let v = q;
-    for cv in [1usize, 2, 3, 5, 64, 128] {
+    for cv in [1usize, 2, 3, 4, 5, 6, 7, 64, 128] {
         for nb in 1..=33usize {
             for fill in [Fill::Random, Fill::Max, Fill::Min] {
                 let mut e = [0i32; 33];
@@ -213,6 +213,97 @@ fn check_attention(q: &mut [i16; MAX_N], k: &mut [i16; MAX_N], r: &mut Rng) -> u
 }
 
 /// Multiplier and bias tables of one block of four channels, aligned as the blob's are.
+/// The i16 convolution block's dot products in one call per channel pair (`mve::PartLens::dots4`:
+/// four weight rows, 1 to 6 parts of random lengths 1..=140, one of 500..=699 in some extreme
+/// cases, the split pair layout) against the plain dot products: random fills, all-extreme fills
+/// (sums beyond i32, which must be reported) and one extreme channel and patch of one part among
+/// random values. `true` must
+/// mean every sum fits in i32 and equals the plain one; `false` that some sum does not fit. Both
+/// outcomes must occur.
+#[cfg(feature = "mve")]
+fn check_dots4(buf: &mut Buffers<i16>, r: &mut Rng) -> usize {
+    use muir::kernels::mve::PartLens;
+    use muir::model::graph::MAX_PARTS;
+    let (mut fits, mut over) = (0, 0);
+    for case in 0..400u32 {
+        let np = 1 + (r.next() % MAX_PARTS as u64) as usize;
+        let mut lens = [0usize; MAX_PARTS];
+        for l in lens.iter_mut().take(np) {
+            *l = match r.next() % 4 {
+                0 => 1 + (r.next() % 8) as usize,
+                _ => 1 + (r.next() % 140) as usize,
+            };
+        }
+        let mode = case % 4; // 0, 1 random; 2 all extreme; 3 one extreme part
+        let hot = (r.next() % np as u64) as usize;
+        if mode >= 2 && case % 8 < 6 {
+            // Long enough for an extreme sum beyond i32 (2^22 per term).
+            lens[hot] = 500 + (r.next() % 200) as usize;
+        }
+        let kl: usize = lens[..np].iter().sum();
+        // In mode 3 only one channel's weights and one patch of the extreme part are extreme:
+        // a single sum of the eight goes beyond i32.
+        let (hc, hb) = ((r.next() % 4) as usize, r.next() % 2 == 0);
+        let mut o = 0;
+        for (p, &n) in lens[..np].iter().enumerate() {
+            let ext = |one: bool| if mode == 2 || (mode == 3 && p == hot && one) { Fill::Min } else { Fill::Random };
+            for c in 0..4 {
+                let f = ext(c == hc);
+                for v in &mut buf.w0[c * kl + o..c * kl + o + n] {
+                    *v = i8::sample(r, f);
+                }
+            }
+            for (i, v) in buf.pair[2 * o..2 * o + 2 * n].iter_mut().enumerate() {
+                *v = i16::sample(r, ext((i >= n) == hb));
+            }
+            o += n;
+        }
+        let Some(l) = PartLens::new(lens[..np].iter().copied(), kl) else {
+            println!("MUIR-KERNELS FAILED dots4 case {case}: PartLens::new refused {:?}", &lens[..np]);
+            process::exit(1)
+        };
+        let mut d = [0i32; 8 * MAX_PARTS];
+        let ok = l.dots4(&buf.w0[..4 * kl], &buf.pair[..2 * kl], &mut d);
+        let mut all_fit = true;
+        let mut o = 0;
+        for (p, &n) in lens[..np].iter().enumerate() {
+            let (a, b) = (&buf.pair[2 * o..2 * o + n], &buf.pair[2 * o + n..2 * o + 2 * n]);
+            for c in 0..4 {
+                let w = &buf.w0[c * kl + o..c * kl + o + n];
+                for (x, at) in [(a, 8 * p + c), (b, 8 * p + 4 + c)] {
+                    let want = dot_plain(w, x);
+                    all_fit &= i32::try_from(want).is_ok();
+                    if ok && d[at] as i64 != want {
+                        fail("dots4", kl, &[d[at] as i64], &[want]);
+                    }
+                }
+            }
+            o += n;
+        }
+        if ok != all_fit {
+            println!("MUIR-KERNELS FAILED dots4 case {case}: reported fit {ok}, plain sums fit {all_fit}");
+            process::exit(1);
+        }
+        if ok {
+            fits += 1;
+        } else {
+            over += 1;
+        }
+    }
+    // Short slices are refused.
+    let l = PartLens::new([3usize, 5].into_iter(), 8);
+    let mut d = [0i32; 8 * MAX_PARTS];
+    if fits == 0 || over == 0 || l.is_none_or(|l| l.dots4(&buf.w0[..31], &buf.pair[..16], &mut d) || l.dots4(&buf.w0[..32], &buf.pair[..15], &mut d)) {
+        println!("MUIR-KERNELS FAILED dots4: fits {fits}, beyond i32 {over}, or a short slice accepted");
+        process::exit(1);
+    }
+    if PartLens::new([3usize, 0, 5].into_iter(), 8).is_some() || PartLens::new([3usize, 5].into_iter(), 9).is_some() {
+        println!("MUIR-KERNELS FAILED dots4: PartLens::new accepted a zero length or a wrong sum");
+        process::exit(1);
+    }
+    400
+}
+
 #[cfg(feature = "mve")]
 #[repr(C, align(8))]
 struct Tables {
@@ -225,13 +316,16 @@ struct Tables {
 /// 1 to 6 parts, shifts 8 to 62, random and extreme dot products, multipliers and biases, every
 /// output type. Where `FPSCR.QC` reports a saturation the engine recomputes the block, so only
 /// the unsaturated results must match; both kinds of case must occur (counted), and small
-/// operands must never report one.
+/// operands must never report one. The same operands through `mve::requant4_lut` (sigmoid or
+/// tanh table, then the output type's clamp) against the scalar `sigmoid_q12` / `tanh_q12`.
 #[cfg(feature = "mve")]
 fn check_requant(r: &mut Rng) -> usize {
     use muir::arith::{Multiplier, requantize_i32, rshift_round};
+    use muir::arith::lut;
     use muir::kernels::mve::{self, Requant4};
     let mut t = Tables { mult: [0; 8 * 4 * 6], bias: [0; 32] };
     let (mut exact, mut saturated) = (0usize, 0usize);
+    let (mut lut_exact, mut lut_mid) = (0usize, 0usize);
     let _ = mve::take_qc();
     for case in 0..6000u32 {
         let np = 1 + (case % 6) as usize;
@@ -312,12 +406,58 @@ fn check_requant(r: &mut Rng) -> usize {
             }
             exact += 1;
         }
+        // The same operands with a sigmoid or tanh table after the clamp to i16
+        // (`mve::requant4_lut`), into each output type (saturating to it, as `OutRow::set`).
+        let (f, table): (fn(i16) -> i16, _) = if case % 2 == 0 { (lut::sigmoid_q12, lut::sigmoid_table()) } else { (lut::tanh_q12, lut::tanh_table()) };
+        let (olo, ohi) = [(0i64, 255i64), (-128, 127), (-32768, 32767)][(case / 2 % 3) as usize];
+        let k = Requant4::new(np, -32768, 32767).with_out(olo as i32, ohi as i32);
+        for (ch, w) in want.iter_mut().enumerate() {
+            let s: i64 = (0..np).map(|p| requantize_i32(d[8 * p + ch], ms[ch * np + p])).sum();
+            let b = i64::from_le_bytes(t.bias[8 * ch..8 * ch + 8].try_into().unwrap_or_default());
+            *w = (f(rshift_round(s + b, 8).clamp(-32768, 32767) as i16) as i64).clamp(olo, ohi);
+        }
+        let got: [i64; 4] = match olo {
+            -128 => {
+                let mut o = [0i8; 4];
+                // SAFETY: as above; the table's input range.
+                unsafe { mve::requant4_lut(d.as_ptr(), t.mult.as_ptr(), &k, np, t.bias.as_ptr(), table, o.as_mut_ptr()) };
+                o.map(i64::from)
+            }
+            0 => {
+                let mut o = [0u8; 4];
+                // SAFETY: as above.
+                unsafe { mve::requant4_lut(d.as_ptr(), t.mult.as_ptr(), &k, np, t.bias.as_ptr(), table, o.as_mut_ptr()) };
+                o.map(i64::from)
+            }
+            _ => {
+                let mut o = [0i16; 4];
+                // SAFETY: as above.
+                unsafe { mve::requant4_lut(d.as_ptr(), t.mult.as_ptr(), &k, np, t.bias.as_ptr(), table, o.as_mut_ptr()) };
+                o.map(i64::from)
+            }
+        };
+        if mve::take_qc() {
+            if kind == 3 {
+                println!("MUIR-KERNELS FAILED requant4_lut case {case}: saturation reported for small operands");
+                process::exit(1);
+            }
+        } else {
+            if got != want {
+                fail("requant4_lut", case as usize, &got, &want);
+            }
+            lut_exact += 1;
+            lut_mid += want.iter().filter(|&&w| w > olo && w < ohi).count();
+        }
+    }
+    if lut_exact < 1000 || lut_mid < 1000 {
+        println!("MUIR-KERNELS FAILED requant4_lut: {lut_exact} exact cases, {lut_mid} outputs inside the type's range");
+        process::exit(1);
     }
     if exact < 1000 || saturated < 100 {
         println!("MUIR-KERNELS FAILED requant4: {exact} exact and {saturated} saturated cases (both kinds must occur)");
         process::exit(1);
     }
-    exact + saturated
+    exact + saturated + lut_exact
 }
 
 /// `mve::popcount20` (the refinement's census distances) against `count_ones`: random words,
@@ -864,6 +1004,7 @@ fn main() -> ! {
     }
     #[cfg(feature = "mve")]
     {
+        cases += check_dots4(&mut i16s, &mut r);
         cases += check_attention(i16s.a, i16s.b, &mut r);
         cases += check_requant(&mut r);
         cases += check_popcount(&mut r);

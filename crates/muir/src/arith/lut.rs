@@ -46,6 +46,19 @@ pub fn tanh_q12(x: i16) -> i16 {
     table16(&TANH, (x as i32 + 32768) as u32) as i16
 }
 
+/// The tables of [`sigmoid_q12`] and [`tanh_q12`] (entry `i` at the Q3.12 input `64 i - 32768`),
+/// for vector kernels that read them by gather loads.
+#[inline]
+pub fn sigmoid_table() -> &'static [i16; 1025] {
+    &SIGMOID
+}
+
+/// See [`sigmoid_table`].
+#[inline]
+pub fn tanh_table() -> &'static [i16; 1025] {
+    &TANH
+}
+
 /// `exp(x)` for a Q4.11 value `x <= 0` (positive inputs are treated as 0), in Q0.15
 /// (`0..=32768`; `exp(0) = 32768`).
 #[inline]

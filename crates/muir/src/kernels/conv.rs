@@ -629,6 +629,25 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
             odd_channel(p, inputs, w_in, ox, pair, out, c);
             ox += 2;
         }
+        // The last pixel of an odd width by the same pair path, with `ox + 1` as a second pixel
+        // whose outputs fall outside the row cut to `w_out` pixels (set and the vector stores
+        // skip them; its patch is gathered as padding where it lies outside the input): pixel
+        // `ox`'s outputs are the same integers as one pixel's alone.
+        #[cfg(all(target_arch = "arm", feature = "mve"))]
+        if ox + 1 == w_out
+            && let Some(l) = &helium
+        {
+            let mut row = out.head(w_out * p.cout);
+            gather2(p, inputs, w_in, ox, pair);
+            let c = l.channels(p, pair, &mut row, ox * p.cout, (ox + 1) * p.cout);
+            let c = pair_blocks(p, kl, pair, &mut row, ox, c);
+            if c < p.cout {
+                let single = head_mut(pair, kl);
+                gather(p, inputs, w_in, ox, single);
+                channel_at(p, single, c, &mut row, ox * p.cout);
+            }
+            ox += 1;
+        }
     }
     single_pixels(p, inputs, w_in, out, patch, ox);
 }

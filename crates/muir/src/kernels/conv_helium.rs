@@ -33,8 +33,12 @@ type Dots = [i32; MAX_PARTS * 8];
 /// A layer the vector epilogue serves, with its constants.
 pub(super) struct Layer {
     k: Requant4,
-    /// The lookup table of a sigmoid or tanh activation (applied to the clamped vector).
-    lut: Option<fn(i16) -> i16>,
+    /// The lookup table of a sigmoid or tanh activation (applied to the clamped vector,
+    /// [`mve::requant4_lut`]).
+    lut: Option<&'static [i16; 1025]>,
+    /// The parts' patch lengths for [`Elem::dots4`] (i16 activations: one assembly call per
+    /// channel pair for all parts).
+    lens: Option<mve::PartLens>,
 }
 
 impl Layer {
@@ -61,10 +65,17 @@ impl Layer {
         let (lo, hi, lut) = match p.post {
             PostOp::None => (lo, hi, None),
             PostOp::Relu => (lo.max(0), hi, None),
-            PostOp::Sigmoid => (-32768, 32767, Some(lut::sigmoid_q12 as fn(i16) -> i16)),
-            PostOp::Tanh => (-32768, 32767, Some(lut::tanh_q12 as fn(i16) -> i16)),
+            PostOp::Sigmoid => (-32768, 32767, Some(lut::sigmoid_table())),
+            PostOp::Tanh => (-32768, 32767, Some(lut::tanh_table())),
         };
-        Some(Layer { k: Requant4::new(np, lo, hi), lut })
+        // After a table, the output type's range (`OutRow::set` saturates to it).
+        let (out_lo, out_hi) = match out {
+            OutRow::U8(_) => (0, 255),
+            OutRow::I8(_) => (-128, 127),
+            OutRow::I16(_) => (-32768, 32767),
+        };
+        let lens = mve::PartLens::new(p.parts.iter().map(|&ch| ch * p.k * p.k), p.patch_len());
+        Some(Layer { k: Requant4::new(np, lo, hi).with_out(out_lo, out_hi), lut, lens })
     }
 
     /// Output channels `0 .. 4 (cout / 4)` of pixels `a` and `b` (at `at_a` and `at_b` of `out`)
@@ -76,7 +87,11 @@ impl Layer {
         // Filled by `dots` for the block's parts before every read (no per-block clearing).
         let mut d: Dots = [0; MAX_PARTS * 8];
         for ((w, m), b) in blocks.take(p.cout / 4) {
-            if dots(p, pair, w, &mut d) {
+            let fits = match self.lens.as_ref().and_then(|l| T::dots4(l, w, pair, &mut d)) {
+                Some(fits) => fits,
+                None => dots(p, pair, w, &mut d),
+            };
+            if fits {
                 self.store(&d, 0, m, b, out, at_a + c);
                 self.store(&d, 4, m, b, out, at_b + c);
                 if mve::take_qc() {
@@ -104,28 +119,26 @@ impl Layer {
         // `off <= 4` and `np <= MAX_PARTS`: `d[off + 8 (np - 1) .. + 4]` is inside `d`; `m` holds
         // `32 np` bytes and `b` 32, both 4-byte aligned (`Layer::of`, whole chunks).
         let dp = d.as_ptr().wrapping_add(off);
-        if let Some(f) = self.lut {
-            let mut v = [0i16; 4];
-            // SAFETY: the bounds above; `v` holds four aligned i16.
-            unsafe { mve::requant4(dp, m.as_ptr(), &self.k, np, b.as_ptr(), v.as_mut_ptr()) };
-            for (i, v) in v.into_iter().enumerate() {
-                out.set(at + i, f(v) as i64);
-            }
-            return;
-        }
-        /// Stores through [`mve::requant4`] into `r[at..at + 4]` (nothing when the row is short,
-        /// which `Layer::of` rules out).
+        /// Stores through [`mve::requant4`] (or [`mve::requant4_lut`] with a table) into
+        /// `r[at..at + 4]` (nothing when the row is short, which `Layer::of` rules out).
         #[inline(always)]
-        fn to<O: Narrow>(k: &Requant4, np: usize, dp: *const i32, m: &[u8], b: &[u8], r: &mut [O], at: usize) {
+        #[allow(clippy::too_many_arguments)]
+        fn to<O: Narrow>(k: &Requant4, np: usize, dp: *const i32, m: &[u8], b: &[u8], lut: Option<&[i16; 1025]>, r: &mut [O], at: usize) {
             if let Some(o) = r.get_mut(at..at + 4) {
-                // SAFETY: the bounds of `store`; `o` holds four values of `O`.
-                unsafe { mve::requant4(dp, m.as_ptr(), k, np, b.as_ptr(), o.as_mut_ptr()) };
+                // SAFETY: the bounds of `store`; `o` holds four values of `O`; with a table the
+                // clamp before it is `-32768..=32767` (`Layer::of`).
+                unsafe {
+                    match lut {
+                        Some(t) => mve::requant4_lut(dp, m.as_ptr(), k, np, b.as_ptr(), t, o.as_mut_ptr()),
+                        None => mve::requant4(dp, m.as_ptr(), k, np, b.as_ptr(), o.as_mut_ptr()),
+                    }
+                }
             }
         }
         match out {
-            OutRow::U8(r) => to(&self.k, np, dp, m, b, r, at),
-            OutRow::I8(r) => to(&self.k, np, dp, m, b, r, at),
-            OutRow::I16(r) => to(&self.k, np, dp, m, b, r, at),
+            OutRow::U8(r) => to(&self.k, np, dp, m, b, self.lut, r, at),
+            OutRow::I8(r) => to(&self.k, np, dp, m, b, self.lut, r, at),
+            OutRow::I16(r) => to(&self.k, np, dp, m, b, self.lut, r, at),
         }
     }
 }

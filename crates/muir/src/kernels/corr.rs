@@ -19,7 +19,7 @@
 //! the parameters need gets only what fits.
 #![deny(clippy::indexing_slicing)]
 
-use crate::arith::{MAX_PROPOSAL_D8, Multiplier, requantize, sat_i16};
+use crate::arith::{MAX_PROPOSAL_D8, Multiplier, requantize, requantize_i32, sat_i16};
 
 #[cfg(all(target_arch = "x86_64", feature = "std"))]
 #[path = "corr_avx512.rs"]
@@ -124,10 +124,13 @@ pub fn lookup_with(p: &LookupParams<'_>, w: usize, x: usize, flow: i16, s: &mut 
     window(lo, win);
     // pre[i] = sum of win[..i].
     let mut acc = 0i64;
+    // The OR of the correlations' magnitudes: below `2^k` when every one is.
+    let mut mag = 0u32;
     if let Some((first, rest)) = pre.split_first_mut() {
         *first = 0;
         for (q, v) in rest.iter_mut().zip(win.iter()) {
             acc += *v as i64;
+            mag |= v.unsigned_abs();
             *q = acc;
         }
     }
@@ -146,6 +149,40 @@ pub fn lookup_with(p: &LookupParams<'_>, w: usize, x: usize, flow: i16, s: &mut 
     let r = p.radius as i64;
     for ((lvl, &mult), out) in p.mults.iter().enumerate().take(p.levels).zip(out.chunks_exact_mut(k)) {
         let s_l = 1i64 << lvl;
+        if p.post_pool {
+            // The level's samples `j = -r..=r` share the sub-pixel phase `a` (their offsets `j
+            // 2^(8 + lvl)` are whole multiples of `s_l` columns) and their first columns `m` step
+            // by `s_l`: sample `t = j + r` reads `pre` at `i0 + t s_l + {0, s_l, 1, 1 + s_l}`.
+            // Where all of these lie inside `pre` (always: the window spans the widest level)
+            // no clamp applies and `box_sum` is a difference of two of them, walked by strides.
+            let p0 = centre - (r << (8 + lvl)) - ((s_l - 1) << 7);
+            let (i0, a) = ((p0 >> 8) - lo, p0 & 255);
+            // (`max`: a stride the compiler sees is not 0, no panic path in `step_by`.)
+            let (sl, last) = ((s_l as usize).max(1), i0 + 2 * r * s_l + 1 + s_l);
+            if i0 >= 0
+                && last <= n as i64
+                && let Some(pre) = pre.get(i0 as usize..=last as usize)
+            {
+                let (x0, x1) = (pre.iter().step_by(sl), pre.get(sl..).unwrap_or_default().iter().step_by(sl));
+                let (y0, y1) = (pre.get(1..).unwrap_or_default().iter().step_by(sl), pre.get(1 + sl..).unwrap_or_default().iter().step_by(sl));
+                let samples = out.iter_mut().zip(x0).zip(x1).zip(y0).zip(y1);
+                if lvl <= 20 && mag < (1 << 21) >> lvl && (1..=62).contains(&mult.shift) {
+                    // Every box of `s_l` correlations is below `2^21` in magnitude, so `num`
+                    // is below `256 * 2^21 = 2^29`: i32 arithmetic (the low words of the prefix
+                    // sums differ by the box exactly) and `requantize`'s own i32 path.
+                    let a = a as i32;
+                    for ((((o, x0), x1), y0), y1) in samples {
+                        let (b0, b1) = ((*x1 as i32).wrapping_sub(*x0 as i32), (*y1 as i32).wrapping_sub(*y0 as i32));
+                        *o = sat_i16(requantize_i32((256 - a).wrapping_mul(b0).wrapping_add(a.wrapping_mul(b1)), mult));
+                    }
+                } else {
+                    for ((((o, x0), x1), y0), y1) in samples {
+                        *o = sat_i16(requantize((256 - a) * (x1 - x0) + a * (y1 - y0), mult));
+                    }
+                }
+                continue;
+            }
+        }
         for (j, o) in (-r..=r).zip(out) {
             let num = if p.post_pool {
                 let p0 = centre + (j << (8 + lvl)) - ((s_l - 1) << 7);
@@ -274,6 +311,34 @@ mod tests {
                     lookup_pixel_plain(&p, &f1[x * c..(x + 1) * c], &f2, w, x, flow, &mut b);
                     assert_eq!(a, b, "x {x} flow {flow} levels {levels} post {post_pool}");
                 }
+            }
+        }
+    }
+
+    /// Correlations near the i8 limits (128 channels: up to `2^21` each): the lookup's i32 path
+    /// must give way to the i64 one where a box of them could overflow it.
+    #[test]
+    fn tiled_lookup_large_correlations() {
+        let mut r = Rng(7);
+        let (w, c, levels, radius) = (24, 128, 4, 4);
+        let ext = |r: &mut Rng, i: usize| match (i / c) % 4 {
+            0..=2 => -128,
+            _ => r.i8(),
+        };
+        let f1: Vec<i8> = (0..w * c).map(|i| ext(&mut r, i)).collect();
+        let f2: Vec<i8> = (0..w * c).map(|i| ext(&mut r, i)).collect();
+        let mults: Vec<Multiplier> = (0..levels).map(|l| Multiplier { m: (1 << 30) + 12345, shift: 44 + l as u8 }).collect();
+        let p = LookupParams { levels, radius, post_pool: true, mults: &mults };
+        let wl = window_len(levels, radius);
+        let (mut win, mut pre) = (vec![0i32; wl], vec![0i64; wl + 1]);
+        let k = levels * (2 * radius + 1);
+        let (mut a, mut b) = (vec![0i16; k], vec![0i16; k]);
+        for x in 0..w {
+            for flow in [0i16, -77, -256, -700, 300] {
+                let mut s = LookupScratch { window: &mut win, prefix: &mut pre };
+                lookup_pixel(&p, &f1[x * c..(x + 1) * c], &f2, w, x, flow, &mut s, &mut a);
+                lookup_pixel_plain(&p, &f1[x * c..(x + 1) * c], &f2, w, x, flow, &mut b);
+                assert_eq!(a, b, "x {x} flow {flow}");
             }
         }
     }

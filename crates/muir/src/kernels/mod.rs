@@ -139,6 +139,14 @@ pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + Send + Sync + 's
             d.zip(s.chunks_exact(4)).for_each(|(g, s)| g.copy_from_slice(s));
         }
     }
+    /// The four channels' dot products of a Helium convolution block by one assembly call per
+    /// channel pair for all parts ([`mve::PartLens::dots4`], i16 activations); `None` where this
+    /// type has none (the block then takes its parts one by one).
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    #[inline(always)]
+    fn dots4(_l: &mve::PartLens, _w: &[i8], _pair: &[Self], _d: &mut [i32; 8 * crate::model::graph::MAX_PARTS]) -> Option<bool> {
+        None
+    }
     /// The slice as a conv output row.
     fn as_out(d: &mut [Self]) -> OutRow<'_>;
     /// A whole convolution row by a path of this type's own with the engine's byte scratch
@@ -261,6 +269,11 @@ impl Elem for i16 {
     }
     const BITS: u8 = 16;
     const PAIR_SWAP: bool = true;
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    #[inline(always)]
+    fn dots4(l: &mve::PartLens, w: &[i8], pair: &[i16], d: &mut [i32; 8 * crate::model::graph::MAX_PARTS]) -> Option<bool> {
+        Some(l.dots4(w, pair, d))
+    }
     #[cfg(all(target_arch = "arm", feature = "mve"))]
     const SPLIT_PAIRS: bool = true;
     const STORAGE: crate::arith::QFormat = crate::arith::QFormat::i16(0);
@@ -429,6 +442,15 @@ impl OutRow<'_> {
     /// True when empty.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
+    }
+    /// The first `n` elements (all of them when the row is shorter).
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    pub(crate) fn head(&mut self, n: usize) -> OutRow<'_> {
+        match self {
+            OutRow::I8(r) => OutRow::I8(head_mut(r, n)),
+            OutRow::U8(r) => OutRow::U8(head_mut(r, n)),
+            OutRow::I16(r) => OutRow::I16(head_mut(r, n)),
+        }
     }
 }
 

@@ -32,6 +32,8 @@
 
 use core::arch::asm;
 
+use crate::model::graph::MAX_PARTS;
+
 /// An activation type with a Helium kernel.
 pub trait Lanes: Copy + Into<i32> {
     /// `sum w[i] * x[i]` over `i < n`, `n >= 1`, `n <= w.len()`, `n <= x.len()`.
@@ -168,8 +170,9 @@ pub fn dot_i16_i64(q: &[i16], k: &[i16]) -> i64 {
 /// `ch < acc.len()` and key `j < e.len()` (`v` key-major, `cv` values per key; the softmax
 /// weights `e` are `0..=32768`). Lanes run over four keys: a gather load (`VLDRH.S32` with the
 /// offsets `j cv`) picks one channel of four keys, `VMLALDAVA.S32` adds the four products
-/// `e_j v_j` to that channel's 64-bit sum in two general registers; two channels per pass share
-/// the weights' load and the offsets' step. Exact, so the same integers as the portable loop.
+/// `e_j v_j` to that channel's 64-bit sum in two general registers; four channels per pass
+/// (`muir_mve_aggregate4`, 11 instructions per 16 MACs), then two (inline, 7 per 8) share the
+/// weights' load and the offsets' step. Exact, so the same integers as the portable loop.
 /// Channels the slices do not cover are left as they are (the engine's always are).
 pub fn aggregate(e: &[i32], v: &[i16], cv: usize, acc: &mut [i64]) {
     let nb = e.len();
@@ -181,6 +184,17 @@ pub fn aggregate(e: &[i32], v: &[i16], cv: usize, acc: &mut [i64]) {
     let offs: [u32; 4] = [0, cv as u32, 2 * cv as u32, 3 * cv as u32];
     let step = 4 * cv as u32;
     let mut ch = 0;
+    // Four channels per pass (`muir_mve_aggregate4`: one weight load for four gathers).
+    while ch + 4 <= chans {
+        if let Some(a) = acc.get_mut(ch..ch + 4) {
+            let args = Agg4Args { e: e.as_ptr(), base: v.as_ptr().wrapping_add(ch), nb, offs: offs.as_ptr(), step, acc: a.as_mut_ptr() };
+            // SAFETY: `nb` lanes (tail-predicated) of `e`, gathers of `v[j cv + ch + i]` for
+            // `j < nb`, `i < 4` only, inside `v` by the check above since `ch + 3 < chans`; it
+            // adds to the four sums at `a`.
+            unsafe { muir_mve_aggregate4(&args) };
+        }
+        ch += 4;
+    }
     while ch + 2 <= chans {
         let (mut l0, mut h0, mut l1, mut h1) = (0u32, 0u32, 0u32, 0u32);
         // SAFETY: `nb` lanes (tail-predicated) of `e`, and gathers of `v[j cv + ch]` and
@@ -300,6 +314,91 @@ pub fn dot2x2_split(w0: &[i8], w1: &[i8], a: &[u8], b: &[u8]) -> [i32; 4] {
     unsafe { dot2x2_u8_n(w0, w1, a, b, n) }
 }
 
+/// The arguments of `muir_mve_aggregate4`.
+#[repr(C)]
+struct Agg4Args {
+    e: *const i32,
+    base: *const i16,
+    nb: usize,
+    offs: *const u32,
+    step: u32,
+    acc: *mut i64,
+}
+
+core::arch::global_asm!(
+    ".syntax unified",
+    ".thumb",
+    ".cpu cortex-m55",
+    ".section .text.muir_mve_aggregate4,\"ax\",%progbits",
+    ".global muir_mve_aggregate4",
+    ".type muir_mve_aggregate4,%function",
+    ".p2align 2",
+    ".thumb_func",
+    // r0 = &Agg4Args. [`aggregate`]'s loop for four channels: the weights of four keys (r10),
+    // gathers of one channel of the four keys from bases r6, r7, r11, r12 (channels ch .. ch + 3)
+    // at the offsets q3 (stepped by q4), 64-bit sums r0:r1, r2:r3, r4:r5, r8:r9 added to acc.
+    "muir_mve_aggregate4:",
+    "    push {{r4-r11, lr}}",
+    "    vpush {{d8-d9}}",
+    "    ldr.w r10, [r0]",
+    "    ldr r6, [r0, #4]",
+    "    ldr.w lr, [r0, #8]",
+    "    ldr r1, [r0, #12]",
+    "    vldrw.u32 q3, [r1]",
+    "    ldr r1, [r0, #16]",
+    "    vdup.32 q4, r1",
+    "    str r0, [sp, #-8]!",
+    "    adds r7, r6, #2",
+    "    add.w r11, r6, #4",
+    "    add.w r12, r6, #6",
+    "    movs r0, #0",
+    "    movs r1, #0",
+    "    movs r2, #0",
+    "    movs r3, #0",
+    "    movs r4, #0",
+    "    movs r5, #0",
+    "    mov.w r8, #0",
+    "    mov.w r9, #0",
+    "    dlstp.32 lr, lr",
+    "2:",
+    "    vldrw.u32 q0, [r10], #16",
+    "    vldrh.s32 q1, [r6, q3, uxtw #1]",
+    "    vldrh.s32 q2, [r7, q3, uxtw #1]",
+    "    vmlalva.s32 r0, r1, q0, q1",
+    "    vmlalva.s32 r2, r3, q0, q2",
+    "    vldrh.s32 q1, [r11, q3, uxtw #1]",
+    "    vldrh.s32 q2, [r12, q3, uxtw #1]",
+    "    vmlalva.s32 r4, r5, q0, q1",
+    "    vmlalva.s32 r8, r9, q0, q2",
+    "    vadd.i32 q3, q3, q4",
+    "    letp lr, 2b",
+    "    ldr r12, [sp], #8",
+    "    ldr.w r12, [r12, #20]",
+    "    ldrd r6, r7, [r12]",
+    "    adds r6, r6, r0",
+    "    adcs r7, r1",
+    "    strd r6, r7, [r12]",
+    "    ldrd r6, r7, [r12, #8]",
+    "    adds r6, r6, r2",
+    "    adcs r7, r3",
+    "    strd r6, r7, [r12, #8]",
+    "    ldrd r6, r7, [r12, #16]",
+    "    adds r6, r6, r4",
+    "    adcs r7, r5",
+    "    strd r6, r7, [r12, #16]",
+    "    ldrd r6, r7, [r12, #24]",
+    "    adds.w r6, r6, r8",
+    "    adc.w r7, r7, r9",
+    "    strd r6, r7, [r12, #24]",
+    "    vpop {{d8-d9}}",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_mve_aggregate4, . - muir_mve_aggregate4",
+);
+
+unsafe extern "C" {
+    fn muir_mve_aggregate4(args: *const Agg4Args);
+}
+
 /// `dst[..n] = src[..n]` for `n = min` of the lengths, sixteen bytes per load/store pair in a
 /// tail-predicated loop (3 instructions per 16 bytes; the library `memcpy` the compiler calls
 /// for `copy_from_slice` needs about 17 per 8 on these short runs). For plain-data `T` only
@@ -401,6 +500,155 @@ unsafe extern "C" {
     fn muir_mve_dot2x2_i16(a: *const i16, b: *const i16, w0: *const i8, w1: *const i8, n: usize, out: *mut [i64; 4]);
 }
 
+/// The part lengths of an i16 layer for [`PartLens::dots4`] (each `ch k k`, at least 1), checked
+/// once per layer: at most `MAX_PARTS` parts summing to the patch length `kl`.
+#[derive(Clone, Copy, Debug)]
+pub struct PartLens {
+    lens: [u32; MAX_PARTS],
+    np: usize,
+    kl: usize,
+}
+
+/// The arguments of `muir_mve_dots_i16`, which advances `a`, `w0`, `lens` and `out` part by part
+/// (`zero`: eight zero words, loaded into the sums by one `LDM` per part).
+#[repr(C)]
+struct DotsArgs {
+    zero: [u32; 8],
+    a: *const i16,
+    w0: *const i8,
+    kl: usize,
+    lens: *const u32,
+    np: usize,
+    out: *mut i32,
+}
+
+impl PartLens {
+    /// The lengths `lens` (one per part) of a patch of `kl` values, or `None` where a length is
+    /// 0, there are no or more than `MAX_PARTS` parts, they do not sum to `kl`, or `kl` reaches
+    /// `2^26` (far beyond any layer; the byte offsets stay in `u32`).
+    pub fn new(lens: impl Iterator<Item = usize>, kl: usize) -> Option<PartLens> {
+        let mut l = PartLens { lens: [0; MAX_PARTS], np: 0, kl };
+        let mut sum = 0usize;
+        for n in lens {
+            if n == 0 || kl >= 1 << 26 {
+                return None;
+            }
+            *l.lens.get_mut(l.np)? = n as u32;
+            l.np += 1;
+            sum += n;
+        }
+        (l.np > 0 && sum == kl).then_some(l)
+    }
+
+    /// The i32 dot products of a block of four output channels at two pixels, part by part:
+    /// `d[8 p + c] = w_c . a_p` and `d[8 p + 4 + c] = w_c . b_p` for channel `c < 4` (weight row
+    /// `c` of `w`, `kl` values each, part `p` at offset `o_p`, the sum of the lengths before
+    /// it) and part `p`'s pair block at `2 o_p` of `pair` (patch `a_p`, then `b_p`, the split
+    /// pair layout). One call per channel pair for all parts (`muir_mve_dots_i16`: the
+    /// [`dot2x2_split_i16`] loop, 64-bit sums, each checked to fit in i32 and stored as i32).
+    /// Returns false, with `d` partly written, when a sum does not fit in i32 or `w` or `pair`
+    /// is shorter than `4 kl` and `2 kl`.
+    #[inline]
+    pub fn dots4(&self, w: &[i8], pair: &[i16], d: &mut [i32; 8 * MAX_PARTS]) -> bool {
+        let kl = self.kl;
+        if w.len() < 4 * kl || pair.len() < 2 * kl {
+            return false;
+        }
+        let mut bad = 0;
+        for j in 0..2 {
+            let mut args = DotsArgs {
+                zero: [0; 8],
+                a: pair.as_ptr(),
+                w0: w.as_ptr().wrapping_add(2 * j * kl),
+                kl,
+                lens: self.lens.as_ptr(),
+                np: self.np,
+                out: d.as_mut_ptr().wrapping_add(2 * j),
+            };
+            // SAFETY: part `p` reads `lens[p] >= 1` values at `2 o_p` and `2 o_p + lens[p]` of
+            // `pair` and at `o_p` of weight rows `2j` and `2j + 1` (`2 j kl + o_p`, `+ kl`), all
+            // inside the slices since the lengths sum to `kl` (`PartLens::new`) and the lengths
+            // were checked above; it writes `d[8 p + 2 j + {0, 1, 4, 5}]`, inside `d` for
+            // `p < np <= MAX_PARTS`, `j < 2`.
+            bad |= unsafe { muir_mve_dots_i16(&mut args) };
+        }
+        bad == 0
+    }
+}
+
+core::arch::global_asm!(
+    ".syntax unified",
+    ".thumb",
+    ".cpu cortex-m55",
+    ".section .text.muir_mve_dots_i16,\"ax\",%progbits",
+    ".global muir_mve_dots_i16",
+    ".type muir_mve_dots_i16,%function",
+    ".p2align 2",
+    ".thumb_func",
+    // r0 = &mut DotsArgs (kept in r12). Per part: the sums cleared by one LDM of `zero`, the loop
+    // of `muir_mve_dot2x2_i16` (sums w0.a r0:r1, w0.b r2:r3, w1.a r8:r9, w1.b r10:r11; weights r4,
+    // r5; activations r6, r7; LR the part's length, then the loop count), then the four low words
+    // stored, and each high word XOR the low word's sign (zero when the sum fits in i32) ORed into
+    // [sp]; returns that OR.
+    "muir_mve_dots_i16:",
+    "    push {{r4-r11, lr}}",
+    "    sub sp, #4",
+    "    mov r12, r0",
+    "    movs r0, #0",
+    "    str r0, [sp]",
+    "1:",
+    "    ldr.w r1, [r12, #44]",
+    "    ldr lr, [r1], #4",
+    "    str.w r1, [r12, #44]",
+    "    ldr.w r6, [r12, #32]",
+    "    add.w r7, r6, lr, lsl #1",
+    "    add.w r1, r7, lr, lsl #1",
+    "    str.w r1, [r12, #32]",
+    "    ldrd r4, r5, [r12, #36]",
+    "    add r5, r4",
+    "    add.w r1, r4, lr",
+    "    str.w r1, [r12, #36]",
+    "    ldm.w r12, {{r0-r3, r8-r11}}",
+    "    dlstp.16 lr, lr",
+    "2:",
+    "    vldrh.u16 q0, [r6], #16",
+    "    vldrh.u16 q1, [r7], #16",
+    "    vldrb.s16 q2, [r4], #8",
+    "    vmlaldava.s16 r0, r1, q0, q2",
+    "    vmlaldava.s16 r2, r3, q1, q2",
+    "    vldrb.s16 q2, [r5], #8",
+    "    vmlaldava.s16 r8, r9, q0, q2",
+    "    vmlaldava.s16 r10, r11, q1, q2",
+    "    letp lr, 2b",
+    "    ldr.w lr, [r12, #52]",
+    "    strd r0, r8, [lr]",
+    "    strd r2, r10, [lr, #16]",
+    "    add.w lr, lr, #32",
+    "    str.w lr, [r12, #52]",
+    "    eor.w r1, r1, r0, asr #31",
+    "    eor.w r3, r3, r2, asr #31",
+    "    eor.w r9, r9, r8, asr #31",
+    "    eor.w r11, r11, r10, asr #31",
+    "    orrs r1, r3",
+    "    orr.w r9, r9, r11",
+    "    orr.w r1, r1, r9",
+    "    ldr r0, [sp]",
+    "    orrs r0, r1",
+    "    str r0, [sp]",
+    "    ldr.w r0, [r12, #48]",
+    "    subs r0, #1",
+    "    str.w r0, [r12, #48]",
+    "    bne 1b",
+    "    ldr r0, [sp]",
+    "    add sp, #4",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_mve_dots_i16, . - muir_mve_dots_i16",
+);
+
+unsafe extern "C" {
+    fn muir_mve_dots_i16(args: *mut DotsArgs) -> u32;
+}
+
 /// The per-layer constants of [`requant4`]: four 32-bit lanes each.
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(16))]
@@ -413,13 +661,23 @@ pub struct Requant4 {
     pub hi: [i32; 4],
     /// Byte offsets of four consecutive biases: `8 i`.
     pub bias_offsets: [u32; 4],
+    /// Lower clamp of the output type after a table ([`requant4_lut`]).
+    pub out_lo: [i32; 4],
+    /// Upper clamp of the output type after a table.
+    pub out_hi: [i32; 4],
 }
 
 impl Requant4 {
     /// The constants of a layer of `np` parts clamping to `lo..=hi`.
     pub const fn new(np: usize, lo: i32, hi: i32) -> Self {
         let s = 8 * np as u32;
-        Requant4 { mult_offsets: [0, s, 2 * s, 3 * s], lo: [lo; 4], hi: [hi; 4], bias_offsets: [0, 8, 16, 24] }
+        Requant4 { mult_offsets: [0, s, 2 * s, 3 * s], lo: [lo; 4], hi: [hi; 4], bias_offsets: [0, 8, 16, 24], out_lo: [lo; 4], out_hi: [hi; 4] }
+    }
+
+    /// The same with the output type's range `out_lo..=out_hi` for [`requant4_lut`] (`lo..=hi`
+    /// is then the table's input range).
+    pub const fn with_out(self, out_lo: i32, out_hi: i32) -> Self {
+        Requant4 { out_lo: [out_lo; 4], out_hi: [out_hi; 4], ..self }
     }
 }
 
@@ -430,6 +688,11 @@ pub trait Narrow: Copy {
     /// # Safety
     /// See [`requant4`].
     unsafe fn requant4_n(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, out: *mut Self);
+    /// [`requant4_lut`] for this output type.
+    ///
+    /// # Safety
+    /// See [`requant4_lut`].
+    unsafe fn requant4_lut_n(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: &[i16; 1025], out: *mut Self);
 }
 
 /// The [`Narrow`] kernel of one output type: `$store` is the narrowing store of four 32-bit lanes
@@ -482,6 +745,70 @@ macro_rules! narrow {
                     );
                 }
             }
+            #[inline(always)]
+            unsafe fn requant4_lut_n(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: &[i16; 1025], out: *mut $t) {
+                // SAFETY: the caller's bounds (`requant4_lut`); the gathers read entries `i` and
+                // `i + 1` of the 1025-entry table for `i = (x + 32768) >> 6 <= 1023`, `x` clamped
+                // to `lo..=hi` within `-32768..=32767` first (`Requant4` of `requant4_lut`).
+                unsafe {
+                    asm!(
+                        "vldrw.u32 q0, [{k}, #48]",
+                        "vldrw.u32 q6, [{bias}, q0]",
+                        "vldrw.u32 q7, [{k}]",
+                        "vmov.i32 q0, #4",
+                        "vadd.i32 q0, q7, q0",
+                        "vmov.i32 q5, #32",
+                        "2:",
+                        "vldrw.u32 q1, [{d}], #32",
+                        "vldrw.u32 q2, [r1, q7]",
+                        "vldrb.u32 q3, [r1, q0]",
+                        "vmulh.s32 q4, q1, q2",
+                        "vmul.i32 q1, q1, q2",
+                        "vsub.i32 q2, q5, q3",
+                        "vneg.s32 q3, q3",
+                        "vrshl.u32 q1, q1, q3",
+                        "vqrshl.s32 q4, q4, q2",
+                        "vqadd.s32 q4, q4, q1",
+                        "vqadd.s32 q6, q6, q4",
+                        "add r1, r1, #8",
+                        "subs {n}, {n}, #1",
+                        "bne 2b",
+                        "vrshr.s32 q6, q6, #8",
+                        "vldrw.u32 q1, [{k}, #16]",
+                        "vmax.s32 q6, q6, q1",
+                        "vldrw.u32 q1, [{k}, #32]",
+                        "vmin.s32 q6, q6, q1",
+                        // The table: u = x + 32768, entries u >> 6 and the next, fraction u & 63.
+                        "vmov.i32 q1, #0x8000",
+                        "vadd.i32 q6, q6, q1",
+                        "vshr.u32 q2, q6, #6",
+                        "vmov.i32 q1, #63",
+                        "vand q6, q6, q1",
+                        "vldrh.s32 q3, [{tab}, q2, uxtw #1]",
+                        "vldrh.s32 q4, [{tab1}, q2, uxtw #1]",
+                        "vsub.i32 q4, q4, q3",
+                        "vmul.i32 q4, q4, q6",
+                        "vrshr.s32 q4, q4, #6",
+                        "vadd.i32 q6, q3, q4",
+                        "vldrw.u32 q1, [{k}, #64]",
+                        "vmax.s32 q6, q6, q1",
+                        "vldrw.u32 q1, [{k}, #80]",
+                        "vmin.s32 q6, q6, q1",
+                        concat!($store, " q6, [r0]"),
+                        k = in(reg) k as *const Requant4,
+                        bias = in(reg) bias,
+                        d = inout(reg) d => _,
+                        n = inout(reg) np => _,
+                        tab = in(reg) table.as_ptr(),
+                        tab1 = in(reg) table.as_ptr().wrapping_add(1),
+                        inout("r1") mult => _,
+                        in("r0") out,
+                        out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+                        out("d8") _, out("d9") _, out("d10") _, out("d11") _, out("d12") _, out("d13") _, out("d14") _, out("d15") _,
+                        options(nostack),
+                    );
+                }
+            }
         }
     };
 }
@@ -517,6 +844,19 @@ narrow!(i16, "vstrh.32");
 pub unsafe fn requant4<O: Narrow>(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, out: *mut O) {
     // SAFETY: forwarded.
     unsafe { O::requant4_n(d, mult, k, np, bias, out) }
+}
+
+/// [`requant4`] followed by a sigmoid or tanh table (`arith::lut`'s `table16`: entries `i` and
+/// `i + 1` of `table` at `u = x + 32768`, `i = u >> 6`, `a + rshift_round((b - a) (u & 63), 6)`)
+/// of the clamped value `x`, then the clamp to `k.out_lo..=k.out_hi` (the output type's range,
+/// [`Requant4::with_out`]) and the narrowing store: `out[i] = clamp(f(requant4's value))`.
+///
+/// # Safety
+/// As [`requant4`], and `k.lo..=k.hi` within `-32768..=32767` (the table's input range).
+#[inline(always)]
+pub unsafe fn requant4_lut<O: Narrow>(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: &[i16; 1025], out: *mut O) {
+    // SAFETY: forwarded.
+    unsafe { O::requant4_lut_n(d, mult, k, np, bias, table, out) }
 }
 
 /// Whether a saturating vector instruction saturated since the flag was last cleared
