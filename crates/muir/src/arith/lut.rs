@@ -80,13 +80,6 @@ pub fn exp_table() -> &'static [u16; 1025] {
     &EXP
 }
 
-/// The tables of [`sigmoid_q12`] and [`tanh_q12`], for vector kernels that read them by gather
-/// loads (entry pairs `T[i], T[i + 1]` as one 32-bit load at `2 i` bytes, `i <= 1023`).
-#[inline]
-pub fn sigmoid_tanh_tables() -> (&'static [i16; 1025], &'static [i16; 1025]) {
-    (&SIGMOID, &TANH)
-}
-
 /// Sine of a 32-bit phase (`2^32` = one turn), times 32767.
 #[inline]
 pub fn sin_phase(phase: u32) -> i32 {

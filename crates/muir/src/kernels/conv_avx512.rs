@@ -775,11 +775,10 @@ unsafe fn copy_weights_into(w: &[i8], kl: usize, off: usize, ch: usize, chp: usi
 #[target_feature(enable = "avx512f")]
 unsafe fn finish_channel(post: PostOp, bias: i64, wild: bool, sum: &[i64], fin: &mut [i32], lo: i32, hi: i32) {
     let fast = !wild && bias.unsigned_abs() < super::SHORT_MAX_BIAS;
-    let (sig, tanh) = crate::arith::lut::sigmoid_tanh_tables();
     let table = match post {
         PostOp::None | PostOp::Relu => None,
-        PostOp::Sigmoid => Some(sig.as_ptr()),
-        PostOp::Tanh => Some(tanh.as_ptr()),
+        PostOp::Sigmoid => Some(crate::arith::lut::sigmoid_table().as_ptr()),
+        PostOp::Tanh => Some(crate::arith::lut::tanh_table().as_ptr()),
     };
     let lo_v = if post == PostOp::Relu { lo.max(0) } else { lo };
     let (b, l, h) = (_mm512_set1_epi64(bias + (1 << (super::EXTRA_BITS - 1))), _mm512_set1_epi64(lo_v as i64), _mm512_set1_epi64(hi as i64));
