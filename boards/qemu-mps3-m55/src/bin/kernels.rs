@@ -621,7 +621,7 @@ struct ConvBufs {
     x16: [[i16; CONV_IN]; 3],
     want: [i16; CONV_OUT],
     got: [i16; CONV_OUT],
-    scratch: [u8; 8 * CONV_KL],
+    scratch: [u8; 24 * CONV_KL],
 }
 
 static mut CONV: ConvBufs = ConvBufs {
@@ -632,7 +632,7 @@ static mut CONV: ConvBufs = ConvBufs {
     x16: [[0; CONV_IN]; 3],
     want: [0; CONV_OUT],
     got: [0; CONV_OUT],
-    scratch: [0; 8 * CONV_KL],
+    scratch: [0; 24 * CONV_KL],
 };
 
 /// The DSP build's requantisation of the convolution's short epilogue (`dsp::requantize_i32`,
@@ -799,6 +799,43 @@ fn check_conv(r: &mut Rng) -> usize {
             process::exit(1);
         }
         cases += 1;
+        // The DSP build's rows with the gathered pixel pairs in a second buffer
+        // (`conv::conv_row_i16_w16_spare`, the 1/16 ConvGRU gates' path): the single patch and
+        // the widened weights in the head of the scratch, `j` pairs of patches (3 to 8) in a
+        // buffer after it, against the same plain results.
+        #[cfg(not(feature = "mve"))]
+        if wide && w_out >= 6 {
+            let j = 3 + (r.next() as usize) % 6;
+            let words: usize = parts[..np].iter().map(|&ch| ch * k * k / 4 * 4).sum();
+            let head = 4 + 2 * kl + 4 * words + 4;
+            let len = 4 + 4 * kl * j;
+            if head + len <= b.scratch.len() {
+                b.got[..n_out].fill(0);
+                let x = &b.x16;
+                let ts: [&[i16]; 3] = [&x[0][..h * w * parts[0]], &x[1][..h * w * parts[1]], &x[2][..h * w * parts[2]]];
+                let (scratch, spare) = b.scratch.split_at_mut(head);
+                let mut used = true;
+                for y in 0..h_out {
+                    let rows: [PartRows<'_, i16>; 3] = core::array::from_fn(|i| PartRows::of_tensor(ts[i], h, w * parts[i], y, k, stride));
+                    let mut all = row(out_kind, &mut b.got[..n_out]);
+                    let mut dst = match &mut all {
+                        OutRow::I16(o) => OutRow::I16(&mut o[y * row_len..(y + 1) * row_len]),
+                        OutRow::U8(o) => OutRow::U8(&mut o[y * row_len..(y + 1) * row_len]),
+                        OutRow::I8(o) => OutRow::I8(&mut o[y * row_len..(y + 1) * row_len]),
+                    };
+                    used &= muir::kernels::conv::conv_row_i16_w16_spare(&p, &rows[..np], w, &mut dst, scratch, &mut spare[..len]);
+                }
+                if !used || b.want[..n_out] != b.got[..n_out] {
+                    let at = b.want[..n_out].iter().zip(&b.got[..n_out]).position(|(a, g)| a != g).unwrap_or(0);
+                    println!(
+                        "MUIR-KERNELS FAILED conv_row_i16_w16_spare case {case}: k={k} stride={stride} parts={:?} cout={cout} {h}x{w} pairs={j} out={out_kind} used={used} at {at}: got {}, plain {}",
+                        &parts[..np], b.got[at], b.want[at]
+                    );
+                    process::exit(1);
+                }
+                cases += 1;
+            }
+        }
     }
     cases
 }

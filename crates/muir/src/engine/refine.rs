@@ -14,7 +14,7 @@
 #![deny(clippy::indexing_slicing)]
 
 use super::encoder::{conv, run_conv};
-use super::layout::{FlowHeadLayout, GruLayout, MudLayout, UfiLayout, flow_head_stages, gru08_stages, gru16_stages, mga_value_stages, mud_stages, ufi_stages};
+use super::layout::{Buf, FlowHeadLayout, GruLayout, MudLayout, UfiLayout, flow_head_stages, gru08_stages, gru16_stages, mga_value_stages, mud_stages, ufi_stages};
 use crate::model::grid::Grid;
 use super::ring::{Carver, Ring, chunk, chunk_mut, copy_row, first_n, first_n_mut, last_input_row};
 use crate::arith::{lut, sat_i16};
@@ -173,6 +173,19 @@ fn conv16_ctx(p: &ConvParams<'_>, parts: &[PartRows<'_, i16>], row: usize, w: us
         let _ = row;
         conv16(p, parts, w, out, patch)
     }
+}
+
+/// [`conv16_ctx`] with `spare` arena bytes idle during the layer: on the DSP build the gathered
+/// pixel pairs go there, the weights widened once for all of them
+/// (`conv::conv_row_i16_w16_spare`), where it holds enough pairs; else as [`conv16_ctx`].
+#[allow(clippy::too_many_arguments)]
+fn conv16_spare(p: &ConvParams<'_>, parts: &[PartRows<'_, i16>], row: usize, w: usize, out: &mut [i16], patch: &mut [u8], spare: &mut [u8]) {
+    #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+    if crate::kernels::conv::conv_row_i16_w16_spare(p, parts, w, &mut OutRow::I16(out), patch, spare) {
+        return;
+    }
+    let _ = spare;
+    conv16_ctx(p, parts, row, w, out, patch)
 }
 
 /// The convex upsampler's factor: every 1/8-grid pixel becomes an `UP x UP` block of the output
@@ -466,6 +479,8 @@ pub fn gru16(c: &mut Ctx<'_, '_, '_>) {
     let mut rh = Ring::of_len(cv.i16(lay.rh.buf), lay.rh, row, h);
     let gate = cv.i16(lay.gate);
     let q = cv.i16(lay.q);
+    // The 1/8 pass's buffers after `q`, idle here.
+    let spare = cv.raw(Buf { at: lay.q.end(), len: lay.total.saturating_sub(lay.q.end()) });
     let (pz, pr, pq) = (conv(m, Gru16Z), conv(m, Gru16R), conv(m, Gru16Q));
     for s in 0..gru16_stages::SCHEDULE.steps(h) {
         if gru16_stages::SCHEDULE.row(s, gru16_stages::INPUTS, h).is_some() {
@@ -474,14 +489,14 @@ pub fn gru16(c: &mut Ctx<'_, '_, '_>) {
         }
         if let Some(r) = gru16_stages::SCHEDULE.row(s, gru16_stages::GATES, h) {
             let parts = [full(c.frame.net16, h, row, r, 3), rows(&pool, r, 3), rows(&inp, r, 3)];
-            conv16_ctx(&pz, &parts, r, w, rz.push(), c.px.patch);
+            conv16_spare(&pz, &parts, r, w, rz.push(), c.px.patch, spare);
             let gate = first_n_mut(gate, row);
-            conv16_ctx(&pr, &parts, r, w, gate, c.px.patch);
+            conv16_spare(&pr, &parts, r, w, gate, c.px.patch, spare);
             mul_q15(gate, chunk(c.frame.net16, r, row), rh.push());
         }
         if let Some(r) = gru16_stages::SCHEDULE.row(s, gru16_stages::CANDIDATE, h) {
             let q = first_n_mut(q, row);
-            conv16_ctx(&pq, &[rows(&rh, r, 3), rows(&pool, r, 3), rows(&inp, r, 3)], r, w, q, c.px.patch);
+            conv16_spare(&pq, &[rows(&rh, r, 3), rows(&pool, r, 3), rows(&inp, r, 3)], r, w, q, c.px.patch, spare);
             blend_q15(chunk_mut(c.frame.net16, r, row), rz.row(r), q);
         }
     }
@@ -499,21 +514,22 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
     // Host: this pass's MGA values are final (written by `mga_values`).
     #[cfg(feature = "std")]
     super::host_rows::new_values();
+    // (Carved in the layout's order.)
     let mut cv = Carver::new(c.rings);
+    let mut rmo = Ring::of_len(cv.i16(lay.mo.buf), lay.mo, w * (cfg.motion_dim - fc), h8);
+    let mut rinp = cv.ring16(lay.inp, h8);
+    let mut rz = cv.ring16(lay.z, h8);
+    let mut rrh = cv.ring16(lay.rh, h8);
+    let gate = cv.i16(lay.gate);
+    let q = cv.i16(lay.q);
     let corr = cv.i16(lay.corr);
     let corr_m = cv.i16(lay.corr_m);
     let mut rc1 = cv.ring16(lay.c1, h8);
     let mut rc2 = cv.ring16(lay.c2, h8);
     let mut rf1 = cv.ring16(lay.f1, h8);
     let mut rf2 = cv.ring16(lay.f2, h8);
-    let mut rmo = Ring::of_len(cv.i16(lay.mo.buf), lay.mo, w * (cfg.motion_dim - fc), h8);
     let mut rup = cv.ring16(lay.up, h8);
     let mut rglb = cv.ring16(lay.glb, h8);
-    let mut rinp = cv.ring16(lay.inp, h8);
-    let mut rz = cv.ring16(lay.z, h8);
-    let mut rrh = cv.ring16(lay.rh, h8);
-    let gate = cv.i16(lay.gate);
-    let q = cv.i16(lay.q);
     let (pc1, pc2, pf1, pf2, pmo) = (conv(m, MotC1), conv(m, MotC2), conv(m, MotF1), conv(m, MotF2), conv(m, MotOut));
     let (pz, pr, pq) = (conv(m, Gru08Z), conv(m, Gru08R), conv(m, Gru08Q));
     let pquery = if cfg.mga { Some(conv(m, MgaQuery)) } else { None };
