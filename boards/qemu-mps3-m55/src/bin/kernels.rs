@@ -212,6 +212,51 @@ fn check_attention(q: &mut [i16; MAX_N], k: &mut [i16; MAX_N], r: &mut Rng) -> u
     cases
 }
 
+/// The DSP build's MGA value sums (`dsp::aggregate`: two keys and two channels per `SMLALD`,
+/// the plain loop for a block holding a weight of 32768 or over 32 keys) against a plain loop:
+/// blocks of 1 to 34 keys, odd and even channel counts, weights random, 0 and 32767, one block
+/// kind with 32768, values at i16's limits, random starting sums.
+#[cfg(not(feature = "mve"))]
+fn check_aggregate_dsp(v: &mut [i16; MAX_N], r: &mut Rng) -> usize {
+    use muir::kernels::dsp;
+    let mut cases = 0;
+    for cv in [1usize, 2, 3, 5, 64, 128] {
+        for nb in 1..=34usize {
+            for kind in 0..4 {
+                let mut e = [0i32; 34];
+                for (j, w) in e.iter_mut().enumerate().take(nb) {
+                    *w = match kind {
+                        0 => (r.next() % 32768) as i32,
+                        1 if j % 3 == 0 => 0,
+                        1 | 2 => 32767,
+                        _ if j == nb / 2 => 32768,
+                        _ => (r.next() % 32769) as i32,
+                    };
+                }
+                let fill = [Fill::Random, Fill::Max, Fill::Min, Fill::Random][kind];
+                for x in v.iter_mut().take(nb * cv) {
+                    *x = i16::sample(r, fill);
+                }
+                let mut got = [0i64; 128];
+                let mut want = [0i64; 128];
+                for (g, w) in got.iter_mut().zip(want.iter_mut()).take(cv) {
+                    let start = (r.next() >> 40) as i64 - (1 << 23);
+                    (*g, *w) = (start, start);
+                }
+                for (ch, w) in want.iter_mut().enumerate().take(cv) {
+                    *w += (0..nb).map(|j| e[j] as i64 * v[j * cv + ch] as i64).sum::<i64>();
+                }
+                dsp::aggregate(&e[..nb], &v[..nb * cv], cv, &mut got[..cv]);
+                if got[..cv] != want[..cv] {
+                    fail("dsp aggregate", nb * 1000 + cv, &got[..cv], &want[..cv]);
+                }
+                cases += 1;
+            }
+        }
+    }
+    cases
+}
+
 /// Multiplier and bias tables of one block of four channels, aligned as the blob's are.
 #[cfg(feature = "mve")]
 #[repr(C, align(8))]
@@ -910,6 +955,7 @@ fn main() -> ! {
     #[cfg(not(feature = "mve"))]
     {
         cases += check_requant_dsp(&mut r);
+        cases += check_aggregate_dsp(i16s.a, &mut r);
     }
     cases += check_conv(&mut r);
     println!("MUIR-KERNELS ok cases={cases}");
