@@ -333,6 +333,48 @@ fn qk_pixel(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, x: usize, y: usize, w:
     rope_pixel(out, x, y, phases);
 }
 
+/// Queries (or keys) of a run of pixels `x0 .. x0 + n` of row `y` into `out` (`n x cout` values):
+/// one 1x1 conv call over the run's context values (so `run_conv` takes pixel pairs and, from
+/// three pairs, the weights widened once), then RoPE per pixel. The same integers as
+/// [`qk_pixel`] for each pixel: a 1x1 convolution reads no neighbours.
+#[allow(clippy::too_many_arguments)]
+fn qk_run(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, x0: usize, n: usize, y: usize, w: usize, phases: &[u32], patch: &mut [u8], out: &mut [i16]) {
+    let i = y * w + x0;
+    let mut r = [None; MAX_K];
+    r[0] = Some(inp08.get(i * ctx..(i + n) * ctx).unwrap_or_default());
+    let out = first_n_mut(out, n * p.cout);
+    run_conv(p, &[PartRows { rows: r }], n, &mut OutRow::I16(out), patch);
+    for (x, o) in out.chunks_exact_mut(p.cout.max(1)).enumerate() {
+        rope_pixel(o, x0 + x, y, phases);
+    }
+}
+
+/// Calls `f(x, query)` for every pixel of row `y` (`w` of them) with its query ([`qk_pixel`]'s
+/// values): computed in runs of pixels as long as `buf` holds ([`qk_run`], runs of equal length),
+/// or pixel by pixel into `query` where `buf` cannot hold one.
+#[allow(clippy::too_many_arguments)]
+fn row_queries(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, y: usize, w: usize, phases: &[u32], patch: &mut [u8], buf: &mut [i16], query: &mut [i16], mut f: impl FnMut(usize, &[i16])) {
+    let qk = p.cout;
+    let per = buf.len().checked_div(qk).unwrap_or(0);
+    if per == 0 {
+        for x in 0..w {
+            qk_pixel(p, inp08, ctx, x, y, w, phases, patch, query);
+            f(x, query);
+        }
+        return;
+    }
+    let size = w.div_ceil(w.div_ceil(per).max(1)).max(1);
+    let mut x0 = 0;
+    while x0 < w {
+        let n = size.min(w - x0);
+        qk_run(p, inp08, ctx, x0, n, y, w, phases, patch, buf);
+        for (x, q) in buf.chunks_exact(qk).take(n).enumerate() {
+            f(x0 + x, q);
+        }
+        x0 += n;
+    }
+}
+
 /// One RoPE phase step per query/key channel pair: `mga_qk_dim / 2` of them, and a config's widths
 /// are at most `MAX_WIDTH` (checked when the config is validated).
 fn rope_phases(m: &QuantModel<'_>) -> [u32; crate::model::config::MAX_WIDTH / 2] {
@@ -359,11 +401,9 @@ pub fn mga_setup(c: &mut Ctx<'_, '_, '_>) {
             super::host_rows::keys_row(&pk, c.frame.inp08, ctx, y, w, phases, chunk_mut(c.st.keys, y, w * qk));
             continue;
         }
+        // The row's keys by one conv call.
         #[allow(unreachable_code)]
-        for x in 0..w {
-            let p = y * w + x;
-            qk_pixel(&pk, c.frame.inp08, ctx, x, y, w, phases, c.px.patch, chunk_mut(c.st.keys, p, qk));
-        }
+        qk_run(&pk, c.frame.inp08, ctx, 0, w, y, w, phases, c.px.patch, chunk_mut(c.st.keys, y, w * qk));
     }
     let am = m.att_mult();
     // Host: the keys are final.
@@ -376,15 +416,17 @@ pub fn mga_setup(c: &mut Ctx<'_, '_, '_>) {
             super::host_rows::stats_row(&pq, c.frame.inp08, ctx, y, w, phases, c.st.keys, am, chunk_mut(c.st.stats, y, 2 * w));
             continue;
         }
+        // The row's queries in runs of pixels (the mask logits' buffer, idle until the output
+        // pass).
         #[allow(unreachable_code)]
-        for x in 0..w {
-            let p = y * w + x;
-            qk_pixel(&pq, c.frame.inp08, ctx, x, y, w, phases, c.px.patch, c.px.query);
-            let (mx, sum) = query_stats(c.px.query, c.st.keys, am);
-            if let [a, b] = chunk_mut(c.st.stats, p, 2) {
+        let (keys, stats) = (&*c.st.keys, &mut *c.st.stats);
+        #[allow(unreachable_code)]
+        row_queries(&pq, c.frame.inp08, ctx, y, w, phases, c.px.patch, c.px.logits, c.px.query, |x, q| {
+            let (mx, sum) = query_stats(q, keys, am);
+            if let [a, b] = chunk_mut(stats, y * w + x, 2) {
                 (*a, *b) = (mx, sum);
             }
-        }
+        });
     }
 }
 
@@ -579,16 +621,18 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
                         super::host_rows::aggregate_row(pqy, c.frame.inp08, ctx, y, w, phases, st.keys, st.values, hd, stats, am, glb_shift, d);
                         return;
                     }
+                    // The row's queries in runs of pixels (the mask logits' buffer, idle
+                    // until the output pass).
                     #[allow(unreachable_code)]
-                    for x in 0..w {
-                        let p = y * w + x;
-                        qk_pixel(pqy, c.frame.inp08, ctx, x, y, w, phases, px.patch, px.query);
-                        let stats = match *chunk(st.stats, p, 2) {
+                    let acc = &mut *px.acc;
+                    #[allow(unreachable_code)]
+                    row_queries(pqy, c.frame.inp08, ctx, y, w, phases, px.patch, px.logits, px.query, |x, q| {
+                        let stats = match *chunk(st.stats, y * w + x, 2) {
                             [mx, sum] => (mx, sum),
                             _ => (0, 0),
                         };
-                        aggregate_query(px.query, st.keys, st.values, hd, stats, am, glb_shift, px.acc, chunk_mut(d, x, hd));
-                    }
+                        aggregate_query(q, st.keys, st.values, hd, stats, am, glb_shift, acc, chunk_mut(d, x, hd));
+                    });
                 });
             }
             let net = full(c.frame.net08, h8, row, r, 3);
