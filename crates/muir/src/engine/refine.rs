@@ -708,9 +708,15 @@ pub fn upsample(c: &mut Ctx<'_, '_, '_>, width: usize, height: usize, disp: &mut
     let g = c.g;
     let (w, h8, hd, fc, mh) = (g.w8, g.h8, cfg.hidden_dim, cfg.flow_channels, cfg.mask_head_dim);
     let lay = FlowHeadLayout::new(&cfg, &g);
+    let rings_len = c.rings.len();
     let mut cv = Carver::new(c.rings);
     let mid = cv.i16(lay.head.buf);
     let flow0 = cv.i16(lay.flow0);
+    // The line buffers past this pass's (the iterations' are larger): the firmware's runs of
+    // mask logits.
+    #[cfg(not(feature = "std"))]
+    let spare = cv.i16(Buf { at: lay.total, len: rings_len.saturating_sub(lay.total) / 8 * 8 });
+    let _ = rings_len;
     let (p1, p2) = (conv(m, Mask1), conv(m, Mask2));
     let mask_frac = frac(m, Act::MaskLogit);
     // channel 0 of the disparity state (the only one with MUIR; RAFT's y is 0)
@@ -744,16 +750,37 @@ pub fn upsample(c: &mut Ctx<'_, '_, '_>, width: usize, height: usize, disp: &mut
                 }
             }
         };
-        // Host: the row's logits by one conv call; firmware: pixel by pixel in the plan's memory.
+        // Host: the row's logits by one conv call; firmware: by one conv call per run of pixels
+        // (runs of equal length) in the idle line buffers, pixel by pixel where they cannot hold
+        // one pixel's logits. A 1x1 convolution: the same integers either way.
         #[cfg(feature = "std")]
         super::host_rows::mask_logits_row(&p2, mid, w, mh, &mut pixel);
         #[cfg(not(feature = "std"))]
-        for x in 0..w {
-            let mut r = [None; MAX_K];
-            r[0] = Some(chunk(mid, x, mh));
-            let logits = first_n_mut(c.px.logits, MASK_CHANNELS);
-            conv16(&p2, &[PartRows { rows: r }], 1, logits, c.px.patch);
-            pixel(x, logits);
+        {
+            let per = spare.len() / MASK_CHANNELS;
+            if per == 0 {
+                for x in 0..w {
+                    let mut r = [None; MAX_K];
+                    r[0] = Some(chunk(mid, x, mh));
+                    let logits = first_n_mut(c.px.logits, MASK_CHANNELS);
+                    conv16(&p2, &[PartRows { rows: r }], 1, logits, c.px.patch);
+                    pixel(x, logits);
+                }
+            } else {
+                let size = w.div_ceil(w.div_ceil(per).max(1)).max(1);
+                let mut x0 = 0;
+                while x0 < w {
+                    let n = size.min(w - x0);
+                    let mut r = [None; MAX_K];
+                    r[0] = Some(mid.get(x0 * mh..(x0 + n) * mh).unwrap_or_default());
+                    let run = first_n_mut(spare, n * MASK_CHANNELS);
+                    conv16(&p2, &[PartRows { rows: r }], n, run, c.px.patch);
+                    for (i, logits) in run.chunks_exact_mut(MASK_CHANNELS).enumerate() {
+                        pixel(x0 + i, logits);
+                    }
+                    x0 += n;
+                }
+            }
         }
     }
 }
