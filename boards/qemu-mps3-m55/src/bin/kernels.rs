@@ -212,6 +212,51 @@ fn check_attention(q: &mut [i16; MAX_N], k: &mut [i16; MAX_N], r: &mut Rng) -> u
     cases
 }
 
+/// The DSP build's MGA value sums (`dsp::aggregate`: two keys and two channels per `SMLALD`,
+/// the plain loop for a block holding a weight of 32768 or over 32 keys) against a plain loop:
+/// blocks of 1 to 34 keys, odd and even channel counts, weights random, 0 and 32767, one block
+/// kind with 32768, values at i16's limits, random starting sums.
+#[cfg(not(feature = "mve"))]
+fn check_aggregate_dsp(v: &mut [i16; MAX_N], r: &mut Rng) -> usize {
+    use muir::kernels::dsp;
+    let mut cases = 0;
+    for cv in [1usize, 2, 3, 5, 64, 128] {
+        for nb in 1..=34usize {
+            for kind in 0..4 {
+                let mut e = [0i32; 34];
+                for (j, w) in e.iter_mut().enumerate().take(nb) {
+                    *w = match kind {
+                        0 => (r.next() % 32768) as i32,
+                        1 if j % 3 == 0 => 0,
+                        1 | 2 => 32767,
+                        _ if j == nb / 2 => 32768,
+                        _ => (r.next() % 32769) as i32,
+                    };
+                }
+                let fill = [Fill::Random, Fill::Max, Fill::Min, Fill::Random][kind];
+                for x in v.iter_mut().take(nb * cv) {
+                    *x = i16::sample(r, fill);
+                }
+                let mut got = [0i64; 128];
+                let mut want = [0i64; 128];
+                for (g, w) in got.iter_mut().zip(want.iter_mut()).take(cv) {
+                    let start = (r.next() >> 40) as i64 - (1 << 23);
+                    (*g, *w) = (start, start);
+                }
+                for (ch, w) in want.iter_mut().enumerate().take(cv) {
+                    *w += (0..nb).map(|j| e[j] as i64 * v[j * cv + ch] as i64).sum::<i64>();
+                }
+                dsp::aggregate(&e[..nb], &v[..nb * cv], cv, &mut got[..cv]);
+                if got[..cv] != want[..cv] {
+                    fail("dsp aggregate", nb * 1000 + cv, &got[..cv], &want[..cv]);
+                }
+                cases += 1;
+            }
+        }
+    }
+    cases
+}
+
 /// Multiplier and bias tables of one block of four channels, aligned as the blob's are.
 /// The i16 convolution block's dot products in one call per channel pair (`mve::PartLens::dots4`:
 /// four weight rows, 1 to 6 parts of random lengths 1..=140, one of 500..=699 in some extreme
@@ -761,7 +806,7 @@ struct ConvBufs {
     x16: [[i16; CONV_IN]; 3],
     want: [i16; CONV_OUT],
     got: [i16; CONV_OUT],
-    scratch: [u8; 8 * CONV_KL],
+    scratch: [u8; 24 * CONV_KL],
 }
 
 static mut CONV: ConvBufs = ConvBufs {
@@ -772,7 +817,7 @@ static mut CONV: ConvBufs = ConvBufs {
     x16: [[0; CONV_IN]; 3],
     want: [0; CONV_OUT],
     got: [0; CONV_OUT],
-    scratch: [0; 8 * CONV_KL],
+    scratch: [0; 24 * CONV_KL],
 };
 
 /// The DSP build's requantisation of the convolution's short epilogue (`dsp::requantize_i32`,
@@ -939,6 +984,43 @@ fn check_conv(r: &mut Rng) -> usize {
             process::exit(1);
         }
         cases += 1;
+        // The DSP build's rows with the gathered pixel pairs in a second buffer
+        // (`conv::conv_row_i16_w16_spare`, the 1/16 ConvGRU gates' path): the single patch and
+        // the widened weights in the head of the scratch, `j` pairs of patches (3 to 8) in a
+        // buffer after it, against the same plain results.
+        #[cfg(not(feature = "mve"))]
+        if wide && w_out >= 6 {
+            let j = 3 + (r.next() as usize) % 6;
+            let words: usize = parts[..np].iter().map(|&ch| ch * k * k / 4 * 4).sum();
+            let head = 4 + 2 * kl + 4 * words + 4;
+            let len = 4 + 4 * kl * j;
+            if head + len <= b.scratch.len() {
+                b.got[..n_out].fill(0);
+                let x = &b.x16;
+                let ts: [&[i16]; 3] = [&x[0][..h * w * parts[0]], &x[1][..h * w * parts[1]], &x[2][..h * w * parts[2]]];
+                let (scratch, spare) = b.scratch.split_at_mut(head);
+                let mut used = true;
+                for y in 0..h_out {
+                    let rows: [PartRows<'_, i16>; 3] = core::array::from_fn(|i| PartRows::of_tensor(ts[i], h, w * parts[i], y, k, stride));
+                    let mut all = row(out_kind, &mut b.got[..n_out]);
+                    let mut dst = match &mut all {
+                        OutRow::I16(o) => OutRow::I16(&mut o[y * row_len..(y + 1) * row_len]),
+                        OutRow::U8(o) => OutRow::U8(&mut o[y * row_len..(y + 1) * row_len]),
+                        OutRow::I8(o) => OutRow::I8(&mut o[y * row_len..(y + 1) * row_len]),
+                    };
+                    used &= muir::kernels::conv::conv_row_i16_w16_spare(&p, &rows[..np], w, &mut dst, scratch, &mut spare[..len]);
+                }
+                if !used || b.want[..n_out] != b.got[..n_out] {
+                    let at = b.want[..n_out].iter().zip(&b.got[..n_out]).position(|(a, g)| a != g).unwrap_or(0);
+                    println!(
+                        "MUIR-KERNELS FAILED conv_row_i16_w16_spare case {case}: k={k} stride={stride} parts={:?} cout={cout} {h}x{w} pairs={j} out={out_kind} used={used} at {at}: got {}, plain {}",
+                        &parts[..np], b.got[at], b.want[at]
+                    );
+                    process::exit(1);
+                }
+                cases += 1;
+            }
+        }
     }
     cases
 }
@@ -1014,6 +1096,7 @@ fn main() -> ! {
     #[cfg(not(feature = "mve"))]
     {
         cases += check_requant_dsp(&mut r);
+        cases += check_aggregate_dsp(i16s.a, &mut r);
     }
     cases += check_conv(&mut r);
     println!("MUIR-KERNELS ok cases={cases}");

@@ -309,21 +309,23 @@ impl GruLayout {
         let h = cfg.hidden_dim;
         let fc = cfg.flow_channels;
         let mut b = Bump::new(0);
+        // The buffers the 1/16 pass uses first: the rest, from `q.end()`, is idle while it runs
+        // (its gates gather their pixel pairs there: `refine::gru16`).
         Self {
+            mo: b.ring16(4, w * if cfg.motion_dim - fc > h { cfg.motion_dim - fc } else { h }),
+            inp: b.ring16(4, w * cfg.context_dim),
+            z: b.ring16(2, w * h),
+            rh: b.ring16(3, w * h),
+            gate: b.take(ring16(w, 1, h)),
+            q: b.take(ring16(w, 1, h)),
             corr: b.take(ring16(w, 1, cfg.corr_channels())),
             corr_m: b.take(ring16(w, 1, cfg.corr_channels())),
             c1: b.ring16(3, w * cfg.motion_corr_dims[0]),
             c2: b.ring16(3, w * cfg.motion_corr_dims[1]),
             f1: b.ring16(3, w * cfg.motion_flow_dims[0]),
             f2: b.ring16(3, w * cfg.motion_flow_dims[1]),
-            mo: b.ring16(4, w * if cfg.motion_dim - fc > h { cfg.motion_dim - fc } else { h }),
             up: b.ring16(4, w * h),
             glb: b.ring16(4, w * h),
-            inp: b.ring16(4, w * cfg.context_dim),
-            z: b.ring16(2, w * h),
-            rh: b.ring16(3, w * h),
-            gate: b.take(ring16(w, 1, h)),
-            q: b.take(ring16(w, 1, h)),
             total: b.at,
         }
     }

@@ -14,7 +14,7 @@
 #![deny(clippy::indexing_slicing)]
 
 use super::encoder::{conv, run_conv};
-use super::layout::{FlowHeadLayout, GruLayout, MudLayout, UfiLayout, flow_head_stages, gru08_stages, gru16_stages, mga_value_stages, mud_stages, ufi_stages};
+use super::layout::{Buf, FlowHeadLayout, GruLayout, MudLayout, UfiLayout, flow_head_stages, gru08_stages, gru16_stages, mga_value_stages, mud_stages, ufi_stages};
 use crate::model::grid::Grid;
 use super::ring::{Carver, Ring, chunk, chunk_mut, copy_row, first_n, first_n_mut, last_input_row};
 use crate::arith::{lut, sat_i16};
@@ -175,6 +175,19 @@ fn conv16_ctx(p: &ConvParams<'_>, parts: &[PartRows<'_, i16>], row: usize, w: us
     }
 }
 
+/// [`conv16_ctx`] with `spare` arena bytes idle during the layer: on the DSP build the gathered
+/// pixel pairs go there, the weights widened once for all of them
+/// (`conv::conv_row_i16_w16_spare`), where it holds enough pairs; else as [`conv16_ctx`].
+#[allow(clippy::too_many_arguments)]
+fn conv16_spare(p: &ConvParams<'_>, parts: &[PartRows<'_, i16>], row: usize, w: usize, out: &mut [i16], patch: &mut [u8], spare: &mut [u8]) {
+    #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+    if crate::kernels::conv::conv_row_i16_w16_spare(p, parts, w, &mut OutRow::I16(out), patch, spare) {
+        return;
+    }
+    let _ = spare;
+    conv16_ctx(p, parts, row, w, out, patch)
+}
+
 /// The convex upsampler's factor: every 1/8-grid pixel becomes an `UP x UP` block of the output
 /// (the per-pixel block buffers of the output pass are this size).
 const UP: usize = 8;
@@ -320,6 +333,48 @@ fn qk_pixel(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, x: usize, y: usize, w:
     rope_pixel(out, x, y, phases);
 }
 
+/// Queries (or keys) of a run of pixels `x0 .. x0 + n` of row `y` into `out` (`n x cout` values):
+/// one 1x1 conv call over the run's context values (so `run_conv` takes pixel pairs and, from
+/// three pairs, the weights widened once), then RoPE per pixel. The same integers as
+/// [`qk_pixel`] for each pixel: a 1x1 convolution reads no neighbours.
+#[allow(clippy::too_many_arguments)]
+fn qk_run(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, x0: usize, n: usize, y: usize, w: usize, phases: &[u32], patch: &mut [u8], out: &mut [i16]) {
+    let i = y * w + x0;
+    let mut r = [None; MAX_K];
+    r[0] = Some(inp08.get(i * ctx..(i + n) * ctx).unwrap_or_default());
+    let out = first_n_mut(out, n * p.cout);
+    run_conv(p, &[PartRows { rows: r }], n, &mut OutRow::I16(out), patch);
+    for (x, o) in out.chunks_exact_mut(p.cout.max(1)).enumerate() {
+        rope_pixel(o, x0 + x, y, phases);
+    }
+}
+
+/// Calls `f(x, query)` for every pixel of row `y` (`w` of them) with its query ([`qk_pixel`]'s
+/// values): computed in runs of pixels as long as `buf` holds ([`qk_run`], runs of equal length),
+/// or pixel by pixel into `query` where `buf` cannot hold one.
+#[allow(clippy::too_many_arguments)]
+fn row_queries(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, y: usize, w: usize, phases: &[u32], patch: &mut [u8], buf: &mut [i16], query: &mut [i16], mut f: impl FnMut(usize, &[i16])) {
+    let qk = p.cout;
+    let per = buf.len().checked_div(qk).unwrap_or(0);
+    if per == 0 {
+        for x in 0..w {
+            qk_pixel(p, inp08, ctx, x, y, w, phases, patch, query);
+            f(x, query);
+        }
+        return;
+    }
+    let size = w.div_ceil(w.div_ceil(per).max(1)).max(1);
+    let mut x0 = 0;
+    while x0 < w {
+        let n = size.min(w - x0);
+        qk_run(p, inp08, ctx, x0, n, y, w, phases, patch, buf);
+        for (x, q) in buf.chunks_exact(qk).take(n).enumerate() {
+            f(x0 + x, q);
+        }
+        x0 += n;
+    }
+}
+
 /// One RoPE phase step per query/key channel pair: `mga_qk_dim / 2` of them, and a config's widths
 /// are at most `MAX_WIDTH` (checked when the config is validated).
 fn rope_phases(m: &QuantModel<'_>) -> [u32; crate::model::config::MAX_WIDTH / 2] {
@@ -346,11 +401,9 @@ pub fn mga_setup(c: &mut Ctx<'_, '_, '_>) {
             super::host_rows::keys_row(&pk, c.frame.inp08, ctx, y, w, phases, chunk_mut(c.st.keys, y, w * qk));
             continue;
         }
+        // The row's keys by one conv call.
         #[allow(unreachable_code)]
-        for x in 0..w {
-            let p = y * w + x;
-            qk_pixel(&pk, c.frame.inp08, ctx, x, y, w, phases, c.px.patch, chunk_mut(c.st.keys, p, qk));
-        }
+        qk_run(&pk, c.frame.inp08, ctx, 0, w, y, w, phases, c.px.patch, chunk_mut(c.st.keys, y, w * qk));
     }
     let am = m.att_mult();
     // Host: the keys are final.
@@ -363,15 +416,17 @@ pub fn mga_setup(c: &mut Ctx<'_, '_, '_>) {
             super::host_rows::stats_row(&pq, c.frame.inp08, ctx, y, w, phases, c.st.keys, am, chunk_mut(c.st.stats, y, 2 * w));
             continue;
         }
+        // The row's queries in runs of pixels (the mask logits' buffer, idle until the output
+        // pass).
         #[allow(unreachable_code)]
-        for x in 0..w {
-            let p = y * w + x;
-            qk_pixel(&pq, c.frame.inp08, ctx, x, y, w, phases, c.px.patch, c.px.query);
-            let (mx, sum) = query_stats(c.px.query, c.st.keys, am);
-            if let [a, b] = chunk_mut(c.st.stats, p, 2) {
+        let (keys, stats) = (&*c.st.keys, &mut *c.st.stats);
+        #[allow(unreachable_code)]
+        row_queries(&pq, c.frame.inp08, ctx, y, w, phases, c.px.patch, c.px.logits, c.px.query, |x, q| {
+            let (mx, sum) = query_stats(q, keys, am);
+            if let [a, b] = chunk_mut(stats, y * w + x, 2) {
                 (*a, *b) = (mx, sum);
             }
-        }
+        });
     }
 }
 
@@ -466,6 +521,8 @@ pub fn gru16(c: &mut Ctx<'_, '_, '_>) {
     let mut rh = Ring::of_len(cv.i16(lay.rh.buf), lay.rh, row, h);
     let gate = cv.i16(lay.gate);
     let q = cv.i16(lay.q);
+    // The 1/8 pass's buffers after `q`, idle here.
+    let spare = cv.raw(Buf { at: lay.q.end(), len: lay.total.saturating_sub(lay.q.end()) });
     let (pz, pr, pq) = (conv(m, Gru16Z), conv(m, Gru16R), conv(m, Gru16Q));
     for s in 0..gru16_stages::SCHEDULE.steps(h) {
         if gru16_stages::SCHEDULE.row(s, gru16_stages::INPUTS, h).is_some() {
@@ -474,14 +531,14 @@ pub fn gru16(c: &mut Ctx<'_, '_, '_>) {
         }
         if let Some(r) = gru16_stages::SCHEDULE.row(s, gru16_stages::GATES, h) {
             let parts = [full(c.frame.net16, h, row, r, 3), rows(&pool, r, 3), rows(&inp, r, 3)];
-            conv16_ctx(&pz, &parts, r, w, rz.push(), c.px.patch);
+            conv16_spare(&pz, &parts, r, w, rz.push(), c.px.patch, spare);
             let gate = first_n_mut(gate, row);
-            conv16_ctx(&pr, &parts, r, w, gate, c.px.patch);
+            conv16_spare(&pr, &parts, r, w, gate, c.px.patch, spare);
             mul_q15(gate, chunk(c.frame.net16, r, row), rh.push());
         }
         if let Some(r) = gru16_stages::SCHEDULE.row(s, gru16_stages::CANDIDATE, h) {
             let q = first_n_mut(q, row);
-            conv16_ctx(&pq, &[rows(&rh, r, 3), rows(&pool, r, 3), rows(&inp, r, 3)], r, w, q, c.px.patch);
+            conv16_spare(&pq, &[rows(&rh, r, 3), rows(&pool, r, 3), rows(&inp, r, 3)], r, w, q, c.px.patch, spare);
             blend_q15(chunk_mut(c.frame.net16, r, row), rz.row(r), q);
         }
     }
@@ -499,21 +556,22 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
     // Host: this pass's MGA values are final (written by `mga_values`).
     #[cfg(feature = "std")]
     super::host_rows::new_values();
+    // (Carved in the layout's order.)
     let mut cv = Carver::new(c.rings);
+    let mut rmo = Ring::of_len(cv.i16(lay.mo.buf), lay.mo, w * (cfg.motion_dim - fc), h8);
+    let mut rinp = cv.ring16(lay.inp, h8);
+    let mut rz = cv.ring16(lay.z, h8);
+    let mut rrh = cv.ring16(lay.rh, h8);
+    let gate = cv.i16(lay.gate);
+    let q = cv.i16(lay.q);
     let corr = cv.i16(lay.corr);
     let corr_m = cv.i16(lay.corr_m);
     let mut rc1 = cv.ring16(lay.c1, h8);
     let mut rc2 = cv.ring16(lay.c2, h8);
     let mut rf1 = cv.ring16(lay.f1, h8);
     let mut rf2 = cv.ring16(lay.f2, h8);
-    let mut rmo = Ring::of_len(cv.i16(lay.mo.buf), lay.mo, w * (cfg.motion_dim - fc), h8);
     let mut rup = cv.ring16(lay.up, h8);
     let mut rglb = cv.ring16(lay.glb, h8);
-    let mut rinp = cv.ring16(lay.inp, h8);
-    let mut rz = cv.ring16(lay.z, h8);
-    let mut rrh = cv.ring16(lay.rh, h8);
-    let gate = cv.i16(lay.gate);
-    let q = cv.i16(lay.q);
     let (pc1, pc2, pf1, pf2, pmo) = (conv(m, MotC1), conv(m, MotC2), conv(m, MotF1), conv(m, MotF2), conv(m, MotOut));
     let (pz, pr, pq) = (conv(m, Gru08Z), conv(m, Gru08R), conv(m, Gru08Q));
     let pquery = if cfg.mga { Some(conv(m, MgaQuery)) } else { None };
@@ -563,16 +621,18 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
                         super::host_rows::aggregate_row(pqy, c.frame.inp08, ctx, y, w, phases, st.keys, st.values, hd, stats, am, glb_shift, d);
                         return;
                     }
+                    // The row's queries in runs of pixels (the mask logits' buffer, idle
+                    // until the output pass).
                     #[allow(unreachable_code)]
-                    for x in 0..w {
-                        let p = y * w + x;
-                        qk_pixel(pqy, c.frame.inp08, ctx, x, y, w, phases, px.patch, px.query);
-                        let stats = match *chunk(st.stats, p, 2) {
+                    let acc = &mut *px.acc;
+                    #[allow(unreachable_code)]
+                    row_queries(pqy, c.frame.inp08, ctx, y, w, phases, px.patch, px.logits, px.query, |x, q| {
+                        let stats = match *chunk(st.stats, y * w + x, 2) {
                             [mx, sum] => (mx, sum),
                             _ => (0, 0),
                         };
-                        aggregate_query(px.query, st.keys, st.values, hd, stats, am, glb_shift, px.acc, chunk_mut(d, x, hd));
-                    }
+                        aggregate_query(q, st.keys, st.values, hd, stats, am, glb_shift, acc, chunk_mut(d, x, hd));
+                    });
                 });
             }
             let net = full(c.frame.net08, h8, row, r, 3);
@@ -648,9 +708,15 @@ pub fn upsample(c: &mut Ctx<'_, '_, '_>, width: usize, height: usize, disp: &mut
     let g = c.g;
     let (w, h8, hd, fc, mh) = (g.w8, g.h8, cfg.hidden_dim, cfg.flow_channels, cfg.mask_head_dim);
     let lay = FlowHeadLayout::new(&cfg, &g);
+    let rings_len = c.rings.len();
     let mut cv = Carver::new(c.rings);
     let mid = cv.i16(lay.head.buf);
     let flow0 = cv.i16(lay.flow0);
+    // The line buffers past this pass's (the iterations' are larger): the firmware's runs of
+    // mask logits.
+    #[cfg(not(feature = "std"))]
+    let spare = cv.i16(Buf { at: lay.total, len: rings_len.saturating_sub(lay.total) / 8 * 8 });
+    let _ = rings_len;
     let (p1, p2) = (conv(m, Mask1), conv(m, Mask2));
     let mask_frac = frac(m, Act::MaskLogit);
     // channel 0 of the disparity state (the only one with MUIR; RAFT's y is 0)
@@ -684,16 +750,37 @@ pub fn upsample(c: &mut Ctx<'_, '_, '_>, width: usize, height: usize, disp: &mut
                 }
             }
         };
-        // Host: the row's logits by one conv call; firmware: pixel by pixel in the plan's memory.
+        // Host: the row's logits by one conv call; firmware: by one conv call per run of pixels
+        // (runs of equal length) in the idle line buffers, pixel by pixel where they cannot hold
+        // one pixel's logits. A 1x1 convolution: the same integers either way.
         #[cfg(feature = "std")]
         super::host_rows::mask_logits_row(&p2, mid, w, mh, &mut pixel);
         #[cfg(not(feature = "std"))]
-        for x in 0..w {
-            let mut r = [None; MAX_K];
-            r[0] = Some(chunk(mid, x, mh));
-            let logits = first_n_mut(c.px.logits, MASK_CHANNELS);
-            conv16(&p2, &[PartRows { rows: r }], 1, logits, c.px.patch);
-            pixel(x, logits);
+        {
+            let per = spare.len() / MASK_CHANNELS;
+            if per == 0 {
+                for x in 0..w {
+                    let mut r = [None; MAX_K];
+                    r[0] = Some(chunk(mid, x, mh));
+                    let logits = first_n_mut(c.px.logits, MASK_CHANNELS);
+                    conv16(&p2, &[PartRows { rows: r }], 1, logits, c.px.patch);
+                    pixel(x, logits);
+                }
+            } else {
+                let size = w.div_ceil(w.div_ceil(per).max(1)).max(1);
+                let mut x0 = 0;
+                while x0 < w {
+                    let n = size.min(w - x0);
+                    let mut r = [None; MAX_K];
+                    r[0] = Some(mid.get(x0 * mh..(x0 + n) * mh).unwrap_or_default());
+                    let run = first_n_mut(spare, n * MASK_CHANNELS);
+                    conv16(&p2, &[PartRows { rows: r }], n, run, c.px.patch);
+                    for (i, logits) in run.chunks_exact_mut(MASK_CHANNELS).enumerate() {
+                        pixel(x0 + i, logits);
+                    }
+                    x0 += n;
+                }
+            }
         }
     }
 }

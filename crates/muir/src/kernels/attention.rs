@@ -167,6 +167,12 @@ fn aggregate_blocked(q: &[i16], keys: &[i16], values: &[i16], cv: usize, max: i6
             super::mve::aggregate(e, vb, cv, acc);
             continue;
         }
+        #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+        {
+            // Armv7E-M: two keys and two channels per `SMLALD` step (`dsp::aggregate`).
+            super::dsp::aggregate(e, vb, cv, acc);
+            continue;
+        }
         #[allow(unreachable_code)]
         for (i, a) in acc.chunks_mut(2).enumerate() {
             let mut o = 2 * i;

@@ -748,22 +748,48 @@ fn conv_row_w16<T: Elem>(
     out: &mut OutRow<'_>,
     temp: &mut [T],
     scratch: &mut [u8],
+    fill: impl FnMut(usize, &mut [T], &mut [i16]),
+) -> bool {
+    let Some(words) = aligned_words(scratch) else {
+        return false;
+    };
+    let Some((ww, slots)) = words.split_at_mut_checked(w16_words(p)) else {
+        return false;
+    };
+    conv_row_w16_in(p, inputs, w_in, out, temp, ww, slots, fill)
+}
+
+/// Words of one channel pair's widened weights ([`super::dsp::widen_weights`]): four per whole
+/// group of every part.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+fn w16_words(p: &ConvParams<'_>) -> usize {
+    p.parts.iter().map(|&ch| ch * p.k * p.k / 4 * 4).sum()
+}
+
+/// The whole words of `scratch` from its first word-aligned byte.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+fn aligned_words(scratch: &mut [u8]) -> Option<&mut [u32]> {
+    let skip = scratch.as_ptr().align_offset(4);
+    let words = scratch.get_mut(skip..)?;
+    let len = words.len() / 4 * 4;
+    bytemuck::try_cast_slice_mut::<u8, u32>(head_mut(words, len)).ok()
+}
+
+/// [`conv_row_w16`] with the widened weights in `ww` ([`w16_words`] of them) and the gathered
+/// pairs in `slots` (`patch_len()` words a pair).
+#[allow(clippy::too_many_arguments)]
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+fn conv_row_w16_in<T: Elem>(
+    p: &ConvParams<'_>,
+    inputs: &[PartRows<'_, T>],
+    w_in: usize,
+    out: &mut OutRow<'_>,
+    temp: &mut [T],
+    ww: &mut [u32],
+    slots: &mut [u32],
     mut fill: impl FnMut(usize, &mut [T], &mut [i16]),
 ) -> bool {
     let (kl, w_out) = (p.patch_len(), p.out_width(w_in));
-    // Words of one channel pair's widened weights: four per whole group of every part.
-    let wq: usize = p.parts.iter().map(|&ch| ch * p.k * p.k / 4 * 4).sum();
-    let skip = scratch.as_ptr().align_offset(4);
-    let Some(words) = scratch.get_mut(skip..) else {
-        return false;
-    };
-    let len = words.len() / 4 * 4;
-    let Ok(words) = bytemuck::try_cast_slice_mut::<u8, u32>(head_mut(words, len)) else {
-        return false;
-    };
-    let Some((ww, slots)) = words.split_at_mut_checked(wq) else {
-        return false;
-    };
     // One pair of patches is `2 kl` i16 values, `kl` words.
     let np = (slots.len() / kl.max(1)).min(W16_MAX_PAIRS).min(w_out / 2);
     if np < W16_MIN_PAIRS || kl == 0 {
@@ -825,6 +851,30 @@ pub fn conv_row_i16_w16(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
         return false;
     };
     conv_row_w16(p, inputs, w_in, out, single, rest, |ox, _, slot| gather2(p, inputs, w_in, ox, slot))
+}
+
+/// [`conv_row_i16_w16`] with the gathered pairs of patches in `spare` (arena bytes idle while
+/// the layer runs: the ConvGRU 1/16 gates, whose pairs do not fit the engine's patch scratch,
+/// take the 1/8 pass's line buffers) and the patch for the odd channel and pixel and the widened
+/// weights in `scratch`; false, having computed nothing, where `spare` holds fewer than
+/// [`W16_MIN_PAIRS`] pairs or `scratch` is too short.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+pub fn conv_row_i16_w16_spare(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: usize, out: &mut OutRow<'_>, scratch: &mut [u8], spare: &mut [u8]) -> bool {
+    let kl = p.patch_len();
+    let skip = scratch.as_ptr().align_offset(2);
+    let Some((single, rest)) = scratch.get_mut(skip..).and_then(|s| s.split_at_mut_checked(2 * kl)) else {
+        return false;
+    };
+    let Ok(single) = bytemuck::try_cast_slice_mut::<u8, i16>(single) else {
+        return false;
+    };
+    let (Some(ww), Some(slots)) = (aligned_words(rest), aligned_words(spare)) else {
+        return false;
+    };
+    let Some(ww) = ww.get_mut(..w16_words(p)) else {
+        return false;
+    };
+    conv_row_w16_in(p, inputs, w_in, out, single, ww, slots, |ox, _, slot| gather2(p, inputs, w_in, ox, slot))
 }
 
 /// The u8 pair layout of [`gather2`] (per part, groups of four values of patch `a` then `b`,

@@ -96,6 +96,77 @@ fn smlad(a: u32, b: u32, acc: i32) -> i32 {
     r
 }
 
+/// `acc + a.lo * b.lo + a.hi * b.hi` (signed 16-bit halves) in 64 bits: `SMLALD`.
+#[inline(always)]
+fn smlald(acc: i64, a: u32, b: u32) -> i64 {
+    let (mut lo, mut hi) = (acc as u32, (acc >> 32) as u32);
+    // SAFETY: register-only; SMLALD touches no flags.
+    unsafe {
+        asm!("smlald {lo}, {hi}, {a}, {b}", lo = inout(reg) lo, hi = inout(reg) hi, a = in(reg) a, b = in(reg) b,
+            options(pure, nomem, nostack, preserves_flags))
+    };
+    (((hi as u64) << 32) | lo as u64) as i64
+}
+
+/// Most keys per call of [`aggregate`]'s paired loop (the engine's blocks: `attention::KEY_BLOCK`).
+const AGG_KEYS: usize = 32;
+
+/// The MGA value sums of a block of keys: `acc[ch] += sum_j e[j] v[j cv + ch]` (`v`: the keys'
+/// values, HWC, `cv` a key; `acc`: `cv` sums). Where every weight fits i16 (all blocks but the
+/// one holding the query's maximum, whose weight is exp(0) = 32768) and the block has at most
+/// [`AGG_KEYS`] keys, two keys and two channels per step: the weights packed in pairs once, each
+/// key's two values one word, `PKHBT`/`PKHTB` into (key `j`, key `j + 1`) pairs per channel and
+/// one `SMLALD` per channel (5 instructions per product before: two `LDRSH`, the weight, `SMLAL`
+/// and the step, per channel and key); the odd last channel and key, and every other block, by
+/// the plain loop. Exact sums, so the same integers in any order.
+pub fn aggregate(e: &[i32], v: &[i16], cv: usize, acc: &mut [i64]) {
+    let nb = v.len().checked_div(cv).map_or(0, |n| e.len().min(n));
+    let acc = match acc.get_mut(..cv) {
+        Some(a) => a,
+        None => return,
+    };
+    let pairs = nb / 2;
+    let mut done = 0;
+    if pairs > 0 && nb <= AGG_KEYS && e.iter().take(2 * pairs).all(|&w| w as i16 as i32 == w) {
+        let mut ep = [0u32; AGG_KEYS / 2];
+        for (p, w) in ep.iter_mut().zip(e.chunks_exact(2)) {
+            if let &[w0, w1] = w {
+                *p = (w0 as u32 & 0xffff) | ((w1 as u32) << 16);
+            }
+        }
+        let ep = ep.get(..pairs).unwrap_or_default();
+        for (i, a) in acc.chunks_exact_mut(2).enumerate() {
+            if let [a0, a1] = a {
+                let (mut s0, mut s1) = (*a0, *a1);
+                // SAFETY: keys `2 t`, `2 t + 1 < nb` and channels `2 i`, `2 i + 1 < cv`: every
+                // word read lies below `nb cv <= v.len()` (unaligned word loads, which the
+                // Cortex-M4/M7 allow).
+                let mut x = unsafe { v.as_ptr().add(2 * i) };
+                for &p in ep {
+                    let (a, b) = unsafe { (x.cast::<u32>().read_unaligned(), x.add(cv).cast::<u32>().read_unaligned()) };
+                    s0 = smlald(s0, p, (a & 0xffff) | (b << 16));
+                    s1 = smlald(s1, p, (a >> 16) | (b & 0xffff_0000));
+                    x = x.wrapping_add(2 * cv);
+                }
+                (*a0, *a1) = (s0, s1);
+            }
+        }
+        if cv % 2 == 1
+            && let Some(a) = acc.last_mut()
+        {
+            for (w, x) in e.iter().zip(v.iter().skip(cv - 1).step_by(cv)).take(2 * pairs) {
+                *a += *w as i64 * *x as i64;
+            }
+        }
+        done = 2 * pairs;
+    }
+    for (w, vk) in e.iter().zip(v.chunks_exact(cv.max(1))).take(nb).skip(done) {
+        for (a, x) in acc.iter_mut().zip(vk) {
+            *a += *w as i64 * *x as i64;
+        }
+    }
+}
+
 /// [`crate::arith::requantize_i32`] for `8 <= m.shift <= 62` (the convolution's short epilogue,
 /// `conv::short_ok`): the same integer, `floor((acc m + 2^(s-1)) / 2^s)`. `SMLAL` adds the
 /// 64-bit product to the rounding half in one instruction (the portable formula, compiled,
