@@ -36,6 +36,9 @@ def family_of(frames):
     # the convolutions.
     if any("dot2x2" in f or "widen_w16" in f or "muir_mve_dots_" in f for f in frames):
         return "convolutions"
+    # The MGA value sums' paired loop (`dsp::aggregate`'s, not inlined) exists only for attention.
+    if any("dsp::paired_sums" in f for f in frames):
+        return "attention"
     for fn in frames:
         if any(p in fn for p in PRIMITIVES):
             continue

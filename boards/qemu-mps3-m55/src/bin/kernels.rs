@@ -157,7 +157,7 @@ static mut P16: Aligned16 = Aligned16([0; 2 * MAX_N]);
 
 /// The Helium MGA kernels (`mve::dot_i16_i64`, the logits; `mve::aggregate`, the value sums of a
 /// block of keys) against plain loops: lengths around the 8- and 4-lane vectors, key blocks of 1
-/// to 33 (the engine's are up to 32) with odd and even channel counts, random and extreme
+/// to 33 and around 64 and 128 (the engine's are up to 128) with odd and even channel counts, random and extreme
 /// values (softmax weights up to 32768 = exp(0), values at i16's limits).
 #[cfg(feature = "mve")]
 fn check_attention(q: &mut [i16; MAX_N], k: &mut [i16; MAX_N], r: &mut Rng) -> usize {
@@ -178,10 +178,10 @@ fn check_attention(q: &mut [i16; MAX_N], k: &mut [i16; MAX_N], r: &mut Rng) -> u
         }
     }
     let v = q;
-    for cv in [1usize, 2, 3, 4, 5, 6, 7, 64, 128] {
-        for nb in 1..=33usize {
+    for cv in [1usize, 2, 3, 4, 5, 6, 7, 44, 64, 128] {
+        for nb in (1..=33usize).chain([63, 64, 65, 127, 128, 129, 130]).filter(|nb| nb * cv <= MAX_N) {
             for fill in [Fill::Random, Fill::Max, Fill::Min] {
-                let mut e = [0i32; 33];
+                let mut e = [0i32; 130];
                 for (j, w) in e.iter_mut().enumerate().take(nb) {
                     *w = match fill {
                         Fill::Random => (r.next() % 32769) as i32,
@@ -213,27 +213,29 @@ fn check_attention(q: &mut [i16; MAX_N], k: &mut [i16; MAX_N], r: &mut Rng) -> u
 }
 
 /// The DSP build's MGA value sums (`dsp::aggregate`: two keys and two channels per `SMLALD`,
-/// the plain loop for a block holding a weight of 32768 or over 32 keys) against a plain loop:
-/// blocks of 1 to 34 keys, odd and even channel counts, weights random, 0 and 32767, one block
-/// kind with 32768, values at i16's limits, random starting sums.
+/// weights of 32768 by a per-key pass, the plain loop for a block with more than four of them or
+/// over 128 keys) against a plain loop: blocks of 1 to 34 keys and around 64 and 128 (the
+/// engine's blocks), odd and even channel counts, weights random, 0 and 32767, blocks with one
+/// 32768 and with one every 29 keys, values at i16's limits, random starting sums.
 #[cfg(not(feature = "mve"))]
 fn check_aggregate_dsp(v: &mut [i16; MAX_N], r: &mut Rng) -> usize {
     use muir::kernels::dsp;
     let mut cases = 0;
-    for cv in [1usize, 2, 3, 5, 64, 128] {
-        for nb in 1..=34usize {
-            for kind in 0..4 {
-                let mut e = [0i32; 34];
+    for cv in [1usize, 2, 3, 5, 44, 64, 128] {
+        for nb in (1..=34usize).chain([63, 64, 65, 127, 128, 129, 130]).filter(|nb| nb * cv <= MAX_N) {
+            for kind in 0..5 {
+                let mut e = [0i32; 130];
                 for (j, w) in e.iter_mut().enumerate().take(nb) {
                     *w = match kind {
                         0 => (r.next() % 32768) as i32,
                         1 if j % 3 == 0 => 0,
                         1 | 2 => 32767,
-                        _ if j == nb / 2 => 32768,
+                        3 if j == nb / 2 => 32768,
+                        4 if j % 29 == 0 => 32768,
                         _ => (r.next() % 32769) as i32,
                     };
                 }
-                let fill = [Fill::Random, Fill::Max, Fill::Min, Fill::Random][kind];
+                let fill = [Fill::Random, Fill::Max, Fill::Min, Fill::Random, Fill::Max][kind];
                 for x in v.iter_mut().take(nb * cv) {
                     *x = i16::sample(r, fill);
                 }

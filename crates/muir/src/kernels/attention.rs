@@ -135,7 +135,7 @@ pub fn aggregated(acc: i64, shift: i8, sum: i64) -> i16 {
 
 /// Keys per block of [`aggregate_blocked`]: their softmax weights wait on the stack (512 bytes;
 /// 32 keys took 17.6 M more instructions per 160x120 frame on the Cortex-M55, per-block overhead).
-const KEY_BLOCK: usize = 128;
+pub(super) const KEY_BLOCK: usize = 128;
 
 /// `acc[ch] += sum_j e_j * v_j[ch]` over all keys, `e_j` the softmax weight of key `j` for
 /// query `q`: the portable aggregation (Cortex-M). Key by key with the `cv` sums in memory, each

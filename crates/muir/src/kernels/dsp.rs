@@ -108,16 +108,22 @@ fn smlald(acc: i64, a: u32, b: u32) -> i64 {
     (((hi as u64) << 32) | lo as u64) as i64
 }
 
-/// Most keys per call of [`aggregate`]'s paired loop (the engine's blocks: `attention::KEY_BLOCK`).
-const AGG_KEYS: usize = 32;
+/// Most keys per call of [`aggregate`]'s paired loop: the engine's blocks (the packed weights
+/// wait on the stack, 256 bytes). Tied to the constant, as a larger block would silently take
+/// the plain loop.
+const AGG_KEYS: usize = super::attention::KEY_BLOCK;
+/// Most keys of a block whose weights do not fit i16 (the query's maximum, exp(0) = 32768, and
+/// its ties) that the paired loop leaves to a per-key pass.
+const WIDE_KEYS: usize = 4;
 
 /// The MGA value sums of a block of keys: `acc[ch] += sum_j e[j] v[j cv + ch]` (`v`: the keys'
-/// values, HWC, `cv` a key; `acc`: `cv` sums). Where every weight fits i16 (all blocks but the
-/// one holding the query's maximum, whose weight is exp(0) = 32768) and the block has at most
-/// [`AGG_KEYS`] keys, two keys and two channels per step: the weights packed in pairs once, each
-/// key's two values one word, `PKHBT`/`PKHTB` into (key `j`, key `j + 1`) pairs per channel and
-/// one `SMLALD` per channel (5 instructions per product before: two `LDRSH`, the weight, `SMLAL`
-/// and the step, per channel and key); the odd last channel and key, and every other block, by
+/// values, HWC, `cv` a key; `acc`: `cv` sums). For a block of at most [`AGG_KEYS`] keys, two keys
+/// and two channels per step: the weights packed in pairs once, each key's two values one word,
+/// `PKHBT`/`PKHTB` into (key `j`, key `j + 1`) pairs per channel and one `SMLALD` per channel (5
+/// instructions per product before: two `LDRSH`, the weight, `SMLAL` and the step, per channel
+/// and key). A weight that does not fit i16 (32768 = exp(0) at the query's maximum, so one block
+/// in a few has one) is packed as 0 and its key added by a per-key pass afterwards (at most
+/// [`WIDE_KEYS`] of them, else the whole block by the plain loop); the odd last channel and key by
 /// the plain loop. Exact sums, so the same integers in any order.
 pub fn aggregate(e: &[i32], v: &[i16], cv: usize, acc: &mut [i64]) {
     let nb = v.len().checked_div(cv).map_or(0, |n| e.len().min(n));
@@ -127,28 +133,34 @@ pub fn aggregate(e: &[i32], v: &[i16], cv: usize, acc: &mut [i64]) {
     };
     let pairs = nb / 2;
     let mut done = 0;
-    if pairs > 0 && nb <= AGG_KEYS && e.iter().take(2 * pairs).all(|&w| w as i16 as i32 == w) {
-        let mut ep = [0u32; AGG_KEYS / 2];
-        for (p, w) in ep.iter_mut().zip(e.chunks_exact(2)) {
-            if let &[w0, w1] = w {
-                *p = (w0 as u32 & 0xffff) | ((w1 as u32) << 16);
+    // The pairs' weights, and the keys whose weight is packed as 0.
+    let mut ep = [0u32; AGG_KEYS / 2];
+    let (mut wide, mut nw) = ([0usize; WIDE_KEYS], 0);
+    if pairs > 0 && nb <= AGG_KEYS {
+        for (j, &w) in e.iter().enumerate().take(2 * pairs) {
+            let half = if w as i16 as i32 == w {
+                w as u32 & 0xffff
+            } else {
+                // Past WIDE_KEYS of them, `nw` says so and the block goes to the plain loop.
+                if let Some(slot) = wide.get_mut(nw) {
+                    *slot = j;
+                }
+                nw += 1;
+                0
+            };
+            if let Some(p) = ep.get_mut(j / 2) {
+                *p |= half << (16 * (j % 2));
             }
         }
-        let ep = ep.get(..pairs).unwrap_or_default();
-        for (i, a) in acc.chunks_exact_mut(2).enumerate() {
-            if let [a0, a1] = a {
-                let (mut s0, mut s1) = (*a0, *a1);
-                // SAFETY: keys `2 t`, `2 t + 1 < nb` and channels `2 i`, `2 i + 1 < cv`: every
-                // word read lies below `nb cv <= v.len()` (unaligned word loads, which the
-                // Cortex-M4/M7 allow).
-                let mut x = unsafe { v.as_ptr().add(2 * i) };
-                for &p in ep {
-                    let (a, b) = unsafe { (x.cast::<u32>().read_unaligned(), x.add(cv).cast::<u32>().read_unaligned()) };
-                    s0 = smlald(s0, p, (a & 0xffff) | (b << 16));
-                    s1 = smlald(s1, p, (a >> 16) | (b & 0xffff_0000));
-                    x = x.wrapping_add(2 * cv);
+    }
+    if pairs > 0 && nb <= AGG_KEYS && nw <= WIDE_KEYS {
+        paired_sums(ep.get(..pairs).unwrap_or_default(), v, cv, acc);
+        // The keys packed as 0, on the channels the pairs covered.
+        for &j in wide.get(..nw).unwrap_or_default() {
+            if let (Some(&w), Some(vk)) = (e.get(j), v.chunks_exact(cv).nth(j)) {
+                for (a, x) in acc.iter_mut().zip(vk).take(cv & !1) {
+                    *a += w as i64 * *x as i64;
                 }
-                (*a0, *a1) = (s0, s1);
             }
         }
         if cv % 2 == 1
@@ -163,6 +175,33 @@ pub fn aggregate(e: &[i32], v: &[i16], cv: usize, acc: &mut [i64]) {
     for (w, vk) in e.iter().zip(v.chunks_exact(cv.max(1))).take(nb).skip(done) {
         for (a, x) in acc.iter_mut().zip(vk) {
             *a += *w as i64 * *x as i64;
+        }
+    }
+}
+
+/// [`aggregate`]'s paired loop: `acc[ch] += sum_t (ep[t].lo v[2t cv + ch] + ep[t].hi v[(2t+1) cv
+/// + ch])` for the even channels below `cv & !1` (`acc`: `cv` sums). Its own function, not
+/// inlined: inside `aggregate` the compiler's register allocation gave a step 18 instructions
+/// (moves around the `SMLALD`s), here 12.
+#[inline(never)]
+fn paired_sums(ep: &[u32], v: &[i16], cv: usize, acc: &mut [i64]) {
+    if ep.len().saturating_mul(2).saturating_mul(cv) > v.len() || acc.len() > cv {
+        return; // `aggregate` never calls it so
+    }
+    for (i, a) in acc.chunks_exact_mut(2).enumerate() {
+        if let [a0, a1] = a {
+            let (mut s0, mut s1) = (*a0, *a1);
+            // SAFETY: keys `2 t`, `2 t + 1 < 2 ep.len()` and channels `2 i`, `2 i + 1 <
+            // acc.len() <= cv`: every word read lies below `2 ep.len() cv <= v.len()` (checked
+            // above; unaligned word loads, which the Cortex-M4/M7 allow).
+            let mut x = unsafe { v.as_ptr().add(2 * i) };
+            for &p in ep {
+                let (a, b) = unsafe { (x.cast::<u32>().read_unaligned(), x.add(cv).cast::<u32>().read_unaligned()) };
+                s0 = smlald(s0, p, (a & 0xffff) | (b << 16));
+                s1 = smlald(s1, p, (a >> 16) | (b & 0xffff_0000));
+                x = x.wrapping_add(2 * cv);
+            }
+            (*a0, *a1) = (s0, s1);
         }
     }
 }
