@@ -16,11 +16,15 @@
 //! sides, channels padded with zeros to whole groups), so tap `(ky, kx)` of pixels `x .. x + 16`
 //! is one load at column offset `kx` ([`Tap`]): no patch is gathered at all.
 //!
-//! One call is three jobs of numbered tasks on the kernel pool ([`super::super::pool`]) when the
-//! layer is large enough: the transposition (planes x column ranges), the matrix products with
-//! their epilogue (blocks of 8 output channels, every part in turn), the write-out in `[x][c]`
-//! order (16 pixels a task, a 16 x 16 transposition in registers). Each task writes its own
-//! entries only, so the thread count changes no result.
+//! Threads ([`super::super::pool`]): when the layer is large enough, the row is at least two
+//! blocks of 16 pixels and the pool is free, one job of one task per thread, each a range of
+//! output pixels of every channel from its own transposed input columns to its written outputs
+//! ([`split_task`]: what a thread writes, it reads; across cores the reads of another core's
+//! writes cost as much as the products). Otherwise one call is three phases, run on the pool
+//! when the layer is large enough: the transposition (planes x column ranges), the matrix
+//! products with their epilogue (blocks of 8 output channels, every part in turn), the write-out
+//! in `[x][c]` order (16 pixels a task, a 16 x 16 transposition in registers). Each task writes
+//! its own entries only, so the thread count changes no result.
 //!
 //! Exactness: neither instruction saturates. A u8 lane adds at most `4 * 255 * 128 < 2^17` per
 //! group and a chunk at most [`U8_CHUNK`] groups (`< 2^30`); an i16 lane at most
@@ -90,6 +94,8 @@ struct Scratch {
 
 std::thread_local! {
     static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
+    /// [`split_task`]'s scratch (the caller's [`SCRATCH`] is borrowed while it runs one).
+    static SPLIT: RefCell<Scratch> = RefCell::new(Scratch::default());
     /// A task's weights (padded or widened), on the thread that runs it.
     static WEIGHTS: RefCell<Vec<i16>> = const { RefCell::new(Vec::new()) };
 }
@@ -334,37 +340,10 @@ fn par(big: bool, tasks: usize, f: &(dyn Fn(usize) + Sync)) {
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
 #[allow(clippy::too_many_arguments)]
 unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, w_out: usize, kind: Kind, out: &mut OutRow<'_>, s: &mut Scratch, constant: Option<(usize, usize)>) {
-    let (np, k, stride) = (p.parts.len(), p.k, p.stride);
+    let np = p.parts.len();
     let pixpad = w_out.div_ceil(LANES) * LANES;
-    // The parts' layout: transposed rows (see `transpose_task`) and taps.
-    let (pad, lead) = (k / 2, (k / 2).div_ceil(stride) * stride);
-    let mut plans = [PartPlan::default(); MAX_PARTS];
     s.taps.clear();
-    let (mut off, mut xt_len, mut tasks) = (0, 0, 0);
-    for (plan, &ch) in plans.iter_mut().zip(p.parts) {
-        let chp = ch.next_multiple_of(kind.per());
-        let cg = chp / kind.per();
-        let tw = pixpad + (k - 1 + lead - pad) / stride + 1;
-        let t0 = s.taps.len();
-        for ky in 0..k {
-            for kx in 0..k {
-                let d = kx + lead - pad;
-                let (phase, q) = (d % stride, d / stride);
-                let (x, w) = (xt_len + (ky * stride + phase) * cg * tw + q, (ky * k + kx) * cg);
-                let mut g = 0;
-                while g < cg {
-                    let groups = (cg - g).min(kind.chunk());
-                    s.taps.push(Tap { x: x + g * tw, gstride: tw, groups, w: w + g });
-                    g += groups;
-                }
-            }
-        }
-        let part_tasks = k * stride * tw.div_ceil(INDICES);
-        *plan = PartPlan { ch, chp, off, xt_at: xt_len, tw, taps: (t0, s.taps.len()), task0: tasks, tasks: part_tasks };
-        off += k * k * ch;
-        xt_len += k * stride * cg * tw;
-        tasks += part_tasks;
-    }
+    let (plans, xt_len, tasks) = part_plans(p, kind, pixpad, &mut s.taps);
     let plans = plans.get(..np).unwrap_or_default();
     if FRAME_ON.with(|on| on.get()) {
         FRAME.with_borrow_mut(|f| {
@@ -402,6 +381,40 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
         // SAFETY: forwarded.
         unsafe { run_with(p, inputs, w_in, w_out, kind, out, s, plans, xt_len, tasks, None, None) }
     }
+}
+
+/// The parts' layout for `pixpad` output pixels: their transposed rows (see `transpose_task`)
+/// and taps (appended to `taps`), the activation buffer's length and the transposition tasks.
+fn part_plans(p: &ConvParams<'_>, kind: Kind, pixpad: usize, taps: &mut Vec<Tap>) -> ([PartPlan; MAX_PARTS], usize, usize) {
+    let (k, stride) = (p.k, p.stride);
+    let (pad, lead) = (k / 2, (k / 2).div_ceil(stride) * stride);
+    let mut plans = [PartPlan::default(); MAX_PARTS];
+    let (mut off, mut xt_len, mut tasks) = (0, 0, 0);
+    for (plan, &ch) in plans.iter_mut().zip(p.parts) {
+        let chp = ch.next_multiple_of(kind.per());
+        let cg = chp / kind.per();
+        let tw = pixpad + (k - 1 + lead - pad) / stride + 1;
+        let t0 = taps.len();
+        for ky in 0..k {
+            for kx in 0..k {
+                let d = kx + lead - pad;
+                let (phase, q) = (d % stride, d / stride);
+                let (x, w) = (xt_len + (ky * stride + phase) * cg * tw + q, (ky * k + kx) * cg);
+                let mut g = 0;
+                while g < cg {
+                    let groups = (cg - g).min(kind.chunk());
+                    taps.push(Tap { x: x + g * tw, gstride: tw, groups, w: w + g });
+                    g += groups;
+                }
+            }
+        }
+        let part_tasks = k * stride * tw.div_ceil(INDICES);
+        *plan = PartPlan { ch, chp, off, xt_at: xt_len, tw, taps: (t0, taps.len()), task0: tasks, tasks: part_tasks };
+        off += k * k * ch;
+        xt_len += k * stride * cg * tw;
+        tasks += part_tasks;
+    }
+    (plans, xt_len, tasks)
 }
 
 /// This frame's entry of layer `p`: its weights re-laid (built on first use in the frame, into a
@@ -480,11 +493,31 @@ unsafe fn run_with<T: Elem>(
         Some((m, hit, part)) => (Shared(m.sums.as_mut_ptr()), *hit, Some(*part)),
         None => (Shared(core::ptr::null_mut()), false, None),
     };
-    let (cout, kl, np, k, stride) = (p.cout, p.patch_len(), p.parts.len(), p.k, p.stride);
+    let (cout, kl, k, stride) = (p.cout, p.patch_len(), p.k, p.stride);
     let pixpad = w_out.div_ceil(LANES) * LANES;
     let signed8 = cast::<T, i8>(&[]).is_some();
     let flip = if signed8 { 0x8080_8080u32 as i32 } else { 0 };
     let big = w_out * cout * kl >= PARALLEL_MACS;
+    let cx = BlockCtx { p, kind, signed8, relaid, memo: (memo_sums.0, pixpad), hit, memo_part, out_range: out_range(out) };
+    let nblk = pixpad / LANES;
+    let ranges = split_ranges(big, nblk);
+    if ranges > 0 {
+        // Several threads: each a range of pixels, every channel (see `split_task`).
+        let (op, size) = out_ptr(out);
+        pool::run(ranges, &|t| {
+            let (b0, b1) = (t * nblk / ranges, (t + 1) * nblk / ranges);
+            let (x0, x1) = (b0 * LANES, (b1 * LANES).min(w_out));
+            if x1 > x0 {
+                // SAFETY: pixels `x0 .. x1` of the row and of the memo, this task's only; the
+                // layer passed `conv_row`'s checks; the CPU features (this function's contract).
+                SPLIT.with_borrow_mut(|s| unsafe { split_task(&cx, inputs, w_in, x0, x1 - x0, &op, size, s) });
+            }
+        });
+        if let Some((m, false, _)) = memo {
+            m.valid = true; // computed by every range above
+        }
+        return;
+    }
     let lead = (k / 2).div_ceil(stride) * stride;
     let xt = scratch(&mut s.xt, xt_len);
     // 1. The input rows, transposed.
@@ -502,101 +535,24 @@ unsafe fn run_with<T: Elem>(
         let row = inputs.get(part).and_then(|r| r.rows.get(plane / stride)).copied().flatten();
         // SAFETY: this task's entries only (plane `plane`, indices `i0..i1` of every group); the
         // CPU has AVX-512 F and BW (this function's contract).
-        unsafe { transpose_task(row, plan, kind, stride, lead, w_in, plane, i0, i1, flip, &xtp) };
+        unsafe { transpose_task(row, plan, kind, stride, lead, w_in, 0, plane, i0, i1, flip, &xtp) };
     });
     let (xt, taps) = (&*xt, &*s.taps);
     // 2. The exact sums per part, their requantised contributions and the finished outputs, per
     // block of `BLOCK_C` channels.
-    let (lo, hi) = match out {
-        OutRow::I8(_) => (i8::MIN as i32, i8::MAX as i32),
-        OutRow::U8(_) => (0, u8::MAX as i32),
-        OutRow::I16(_) => (i16::MIN as i32, i16::MAX as i32),
-    };
     let sp = scratch(&mut s.part, cout * pixpad);
     let sums = scratch(&mut s.sums, cout * pixpad);
     let fin = scratch(&mut s.fin, cout * pixpad);
     let (spp, sump, finp) = (Shared(sp.as_mut_ptr()), Shared(sums.as_mut_ptr()), Shared(fin.as_mut_ptr()));
-    let xtp = xt.as_ptr() as usize;
     par(big, cout.div_ceil(BLOCK_C), &|b| {
         let c0 = b * BLOCK_C;
         let r = cout.saturating_sub(c0).min(BLOCK_C);
         // SAFETY: block `b`'s `r` channel rows of `sp`, `sums`, `fin` (each `cout pixpad` long),
-        // touched by no other task.
-        let (sp, sums, fin) = unsafe { (spp.slice(c0 * pixpad, r * pixpad), sump.slice(c0 * pixpad, r * pixpad), finp.slice(c0 * pixpad, r * pixpad)) };
-        // Per channel: some contribution took the scalar path (see `add_part`).
-        let mut wild = [false; BLOCK_C];
-        for (part, plan) in plans.iter().enumerate() {
-            let (ch, chp, off) = (plan.ch, plan.chp, plan.off);
-            let n = k * k * ch;
-            let taps = taps.get(plan.taps.0..plan.taps.1).unwrap_or_default();
-            // The block's weights of this part, `[ky][kx][c]` with `chp` values a tap (4 bytes a
-            // group): the blob's own (u8 of whole groups), else a copy with the channels padded
-            // (u8) or widened to i16, in this thread's buffer.
-            // The exact sums of the part: the memo's rows for the constant part (kept, or
-            // computed into them), else `sp`.
-            // SAFETY: the memo's sums hold `cout pixpad` (the caller's); rows `c0 .. c0 + r` are
-            // this task's only.
-            let mut memo_rows = (memo_part == Some(part)).then(|| unsafe { memo_sums.slice(c0 * pixpad, r * pixpad) });
-            let dst = match &mut memo_rows {
-                Some(m) => m.as_mut_ptr(),
-                None => sp.as_mut_ptr(),
-            };
-            WEIGHTS.with_borrow_mut(|buf| {
-                if hit && memo_rows.is_some() {
-                    return; // this frame's sums of the row, kept
-                }
-                let mut wp = [core::ptr::null::<u8>(); BLOCK_C];
-                let kept = relaid.and_then(|(buf, at)| Some((buf, *at.get(part)?)));
-                if let (Some((buf, at)), true) = (kept, plan.copied(kind)) {
-                    // This frame's copy: `cout` rows of `k k chp` i16 (or i8 in their first half).
-                    let bytes: &[u8] = bytemuck::cast_slice(buf);
-                    let wrow = 2 * k * k * chp;
-                    for (i, wp) in wp.iter_mut().enumerate().take(r) {
-                        *wp = bytes.get(2 * at + (c0 + i) * wrow..).unwrap_or_default().as_ptr();
-                    }
-                } else if kind == Kind::U8 && ch == chp {
-                    for (i, wp) in wp.iter_mut().enumerate().take(r) {
-                        *wp = p.weights.get((c0 + i) * kl + off..).unwrap_or_default().as_ptr().cast();
-                    }
-                } else {
-                    let w = p.weights.get(c0 * kl..).unwrap_or_default();
-                    // SAFETY: the CPU has AVX-512 F and BW (this function's contract).
-                    let wrow = unsafe { copy_weights(w, kl, off, ch, chp, k * k, r, kind, buf) };
-                    let bytes: &[u8] = bytemuck::cast_slice(buf.as_slice());
-                    for (i, wp) in wp.iter_mut().enumerate().take(r) {
-                        *wp = bytes.get(i * wrow..).unwrap_or_default().as_ptr();
-                    }
-                }
-                // SAFETY: the CPU has AVX-512 F/BW/VNNI (this function's contract); each `wp`
-                // points at `k k chp` weights of its channel (the blob's, `weights.len() >=
-                // cout kl` checked, or this thread's copy), which the taps' groups cover; the
-                // taps lie inside `xt` for every pixel below `pixpad` (see `transpose_task`);
-                // `dst` holds `r` rows of `pixpad`.
-                unsafe {
-                    match kind {
-                        Kind::U8 => block_dispatch::<true>(r, xtp as *const i32, taps, pixpad, &wp, dst),
-                        Kind::I16 => block_dispatch::<false>(r, xtp as *const i32, taps, pixpad, &wp, dst),
-                    }
-                }
-            });
-            let src: &[i64] = match &memo_rows {
-                Some(m) => m,
-                None => sp,
-            };
-            for (i, ((acc, sum), wild)) in src.chunks_exact(pixpad).zip(sums.chunks_exact_mut(pixpad)).zip(wild.iter_mut()).enumerate() {
-                let c = c0 + i;
-                // i8 activations were packed as `x + 128` (u8): `128 sum(w)` comes off.
-                let corr = if signed8 { 128 * p.weights.get(c * kl + off..c * kl + off + n).unwrap_or_default().iter().map(|w| *w as i64).sum::<i64>() } else { 0 };
-                // The part's requantised contribution, as the portable path adds it.
-                let m = mult_at(p.mult.0.get(8 * (c * np + part)..).unwrap_or_default());
-                // SAFETY: the CPU has AVX-512 F (this function's contract).
-                *wild = unsafe { add_part(acc, corr, sum, m, *wild, part == 0) };
-            }
-        }
-        for (i, ((sum, fin), wild)) in sums.chunks_exact(pixpad).zip(fin.chunks_exact_mut(pixpad)).zip(wild).enumerate() {
-            // Bias, rounding, activation and the output type's saturation (`fin[c][x]`).
-            // SAFETY: as above.
-            unsafe { finish_channel(p.post, p.bias.get(c0 + i), wild, sum, fin, lo, hi) };
+        // touched by no other task; the memo's rows `c0 .. c0 + r` likewise; `xt` and `taps` as
+        // laid out for `pixpad` pixels (`run`); the CPU features (this function's contract).
+        unsafe {
+            let (sp, sums, fin) = (spp.slice(c0 * pixpad, r * pixpad), sump.slice(c0 * pixpad, r * pixpad), finp.slice(c0 * pixpad, r * pixpad));
+            channel_block(&cx, xt.as_ptr(), taps, plans, 0, pixpad, c0, r, sp, sums, fin);
         }
     });
     if let Some((m, false, _)) = memo {
@@ -604,25 +560,219 @@ unsafe fn run_with<T: Elem>(
     }
     // 3. The row in its `[x][c]` order, per range of 16 pixels.
     let fin = &*fin;
-    macro_rules! write_out {
-        ($o:ident, $t:ty, $kind:expr) => {{
-            let op = Shared($o.as_mut_ptr());
-            par(big && w_out * cout >= PARALLEL_OUTPUTS, w_out.div_ceil(LANES), &|t| {
-                let x0 = t * LANES;
-                let nx = w_out.saturating_sub(x0).min(LANES);
-                // SAFETY: pixels `x0 .. x0 + nx <= w_out` of the row (`w_out cout <= len`,
-                // checked by `conv_row`), this task's only.
-                let o = unsafe { op.slice(x0 * cout, nx * cout) };
-                // SAFETY: `fin` holds `cout` rows of `pixpad >= x0 + 16`; the CPU has AVX-512 F
-                // and BW (this function's contract).
-                unsafe { transpose_out(fin, pixpad, cout, x0, nx, o.as_mut_ptr().cast(), $kind) };
-            });
-        }};
+    let (op, size) = out_ptr(out);
+    par(big && w_out * cout >= PARALLEL_OUTPUTS, w_out.div_ceil(LANES), &|t| {
+        let x0 = t * LANES;
+        let nx = w_out.saturating_sub(x0).min(LANES);
+        // SAFETY: `fin` holds `cout` rows of `pixpad >= x0 + 16`; pixels `x0 .. x0 + nx <=
+        // w_out` of the row (`w_out cout <= len`, checked by `conv_row`), this task's only; the
+        // CPU has AVX-512 F and BW (this function's contract).
+        unsafe { transpose_out(fin, pixpad, cout, x0, nx, op.slice(x0 * cout * size, nx * cout * size).as_mut_ptr(), size) };
+    });
+}
+
+/// Ranges of pixels a row is split into ([`split_task`]), 0 for the one-thread path: a row of
+/// enough multiply-accumulates (`big`) and at least two blocks of 16 pixels when the pool is free.
+fn split_ranges(big: bool, nblk: usize) -> usize {
+    #[cfg(test)]
+    if let Some(r) = FORCE_RANGES.with(|f| f.get()) {
+        return r.clamp(1, nblk.max(1));
     }
+    if big && nblk >= 2 && pool::free() { pool::threads().min(nblk) } else { 0 }
+}
+
+#[cfg(test)]
+std::thread_local! {
+    /// Tests: the split path with this many ranges whatever the row and the pool.
+    static FORCE_RANGES: core::cell::Cell<Option<usize>> = const { core::cell::Cell::new(None) };
+}
+
+/// One thread's share of a convolution row on several threads: output pixels `x0 .. x0 + nx`
+/// (`x0` a multiple of 16) of every channel, from the input columns they read (transposed into
+/// this thread's own layout, `col0 = s x0`) to the written pixels. Splitting the row's channels
+/// instead (the one-thread path's tasks) made every thread read the whole transposed row the
+/// caller wrote and the caller read every thread's finished outputs: on this VM a 40 KB buffer
+/// another core wrote takes 7 us to read against 1 us from one's own cache, as long as a task's
+/// products. By pixels, a thread reads the input columns it wrote in the layer before (for the
+/// range's halo and for rows other kernels wrote, the other core's), and its memo sums stay in
+/// its cache from one iteration to the next.
+///
+/// # Safety
+/// The CPU has AVX-512 F, BW and VNNI; the layer passed [`conv_row`]'s checks; `x0 + nx <=
+/// w_out`; no other thread touches pixels `x0 .. x0 + nx` of the output row (`out`, `size`
+/// bytes an element) or of the memo meanwhile.
+#[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn split_task<T: Elem>(cx: &BlockCtx<'_, '_>, inputs: &[PartRows<'_, T>], w_in: usize, x0: usize, nx: usize, out: &Shared<u8>, size: usize, s: &mut Scratch) {
+    let (p, kind) = (cx.p, cx.kind);
+    let (cout, k, stride) = (p.cout, p.k, p.stride);
+    let n = nx.div_ceil(LANES) * LANES;
+    let Scratch { xt, taps, part, sums, fin } = s;
+    taps.clear();
+    let (plans, xt_len, _) = part_plans(p, kind, n, taps);
+    let plans = plans.get(..p.parts.len()).unwrap_or_default();
+    let xt = scratch(xt, xt_len);
+    let xtp = Shared(xt.as_mut_ptr());
+    let lead = (k / 2).div_ceil(stride) * stride;
+    let flip = if cx.signed8 { 0x8080_8080u32 as i32 } else { 0 };
+    for (pi, plan) in plans.iter().enumerate() {
+        if cx.hit && cx.memo_part == Some(pi) {
+            continue; // its products are not computed
+        }
+        for plane in 0..k * stride {
+            let row = inputs.get(pi).and_then(|r| r.rows.get(plane / stride)).copied().flatten();
+            // SAFETY: the plane's indices `0 .. tw` of this layout (`part_plans`), in this
+            // thread's buffer; the CPU has AVX-512 F and BW.
+            unsafe { transpose_task(row, plan, kind, stride, lead, w_in, stride * x0, plane, 0, plan.tw, flip, &xtp) };
+        }
+    }
+    let (sp, sums, fin) = (scratch(part, BLOCK_C * n), scratch(sums, BLOCK_C * n), scratch(fin, cout * n));
+    for (b, fin) in fin.chunks_mut(BLOCK_C * n).enumerate() {
+        let c0 = b * BLOCK_C;
+        let r = cout.saturating_sub(c0).min(BLOCK_C);
+        // SAFETY: `xt` and `taps` laid out for `n` pixels; the memo's pixels `x0 .. x0 + n <=
+        // pixpad` (`x0 + nx <= w_out`, both multiples of 16 after rounding) are this task's.
+        unsafe { channel_block(cx, xt.as_ptr(), taps, plans, x0, n, c0, r, sp, sums, fin) };
+    }
+    let mut j = 0;
+    while j < nx {
+        let m = (nx - j).min(LANES);
+        // SAFETY: `fin` holds `cout` rows of `n >= j + 16` values; pixels `x0 + j .. x0 + j + m`
+        // of the output row are this task's (the contract).
+        unsafe { transpose_out(fin, n, cout, j, m, out.slice((x0 + j) * cout * size, m * cout * size).as_mut_ptr(), size) };
+        j += LANES;
+    }
+}
+
+/// The output type's range.
+fn out_range(out: &OutRow<'_>) -> (i32, i32) {
     match out {
-        OutRow::I8(o) => write_out!(o, i8, 1),
-        OutRow::U8(o) => write_out!(o, u8, 1),
-        OutRow::I16(o) => write_out!(o, i16, 2),
+        OutRow::I8(_) => (i8::MIN as i32, i8::MAX as i32),
+        OutRow::U8(_) => (0, u8::MAX as i32),
+        OutRow::I16(_) => (i16::MIN as i32, i16::MAX as i32),
+    }
+}
+
+/// The output row's first byte and its bytes an element.
+fn out_ptr(out: &mut OutRow<'_>) -> (Shared<u8>, usize) {
+    match out {
+        OutRow::I8(o) => (Shared(o.as_mut_ptr().cast()), 1),
+        OutRow::U8(o) => (Shared(o.as_mut_ptr()), 1),
+        OutRow::I16(o) => (Shared(o.as_mut_ptr().cast()), 2),
+    }
+}
+
+/// What every channel block of a convolution row shares (see [`channel_block`]).
+struct BlockCtx<'a, 'p> {
+    p: &'a ConvParams<'p>,
+    kind: Kind,
+    /// i8 activations, packed as `x + 128`.
+    signed8: bool,
+    /// This frame's re-laid weights (see [`layer`]).
+    relaid: Option<(&'a [i16], [usize; MAX_PARTS])>,
+    /// The constant part's memo sums (`cout` rows of the given length; null without a memo),
+    /// whether they hold this row's sums (`hit`), and the part.
+    memo: (*mut i64, usize),
+    hit: bool,
+    memo_part: Option<usize>,
+    /// The output type's range.
+    out_range: (i32, i32),
+}
+
+// SAFETY: the memo pointer is written only at the rows and pixels of one task (see
+// [`channel_block`]'s contract), the rest is read-only.
+unsafe impl Sync for BlockCtx<'_, '_> {}
+
+/// Channels `c0 .. c0 + r` (`r <= BLOCK_C`) of a convolution row over `n` pixels (a multiple of
+/// 16) from pixel `x0` of the row on: each part's exact sums (the memo's rows for the constant
+/// part, kept or computed into them, else `sp`), their requantised contributions into `sums`
+/// and the finished outputs into `fin` (`r` rows of `n` each; channel `c0 + i`'s at `i n`).
+///
+/// # Safety
+/// The CPU has AVX-512 F, BW and VNNI; `xt` and `taps` are laid out (`part_plans`) for `n`
+/// pixels, `plans` with them; `x0 + n` is at most the memo rows' length; no other thread touches
+/// the memo's rows `c0 .. c0 + r` at pixels `x0 .. x0 + n` meanwhile.
+#[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn channel_block(cx: &BlockCtx<'_, '_>, xt: *const i32, taps: &[Tap], plans: &[PartPlan], x0: usize, n: usize, c0: usize, r: usize, sp: &mut [i64], sums: &mut [i64], fin: &mut [i32]) {
+    let (p, kind) = (cx.p, cx.kind);
+    let (k, kl, np) = (p.k, p.patch_len(), p.parts.len());
+    let (memo_sums, memo_len) = cx.memo;
+    let (lo, hi) = cx.out_range;
+    // Per channel: some contribution took the scalar path (see `add_part`).
+    let mut wild = [false; BLOCK_C];
+    for (part, plan) in plans.iter().enumerate() {
+        let (ch, chp, off) = (plan.ch, plan.chp, plan.off);
+        let nk = k * k * ch;
+        let taps = taps.get(plan.taps.0..plan.taps.1).unwrap_or_default();
+        // The exact sums of the part: the memo's rows for the constant part (kept, or computed
+        // into them), else `sp`.
+        let memo_rows = (cx.memo_part == Some(part) && !memo_sums.is_null()).then(|| {
+            // SAFETY: the contract (rows `c0 .. c0 + r`, pixels `x0 .. x0 + n` of the memo).
+            unsafe { memo_sums.add(c0 * memo_len + x0) }
+        });
+        let (dst, stride) = match memo_rows {
+            Some(m) => (m, memo_len),
+            None => (sp.as_mut_ptr(), n),
+        };
+        WEIGHTS.with_borrow_mut(|buf| {
+            if cx.hit && memo_rows.is_some() {
+                return; // this frame's sums of the row, kept
+            }
+            // The block's weights of this part, `[ky][kx][c]` with `chp` values a tap (4 bytes
+            // a group): the blob's own (u8 of whole groups), else a copy with the channels
+            // padded (u8) or widened to i16: this frame's, or made here in this thread's buffer.
+            let mut wp = [core::ptr::null::<u8>(); BLOCK_C];
+            let kept = cx.relaid.and_then(|(buf, at)| Some((buf, *at.get(part)?)));
+            if let (Some((buf, at)), true) = (kept, plan.copied(kind)) {
+                // This frame's copy: `cout` rows of `k k chp` i16 (or i8 in their first half).
+                let bytes: &[u8] = bytemuck::cast_slice(buf);
+                let wrow = 2 * k * k * chp;
+                for (i, wp) in wp.iter_mut().enumerate().take(r) {
+                    *wp = bytes.get(2 * at + (c0 + i) * wrow..).unwrap_or_default().as_ptr();
+                }
+            } else if kind == Kind::U8 && ch == chp {
+                for (i, wp) in wp.iter_mut().enumerate().take(r) {
+                    *wp = p.weights.get((c0 + i) * kl + off..).unwrap_or_default().as_ptr().cast();
+                }
+            } else {
+                let w = p.weights.get(c0 * kl..).unwrap_or_default();
+                // SAFETY: the CPU has AVX-512 F and BW (this function's contract).
+                let wrow = unsafe { copy_weights(w, kl, off, ch, chp, k * k, r, kind, buf) };
+                let bytes: &[u8] = bytemuck::cast_slice(buf.as_slice());
+                for (i, wp) in wp.iter_mut().enumerate().take(r) {
+                    *wp = bytes.get(i * wrow..).unwrap_or_default().as_ptr();
+                }
+            }
+            // SAFETY: the CPU has AVX-512 F/BW/VNNI (this function's contract); each `wp`
+            // points at `k k chp` weights of its channel (the blob's, `weights.len() >= cout
+            // kl` checked, or a copy), which the taps' groups cover; the taps lie inside `xt`
+            // for every pixel below `n` (`part_plans`, `transpose_task`); `dst` holds `r` rows
+            // of `stride >= n`.
+            unsafe {
+                match kind {
+                    Kind::U8 => block_dispatch::<true>(r, xt, taps, n, stride, &wp, dst),
+                    Kind::I16 => block_dispatch::<false>(r, xt, taps, n, stride, &wp, dst),
+                }
+            }
+        });
+        for (i, (sum, wild)) in sums.chunks_exact_mut(n).zip(wild.iter_mut()).take(r).enumerate() {
+            // SAFETY: row `i < r` of `dst`: `n` sums at `i stride` (the contract for the memo's,
+            // `sp` holds `r n`).
+            let acc: &[i64] = unsafe { core::slice::from_raw_parts(dst.add(i * stride), n) };
+            let c = c0 + i;
+            // i8 activations were packed as `x + 128` (u8): `128 sum(w)` comes off.
+            let corr = if cx.signed8 { 128 * p.weights.get(c * kl + off..c * kl + off + nk).unwrap_or_default().iter().map(|w| *w as i64).sum::<i64>() } else { 0 };
+            // The part's requantised contribution, as the portable path adds it.
+            let m = mult_at(p.mult.0.get(8 * (c * np + part)..).unwrap_or_default());
+            // SAFETY: the CPU has AVX-512 F (this function's contract).
+            *wild = unsafe { add_part(acc, corr, sum, m, *wild, part == 0) };
+        }
+    }
+    for (i, ((sum, fin), wild)) in sums.chunks_exact(n).zip(fin.chunks_exact_mut(n)).zip(wild).take(r).enumerate() {
+        // Bias, rounding, activation and the output type's saturation (`fin[c][x]`).
+        // SAFETY: as above.
+        unsafe { finish_channel(p.post, p.bias.get(c0 + i), wild, sum, fin, lo, hi) };
     }
 }
 
@@ -864,20 +1014,20 @@ unsafe fn add_part(acc: &[i64], corr: i64, sum: &mut [i64], m: crate::arith::Mul
 /// # Safety
 /// As [`block`], for the first `r` pointers of `w`.
 #[inline]
-unsafe fn block_dispatch<const U8: bool>(r: usize, xt: *const i32, taps: &[Tap], pixpad: usize, w: &[*const u8; BLOCK_C], s: *mut i64) {
+unsafe fn block_dispatch<const U8: bool>(r: usize, xt: *const i32, taps: &[Tap], n: usize, stride: usize, w: &[*const u8; BLOCK_C], s: *mut i64) {
     // SAFETY: forwarded.
     unsafe {
         match r {
-            8 => block::<8, U8>(xt, taps, pixpad, w, s),
+            8 => block::<8, U8>(xt, taps, n, stride, w, s),
             4..=7 => {
-                block::<4, U8>(xt, taps, pixpad, w, s);
-                block_dispatch::<U8>(r - 4, xt, taps, pixpad, &shifted(w, 4), s.add(4 * pixpad));
+                block::<4, U8>(xt, taps, n, stride, w, s);
+                block_dispatch::<U8>(r - 4, xt, taps, n, stride, &shifted(w, 4), s.add(4 * stride));
             }
             2 | 3 => {
-                block::<2, U8>(xt, taps, pixpad, w, s);
-                block_dispatch::<U8>(r - 2, xt, taps, pixpad, &shifted(w, 2), s.add(2 * pixpad));
+                block::<2, U8>(xt, taps, n, stride, w, s);
+                block_dispatch::<U8>(r - 2, xt, taps, n, stride, &shifted(w, 2), s.add(2 * stride));
             }
-            1 => block::<1, U8>(xt, taps, pixpad, w, s),
+            1 => block::<1, U8>(xt, taps, n, stride, w, s),
             _ => {}
         }
     }
@@ -890,27 +1040,27 @@ fn shifted<T: Copy>(a: &[T; BLOCK_C], by: usize) -> [T; BLOCK_C] {
     b
 }
 
-/// Exact sums of `R` output channels over all `pixpad` pixels: for channel `i`, `s[i pixpad + x]`
+/// Exact sums of `R` output channels over pixels `0 .. n`: for channel `i`, `s[i stride + x]`
 /// is set to the dot products of its weight groups `w_i[t.w + g]` with activations
 /// `xt[t.x + g t.gstride + x]` over every tap `t`, four u8 x i8 products a
 /// group (`U8`) or two i16 x i16.
 ///
 /// # Safety
-/// The CPU has AVX-512 F, BW and VNNI; `pixpad` is a multiple of 16; every tap's activations for
-/// pixels below `pixpad` lie in `xt`; `w[i]` for `i < R` points at
+/// The CPU has AVX-512 F, BW and VNNI; `n` is a multiple of 16 and at most `stride`; every
+/// tap's activations for pixels below `n` lie in `xt`; `w[i]` for `i < R` points at
 /// `4 (t.w + t.groups)` readable bytes for every tap `t`; each tap has at most one chunk of
-/// groups; `s` points at `R pixpad` i64.
+/// groups; `s` points at `R` rows of `stride` i64.
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
-unsafe fn block<const R: usize, const U8: bool>(xt: *const i32, taps: &[Tap], pixpad: usize, w: &[*const u8; BLOCK_C], s: *mut i64) {
+unsafe fn block<const R: usize, const U8: bool>(xt: *const i32, taps: &[Tap], n: usize, stride: usize, w: &[*const u8; BLOCK_C], s: *mut i64) {
     let mut x = 0;
-    // SAFETY: the function's contract, for pixels `x .. x + 16 P <= pixpad`.
+    // SAFETY: the function's contract, for pixels `x .. x + 16 P <= n`.
     unsafe {
-        while x + 2 * LANES <= pixpad {
-            tile::<R, 2, U8>(xt, taps, pixpad, x, w, s);
+        while x + 2 * LANES <= n {
+            tile::<R, 2, U8>(xt, taps, stride, x, w, s);
             x += 2 * LANES;
         }
-        if x < pixpad {
-            tile::<R, 1, U8>(xt, taps, pixpad, x, w, s);
+        if x < n {
+            tile::<R, 1, U8>(xt, taps, stride, x, w, s);
         }
     }
 }
@@ -919,7 +1069,7 @@ unsafe fn block<const R: usize, const U8: bool>(xt: *const i32, taps: &[Tap], pi
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
 #[inline]
 #[allow(unused_assignments)] // the last flush sets `first` for nothing
-unsafe fn tile<const R: usize, const P: usize, const U8: bool>(xt: *const i32, taps: &[Tap], pixpad: usize, x: usize, w: &[*const u8; BLOCK_C], s: *mut i64) {
+unsafe fn tile<const R: usize, const P: usize, const U8: bool>(xt: *const i32, taps: &[Tap], stride: usize, x: usize, w: &[*const u8; BLOCK_C], s: *mut i64) {
     let chunk = if U8 { U8_CHUNK } else { I16_CHUNK };
     // SAFETY: see `block`. (Macros, not closures: a closure does not inherit the target
     // features, and its intrinsics would become calls.)
@@ -944,7 +1094,7 @@ unsafe fn tile<const R: usize, const P: usize, const U8: bool>(xt: *const i32, t
             ($acc:ident) => {
                 for (i, a) in $acc.iter().enumerate() {
                     for (v, a) in a.iter().enumerate() {
-                        let d = s.add(i * pixpad + x + LANES * v);
+                        let d = s.add(i * stride + x + LANES * v);
                         let mut lo = _mm512_cvtepi32_epi64(_mm512_castsi512_si256(*a));
                         let mut hi = _mm512_cvtepi32_epi64(_mm512_extracti64x4_epi64::<1>(*a));
                         if !first {
@@ -987,7 +1137,9 @@ unsafe fn tile<const R: usize, const P: usize, const U8: bool>(xt: *const i32, t
 /// `pc / s`; output pixel `x` of tap `kx` reads padded column `s x + d` (`d = kx + lead - pad`):
 /// phase `d % s`, index `x + d / s`. So group `g` of index `i` is at
 /// `xt_at + (plane cg + g) tw + i` (zeros where no real column is), and tap `(ky, kx)` starts at
-/// index `d / s` of its plane: `x + d / s < tw` for every pixel below `pixpad` ([`run`]).
+/// index `d / s` of its plane: `x + d / s < tw` for every pixel below `pixpad` ([`run`]). A
+/// layout for a range of output pixels from `x0` on ([`split_task`]) starts at column `col0 = s
+/// x0` of the row: its columns are the row's shifted by `col0`, real ones where the row has them.
 ///
 /// # Safety
 /// The CPU has AVX-512 F and BW (for the compiler's vectorisation only); the entries lie in the
@@ -995,7 +1147,7 @@ unsafe fn tile<const R: usize, const P: usize, const U8: bool>(xt: *const i32, t
 #[target_feature(enable = "avx512f,avx512bw")]
 #[allow(clippy::too_many_arguments)]
 #[inline(never)]
-unsafe fn transpose_task<T: Elem>(row: Option<&[T]>, plan: &PartPlan, kind: Kind, stride: usize, lead: usize, w_in: usize, plane: usize, i0: usize, i1: usize, zero: i32, xt: &Shared<i32>) {
+unsafe fn transpose_task<T: Elem>(row: Option<&[T]>, plan: &PartPlan, kind: Kind, stride: usize, lead: usize, w_in: usize, col0: usize, plane: usize, i0: usize, i1: usize, zero: i32, xt: &Shared<i32>) {
     let (ch, tw) = (plan.ch, plan.tw);
     let cg = plan.chp / kind.per();
     let phase = plane % stride;
@@ -1014,8 +1166,8 @@ unsafe fn transpose_task<T: Elem>(row: Option<&[T]>, plan: &PartPlan, kind: Kind
     let cb = ch * core::mem::size_of::<T>(); // bytes a column
     let bytes = bytes_of(row);
     let cols = w_in.min(bytes.len() / cb.max(1));
-    // Column of index `i` (`None` in the padding).
-    let col_of = |i: usize| (i * stride + phase).checked_sub(lead).filter(|c| *c < cols);
+    // Column of index `i` (`None` in the padding; the layout's column 0 is the row's `col0`).
+    let col_of = |i: usize| (i * stride + phase + col0).checked_sub(lead).filter(|c| *c < cols);
     // Blocks of 16 indices whose columns are all real, 16 whole groups at a time: 16 columns
     // loaded, transposed in registers, one store per group.
     // Whole groups (`cb = 4 cg`: 16 x 16 transpositions, then gathers), or a last group shorter
@@ -1154,12 +1306,16 @@ mod tests {
                 want.iter().any(|v| *v != 0)
             }};
         }
-        // One thread, then several (the channel blocks as tasks): the same integers.
+        // One thread, then several (the channel blocks as tasks, or ranges of pixels when the
+        // pool is free), then ranges of pixels forced (1 to 5 of them, on 1 to 3 threads): the
+        // same integers.
         let mut nonzero = vec![];
-        for threads in [1, 3] {
+        for (threads, ranges) in [(1, None), (3, None), (1, Some(1)), (3, Some(2)), (2, Some(3)), (1, Some(5))] {
             pool::set_threads(threads);
+            FORCE_RANGES.with(|f| f.set(ranges));
             nonzero.extend([each_type!(i16, I16), each_type!(i8, I8), each_type!(u8, U8)]);
         }
+        FORCE_RANGES.with(|f| f.set(None));
         pool::set_threads(1);
         assert!(nonzero.iter().any(|n| *n), "all zero");
     }
@@ -1239,7 +1395,7 @@ mod tests {
         let (bias, mult) = (encode_bias(&b), encode_mults(&m));
         let p = ConvParams { k, stride: 1, parts, cout, weights: &wts, bias: BiasRef(&bias), mult: MultRef(&mult), post: PostOp::None };
         let a: Vec<i16> = (0..h * w * 8).map(|_| r.i16() >> 2).collect();
-        let mut ctx: Vec<i16> = (0..h * w * 6).map(|_| r.i16() >> 2).collect();
+        let ctx: Vec<i16> = (0..h * w * 6).map(|_| r.i16() >> 2).collect();
         // Every output row, the context part marked constant or not.
         let frame = |ctx: &[i16], constant: bool| {
             let mut o = vec![0i16; h * w * cout];
@@ -1250,19 +1406,25 @@ mod tests {
             }
             o
         };
-        let want = frame(&ctx, false);
-        let _f = FrameScope::new();
-        assert_eq!(frame(&ctx, true), want, "sums computed and kept");
-        assert_eq!(frame(&ctx, true), want, "sums reused");
-        // The context changes in the same frame (one value of row 2): rows 1 to 3 read it.
-        ctx[2 * w * 6 + 5] ^= 0x155;
-        let want2 = frame(&ctx, false);
-        assert_ne!(want, want2);
-        assert_eq!(frame(&ctx, true), want2, "changed rows recomputed");
-        drop(_f);
-        let _f = FrameScope::new();
-        ctx[5] ^= 0x2A;
-        assert_eq!(frame(&ctx, true), frame(&ctx, false), "the next frame");
+        // The one-thread path, then ranges of pixels (whose memo rows are a range's pixels).
+        for ranges in [None, Some(2), Some(3)] {
+            FORCE_RANGES.with(|f| f.set(ranges));
+            let mut ctx = ctx.clone();
+            let want = frame(&ctx, false);
+            let _f = FrameScope::new();
+            assert_eq!(frame(&ctx, true), want, "sums computed and kept");
+            assert_eq!(frame(&ctx, true), want, "sums reused");
+            // The context changes in the same frame (one value of row 2): rows 1 to 3 read it.
+            ctx[2 * w * 6 + 5] ^= 0x155;
+            let want2 = frame(&ctx, false);
+            assert_ne!(want, want2);
+            assert_eq!(frame(&ctx, true), want2, "changed rows recomputed");
+            drop(_f);
+            let _f = FrameScope::new();
+            ctx[5] ^= 0x2A;
+            assert_eq!(frame(&ctx, true), frame(&ctx, false), "the next frame");
+        }
+        FORCE_RANGES.with(|f| f.set(None));
     }
 
     #[test]

@@ -110,6 +110,12 @@ pub fn set_threads(n: usize) {
     }
 }
 
+/// Whether a [`run`] now would likely go to several threads: more than one set, the pool not
+/// held or busy, not backing off. (A hint for how to split work; `run` decides again.)
+pub fn free() -> bool {
+    threads() > 1 && !pool().busy.load(Ordering::Relaxed) && INLINE_JOBS.load(Ordering::Relaxed) == 0
+}
+
 /// Threads the kernels use, the caller included.
 pub fn threads() -> usize {
     THREADS.load(Ordering::Relaxed)
