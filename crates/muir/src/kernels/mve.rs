@@ -695,6 +695,43 @@ pub trait Narrow: Copy {
     unsafe fn requant4_lut_n(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: &[i16; 1025], out: *mut Self);
 }
 
+/// The requantisation both [`Narrow`] kernels share, as one `asm!` template piece: the bias
+/// gathered into q6, then per part the sums' multiply (`vmulh`/`vmul`), the rounding shifts and
+/// the saturating adds, then the rounding by 8 bits and the clamp to `[k + 16, k + 32]`.
+/// Registers as in [`narrow`].
+macro_rules! requant4_sums {
+    () => {
+        concat!(
+            "vldrw.u32 q0, [{k}, #48]\n",
+            "vldrw.u32 q6, [{bias}, q0]\n",
+            "vldrw.u32 q7, [{k}]\n",
+            "vmov.i32 q0, #4\n",
+            "vadd.i32 q0, q7, q0\n",
+            "vmov.i32 q5, #32\n",
+            "2:\n",
+            "vldrw.u32 q1, [{d}], #32\n",
+            "vldrw.u32 q2, [r1, q7]\n",
+            "vldrb.u32 q3, [r1, q0]\n",
+            "vmulh.s32 q4, q1, q2\n",
+            "vmul.i32 q1, q1, q2\n",
+            "vsub.i32 q2, q5, q3\n",
+            "vneg.s32 q3, q3\n",
+            "vrshl.u32 q1, q1, q3\n",
+            "vqrshl.s32 q4, q4, q2\n",
+            "vqadd.s32 q4, q4, q1\n",
+            "vqadd.s32 q6, q6, q4\n",
+            "add r1, r1, #8\n",
+            "subs {n}, {n}, #1\n",
+            "bne 2b\n",
+            "vrshr.s32 q6, q6, #8\n",
+            "vldrw.u32 q1, [{k}, #16]\n",
+            "vmax.s32 q6, q6, q1\n",
+            "vldrw.u32 q1, [{k}, #32]\n",
+            "vmin.s32 q6, q6, q1\n",
+        )
+    };
+}
+
 /// The [`Narrow`] kernel of one output type: `$store` is the narrowing store of four 32-bit lanes
 /// (a low base register, r0 here). Registers: q7 the multipliers' offsets, q0 those of the shift
 /// bytes (4 further), q5 the constant 32, q6 the sums; q1-q4 temporaries.
@@ -706,32 +743,7 @@ macro_rules! narrow {
                 // SAFETY: the caller's bounds (`requant4`); registers as listed.
                 unsafe {
                     asm!(
-                        "vldrw.u32 q0, [{k}, #48]",
-                        "vldrw.u32 q6, [{bias}, q0]",
-                        "vldrw.u32 q7, [{k}]",
-                        "vmov.i32 q0, #4",
-                        "vadd.i32 q0, q7, q0",
-                        "vmov.i32 q5, #32",
-                        "2:",
-                        "vldrw.u32 q1, [{d}], #32",
-                        "vldrw.u32 q2, [r1, q7]",
-                        "vldrb.u32 q3, [r1, q0]",
-                        "vmulh.s32 q4, q1, q2",
-                        "vmul.i32 q1, q1, q2",
-                        "vsub.i32 q2, q5, q3",
-                        "vneg.s32 q3, q3",
-                        "vrshl.u32 q1, q1, q3",
-                        "vqrshl.s32 q4, q4, q2",
-                        "vqadd.s32 q4, q4, q1",
-                        "vqadd.s32 q6, q6, q4",
-                        "add r1, r1, #8",
-                        "subs {n}, {n}, #1",
-                        "bne 2b",
-                        "vrshr.s32 q6, q6, #8",
-                        "vldrw.u32 q1, [{k}, #16]",
-                        "vmax.s32 q6, q6, q1",
-                        "vldrw.u32 q1, [{k}, #32]",
-                        "vmin.s32 q6, q6, q1",
+                        requant4_sums!(),
                         concat!($store, " q6, [r0]"),
                         k = in(reg) k as *const Requant4,
                         bias = in(reg) bias,
@@ -752,32 +764,7 @@ macro_rules! narrow {
                 // to `lo..=hi` within `-32768..=32767` first (`Requant4` of `requant4_lut`).
                 unsafe {
                     asm!(
-                        "vldrw.u32 q0, [{k}, #48]",
-                        "vldrw.u32 q6, [{bias}, q0]",
-                        "vldrw.u32 q7, [{k}]",
-                        "vmov.i32 q0, #4",
-                        "vadd.i32 q0, q7, q0",
-                        "vmov.i32 q5, #32",
-                        "2:",
-                        "vldrw.u32 q1, [{d}], #32",
-                        "vldrw.u32 q2, [r1, q7]",
-                        "vldrb.u32 q3, [r1, q0]",
-                        "vmulh.s32 q4, q1, q2",
-                        "vmul.i32 q1, q1, q2",
-                        "vsub.i32 q2, q5, q3",
-                        "vneg.s32 q3, q3",
-                        "vrshl.u32 q1, q1, q3",
-                        "vqrshl.s32 q4, q4, q2",
-                        "vqadd.s32 q4, q4, q1",
-                        "vqadd.s32 q6, q6, q4",
-                        "add r1, r1, #8",
-                        "subs {n}, {n}, #1",
-                        "bne 2b",
-                        "vrshr.s32 q6, q6, #8",
-                        "vldrw.u32 q1, [{k}, #16]",
-                        "vmax.s32 q6, q6, q1",
-                        "vldrw.u32 q1, [{k}, #32]",
-                        "vmin.s32 q6, q6, q1",
+                        requant4_sums!(),
                         // The table: u = x + 32768, entries u >> 6 and the next, fraction u & 63.
                         "vmov.i32 q1, #0x8000",
                         "vadd.i32 q6, q6, q1",
