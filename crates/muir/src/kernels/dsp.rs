@@ -519,6 +519,267 @@ core::arch::global_asm!(
     "    pop {{r4-r7}}",
     "    bx lr",
     ".size muir_dsp_widen_w16, . - muir_dsp_widen_w16",
+    "",
+    // The i16 loop with the activations read in place from the input rows (`dot2x2_nat`,
+    // `conv::conv_row_i16_nat`): pixel a at r0, pixel b at r2 (values in natural order, so the
+    // weights are widened in natural order too, `widen_weights_nat`), r1 = the widened weights
+    // (per group w0's (w0, w1), (w2, w3), then w1's; word-aligned), r3 = groups (1 to
+    // `I16_ASM_GROUPS`: one i32 chunk), [sp] = the four i32 sums (w0.a, w1.a, w0.b, w1.b),
+    // loaded and stored back (the caller keeps them exact). `_a`: both activation pointers
+    // word-aligned (LDRD), 12 instructions per 16 MACs; `_u`: any halfword alignment (two LDR
+    // per pixel), 14.
+    ".section .text.muir_dsp_dot2x2_nat_a,\"ax\",%progbits",
+    ".global muir_dsp_dot2x2_nat_a",
+    ".type muir_dsp_dot2x2_nat_a,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_dot2x2_nat_a:",
+    "    push {{r4-r11, lr}}",
+    "    ldr r12, [sp, #36]",
+    "    ldm r12, {{r4-r7}}",
+    "    lsls r12, r3, #31",          // Z clear when the group count is odd: start at 3
+    "    add r3, r1, r3, lsl #4",
+    "    bne 3f",
+    "1:",
+    "    ldrd r8, r9, [r0], #8",      // a: (a0, a1), (a2, a3)
+    "    ldrd r10, r11, [r2], #8",    // b: (b0, b1), (b2, b3)
+    "    ldrd r12, lr, [r1], #8",     // w0: (w0, w1), (w2, w3), widened
+    "    smlad r4, r12, r8, r4",
+    "    smlad r4, lr, r9, r4",
+    "    smlad r6, r12, r10, r6",
+    "    smlad r6, lr, r11, r6",
+    "    ldrd r12, lr, [r1], #8",     // w1
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    smlad r7, r12, r10, r7",
+    "    smlad r7, lr, r11, r7",
+    "3:",
+    "    ldrd r8, r9, [r0], #8",      // a: (a0, a1), (a2, a3)
+    "    ldrd r10, r11, [r2], #8",    // b: (b0, b1), (b2, b3)
+    "    ldrd r12, lr, [r1], #8",     // w0: (w0, w1), (w2, w3), widened
+    "    smlad r4, r12, r8, r4",
+    "    smlad r4, lr, r9, r4",
+    "    smlad r6, r12, r10, r6",
+    "    smlad r6, lr, r11, r6",
+    "    ldrd r12, lr, [r1], #8",     // w1
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    smlad r7, r12, r10, r7",
+    "    smlad r7, lr, r11, r7",
+    "    cmp r1, r3",
+    "    bne 1b",
+    "    ldr r12, [sp, #36]",
+    "    stm r12, {{r4-r7}}",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_dsp_dot2x2_nat_a, . - muir_dsp_dot2x2_nat_a",
+    "",
+    ".section .text.muir_dsp_dot2x2_nat_u,\"ax\",%progbits",
+    ".global muir_dsp_dot2x2_nat_u",
+    ".type muir_dsp_dot2x2_nat_u,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_dot2x2_nat_u:",
+    "    push {{r4-r11, lr}}",
+    "    ldr r12, [sp, #36]",
+    "    ldm r12, {{r4-r7}}",
+    "    lsls r12, r3, #31",          // Z clear when the group count is odd: start at 3
+    "    add r3, r1, r3, lsl #4",
+    "    bne 3f",
+    "1:",
+    "    ldr r9, [r0, #4]",           // a: (a2, a3)
+    "    ldr r8, [r0], #8",           //    (a0, a1)
+    "    ldr r11, [r2, #4]",          // b: (b2, b3)
+    "    ldr r10, [r2], #8",          //    (b0, b1)
+    "    ldrd r12, lr, [r1], #8",     // w0: (w0, w1), (w2, w3), widened
+    "    smlad r4, r12, r8, r4",
+    "    smlad r4, lr, r9, r4",
+    "    smlad r6, r12, r10, r6",
+    "    smlad r6, lr, r11, r6",
+    "    ldrd r12, lr, [r1], #8",     // w1
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    smlad r7, r12, r10, r7",
+    "    smlad r7, lr, r11, r7",
+    "3:",
+    "    ldr r9, [r0, #4]",           // a: (a2, a3)
+    "    ldr r8, [r0], #8",           //    (a0, a1)
+    "    ldr r11, [r2, #4]",          // b: (b2, b3)
+    "    ldr r10, [r2], #8",          //    (b0, b1)
+    "    ldrd r12, lr, [r1], #8",     // w0: (w0, w1), (w2, w3), widened
+    "    smlad r4, r12, r8, r4",
+    "    smlad r4, lr, r9, r4",
+    "    smlad r6, r12, r10, r6",
+    "    smlad r6, lr, r11, r6",
+    "    ldrd r12, lr, [r1], #8",     // w1
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    smlad r7, r12, r10, r7",
+    "    smlad r7, lr, r11, r7",
+    "    cmp r1, r3",
+    "    bne 1b",
+    "    ldr r12, [sp, #36]",
+    "    stm r12, {{r4-r7}}",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_dsp_dot2x2_nat_u, . - muir_dsp_dot2x2_nat_u",
+    "",
+    // `nat_block`: one block of two pixels over every kernel row of every part, from a table
+    // of entries (row, ww, step, groups, bstep, part: `NatEntry`). r0 = table, r1 = entries
+    // (>= 1), r2 = col, r3 = the parts' four i64 sums each (added to). Per entry: pixel a at row
+    // + col step, pixel b bstep bytes later, `groups` (1 to `I16_ASM_GROUPS`: one i32 chunk)
+    // groups against the widened weights at ww by the loop of `dot2x2_nat` (LDRD where both
+    // pixels are word-aligned), its four i32 sums added into the part's i64 sums.
+    // Stack: [sp] table cursor, [sp, #4] entries left, [sp, #8] col, [sp, #12] the sums,
+    // [sp, #16] this entry's sums.
+    ".section .text.muir_dsp_nat_block,\"ax\",%progbits",
+    ".global muir_dsp_nat_block",
+    ".type muir_dsp_nat_block,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_nat_block:",
+    "    push {{r4-r11, lr}}",
+    "    sub sp, #24",
+    "    str r0, [sp]",
+    "    str r1, [sp, #4]",
+    "    str r2, [sp, #8]",
+    "    str r3, [sp, #12]",
+    "5:",
+    "    ldr r12, [sp]",
+    "    ldm r12!, {{r0-r4, lr}}",    // row, ww, step, groups, bstep, part
+    "    str r12, [sp]",
+    "    ldr r12, [sp, #12]",
+    "    add lr, r12, lr, lsl #5",
+    "    str lr, [sp, #16]",
+    "    ldr r5, [sp, #8]",
+    "    mla r0, r5, r2, r0",         // pixel a: row + col step
+    "    add r2, r0, r4",             // pixel b: bstep later
+    "    add r3, r1, r3, lsl #4",     // end of the run's widened weights
+    "    movs r4, #0",
+    "    movs r5, #0",
+    "    movs r6, #0",
+    "    movs r7, #0",
+    "    sub r12, r3, r1",
+    "    orr r8, r0, r2",
+    "    tst r8, #3",
+    "    bne 20f",
+    "    tst r12, #16",               // an odd group count starts at the second copy
+    "    bne 11f",
+    "10:",
+    "    ldrd r8, r9, [r0], #8",
+    "    ldrd r10, r11, [r2], #8",
+    "    ldrd r12, lr, [r1], #8",
+    "    smlad r4, r12, r8, r4",
+    "    smlad r4, lr, r9, r4",
+    "    smlad r6, r12, r10, r6",
+    "    smlad r6, lr, r11, r6",
+    "    ldrd r12, lr, [r1], #8",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    smlad r7, r12, r10, r7",
+    "    smlad r7, lr, r11, r7",
+    "11:",
+    "    ldrd r8, r9, [r0], #8",
+    "    ldrd r10, r11, [r2], #8",
+    "    ldrd r12, lr, [r1], #8",
+    "    smlad r4, r12, r8, r4",
+    "    smlad r4, lr, r9, r4",
+    "    smlad r6, r12, r10, r6",
+    "    smlad r6, lr, r11, r6",
+    "    ldrd r12, lr, [r1], #8",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    smlad r7, r12, r10, r7",
+    "    smlad r7, lr, r11, r7",
+    "    cmp r1, r3",
+    "    bne 10b",
+    "    b 30f",
+    "20:",
+    "    tst r12, #16",
+    "    bne 21f",
+    "22:",
+    "    ldr r9, [r0, #4]",
+    "    ldr r8, [r0], #8",
+    "    ldr r11, [r2, #4]",
+    "    ldr r10, [r2], #8",
+    "    ldrd r12, lr, [r1], #8",
+    "    smlad r4, r12, r8, r4",
+    "    smlad r4, lr, r9, r4",
+    "    smlad r6, r12, r10, r6",
+    "    smlad r6, lr, r11, r6",
+    "    ldrd r12, lr, [r1], #8",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    smlad r7, r12, r10, r7",
+    "    smlad r7, lr, r11, r7",
+    "21:",
+    "    ldr r9, [r0, #4]",
+    "    ldr r8, [r0], #8",
+    "    ldr r11, [r2, #4]",
+    "    ldr r10, [r2], #8",
+    "    ldrd r12, lr, [r1], #8",
+    "    smlad r4, r12, r8, r4",
+    "    smlad r4, lr, r9, r4",
+    "    smlad r6, r12, r10, r6",
+    "    smlad r6, lr, r11, r6",
+    "    ldrd r12, lr, [r1], #8",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    smlad r7, r12, r10, r7",
+    "    smlad r7, lr, r11, r7",
+    "    cmp r1, r3",
+    "    bne 22b",
+    "30:",
+    "    ldr r12, [sp, #16]",
+    "    ldrd r8, r9, [r12]",
+    "    adds r8, r8, r4",
+    "    adc r9, r9, r4, asr #31",
+    "    strd r8, r9, [r12]",
+    "    ldrd r8, r9, [r12, #8]",
+    "    adds r8, r8, r5",
+    "    adc r9, r9, r5, asr #31",
+    "    strd r8, r9, [r12, #8]",
+    "    ldrd r8, r9, [r12, #16]",
+    "    adds r8, r8, r6",
+    "    adc r9, r9, r6, asr #31",
+    "    strd r8, r9, [r12, #16]",
+    "    ldrd r8, r9, [r12, #24]",
+    "    adds r8, r8, r7",
+    "    adc r9, r9, r7, asr #31",
+    "    strd r8, r9, [r12, #24]",
+    "    ldr r3, [sp, #4]",
+    "    subs r3, #1",
+    "    str r3, [sp, #4]",
+    "    bne 5b",
+    "    add sp, #24",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_dsp_nat_block, . - muir_dsp_nat_block",
+    "",
+    // `widen_weights_nat`'s loop: r0 = w0, r1 = w1 (int8 rows, any alignment), r2 = groups (>= 1),
+    // r3 = out (word-aligned): per group LDR, LDR, 4 SXTB16 and 4 PKHBT/PKHTB into natural order
+    // ((w0, w1), (w2, w3) per channel), one STM.
+    ".section .text.muir_dsp_widen_nat,\"ax\",%progbits",
+    ".global muir_dsp_widen_nat",
+    ".type muir_dsp_widen_nat,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_widen_nat:",
+    "    push {{r4-r11}}",
+    "4:",
+    "    ldr r8, [r0], #4",
+    "    ldr r9, [r1], #4",
+    "    sxtb16 r10, r8, ror #8",     // w0: (w1, w3)
+    "    sxtb16 r8, r8",              //     (w0, w2)
+    "    sxtb16 r11, r9, ror #8",
+    "    sxtb16 r9, r9",
+    "    pkhbt r4, r8, r10, lsl #16", //     (w0, w1)
+    "    pkhtb r5, r10, r8, asr #16", //     (w2, w3)
+    "    pkhbt r6, r9, r11, lsl #16",
+    "    pkhtb r7, r11, r9, asr #16",
+    "    stm r3!, {{r4-r7}}",
+    "    subs r2, #1",
+    "    bne 4b",
+    "    pop {{r4-r11}}",
+    "    bx lr",
+    ".size muir_dsp_widen_nat, . - muir_dsp_widen_nat",
     chunk = const I16_ASM_GROUPS,
 );
 
@@ -526,7 +787,7 @@ core::arch::global_asm!(
 /// 2^22` sum below `2^31` at every step (the Helium loops' `kernels::I16_CHUNK`), so each
 /// chunk's sum is exact. Twice the portable chunk: half the chunk set-ups and 64-bit adds. The
 /// chunking does not change the integers (the chunk sums add exactly in i64).
-const I16_ASM_GROUPS: usize = 127;
+pub(crate) const I16_ASM_GROUPS: usize = 127;
 const _: () = assert!(4 * (I16_ASM_GROUPS as u64) * (1 << 22) < (1u64 << 31));
 
 unsafe extern "C" {
@@ -534,6 +795,10 @@ unsafe extern "C" {
     fn muir_dsp_dot2x2_u8(x: *const u8, w0: *const u8, w1: *const u8, groups: usize, out: *mut [i32; 4]);
     fn muir_dsp_dot2x2_w16(x: *const i16, w: *const u32, groups: usize, out: *mut [i64; 4]);
     fn muir_dsp_widen_w16(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
+    fn muir_dsp_dot2x2_nat_a(xa: *const i16, w: *const u32, xb: *const i16, groups: usize, acc: *mut [i32; 4]);
+    fn muir_dsp_dot2x2_nat_u(xa: *const i16, w: *const u32, xb: *const i16, groups: usize, acc: *mut [i32; 4]);
+    fn muir_dsp_widen_nat(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
+    fn muir_dsp_nat_block(table: *const NatEntry, n: usize, col: usize, sums: *mut [i64; 4]);
 }
 
 impl Quad for u8 {
@@ -769,5 +1034,81 @@ pub fn put_groups_i16(d: &mut [i16], s: &[i16], second: bool) {
                 core::ptr::write_unaligned(g.as_mut_ptr().add(2) as *mut u32, hi);
             }
         }
+    }
+}
+
+/// The `q` groups of four of a channel pair's int8 weight rows `w0`, `w1` widened in natural
+/// order for [`dot2x2_nat`] into `out` (four words per group: `w0`'s `(w0, w1)`, `(w2, w3)`,
+/// then `w1`'s); stops early where a slice is shorter.
+#[inline]
+pub fn widen_weights_nat(w0: &[i8], w1: &[i8], q: usize, out: &mut [u32]) {
+    let q = q.min(w0.len() / 4).min(w1.len() / 4).min(out.len() / 4);
+    if q > 0 {
+        // SAFETY: the loop reads `4 q` bytes from each row (unaligned word loads, which
+        // Cortex-M4/M7 allow) and writes `4 q` words of `out`, all within the slices (above).
+        unsafe { muir_dsp_widen_nat(w0.as_ptr(), w1.as_ptr(), q, out.as_mut_ptr()) };
+    }
+}
+
+/// `acc += [w0 . a, w1 . a, w0 . b, w1 . b]` over `q` groups of four values read in place: `xa`,
+/// `xb` the two pixels' activations in natural order (`4 q` values each, any alignment; word-
+/// aligned pairs take the LDRD loop), `ww` the channel pair's weights widened by
+/// [`widen_weights_nat`] (`4 q` words). `q` is at most [`I16_ASM_GROUPS`] and the caller keeps
+/// `acc` exact (at most `4 I16_ASM_GROUPS` terms of `|w x| <= 2^22` in it, module doc). False,
+/// having added nothing, where `q` is 0 or too large or a slice is shorter.
+#[inline(always)]
+pub fn dot2x2_nat(xa: &[i16], xb: &[i16], ww: &[u32], q: usize, acc: &mut [i32; 4]) -> bool {
+    if q == 0 || q > I16_ASM_GROUPS || xa.len() < 4 * q || xb.len() < 4 * q || ww.len() < 4 * q {
+        return false;
+    }
+    let (pa, pb) = (xa.as_ptr(), xb.as_ptr());
+    // SAFETY: the loop reads `4 q` values from each activation slice and `4 q` words from `ww`
+    // (checked above; `ww` is a `u32` slice, so word-aligned for its LDRD), with LDRD on `pa`,
+    // `pb` only when both are word-aligned (else unaligned LDR, which Cortex-M4/M7 allow), and
+    // reads and writes the four sums of `acc`.
+    unsafe {
+        if (pa as usize | pb as usize).is_multiple_of(4) {
+            muir_dsp_dot2x2_nat_a(pa, ww.as_ptr(), pb, q, acc);
+        } else {
+            muir_dsp_dot2x2_nat_u(pa, ww.as_ptr(), pb, q, acc);
+        }
+    }
+    true
+}
+
+/// One run of one kernel row of one part for [`nat_block`]: pixel a's values at `row + col
+/// step` bytes, pixel b's `bstep` bytes later, `groups` whole groups of four against the widened
+/// weights at `ww`, added to `sums[part]`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug)]
+pub struct NatEntry {
+    /// Pixel a's first value at column 0 (`col` adds `col step` bytes).
+    pub row: *const i16,
+    /// The run's widened weights ([`widen_weights_nat`]).
+    pub ww: *const u32,
+    /// Bytes per column step.
+    pub step: usize,
+    /// Whole groups of the run, 1 to [`I16_ASM_GROUPS`].
+    pub groups: usize,
+    /// Bytes from pixel a's values to pixel b's.
+    pub bstep: usize,
+    /// Index into the sums.
+    pub part: usize,
+}
+
+/// `sums[e.part] += [w0 . a, w1 . a, w0 . b, w1 . b]` over every entry `e` of `table` (a block
+/// of two pixels, or one pixel as both, at column `col`), the activations read in place.
+///
+/// # Safety
+///
+/// For every entry: `row + col step` and `row + col step + bstep` are valid for reads of `8
+/// groups` bytes (each at least halfword-aligned), `ww` for reads of `4 groups` words
+/// (word-aligned), `1 <= groups <= I16_ASM_GROUPS`, and `part < sums.len()`.
+#[inline(always)]
+pub unsafe fn nat_block(table: &[NatEntry], col: usize, sums: &mut [[i64; 4]]) {
+    if !table.is_empty() {
+        // SAFETY: the caller's contract: the loop reads each entry's `4 groups` values from
+        // pixels a and b and its `4 groups` words of `ww`, and adds into `sums[part]`.
+        unsafe { muir_dsp_nat_block(table.as_ptr(), table.len(), col, sums.as_mut_ptr()) };
     }
 }
