@@ -653,6 +653,8 @@ core::arch::global_asm!(
     "    mla r0, r5, r2, r0",         // pixel a: row + col step
     "    add r2, r0, r4",             // pixel b: bstep later
     "    add r3, r1, r3, lsl #4",     // end of the run's widened weights
+    "    cmp r4, #0",                 // one pixel (a block of one pixel taken twice): 40
+    "    beq 40f",
     "    movs r4, #0",
     "    movs r5, #0",
     "    movs r6, #0",
@@ -751,6 +753,39 @@ core::arch::global_asm!(
     "    bne 5b",
     "    add sp, #24",
     "    pop {{r4-r11, pc}}",
+    // One pixel: its two sums by a loop of one pixel (9 instructions per group, 13 as a
+    // block), copied to pixel b's.
+    "40:",
+    "    movs r4, #0",
+    "    movs r5, #0",
+    "    tst r0, #3",
+    "    bne 45f",
+    "41:",
+    "    ldrd r8, r9, [r0], #8",
+    "    ldrd r10, r11, [r1], #8",    // w0
+    "    ldrd r12, lr, [r1], #8",     // w1
+    "    smlad r4, r10, r8, r4",
+    "    smlad r4, r11, r9, r4",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    cmp r1, r3",
+    "    bne 41b",
+    "    b 48f",
+    "45:",
+    "    ldr r9, [r0, #4]",
+    "    ldr r8, [r0], #8",
+    "    ldrd r10, r11, [r1], #8",
+    "    ldrd r12, lr, [r1], #8",
+    "    smlad r4, r10, r8, r4",
+    "    smlad r4, r11, r9, r4",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    cmp r1, r3",
+    "    bne 45b",
+    "48:",
+    "    mov r6, r4",
+    "    mov r7, r5",
+    "    b 30b",
     ".size muir_dsp_nat_block, . - muir_dsp_nat_block",
     "",
     // `widen_weights_nat`'s loop: r0 = w0, r1 = w1 (int8 rows, any alignment), r2 = groups (>= 1),
