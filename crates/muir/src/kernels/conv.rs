@@ -1126,11 +1126,7 @@ fn widen_pairs(p: &ConvParams<'_>, pair: &[u8], wide: &mut [i16]) {
         let q = n / 4 * 4;
         let (sg, st) = src.split_at(2 * q);
         let (dg, dt) = dst.split_at_mut(2 * q);
-        for (d, s) in dg.chunks_exact_mut(4).zip(sg.chunks_exact(4)) {
-            if let ([d0, d1, d2, d3], &[s0, s1, s2, s3]) = (d, s) {
-                (*d0, *d1, *d2, *d3) = (s0 as i16, s2 as i16, s1 as i16, s3 as i16);
-            }
-        }
+        super::dsp::widen_u8_groups(dg, sg);
         for (d, &s) in dt.iter_mut().zip(st) {
             *d = s as i16;
         }

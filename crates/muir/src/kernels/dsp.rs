@@ -1147,3 +1147,21 @@ pub unsafe fn nat_block(table: &[NatEntry], col: usize, sums: &mut [[i64; 4]]) {
         unsafe { muir_dsp_nat_block(table.as_ptr(), table.len(), col, sums.as_mut_ptr()) };
     }
 }
+
+/// The whole groups of four u8 values of `s` widened into `d` in the i16 pair layout's order
+/// (values 0, 2, 1, 3 of each group: `UXTB16` of the group's word, then of the word rotated by
+/// 8): one load, two widenings and two stores per group instead of four of each (the gathered
+/// u8 pairs of `conv::conv_row_u8_wide`). Stops at the shorter of `s / 4` and `d / 4` groups.
+#[inline(always)]
+pub fn widen_u8_groups(d: &mut [i16], s: &[u8]) {
+    for (g, q) in d.chunks_exact_mut(4).zip(s.chunks_exact(4)) {
+        let v = word(q, 0);
+        let (lo, hi) = (uxtb16(v), uxtb16_ror8(v));
+        // SAFETY: `g` holds 4 values (8 bytes); unaligned word stores are allowed on
+        // Cortex-M4/M7.
+        unsafe {
+            core::ptr::write_unaligned(g.as_mut_ptr() as *mut u32, lo);
+            core::ptr::write_unaligned(g.as_mut_ptr().add(2) as *mut u32, hi);
+        }
+    }
+}
