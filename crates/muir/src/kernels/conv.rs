@@ -945,14 +945,14 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
             let inside = xa >= pad && xa + 1 + pad < w_in;
             let (xb, col) = if inside { (xa + 1, xa - pad) } else { (xa, 0) };
             if !inside || !inside_table {
-                t.build(k, p.parts, inputs, w_in, ww, if inside { None } else { Some(xa) });
+                t.build(k, p.parts, inputs, w_in, ww, w0, w1, if inside { None } else { Some(xa) });
                 inside_table = inside;
             }
             if !t.whole {
                 return true; // never: the checks above keep every table whole
             }
             let mut sums = [[0i64; 4]; crate::model::graph::MAX_PARTS];
-            t.run(col, w0, w1, &mut sums);
+            t.run(col, kl, &mut sums);
             let mut part = 0;
             block2x2_by(p, m, b, out, xa * p.cout, xb * p.cout, 2 * cp, |_, _, _| {
                 let s = sums.get(part).copied();
@@ -970,52 +970,49 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
 const NAT_ENTRIES: usize = 3 * crate::model::graph::MAX_PARTS;
 
-/// Values of a run outside its whole groups (a run's last `k ch % 4`, an end pixel's first and
-/// last), by the plain products: pixel a's at `row[at + col step ..]`, pixel b's `bd` later,
-/// `n` of them, against weights `w ..` of the channel pair's rows, into `sums[part]`.
+/// One block's work for [`conv_row_i16_nat`]: `dsp::nat_block` entries for the runs' whole
+/// groups and, as plain entries, their other values (a run's last `k ch % 4`, an end pixel's
+/// first and last).
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
-#[derive(Clone, Copy, Default)]
-struct NatPlain<'a> {
-    row: &'a [i16],
-    at: u32,
-    w: u32,
-    step: u16,
-    bd: u16,
-    n: u16,
-    part: u16,
-}
-
-/// One block's work for [`conv_row_i16_nat`]: the runs' whole groups (`dsp::nat_block`
-/// entries) and their other values ([`NatPlain`]).
-#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
-struct NatTable<'a> {
-    e: [super::dsp::NatEntry; NAT_ENTRIES],
+struct NatTable {
+    e: [super::dsp::NatEntry; 3 * NAT_ENTRIES],
     ne: usize,
-    p: [NatPlain<'a>; 2 * NAT_ENTRIES],
-    np: usize,
-    /// Whether every entry and value fitted (else the block is computed by [`part_nat`]).
+    /// Whether every entry fitted (else the row stops).
     whole: bool,
 }
 
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
-impl<'a> NatTable<'a> {
+impl NatTable {
     fn new() -> Self {
-        let e = super::dsp::NatEntry { row: core::ptr::null(), ww: core::ptr::null(), step: 0, groups: 0, bstep: 0, part: 0 };
-        NatTable { e: [e; NAT_ENTRIES], ne: 0, p: [NatPlain::default(); 2 * NAT_ENTRIES], np: 0, whole: true }
+        let e = super::dsp::NatEntry { row: core::ptr::null(), w: core::ptr::null(), step: 0, groups: 0, bstep: 0, part: 0 };
+        NatTable { e: [e; 3 * NAT_ENTRIES], ne: 0, whole: true }
     }
 
-    /// Values `t0 .. t1` of a run as a plain item.
+    #[inline(always)]
+    fn push(&mut self, e: super::dsp::NatEntry) {
+        match self.e.get_mut(self.ne) {
+            Some(d) if e.part < crate::model::graph::MAX_PARTS => {
+                *d = e;
+                self.ne += 1;
+            }
+            _ => self.whole = false,
+        }
+    }
+
+    /// Values `row[at ..]` (pixel a at column 0), `n` of them (fewer than 8), against weights
+    /// `w ..` of the channel pair's rows `w0`, `w1` (`kl` apart), as a plain entry.
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
-    fn plain(&mut self, row: &'a [i16], at: usize, step: usize, bd: usize, w: usize, n: usize, part: usize) {
+    fn plain(&mut self, row: &[i16], at: usize, step: usize, bd: usize, w0: &[i8], w1: &[i8], w: usize, n: usize, part: usize) {
         if n == 0 {
             return;
         }
-        let item = (u32::try_from(at), u32::try_from(w), u16::try_from(step), u16::try_from(bd), u16::try_from(n), u16::try_from(part));
-        match (self.p.get_mut(self.np), item) {
-            (Some(d), (Ok(at), Ok(w), Ok(step), Ok(bd), Ok(n), Ok(part))) if (part as usize) < crate::model::graph::MAX_PARTS => {
-                *d = NatPlain { row, at, w, step, bd, n, part };
-                self.np += 1;
+        // The weights must lie inside both rows (`nat_block` reads w1's `kl` bytes after w0's);
+        // the values inside the row (the caller's bounds, as for the groups).
+        match (w0.get(w..w + n), w1.get(w..w + n), row.get(at..)) {
+            (Some(u), Some(_), Some(r)) if n < 8 => {
+                let e = super::dsp::NatEntry { row: r.as_ptr(), w: u.as_ptr() as *const u8, step: 2 * step, groups: n | super::dsp::NatEntry::PLAIN, bstep: 2 * bd, part };
+                self.push(e);
             }
             _ => self.whole = false,
         }
@@ -1024,10 +1021,12 @@ impl<'a> NatTable<'a> {
     /// The table of the block of pixels `col + pad`, `col + pad + 1` for every `col` whose
     /// windows lie inside the input (`lone` = None: the entries relative to the column), or of
     /// the single pixel `lone` (both pixels the same, the kernel columns inside the input only).
-    /// `ww`: the channel pair's widened runs, part by part, kernel row by kernel row.
+    /// `ww`: the channel pair's widened runs, part by part, kernel row by kernel row; `w0`, `w1`
+    /// its int8 weight rows.
+    #[allow(clippy::too_many_arguments)]
     #[inline(never)]
-    fn build(&mut self, k: usize, parts: &[usize], inputs: &[PartRows<'a, i16>], w_in: usize, ww: &[u32], lone: Option<usize>) {
-        (self.ne, self.np, self.whole) = (0, 0, true);
+    fn build(&mut self, k: usize, parts: &[usize], inputs: &[PartRows<'_, i16>], w_in: usize, ww: &[u32], w0: &[i8], w1: &[i8], lone: Option<usize>) {
+        (self.ne, self.whole) = (0, true);
         let pad = k / 2;
         let (mut o, mut wo) = (0, 0);
         for (part, (rows, &ch)) in inputs.iter().zip(parts).enumerate() {
@@ -1049,65 +1048,39 @@ impl<'a> NatTable<'a> {
                 let wr = o + ky * run;
                 let (g0, g1) = (s.div_ceil(4), (e / 4).min(gr));
                 if g0 >= g1 {
-                    self.plain(row, base, step, bd, wr + s, e - s, part);
+                    self.plain(row, base, step, bd, w0, w1, wr + s, e - s, part);
                     continue;
                 }
-                self.plain(row, base, step, bd, wr + s, 4 * g0 - s, part);
-                match (self.e.get_mut(self.ne), ww.get(wo + 4 * ky * gr + 4 * g0..)) {
-                    (Some(d), Some(w)) if part < crate::model::graph::MAX_PARTS => {
-                        // `row[base + 4 g0 - s ..]`, in bounds (the row holds `w_in ch` values,
-                        // checked by the caller, and the run's values lie inside the input).
-                        let first = row.get(base + 4 * g0 - s..).unwrap_or_default();
-                        *d = super::dsp::NatEntry { row: first.as_ptr(), ww: w.as_ptr(), step: 2 * step, groups: g1 - g0, bstep: 2 * bd, part };
-                        self.ne += 1;
+                self.plain(row, base, step, bd, w0, w1, wr + s, 4 * g0 - s, part);
+                match (row.get(base + 4 * g0 - s..), ww.get(wo + 4 * ky * gr + 4 * g0..)) {
+                    (Some(first), Some(w)) => {
+                        let e = super::dsp::NatEntry { row: first.as_ptr(), w: w.as_ptr() as *const u8, step: 2 * step, groups: g1 - g0, bstep: 2 * bd, part };
+                        self.push(e);
                     }
                     _ => self.whole = false,
                 }
-                self.plain(row, base + 4 * g1 - s, step, bd, wr + 4 * g1, e - 4 * g1, part);
+                self.plain(row, base + 4 * g1 - s, step, bd, w0, w1, wr + 4 * g1, e - 4 * g1, part);
             }
             o += k * run;
             wo += 4 * k * gr;
         }
     }
 
-    /// The block at column `col` (0 for a single pixel's table) into `sums`.
+    /// The block at column `col` (0 for a single pixel's table) into `sums`; `kl` from w0's
+    /// weights to w1's.
     #[inline(always)]
-    fn run(&self, col: usize, w0: &[i8], w1: &[i8], sums: &mut [[i64; 4]; crate::model::graph::MAX_PARTS]) {
+    fn run(&self, col: usize, kl: usize, sums: &mut [[i64; 4]; crate::model::graph::MAX_PARTS]) {
         let e = self.e.get(..self.ne).unwrap_or_default();
         // SAFETY: `build` made every entry from a row holding `w_in ch` values (checked by
-        // `conv_row_i16_nat`) with `groups` whole groups of values that both pixels' windows
-        // cover inside the input: for the inside blocks at `col` (`col + 1 + 2 pad < w_in`)
-        // values `col ch + 4 g0 ..` and one pixel later, at most `(col + 1) ch + k ch <= w_in
-        // ch`; for a single pixel its own columns inside the input. `ww` points at the run's
-        // groups `g0 ..` inside the widened words, `1 <= groups <= I16_ASM_GROUPS` (checked
-        // by the caller, `groups <= k ch / 4`), and every part index is below `MAX_PARTS =
-        // sums.len()` (`build` keeps none else).
-        unsafe { super::dsp::nat_block(e, col, sums) };
-        for it in self.p.get(..self.np).unwrap_or_default() {
-            let (n, bd) = (it.n as usize, it.bd as usize);
-            let at = it.at as usize + col * it.step as usize;
-            let w = it.w as usize;
-            if let (Some(a), Some(b), Some(u), Some(v), Some(s)) =
-                (it.row.get(at..at + n), it.row.get(at + bd..at + bd + n), w0.get(w..w + n), w1.get(w..w + n), sums.get_mut(it.part as usize))
-            {
-                // Fewer than 8 terms of `|w x| <= 2^22` per item (a run's head or tail of at
-                // most 3 values, or a run with no whole group), so exact in i32.
-                let mut t = [0i32; 4];
-                for i in 0..n.min(a.len()).min(b.len()).min(u.len()).min(v.len()) {
-                    let (Some(&u), Some(&v), Some(&a), Some(&b)) = (u.get(i), v.get(i), a.get(i), b.get(i)) else {
-                        break;
-                    };
-                    let (u, v, a, b) = (u as i32, v as i32, a as i32, b as i32);
-                    t[0] += u * a;
-                    t[1] += v * a;
-                    t[2] += u * b;
-                    t[3] += v * b;
-                }
-                for (s, t) in s.iter_mut().zip(t) {
-                    *s += t as i64;
-                }
-            }
-        }
+        // `conv_row_i16_nat`) and values that both pixels' windows cover inside the input: for
+        // the inside blocks at `col` (`col + 1 + 2 pad < w_in`) values from `col ch` on and one
+        // pixel later, at most `(col + 1) ch + k ch <= w_in ch`; for a single pixel its own
+        // columns inside the input. A groups entry's `w` points at the run's groups `g0 ..`
+        // inside the widened words and `1 <= groups <= I16_ASM_GROUPS` (checked by the caller,
+        // `groups <= k ch / 4`); a plain entry's weights lie inside w0's row and w1's (`kl`
+        // later: `channel_pairs` gives the pair's `2 kl` weights), 1 to 7 of them; every part
+        // index is below `MAX_PARTS = sums.len()` (`push` keeps none else).
+        unsafe { super::dsp::nat_block(e, col, sums, kl) };
     }
 }
 

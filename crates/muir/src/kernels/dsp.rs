@@ -652,6 +652,8 @@ core::arch::global_asm!(
     "    ldr r5, [sp, #8]",
     "    mla r0, r5, r2, r0",         // pixel a: row + col step
     "    add r2, r0, r4",             // pixel b: bstep later
+    "    cmp r3, #0",                 // a plain entry (bit 31 set): 50
+    "    blt 50f",
     "    add r3, r1, r3, lsl #4",     // end of the run's widened weights
     "    cmp r4, #0",                 // one pixel (a block of one pixel taken twice): 40
     "    beq 40f",
@@ -786,6 +788,27 @@ core::arch::global_asm!(
     "    mov r6, r4",
     "    mov r7, r5",
     "    b 30b",
+    // A plain entry: `groups & !(1 << 31)` values (1 to 7) by LDRSH / LDRSB and MLA, the
+    // int8 weights of w0 at r1, of w1 `kl` bytes later ([sp, #60], the fifth argument).
+    "50:",
+    "    bic r3, r3, #0x80000000",
+    "    ldr r12, [sp, #60]",
+    "    movs r4, #0",
+    "    movs r5, #0",
+    "    movs r6, #0",
+    "    movs r7, #0",
+    "51:",
+    "    ldrsh r8, [r0], #2",
+    "    ldrsh r9, [r2], #2",
+    "    ldrsb r10, [r1, r12]",
+    "    ldrsb r11, [r1], #1",
+    "    mla r4, r11, r8, r4",
+    "    mla r5, r10, r8, r5",
+    "    mla r6, r11, r9, r6",
+    "    mla r7, r10, r9, r7",
+    "    subs r3, #1",
+    "    bne 51b",
+    "    b 30b",
     ".size muir_dsp_nat_block, . - muir_dsp_nat_block",
     "",
     // `widen_weights_nat`'s loop: r0 = w0, r1 = w1 (int8 rows, any alignment), r2 = groups (>= 1),
@@ -833,7 +856,7 @@ unsafe extern "C" {
     fn muir_dsp_dot2x2_nat_a(xa: *const i16, w: *const u32, xb: *const i16, groups: usize, acc: *mut [i32; 4]);
     fn muir_dsp_dot2x2_nat_u(xa: *const i16, w: *const u32, xb: *const i16, groups: usize, acc: *mut [i32; 4]);
     fn muir_dsp_widen_nat(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
-    fn muir_dsp_nat_block(table: *const NatEntry, n: usize, col: usize, sums: *mut [i64; 4]);
+    fn muir_dsp_nat_block(table: *const NatEntry, n: usize, col: usize, sums: *mut [i64; 4], kl: usize);
 }
 
 impl Quad for u8 {
@@ -1113,17 +1136,18 @@ pub fn dot2x2_nat(xa: &[i16], xb: &[i16], ww: &[u32], q: usize, acc: &mut [i32; 
 
 /// One run of one kernel row of one part for [`nat_block`]: pixel a's values at `row + col
 /// step` bytes, pixel b's `bstep` bytes later, `groups` whole groups of four against the widened
-/// weights at `ww`, added to `sums[part]`.
+/// weights at `w`, added to `sums[part]`. A plain entry ([`NatEntry::PLAIN`] set in `groups`):
+/// the low bits count values (1 to 7), `w` points at w0's int8 weights, w1's `kl` bytes later.
 #[repr(C)]
 #[derive(Clone, Copy, Debug)]
 pub struct NatEntry {
     /// Pixel a's first value at column 0 (`col` adds `col step` bytes).
     pub row: *const i16,
-    /// The run's widened weights ([`widen_weights_nat`]).
-    pub ww: *const u32,
+    /// The run's widened weights ([`widen_weights_nat`]), or w0's int8 weights.
+    pub w: *const u8,
     /// Bytes per column step.
     pub step: usize,
-    /// Whole groups of the run, 1 to [`I16_ASM_GROUPS`].
+    /// Whole groups of the run, 1 to [`I16_ASM_GROUPS`] (or values, with [`NatEntry::PLAIN`]).
     pub groups: usize,
     /// Bytes from pixel a's values to pixel b's.
     pub bstep: usize,
@@ -1131,20 +1155,27 @@ pub struct NatEntry {
     pub part: usize,
 }
 
+impl NatEntry {
+    /// The flag of a plain entry in `groups`.
+    pub const PLAIN: usize = 1 << 31;
+}
+
 /// `sums[e.part] += [w0 . a, w1 . a, w0 . b, w1 . b]` over every entry `e` of `table` (a block
-/// of two pixels, or one pixel as both, at column `col`), the activations read in place.
+/// of two pixels, or one pixel as both, at column `col`), the activations read in place; `kl`
+/// bytes from w0's int8 weights to w1's (plain entries).
 ///
 /// # Safety
 ///
 /// For every entry: `row + col step` and `row + col step + bstep` are valid for reads of `8
-/// groups` bytes (each at least halfword-aligned), `ww` for reads of `4 groups` words
-/// (word-aligned), `1 <= groups <= I16_ASM_GROUPS`, and `part < sums.len()`.
+/// groups` bytes (`2 n` for a plain entry of `n` values; each halfword-aligned), `w` for reads of
+/// `16 groups` bytes (word-aligned; a plain entry: `n` bytes at `w` and at `w + kl`), `1 <=
+/// groups <= I16_ASM_GROUPS` (a plain entry: `1 <= n <= 7`), and `part < sums.len()`.
 #[inline(always)]
-pub unsafe fn nat_block(table: &[NatEntry], col: usize, sums: &mut [[i64; 4]]) {
+pub unsafe fn nat_block(table: &[NatEntry], col: usize, sums: &mut [[i64; 4]], kl: usize) {
     if !table.is_empty() {
-        // SAFETY: the caller's contract: the loop reads each entry's `4 groups` values from
-        // pixels a and b and its `4 groups` words of `ww`, and adds into `sums[part]`.
-        unsafe { muir_dsp_nat_block(table.as_ptr(), table.len(), col, sums.as_mut_ptr()) };
+        // SAFETY: the caller's contract: the loop reads each entry's values from pixels a and b
+        // and its weights, and adds into `sums[part]`.
+        unsafe { muir_dsp_nat_block(table.as_ptr(), table.len(), col, sums.as_mut_ptr(), kl) };
     }
 }
 
