@@ -921,6 +921,7 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
     };
     let pad = k / 2;
     let mut t = NatTable::new();
+    let mut built: Option<Option<usize>> = None;
     for (cp, ((w, m), b)) in channel_pairs(p, kl, 0).enumerate() {
         let (w0, w1) = halves(w);
         let (mut o, mut wo) = (0, 0);
@@ -938,31 +939,58 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
         // Pixels whose windows lie inside the input in pairs (one table for all of them,
         // relative to the column), the others (the `k / 2` at each end of the row, an odd one
         // left over) one at a time, as a block with both pixels the same (their own table:
-        // an end pixel's runs are shorter).
-        let mut inside_table = false;
-        let mut xa = 0;
-        while xa < w_out {
-            let inside = xa >= pad && xa + 1 + pad < w_in;
-            let (xb, col) = if inside { (xa + 1, xa - pad) } else { (xa, 0) };
-            if !inside || !inside_table {
-                t.build(k, p.parts, inputs, w_in, ww, w0, w1, if inside { None } else { Some(xa) });
-                inside_table = inside;
+        // an end pixel's runs are shorter). Tables serve every channel pair, and the channel
+        // pairs walk the row in alternate directions: each starts with the last one's table.
+        for (xa, xb) in nat_blocks(pad, w_in, w_out, cp % 2 == 1) {
+            let inside = xb != xa;
+            let key = if inside { None } else { Some(xa) };
+            if built != Some(key) {
+                t.build(k, p.parts, inputs, w_in, words, kl, key);
+                built = Some(key);
             }
             if !t.whole {
                 return true; // never: the checks above keep every table whole
             }
             let mut sums = [[0i64; 4]; crate::model::graph::MAX_PARTS];
-            t.run(col, kl, &mut sums);
+            t.run(if inside { xa - pad } else { 0 }, kl, w, ww, &mut sums);
             let mut part = 0;
             block2x2_by(p, m, b, out, xa * p.cout, xb * p.cout, 2 * cp, |_, _, _| {
                 let s = sums.get(part).copied();
                 part += 1;
                 s
             });
-            xa = xb + 1;
         }
     }
     true
+}
+
+/// The blocks of [`conv_row_i16_nat`]'s row, left to right or (`reverse`) right to left: `(xa,
+/// xa + 1)` for two pixels whose windows lie inside the input (pixels `pad ..` paired from the
+/// left), `(x, x)` for the others.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+fn nat_blocks(pad: usize, w_in: usize, w_out: usize, reverse: bool) -> impl Iterator<Item = (usize, usize)> {
+    // Pixels `pad .. end` see every kernel column inside the input; an odd count leaves the
+    // last of them alone.
+    let end = w_in.saturating_sub(pad).max(pad);
+    let odd_last = (end - pad) % 2 == 1;
+    let mut x = if reverse { w_out } else { 0 };
+    core::iter::from_fn(move || {
+        if reverse {
+            let last = x.checked_sub(1)?;
+            let pair = last > pad && last < end && !(odd_last && last + 1 == end);
+            let xa = if pair { last - 1 } else { last };
+            x = xa;
+            Some((xa, last))
+        } else {
+            if x >= w_out {
+                return None;
+            }
+            let xa = x;
+            let xb = if xa >= pad && xa + 1 < end { xa + 1 } else { xa };
+            x = xb + 1;
+            Some((xa, xb))
+        }
+    })
 }
 
 /// Most entries of a [`NatTable`] (kernel rows times parts): 3 x 3 kernels of up to
@@ -984,7 +1012,7 @@ struct NatTable {
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
 impl NatTable {
     fn new() -> Self {
-        let e = super::dsp::NatEntry { row: core::ptr::null(), w: core::ptr::null(), step: 0, groups: 0, bstep: 0, part: 0 };
+        let e = super::dsp::NatEntry { row: core::ptr::null(), w: 0, step: 0, groups: 0, bstep: 0, part: 0 };
         NatTable { e: [e; 3 * NAT_ENTRIES], ne: 0, whole: true }
     }
 
@@ -1000,18 +1028,18 @@ impl NatTable {
     }
 
     /// Values `row[at ..]` (pixel a at column 0), `n` of them (fewer than 8), against weights
-    /// `w ..` of the channel pair's rows `w0`, `w1` (`kl` apart), as a plain entry.
+    /// `w .. w + n` of the channel pair's rows (`kl` each), as a plain entry.
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
-    fn plain(&mut self, row: &[i16], at: usize, step: usize, bd: usize, w0: &[i8], w1: &[i8], w: usize, n: usize, part: usize) {
+    fn plain(&mut self, row: &[i16], at: usize, step: usize, bd: usize, kl: usize, w: usize, n: usize, part: usize) {
         if n == 0 {
             return;
         }
-        // The weights must lie inside both rows (`nat_block` reads w1's `kl` bytes after w0's);
-        // the values inside the row (the caller's bounds, as for the groups).
-        match (w0.get(w..w + n), w1.get(w..w + n), row.get(at..)) {
-            (Some(u), Some(_), Some(r)) if n < 8 => {
-                let e = super::dsp::NatEntry { row: r.as_ptr(), w: u.as_ptr() as *const u8, step: 2 * step, groups: n | super::dsp::NatEntry::PLAIN, bstep: 2 * bd, part };
+        // The weights inside a channel's row (`nat_block` reads w1's `kl` bytes after w0's); the
+        // values inside the row (the caller's bounds, as for the groups).
+        match row.get(at..) {
+            Some(r) if n < 8 && w + n <= kl => {
+                let e = super::dsp::NatEntry { row: r.as_ptr(), w, step: 2 * step, groups: n | super::dsp::NatEntry::PLAIN, bstep: 2 * bd, part };
                 self.push(e);
             }
             _ => self.whole = false,
@@ -1021,11 +1049,12 @@ impl NatTable {
     /// The table of the block of pixels `col + pad`, `col + pad + 1` for every `col` whose
     /// windows lie inside the input (`lone` = None: the entries relative to the column), or of
     /// the single pixel `lone` (both pixels the same, the kernel columns inside the input only).
-    /// `ww`: the channel pair's widened runs, part by part, kernel row by kernel row; `w0`, `w1`
-    /// its int8 weight rows.
+    /// Entries address the widened runs (`words` of them, part by part, kernel row by kernel
+    /// row) and the int8 weights (`kl` per channel) by offsets, so the table serves every
+    /// channel pair of the row.
     #[allow(clippy::too_many_arguments)]
     #[inline(never)]
-    fn build(&mut self, k: usize, parts: &[usize], inputs: &[PartRows<'_, i16>], w_in: usize, ww: &[u32], w0: &[i8], w1: &[i8], lone: Option<usize>) {
+    fn build(&mut self, k: usize, parts: &[usize], inputs: &[PartRows<'_, i16>], w_in: usize, words: usize, kl: usize, lone: Option<usize>) {
         (self.ne, self.whole) = (0, true);
         let pad = k / 2;
         let (mut o, mut wo) = (0, 0);
@@ -1048,39 +1077,43 @@ impl NatTable {
                 let wr = o + ky * run;
                 let (g0, g1) = (s.div_ceil(4), (e / 4).min(gr));
                 if g0 >= g1 {
-                    self.plain(row, base, step, bd, w0, w1, wr + s, e - s, part);
+                    self.plain(row, base, step, bd, kl, wr + s, e - s, part);
                     continue;
                 }
-                self.plain(row, base, step, bd, w0, w1, wr + s, 4 * g0 - s, part);
-                match (row.get(base + 4 * g0 - s..), ww.get(wo + 4 * ky * gr + 4 * g0..)) {
-                    (Some(first), Some(w)) => {
-                        let e = super::dsp::NatEntry { row: first.as_ptr(), w: w.as_ptr() as *const u8, step: 2 * step, groups: g1 - g0, bstep: 2 * bd, part };
+                self.plain(row, base, step, bd, kl, wr + s, 4 * g0 - s, part);
+                let at = wo + 4 * ky * gr + 4 * g0;
+                match row.get(base + 4 * g0 - s..) {
+                    Some(first) if at + 4 * (g1 - g0) <= words => {
+                        let e = super::dsp::NatEntry { row: first.as_ptr(), w: 4 * at, step: 2 * step, groups: g1 - g0, bstep: 2 * bd, part };
                         self.push(e);
                     }
                     _ => self.whole = false,
                 }
-                self.plain(row, base + 4 * g1 - s, step, bd, w0, w1, wr + 4 * g1, e - 4 * g1, part);
+                self.plain(row, base + 4 * g1 - s, step, bd, kl, wr + 4 * g1, e - 4 * g1, part);
             }
             o += k * run;
             wo += 4 * k * gr;
         }
     }
 
-    /// The block at column `col` (0 for a single pixel's table) into `sums`; `kl` from w0's
-    /// weights to w1's.
+    /// The block at column `col` (0 for a single pixel's table) into `sums`, with the channel
+    /// pair's widened weights `ww` and int8 weights `w` (`2 kl`: w0's, then w1's).
     #[inline(always)]
-    fn run(&self, col: usize, kl: usize, sums: &mut [[i64; 4]; crate::model::graph::MAX_PARTS]) {
+    fn run(&self, col: usize, kl: usize, w: &[i8], ww: &[u32], sums: &mut [[i64; 4]; crate::model::graph::MAX_PARTS]) {
         let e = self.e.get(..self.ne).unwrap_or_default();
+        if w.len() < 2 * kl {
+            return; // never: `channel_pairs` gives `2 kl` weights
+        }
         // SAFETY: `build` made every entry from a row holding `w_in ch` values (checked by
         // `conv_row_i16_nat`) and values that both pixels' windows cover inside the input: for
         // the inside blocks at `col` (`col + 1 + 2 pad < w_in`) values from `col ch` on and one
         // pixel later, at most `(col + 1) ch + k ch <= w_in ch`; for a single pixel its own
-        // columns inside the input. A groups entry's `w` points at the run's groups `g0 ..`
-        // inside the widened words and `1 <= groups <= I16_ASM_GROUPS` (checked by the caller,
-        // `groups <= k ch / 4`); a plain entry's weights lie inside w0's row and w1's (`kl`
-        // later: `channel_pairs` gives the pair's `2 kl` weights), 1 to 7 of them; every part
-        // index is below `MAX_PARTS = sums.len()` (`push` keeps none else).
-        unsafe { super::dsp::nat_block(e, col, sums, kl) };
+        // columns inside the input. A groups entry's run lies inside the `words` widened words
+        // (`ww` holds them) at a multiple of 16 bytes, `1 <= groups <= I16_ASM_GROUPS` (checked
+        // by the caller, `groups <= k ch / 4`); a plain entry's weights lie inside a channel's
+        // `kl` (`w` holds `2 kl`), 1 to 7 of them; every part index is below `MAX_PARTS =
+        // sums.len()` (`push` keeps none else).
+        unsafe { super::dsp::nat_block(e, col, sums, kl, w, ww) };
     }
 }
 

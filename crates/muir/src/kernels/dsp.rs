@@ -654,6 +654,8 @@ core::arch::global_asm!(
     "    add r2, r0, r4",             // pixel b: bstep later
     "    cmp r3, #0",                 // a plain entry (bit 31 set): 50
     "    blt 50f",
+    "    ldr r12, [sp, #68]",         // the widened weights: r1 is the run's byte offset
+    "    add r1, r1, r12",
     "    add r3, r1, r3, lsl #4",     // end of the run's widened weights
     "    cmp r4, #0",                 // one pixel (a block of one pixel taken twice): 40
     "    beq 40f",
@@ -789,9 +791,12 @@ core::arch::global_asm!(
     "    mov r7, r5",
     "    b 30b",
     // A plain entry: `groups & !(1 << 31)` values (1 to 7) by LDRSH / LDRSB and MLA, the
-    // int8 weights of w0 at r1, of w1 `kl` bytes later ([sp, #60], the fifth argument).
+    // int8 weights of w0 at w0 ([sp, #64], the sixth argument) plus r1, of w1 `kl` bytes later
+    // ([sp, #60], the fifth argument).
     "50:",
     "    bic r3, r3, #0x80000000",
+    "    ldr r12, [sp, #64]",         // w0's int8 weights: r1 is the byte offset
+    "    add r1, r1, r12",
     "    ldr r12, [sp, #60]",
     "    movs r4, #0",
     "    movs r5, #0",
@@ -856,7 +861,7 @@ unsafe extern "C" {
     fn muir_dsp_dot2x2_nat_a(xa: *const i16, w: *const u32, xb: *const i16, groups: usize, acc: *mut [i32; 4]);
     fn muir_dsp_dot2x2_nat_u(xa: *const i16, w: *const u32, xb: *const i16, groups: usize, acc: *mut [i32; 4]);
     fn muir_dsp_widen_nat(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
-    fn muir_dsp_nat_block(table: *const NatEntry, n: usize, col: usize, sums: *mut [i64; 4], kl: usize);
+    fn muir_dsp_nat_block(table: *const NatEntry, n: usize, col: usize, sums: *mut [i64; 4], kl: usize, w0: *const i8, ww: *const u32);
 }
 
 impl Quad for u8 {
@@ -1136,15 +1141,17 @@ pub fn dot2x2_nat(xa: &[i16], xb: &[i16], ww: &[u32], q: usize, acc: &mut [i32; 
 
 /// One run of one kernel row of one part for [`nat_block`]: pixel a's values at `row + col
 /// step` bytes, pixel b's `bstep` bytes later, `groups` whole groups of four against the widened
-/// weights at `w`, added to `sums[part]`. A plain entry ([`NatEntry::PLAIN`] set in `groups`):
-/// the low bits count values (1 to 7), `w` points at w0's int8 weights, w1's `kl` bytes later.
+/// weights `w` bytes into `nat_block`'s `ww`, added to `sums[part]`. A plain entry
+/// ([`NatEntry::PLAIN`] set in `groups`): the low bits count values (1 to 7), w0's int8 weights
+/// `w` bytes into `nat_block`'s `w0`, w1's `kl` bytes later. (Offsets, not addresses: a table
+/// serves every channel pair of a row.)
 #[repr(C)]
 #[derive(Clone, Copy, Debug)]
 pub struct NatEntry {
     /// Pixel a's first value at column 0 (`col` adds `col step` bytes).
     pub row: *const i16,
-    /// The run's widened weights ([`widen_weights_nat`]), or w0's int8 weights.
-    pub w: *const u8,
+    /// Byte offset of the run's widened weights ([`widen_weights_nat`]) or of w0's int8 weights.
+    pub w: usize,
     /// Bytes per column step.
     pub step: usize,
     /// Whole groups of the run, 1 to [`I16_ASM_GROUPS`] (or values, with [`NatEntry::PLAIN`]).
@@ -1161,21 +1168,22 @@ impl NatEntry {
 }
 
 /// `sums[e.part] += [w0 . a, w1 . a, w0 . b, w1 . b]` over every entry `e` of `table` (a block
-/// of two pixels, or one pixel as both, at column `col`), the activations read in place; `kl`
-/// bytes from w0's int8 weights to w1's (plain entries).
+/// of two pixels, or one pixel as both, at column `col`), the activations read in place: `ww`
+/// the channel pair's widened weights, `w0` its int8 weights, w1's `kl` bytes later.
 ///
 /// # Safety
 ///
 /// For every entry: `row + col step` and `row + col step + bstep` are valid for reads of `8
-/// groups` bytes (`2 n` for a plain entry of `n` values; each halfword-aligned), `w` for reads of
-/// `16 groups` bytes (word-aligned; a plain entry: `n` bytes at `w` and at `w + kl`), `1 <=
-/// groups <= I16_ASM_GROUPS` (a plain entry: `1 <= n <= 7`), and `part < sums.len()`.
+/// groups` bytes (`2 n` for a plain entry of `n` values; each halfword-aligned); a groups entry:
+/// `ww` is valid for reads of `4 (w / 16 + groups)` words, `w` a multiple of 16, `1 <= groups <=
+/// I16_ASM_GROUPS`; a plain entry: `w0` valid for reads of `kl + w + n` bytes, `1 <= n <= 7`;
+/// and `part < sums.len()`.
 #[inline(always)]
-pub unsafe fn nat_block(table: &[NatEntry], col: usize, sums: &mut [[i64; 4]], kl: usize) {
+pub unsafe fn nat_block(table: &[NatEntry], col: usize, sums: &mut [[i64; 4]], kl: usize, w0: &[i8], ww: &[u32]) {
     if !table.is_empty() {
         // SAFETY: the caller's contract: the loop reads each entry's values from pixels a and b
         // and its weights, and adds into `sums[part]`.
-        unsafe { muir_dsp_nat_block(table.as_ptr(), table.len(), col, sums.as_mut_ptr(), kl) };
+        unsafe { muir_dsp_nat_block(table.as_ptr(), table.len(), col, sums.as_mut_ptr(), kl, w0.as_ptr(), ww.as_ptr()) };
     }
 }
 
