@@ -815,7 +815,12 @@ fn conv_row_w16_in<T: Elem>(
                 wo += n / 4 * 4;
             }
             let ww = &*ww;
-            for (i, slot) in slots.chunks_exact((2 * kl).max(1)).take(n).enumerate() {
+            let slots = slots.chunks_exact((2 * kl).max(1)).take(n);
+            if let [_] = p.parts {
+                w16_one_part(p, kl, ww, w0, w1, m, b, slots, out, ox, 2 * cp);
+                continue;
+            }
+            for (i, slot) in slots.enumerate() {
                 let x = ox + 2 * i;
                 block2x2_by(p, m, b, out, x * p.cout, (x + 1) * p.cout, 2 * cp, |o, n, wo| {
                     super::dsp::dot2x2_w16(ww.get(wo..)?, w0.get(o..)?, w1.get(o..)?, slot.get(2 * o..)?, n)
@@ -833,6 +838,57 @@ fn conv_row_w16_in<T: Elem>(
     }
     single_pixels(p, inputs, w_in, out, temp, x);
     true
+}
+
+/// [`conv_row_w16_in`]'s channel pair `c`, `c + 1` for a one-part layer: [`block2x2_by`]'s
+/// integers with the pair's multipliers, biases and short-epilogue test decoded once for all the
+/// gathered pairs of pixels (`slots`, the first at pixel `ox`) instead of once per pair.
+#[allow(clippy::too_many_arguments)]
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(always)]
+fn w16_one_part<'s>(
+    p: &ConvParams<'_>,
+    kl: usize,
+    ww: &[u32],
+    w0: &[i8],
+    w1: &[i8],
+    m: &[u8],
+    b: &[u8],
+    slots: impl Iterator<Item = &'s [i16]>,
+    out: &mut OutRow<'_>,
+    ox: usize,
+    c: usize,
+) {
+    let ((m0, m1), (b0, b1)) = (halves(m), halves(b));
+    let (m0, m1, b0, b1) = (mult_raw(m0), mult_raw(m1), bias_at(b0), bias_at(b1));
+    let small = b0.unsigned_abs() < SHORT_MAX_BIAS && b1.unsigned_abs() < SHORT_MAX_BIAS;
+    let short = small && short_ok(m0) && short_ok(m1);
+    let (c0, c1) = (clamp_shift(m0), clamp_shift(m1));
+    let post = p.post;
+    for (i, slot) in slots.enumerate() {
+        let (at_a, at_b) = ((ox + 2 * i) * p.cout + c, (ox + 2 * i + 1) * p.cout + c);
+        let Some(d) = super::dsp::dot2x2_w16(ww, w0, w1, slot, kl) else {
+            // A short table: `block2x2_by` stops before the part, with sums of 0.
+            for (at, bias) in [(at_a, b0), (at_a + 1, b1), (at_b, b0), (at_b + 1, b1)] {
+                out.set(at, if small { finish_short(post, bias, 0) } else { finish_with(post, bias, 0) });
+            }
+            continue;
+        };
+        match (short, d.map(i32::try_from)) {
+            (true, [Ok(a0), Ok(a1), Ok(a2), Ok(a3)]) => {
+                out.set(at_a, finish_short(post, b0, requant_short(a0, m0)));
+                out.set(at_a + 1, finish_short(post, b1, requant_short(a1, m1)));
+                out.set(at_b, finish_short(post, b0, requant_short(a2, m0)));
+                out.set(at_b + 1, finish_short(post, b1, requant_short(a3, m1)));
+            }
+            _ => {
+                out.set(at_a, finish_with(post, b0, 0i64.saturating_add(requantize(d[0], c0))));
+                out.set(at_a + 1, finish_with(post, b1, 0i64.saturating_add(requantize(d[1], c1))));
+                out.set(at_b, finish_with(post, b0, 0i64.saturating_add(requantize(d[2], c0))));
+                out.set(at_b + 1, finish_with(post, b1, 0i64.saturating_add(requantize(d[3], c1))));
+            }
+        }
+    }
 }
 
 /// [`conv_row`] for i16 activations on the DSP build by [`conv_row_w16`] (the gathered pairs
