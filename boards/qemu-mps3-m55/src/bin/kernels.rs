@@ -1070,7 +1070,7 @@ fn check_nat(buf: &Buffers<i16>, ww: &mut [u32; MAX_N], n: usize, r: &mut Rng) -
 
 /// `conv::conv_row_i16_nat` (the activations read in place from the input rows, the end pixels
 /// one at a time, the runs' heads and tails by the plain products) against `conv_plain`: rows of
-/// 12 to 26 pixels (its narrowest is 12), 1 to 4 rows (padding rows above and below), kernels 1
+/// 8 to 26 pixels (its narrowest is 8), 1 to 4 rows (padding rows above and below), kernels 1
 /// to 7, 1 to 3 parts of 1 to 24 channels (whole groups of four and not), even channel counts,
 /// random and extreme values and weights; the path must take every case.
 #[cfg(not(feature = "mve"))]
@@ -1084,7 +1084,7 @@ fn check_conv_nat(r: &mut Rng) -> usize {
     for case in 0..300u32 {
         let k = [1, 3, 3, 3, 5, 7][(r.next() % 6) as usize];
         let np = if k == 7 { 1 + (r.next() % 2) as usize } else { 1 + (r.next() % 3) as usize };
-        let (h, w) = (1 + (r.next() % 4) as usize, 12 + (r.next() % 15) as usize);
+        let (h, w) = (1 + (r.next() % 4) as usize, 8 + (r.next() % 19) as usize);
         let mut parts = [0usize; 3];
         let most = (CONV_IN / (h * w)).min(24).min(CONV_KL / (k * k * np));
         for ch in parts.iter_mut().take(np) {
