@@ -1027,41 +1027,61 @@ fn check_conv(r: &mut Rng) -> usize {
     cases
 }
 
-/// The DSP build's in-place i16 loop (`dsp::widen_weights_nat`, `dsp::dot2x2_nat`, the
-/// 1/8 ConvGRU gates' `conv::conv_row_i16_nat`) on the vectors `check` just filled: the first
-/// `min(n / 4, 127)` groups (one i32 chunk), the two pixels at value offsets 0 and 1 each (the
-/// LDRD loop and the unaligned one), added to starting sums, against the plain products; 0 and
-/// 128 groups refused.
+/// The DSP build's in-place i16 kernel (`dsp::widen_weights_nat`, `dsp::nat_block`, the 1/8
+/// ConvGRU gates' `conv::conv_row_i16_nat`) on the vectors `check` just filled, against the plain
+/// products: one table of three entries over the first `min(n / 4, 127)` groups (one i32 chunk)
+/// and the next up to 7 values: a two-pixel groups entry (pixels a and b in one buffer at value
+/// offsets 0 or 1 each: the LDRD loop and the unaligned one), a one-pixel groups entry (pixel b
+/// alone, bstep 0) and a plain entry (two pixels, w1's weights `kl` bytes after w0's), each into
+/// its own part's sums from random starting values.
 #[cfg(not(feature = "mve"))]
-fn check_nat(buf: &Buffers<i16>, ww: &mut [u32; MAX_N], n: usize, r: &mut Rng) -> usize {
-    use muir::kernels::dsp;
+fn check_nat(buf: &mut Buffers<i16>, ww: &mut [u32; MAX_N], n: usize, r: &mut Rng) -> usize {
+    use muir::kernels::dsp::{self, NatEntry};
     let q = (n / 4).min(127);
-    let mut cases = 0;
-    if n / 4 > 127 || q == 0 {
-        let mut acc = [0i32; 4];
-        let (a, b) = (&buf.a[..], &buf.b[..]);
-        if dsp::dot2x2_nat(a, b, &ww[..], if q == 0 { 0 } else { 128 }, &mut acc) {
-            fail("i16 dot2x2_nat took 0 or 128 groups", n, &[], &[]);
-        }
-        cases += 1;
-        if q == 0 {
-            return cases;
-        }
+    if q == 0 {
+        return 0;
     }
+    let m = 1 + n % 7;
     ww.fill(0x5A5A_5A5A);
     dsp::widen_weights_nat(&buf.w0[..4 * q], &buf.w1[..4 * q], q, ww);
-    for (oa, ob) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-        let (a, b) = (&buf.a[oa..oa + 4 * q], &buf.b[ob..ob + 4 * q]);
-        // Starting sums small enough that 508 terms of 2^22 cannot overflow past them.
-        let start = [0i32, (r.next() % 4096) as i32 - 2048, -(1 << 20), 1 << 20];
+    // The plain entry's weights: w0's `m` then, `kl = 8` bytes later, w1's.
+    let mut wp = [0i8; 16];
+    wp[..m].copy_from_slice(&buf.w0[..m]);
+    wp[8..8 + m].copy_from_slice(&buf.w1[..m]);
+    let mut cases = 0;
+    for (oa, gap) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+        // Pixel a at `oa`, pixel b at `ob`, each `4 q + m` values, in the pair buffer.
+        let len = 4 * q + m;
+        let ob = oa + len + gap;
+        buf.pair[oa..oa + len].copy_from_slice(&buf.a[..len]);
+        buf.pair[ob..ob + len].copy_from_slice(&buf.b[..len]);
+        let (a, b) = (&buf.a[..4 * q], &buf.b[..4 * q]);
         let (w0, w1) = (&buf.w0[..4 * q], &buf.w1[..4 * q]);
-        let plain = [dot_plain(w0, a), dot_plain(w1, a), dot_plain(w0, b), dot_plain(w1, b)];
-        let want: [i64; 4] = core::array::from_fn(|i| start[i] as i64 + plain[i]);
-        let mut acc = start;
-        let used = dsp::dot2x2_nat(a, b, &ww[..4 * q], q, &mut acc);
-        let got = acc.map(|v| v as i64);
-        if !used || got != want {
-            fail(if oa + ob == 0 { "i16 dot2x2_nat (aligned)" } else { "i16 dot2x2_nat (unaligned)" }, 4 * q, &got, &want);
+        let bstep = 2 * (ob - oa);
+        let table = [
+            NatEntry { row: buf.pair[oa..].as_ptr(), w: 0, step: 0, groups: q, bstep, part: 0 },
+            NatEntry { row: buf.pair[ob..].as_ptr(), w: 0, step: 0, groups: q, bstep: 0, part: 1 },
+            NatEntry { row: buf.pair[oa + 4 * q..].as_ptr(), w: 0, step: 0, groups: m | NatEntry::PLAIN, bstep, part: 2 },
+        ];
+        let start: [[i64; 4]; 3] = core::array::from_fn(|_| core::array::from_fn(|_| ((r.next() >> 20) as i64) - (1 << 43)));
+        let (ta, tb) = (&buf.a[4 * q..len], &buf.b[4 * q..len]);
+        let plain = [
+            [dot_plain(w0, a), dot_plain(w1, a), dot_plain(w0, b), dot_plain(w1, b)],
+            [dot_plain(w0, b), dot_plain(w1, b), dot_plain(w0, b), dot_plain(w1, b)],
+            [dot_plain(&wp[..m], ta), dot_plain(&wp[8..8 + m], ta), dot_plain(&wp[..m], tb), dot_plain(&wp[8..8 + m], tb)],
+        ];
+        let mut sums = start;
+        // SAFETY: every entry's values lie inside `buf.pair` (`4 q` or `m` from its row, pixel b
+        // `bstep` later), the groups entries read `4 q` words of `ww` from offset 0, the plain
+        // entry `m` bytes of `wp` at 0 and at `kl = 8`, and every part index is below 3.
+        unsafe { dsp::nat_block(&table, 0, &mut sums, 8, &wp, &ww[..]) };
+        for (p, ((got, s), pl)) in sums.iter().zip(&start).zip(&plain).enumerate() {
+            let want: [i64; 4] = core::array::from_fn(|i| s[i] + pl[i]);
+            if *got != want {
+                let what = ["dsp::nat_block two pixels", "dsp::nat_block one pixel", "dsp::nat_block plain entry"][p];
+                println!("MUIR-KERNELS FAILED {what}: offsets {oa}/{ob}");
+                fail(what, 4 * q, got, &want);
+            }
         }
         cases += 1;
     }
@@ -1208,7 +1228,7 @@ fn main() -> ! {
             #[cfg(not(feature = "mve"))]
             {
                 cases += check_w16(&i16s, ww, n);
-                cases += check_nat(&i16s, ww, n, &mut r);
+                cases += check_nat(&mut i16s, ww, n, &mut r);
             }
         }
     }

@@ -520,114 +520,15 @@ core::arch::global_asm!(
     "    bx lr",
     ".size muir_dsp_widen_w16, . - muir_dsp_widen_w16",
     "",
-    // The i16 loop with the activations read in place from the input rows (`dot2x2_nat`,
-    // `conv::conv_row_i16_nat`): pixel a at r0, pixel b at r2 (values in natural order, so the
-    // weights are widened in natural order too, `widen_weights_nat`), r1 = the widened weights
-    // (per group w0's (w0, w1), (w2, w3), then w1's; word-aligned), r3 = groups (1 to
-    // `I16_ASM_GROUPS`: one i32 chunk), [sp] = the four i32 sums (w0.a, w1.a, w0.b, w1.b),
-    // loaded and stored back (the caller keeps them exact). `_a`: both activation pointers
-    // word-aligned (LDRD), 12 instructions per 16 MACs; `_u`: any halfword alignment (two LDR
-    // per pixel), 14.
-    ".section .text.muir_dsp_dot2x2_nat_a,\"ax\",%progbits",
-    ".global muir_dsp_dot2x2_nat_a",
-    ".type muir_dsp_dot2x2_nat_a,%function",
-    ".p2align 2",
-    ".thumb_func",
-    "muir_dsp_dot2x2_nat_a:",
-    "    push {{r4-r11, lr}}",
-    "    ldr r12, [sp, #36]",
-    "    ldm r12, {{r4-r7}}",
-    "    lsls r12, r3, #31",          // Z clear when the group count is odd: start at 3
-    "    add r3, r1, r3, lsl #4",
-    "    bne 3f",
-    "1:",
-    "    ldrd r8, r9, [r0], #8",      // a: (a0, a1), (a2, a3)
-    "    ldrd r10, r11, [r2], #8",    // b: (b0, b1), (b2, b3)
-    "    ldrd r12, lr, [r1], #8",     // w0: (w0, w1), (w2, w3), widened
-    "    smlad r4, r12, r8, r4",
-    "    smlad r4, lr, r9, r4",
-    "    smlad r6, r12, r10, r6",
-    "    smlad r6, lr, r11, r6",
-    "    ldrd r12, lr, [r1], #8",     // w1
-    "    smlad r5, r12, r8, r5",
-    "    smlad r5, lr, r9, r5",
-    "    smlad r7, r12, r10, r7",
-    "    smlad r7, lr, r11, r7",
-    "3:",
-    "    ldrd r8, r9, [r0], #8",      // a: (a0, a1), (a2, a3)
-    "    ldrd r10, r11, [r2], #8",    // b: (b0, b1), (b2, b3)
-    "    ldrd r12, lr, [r1], #8",     // w0: (w0, w1), (w2, w3), widened
-    "    smlad r4, r12, r8, r4",
-    "    smlad r4, lr, r9, r4",
-    "    smlad r6, r12, r10, r6",
-    "    smlad r6, lr, r11, r6",
-    "    ldrd r12, lr, [r1], #8",     // w1
-    "    smlad r5, r12, r8, r5",
-    "    smlad r5, lr, r9, r5",
-    "    smlad r7, r12, r10, r7",
-    "    smlad r7, lr, r11, r7",
-    "    cmp r1, r3",
-    "    bne 1b",
-    "    ldr r12, [sp, #36]",
-    "    stm r12, {{r4-r7}}",
-    "    pop {{r4-r11, pc}}",
-    ".size muir_dsp_dot2x2_nat_a, . - muir_dsp_dot2x2_nat_a",
-    "",
-    ".section .text.muir_dsp_dot2x2_nat_u,\"ax\",%progbits",
-    ".global muir_dsp_dot2x2_nat_u",
-    ".type muir_dsp_dot2x2_nat_u,%function",
-    ".p2align 2",
-    ".thumb_func",
-    "muir_dsp_dot2x2_nat_u:",
-    "    push {{r4-r11, lr}}",
-    "    ldr r12, [sp, #36]",
-    "    ldm r12, {{r4-r7}}",
-    "    lsls r12, r3, #31",          // Z clear when the group count is odd: start at 3
-    "    add r3, r1, r3, lsl #4",
-    "    bne 3f",
-    "1:",
-    "    ldr r9, [r0, #4]",           // a: (a2, a3)
-    "    ldr r8, [r0], #8",           //    (a0, a1)
-    "    ldr r11, [r2, #4]",          // b: (b2, b3)
-    "    ldr r10, [r2], #8",          //    (b0, b1)
-    "    ldrd r12, lr, [r1], #8",     // w0: (w0, w1), (w2, w3), widened
-    "    smlad r4, r12, r8, r4",
-    "    smlad r4, lr, r9, r4",
-    "    smlad r6, r12, r10, r6",
-    "    smlad r6, lr, r11, r6",
-    "    ldrd r12, lr, [r1], #8",     // w1
-    "    smlad r5, r12, r8, r5",
-    "    smlad r5, lr, r9, r5",
-    "    smlad r7, r12, r10, r7",
-    "    smlad r7, lr, r11, r7",
-    "3:",
-    "    ldr r9, [r0, #4]",           // a: (a2, a3)
-    "    ldr r8, [r0], #8",           //    (a0, a1)
-    "    ldr r11, [r2, #4]",          // b: (b2, b3)
-    "    ldr r10, [r2], #8",          //    (b0, b1)
-    "    ldrd r12, lr, [r1], #8",     // w0: (w0, w1), (w2, w3), widened
-    "    smlad r4, r12, r8, r4",
-    "    smlad r4, lr, r9, r4",
-    "    smlad r6, r12, r10, r6",
-    "    smlad r6, lr, r11, r6",
-    "    ldrd r12, lr, [r1], #8",     // w1
-    "    smlad r5, r12, r8, r5",
-    "    smlad r5, lr, r9, r5",
-    "    smlad r7, r12, r10, r7",
-    "    smlad r7, lr, r11, r7",
-    "    cmp r1, r3",
-    "    bne 1b",
-    "    ldr r12, [sp, #36]",
-    "    stm r12, {{r4-r7}}",
-    "    pop {{r4-r11, pc}}",
-    ".size muir_dsp_dot2x2_nat_u, . - muir_dsp_dot2x2_nat_u",
-    "",
     // `nat_block`: one block of two pixels over every kernel row of every part, from a table
-    // of entries (row, ww, step, groups, bstep, part: `NatEntry`). r0 = table, r1 = entries
-    // (>= 1), r2 = col, r3 = the parts' four i64 sums each (added to). Per entry: pixel a at row
-    // + col step, pixel b bstep bytes later, `groups` (1 to `I16_ASM_GROUPS`: one i32 chunk)
-    // groups against the widened weights at ww by the loop of `dot2x2_nat` (LDRD where both
-    // pixels are word-aligned), its four i32 sums added into the part's i64 sums.
+    // of entries (row, w, step, groups, bstep, part: `NatEntry`), the activations read in place
+    // from the input rows in natural order (so the weights are widened in natural order too,
+    // `widen_weights_nat`). r0 = table, r1 = entries (>= 1), r2 = col, r3 = the parts' four i64
+    // sums each (added to); [sp, #60] kl, [sp, #64] w0, [sp, #68] ww after the pushes. Per
+    // entry: pixel a at row + col step, pixel b bstep bytes later, `groups` (1 to
+    // `I16_ASM_GROUPS`: one i32 chunk) groups against the widened weights at ww + w (12
+    // instructions per 16 MACs with LDRD where both pixels are word-aligned, 14 with LDR pairs;
+    // one pixel, bstep 0: 9), its four i32 sums added into the part's i64 sums.
     // Stack: [sp] table cursor, [sp, #4] entries left, [sp, #8] col, [sp, #12] the sums,
     // [sp, #16] this entry's sums.
     ".section .text.muir_dsp_nat_block,\"ax\",%progbits",
@@ -858,8 +759,6 @@ unsafe extern "C" {
     fn muir_dsp_dot2x2_u8(x: *const u8, w0: *const u8, w1: *const u8, groups: usize, out: *mut [i32; 4]);
     fn muir_dsp_dot2x2_w16(x: *const i16, w: *const u32, groups: usize, out: *mut [i64; 4]);
     fn muir_dsp_widen_w16(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
-    fn muir_dsp_dot2x2_nat_a(xa: *const i16, w: *const u32, xb: *const i16, groups: usize, acc: *mut [i32; 4]);
-    fn muir_dsp_dot2x2_nat_u(xa: *const i16, w: *const u32, xb: *const i16, groups: usize, acc: *mut [i32; 4]);
     fn muir_dsp_widen_nat(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
     fn muir_dsp_nat_block(table: *const NatEntry, n: usize, col: usize, sums: *mut [i64; 4], kl: usize, w0: *const i8, ww: *const u32);
 }
@@ -1101,7 +1000,7 @@ pub fn put_groups_i16(d: &mut [i16], s: &[i16], second: bool) {
 }
 
 /// The `q` groups of four of a channel pair's int8 weight rows `w0`, `w1` widened in natural
-/// order for [`dot2x2_nat`] into `out` (four words per group: `w0`'s `(w0, w1)`, `(w2, w3)`,
+/// order for [`nat_block`] into `out` (four words per group: `w0`'s `(w0, w1)`, `(w2, w3)`,
 /// then `w1`'s); stops early where a slice is shorter.
 #[inline]
 pub fn widen_weights_nat(w0: &[i8], w1: &[i8], q: usize, out: &mut [u32]) {
@@ -1111,32 +1010,6 @@ pub fn widen_weights_nat(w0: &[i8], w1: &[i8], q: usize, out: &mut [u32]) {
         // Cortex-M4/M7 allow) and writes `4 q` words of `out`, all within the slices (above).
         unsafe { muir_dsp_widen_nat(w0.as_ptr(), w1.as_ptr(), q, out.as_mut_ptr()) };
     }
-}
-
-/// `acc += [w0 . a, w1 . a, w0 . b, w1 . b]` over `q` groups of four values read in place: `xa`,
-/// `xb` the two pixels' activations in natural order (`4 q` values each, any alignment; word-
-/// aligned pairs take the LDRD loop), `ww` the channel pair's weights widened by
-/// [`widen_weights_nat`] (`4 q` words). `q` is at most [`I16_ASM_GROUPS`] and the caller keeps
-/// `acc` exact (at most `4 I16_ASM_GROUPS` terms of `|w x| <= 2^22` in it, module doc). False,
-/// having added nothing, where `q` is 0 or too large or a slice is shorter.
-#[inline(always)]
-pub fn dot2x2_nat(xa: &[i16], xb: &[i16], ww: &[u32], q: usize, acc: &mut [i32; 4]) -> bool {
-    if q == 0 || q > I16_ASM_GROUPS || xa.len() < 4 * q || xb.len() < 4 * q || ww.len() < 4 * q {
-        return false;
-    }
-    let (pa, pb) = (xa.as_ptr(), xb.as_ptr());
-    // SAFETY: the loop reads `4 q` values from each activation slice and `4 q` words from `ww`
-    // (checked above; `ww` is a `u32` slice, so word-aligned for its LDRD), with LDRD on `pa`,
-    // `pb` only when both are word-aligned (else unaligned LDR, which Cortex-M4/M7 allow), and
-    // reads and writes the four sums of `acc`.
-    unsafe {
-        if (pa as usize | pb as usize).is_multiple_of(4) {
-            muir_dsp_dot2x2_nat_a(pa, ww.as_ptr(), pb, q, acc);
-        } else {
-            muir_dsp_dot2x2_nat_u(pa, ww.as_ptr(), pb, q, acc);
-        }
-    }
-    true
 }
 
 /// One run of one kernel row of one part for [`nat_block`]: pixel a's values at `row + col
