@@ -1027,6 +1027,151 @@ fn check_conv(r: &mut Rng) -> usize {
     cases
 }
 
+/// The DSP build's in-place i16 kernel (`dsp::widen_weights_nat`, `dsp::nat_block`, the 1/8
+/// ConvGRU gates' `conv::conv_row_i16_nat`) on the vectors `check` just filled, against the plain
+/// products: one table of three entries over the first `min(n / 4, 127)` groups (one i32 chunk)
+/// and the next up to 7 values: a two-pixel groups entry (pixels a and b in one buffer at value
+/// offsets 0 or 1 each: the LDRD loop and the unaligned one), a one-pixel groups entry (pixel b
+/// alone, bstep 0) and a plain entry (two pixels, w1's weights `kl` bytes after w0's), each into
+/// its own part's sums from random starting values.
+#[cfg(not(feature = "mve"))]
+fn check_nat(buf: &mut Buffers<i16>, ww: &mut [u32; MAX_N], n: usize, r: &mut Rng) -> usize {
+    use muir::kernels::dsp::{self, NatEntry};
+    let q = (n / 4).min(127);
+    if q == 0 {
+        return 0;
+    }
+    let m = 1 + n % 7;
+    ww.fill(0x5A5A_5A5A);
+    dsp::widen_weights_nat(&buf.w0[..4 * q], &buf.w1[..4 * q], q, ww);
+    // The plain entry's weights: w0's `m` then, `kl = 8` bytes later, w1's.
+    let mut wp = [0i8; 16];
+    wp[..m].copy_from_slice(&buf.w0[..m]);
+    wp[8..8 + m].copy_from_slice(&buf.w1[..m]);
+    let mut cases = 0;
+    for (oa, gap) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+        // Pixel a at `oa`, pixel b at `ob`, each `4 q + m` values, in the pair buffer.
+        let len = 4 * q + m;
+        let ob = oa + len + gap;
+        buf.pair[oa..oa + len].copy_from_slice(&buf.a[..len]);
+        buf.pair[ob..ob + len].copy_from_slice(&buf.b[..len]);
+        let (a, b) = (&buf.a[..4 * q], &buf.b[..4 * q]);
+        let (w0, w1) = (&buf.w0[..4 * q], &buf.w1[..4 * q]);
+        let bstep = 2 * (ob - oa);
+        let table = [
+            NatEntry { row: buf.pair[oa..].as_ptr(), w: 0, step: 0, groups: q, bstep, part: 0 },
+            NatEntry { row: buf.pair[ob..].as_ptr(), w: 0, step: 0, groups: q, bstep: 0, part: 1 },
+            NatEntry { row: buf.pair[oa + 4 * q..].as_ptr(), w: 0, step: 0, groups: m | NatEntry::PLAIN, bstep, part: 2 },
+        ];
+        let start: [[i64; 4]; 3] = core::array::from_fn(|_| core::array::from_fn(|_| ((r.next() >> 20) as i64) - (1 << 43)));
+        let (ta, tb) = (&buf.a[4 * q..len], &buf.b[4 * q..len]);
+        let plain = [
+            [dot_plain(w0, a), dot_plain(w1, a), dot_plain(w0, b), dot_plain(w1, b)],
+            [dot_plain(w0, b), dot_plain(w1, b), dot_plain(w0, b), dot_plain(w1, b)],
+            [dot_plain(&wp[..m], ta), dot_plain(&wp[8..8 + m], ta), dot_plain(&wp[..m], tb), dot_plain(&wp[8..8 + m], tb)],
+        ];
+        let mut sums = start;
+        // SAFETY: every entry's values lie inside `buf.pair` (`4 q` or `m` from its row, pixel b
+        // `bstep` later), the groups entries read `4 q` words of `ww` from offset 0, the plain
+        // entry `m` bytes of `wp` at 0 and at `kl = 8`, and every part index is below 3.
+        unsafe { dsp::nat_block(&table, 0, &mut sums, 8, &wp, &ww[..]) };
+        for (p, ((got, s), pl)) in sums.iter().zip(&start).zip(&plain).enumerate() {
+            let want: [i64; 4] = core::array::from_fn(|i| s[i] + pl[i]);
+            if *got != want {
+                let what = ["dsp::nat_block two pixels", "dsp::nat_block one pixel", "dsp::nat_block plain entry"][p];
+                println!("MUIR-KERNELS FAILED {what}: offsets {oa}/{ob}");
+                fail(what, 4 * q, got, &want);
+            }
+        }
+        cases += 1;
+    }
+    cases
+}
+
+/// `conv::conv_row_i16_nat` (the activations read in place from the input rows, the end pixels
+/// one at a time, the runs' heads and tails by the plain products) against `conv_plain`: rows of
+/// 8 to 26 pixels (its narrowest is 8), 1 to 4 rows (padding rows above and below), kernels 1
+/// to 7, 1 to 3 parts of 1 to 24 channels (whole groups of four and not), even channel counts,
+/// random and extreme values and weights; the path must take every case.
+#[cfg(not(feature = "mve"))]
+fn check_conv_nat(r: &mut Rng) -> usize {
+    use muir::kernels::OutRow;
+    use muir::kernels::conv::{BiasRef, ConvParams, MultRef, PartRows, conv_plain, conv_row_i16_nat};
+    use muir::model::graph::PostOp;
+    // SAFETY: called once, after `check_conv`: the only user of `CONV` now.
+    let b = unsafe { &mut *core::ptr::addr_of_mut!(CONV) };
+    let mut cases = 0;
+    for case in 0..300u32 {
+        let k = [1, 3, 3, 3, 5, 7][(r.next() % 6) as usize];
+        let np = if k == 7 { 1 + (r.next() % 2) as usize } else { 1 + (r.next() % 3) as usize };
+        let (h, w) = (1 + (r.next() % 4) as usize, 8 + (r.next() % 19) as usize);
+        let mut parts = [0usize; 3];
+        let most = (CONV_IN / (h * w)).min(24).min(CONV_KL / (k * k * np));
+        for ch in parts.iter_mut().take(np) {
+            *ch = match r.next() % 4 {
+                0 => (4 * (1 + (r.next() % 6) as usize)).min(most / 4 * 4).max(1),
+                1 => 1,
+                _ => 1 + (r.next() as usize) % most.max(1),
+            };
+        }
+        let cin: usize = parts.iter().sum();
+        let kl = k * k * cin;
+        let cout = 2 * (1 + (r.next() as usize) % (CONV_OUT / (h * w) / 2).clamp(1, 6));
+        let extreme = case % 5 == 4;
+        for v in b.weights.iter_mut().take(cout * kl) {
+            *v = if extreme { if r.next() % 2 == 0 { i8::MIN } else { i8::MAX } } else { (r.next() >> 56) as i8 };
+        }
+        for e in b.mult.chunks_exact_mut(8).take(cout * np) {
+            let m = if extreme { i32::MAX - (r.next() % 2) as i32 } else { (r.next() >> 33) as i32 + (1 << 29) };
+            e[..4].copy_from_slice(&m.to_le_bytes());
+            e[4] = if extreme { 8 + (r.next() % 6) as u8 } else { 20 + (r.next() % 20) as u8 };
+            e[5..].fill(0);
+        }
+        for e in b.bias.chunks_exact_mut(8).take(cout) {
+            e.copy_from_slice(&(((r.next() >> 40) as i64) - (1 << 23)).to_le_bytes());
+        }
+        let post = [PostOp::None, PostOp::Relu, PostOp::Sigmoid, PostOp::Tanh][(r.next() % 4) as usize];
+        let p = ConvParams {
+            k,
+            stride: 1,
+            parts: &parts[..np],
+            cout,
+            weights: &b.weights[..cout * kl],
+            bias: BiasRef(&b.bias[..8 * cout]),
+            mult: MultRef(&b.mult[..8 * cout * np]),
+            post,
+        };
+        for (t, &ch) in b.x16.iter_mut().zip(&parts[..np]) {
+            let f = if extreme { Fill::Max } else if r.next() % 8 == 0 { Fill::Min } else { Fill::Random };
+            for v in t.iter_mut().take(h * w * ch) {
+                *v = i16::sample(r, f);
+            }
+        }
+        let n_out = h * w * cout;
+        let ts: [&[i16]; 3] = [&b.x16[0][..h * w * parts[0]], &b.x16[1][..h * w * parts[1]], &b.x16[2][..h * w * parts[2]]];
+        b.want[..n_out].fill(0);
+        b.got[..n_out].fill(0);
+        conv_plain(&p, &ts[..np], h, w, &mut OutRow::I16(&mut b.want[..n_out]));
+        let mut used = true;
+        for y in 0..h {
+            let rows: [PartRows<'_, i16>; 3] = core::array::from_fn(|i| PartRows::of_tensor(ts[i], h, w * parts[i], y, k, 1));
+            let row_len = w * cout;
+            let mut dst = OutRow::I16(&mut b.got[y * row_len..(y + 1) * row_len]);
+            used &= conv_row_i16_nat(&p, &rows[..np], w, &mut dst, &mut b.scratch);
+        }
+        if !used || b.want[..n_out] != b.got[..n_out] {
+            let at = b.want[..n_out].iter().zip(&b.got[..n_out]).position(|(a, g)| a != g).unwrap_or(0);
+            println!(
+                "MUIR-KERNELS FAILED conv_row_i16_nat case {case}: k={k} parts={:?} cout={cout} {h}x{w} used={used} at {at}: got {}, plain {}",
+                &parts[..np], b.got[at], b.want[at]
+            );
+            process::exit(1);
+        }
+        cases += 1;
+    }
+    cases
+}
+
 fn lengths() -> impl Iterator<Item = usize> {
     (0..=40).chain([63, 64, 65, 72, 127, 128, 129, 255, 256, 257, 260, 507, 508, 509, 511, 512, 513, 576, 1000, 1016, 1017, 1152, 2304, 5760])
 }
@@ -1083,6 +1228,7 @@ fn main() -> ! {
             #[cfg(not(feature = "mve"))]
             {
                 cases += check_w16(&i16s, ww, n);
+                cases += check_nat(&mut i16s, ww, n, &mut r);
             }
         }
     }
@@ -1101,6 +1247,10 @@ fn main() -> ! {
         cases += check_aggregate_dsp(i16s.a, &mut r);
     }
     cases += check_conv(&mut r);
+    #[cfg(not(feature = "mve"))]
+    {
+        cases += check_conv_nat(&mut r);
+    }
     println!("MUIR-KERNELS ok cases={cases}");
     process::exit(0)
 }

@@ -519,6 +519,231 @@ core::arch::global_asm!(
     "    pop {{r4-r7}}",
     "    bx lr",
     ".size muir_dsp_widen_w16, . - muir_dsp_widen_w16",
+    "",
+    // `nat_block`: one block of two pixels over every kernel row of every part, from a table
+    // of entries (row, w, step, groups, bstep, part: `NatEntry`), the activations read in place
+    // from the input rows in natural order (so the weights are widened in natural order too,
+    // `widen_weights_nat`). r0 = table, r1 = entries (>= 1), r2 = col, r3 = the parts' four i64
+    // sums each (added to); [sp, #60] kl, [sp, #64] w0, [sp, #68] ww after the pushes. Per
+    // entry: pixel a at row + col step, pixel b bstep bytes later, `groups` (1 to
+    // `I16_ASM_GROUPS`: one i32 chunk) groups against the widened weights at ww + w (12
+    // instructions per 16 MACs with LDRD where both pixels are word-aligned, 14 with LDR pairs;
+    // one pixel, bstep 0: 9), its four i32 sums added into the part's i64 sums.
+    // Stack: [sp] table cursor, [sp, #4] entries left, [sp, #8] col, [sp, #12] the sums,
+    // [sp, #16] this entry's sums.
+    ".section .text.muir_dsp_nat_block,\"ax\",%progbits",
+    ".global muir_dsp_nat_block",
+    ".type muir_dsp_nat_block,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_nat_block:",
+    "    push {{r4-r11, lr}}",
+    "    sub sp, #24",
+    "    str r0, [sp]",
+    "    str r1, [sp, #4]",
+    "    str r2, [sp, #8]",
+    "    str r3, [sp, #12]",
+    "5:",
+    "    ldr r12, [sp]",
+    "    ldm r12!, {{r0-r4, lr}}",    // row, ww, step, groups, bstep, part
+    "    str r12, [sp]",
+    "    ldr r12, [sp, #12]",
+    "    add lr, r12, lr, lsl #5",
+    "    str lr, [sp, #16]",
+    "    ldr r5, [sp, #8]",
+    "    mla r0, r5, r2, r0",         // pixel a: row + col step
+    "    add r2, r0, r4",             // pixel b: bstep later
+    "    cmp r3, #0",                 // a plain entry (bit 31 set): 50
+    "    blt 50f",
+    "    ldr r12, [sp, #68]",         // the widened weights: r1 is the run's byte offset
+    "    add r1, r1, r12",
+    "    add r3, r1, r3, lsl #4",     // end of the run's widened weights
+    "    cmp r4, #0",                 // one pixel (a block of one pixel taken twice): 40
+    "    beq 40f",
+    "    movs r4, #0",
+    "    movs r5, #0",
+    "    movs r6, #0",
+    "    movs r7, #0",
+    "    sub r12, r3, r1",
+    "    orr r8, r0, r2",
+    "    tst r8, #3",
+    "    bne 20f",
+    "    tst r12, #16",               // an odd group count starts at the second copy
+    "    bne 11f",
+    "10:",
+    "    ldrd r8, r9, [r0], #8",
+    "    ldrd r10, r11, [r2], #8",
+    "    ldrd r12, lr, [r1], #8",
+    "    smlad r4, r12, r8, r4",
+    "    smlad r4, lr, r9, r4",
+    "    smlad r6, r12, r10, r6",
+    "    smlad r6, lr, r11, r6",
+    "    ldrd r12, lr, [r1], #8",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    smlad r7, r12, r10, r7",
+    "    smlad r7, lr, r11, r7",
+    "11:",
+    "    ldrd r8, r9, [r0], #8",
+    "    ldrd r10, r11, [r2], #8",
+    "    ldrd r12, lr, [r1], #8",
+    "    smlad r4, r12, r8, r4",
+    "    smlad r4, lr, r9, r4",
+    "    smlad r6, r12, r10, r6",
+    "    smlad r6, lr, r11, r6",
+    "    ldrd r12, lr, [r1], #8",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    smlad r7, r12, r10, r7",
+    "    smlad r7, lr, r11, r7",
+    "    cmp r1, r3",
+    "    bne 10b",
+    "    b 30f",
+    "20:",
+    "    tst r12, #16",
+    "    bne 21f",
+    "22:",
+    "    ldr r9, [r0, #4]",
+    "    ldr r8, [r0], #8",
+    "    ldr r11, [r2, #4]",
+    "    ldr r10, [r2], #8",
+    "    ldrd r12, lr, [r1], #8",
+    "    smlad r4, r12, r8, r4",
+    "    smlad r4, lr, r9, r4",
+    "    smlad r6, r12, r10, r6",
+    "    smlad r6, lr, r11, r6",
+    "    ldrd r12, lr, [r1], #8",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    smlad r7, r12, r10, r7",
+    "    smlad r7, lr, r11, r7",
+    "21:",
+    "    ldr r9, [r0, #4]",
+    "    ldr r8, [r0], #8",
+    "    ldr r11, [r2, #4]",
+    "    ldr r10, [r2], #8",
+    "    ldrd r12, lr, [r1], #8",
+    "    smlad r4, r12, r8, r4",
+    "    smlad r4, lr, r9, r4",
+    "    smlad r6, r12, r10, r6",
+    "    smlad r6, lr, r11, r6",
+    "    ldrd r12, lr, [r1], #8",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    smlad r7, r12, r10, r7",
+    "    smlad r7, lr, r11, r7",
+    "    cmp r1, r3",
+    "    bne 22b",
+    "30:",
+    "    ldr r12, [sp, #16]",
+    "    ldrd r8, r9, [r12]",
+    "    adds r8, r8, r4",
+    "    adc r9, r9, r4, asr #31",
+    "    strd r8, r9, [r12]",
+    "    ldrd r8, r9, [r12, #8]",
+    "    adds r8, r8, r5",
+    "    adc r9, r9, r5, asr #31",
+    "    strd r8, r9, [r12, #8]",
+    "    ldrd r8, r9, [r12, #16]",
+    "    adds r8, r8, r6",
+    "    adc r9, r9, r6, asr #31",
+    "    strd r8, r9, [r12, #16]",
+    "    ldrd r8, r9, [r12, #24]",
+    "    adds r8, r8, r7",
+    "    adc r9, r9, r7, asr #31",
+    "    strd r8, r9, [r12, #24]",
+    "    ldr r3, [sp, #4]",
+    "    subs r3, #1",
+    "    str r3, [sp, #4]",
+    "    bne 5b",
+    "    add sp, #24",
+    "    pop {{r4-r11, pc}}",
+    // One pixel: its two sums by a loop of one pixel (9 instructions per group, 13 as a
+    // block), copied to pixel b's.
+    "40:",
+    "    movs r4, #0",
+    "    movs r5, #0",
+    "    tst r0, #3",
+    "    bne 45f",
+    "41:",
+    "    ldrd r8, r9, [r0], #8",
+    "    ldrd r10, r11, [r1], #8",    // w0
+    "    ldrd r12, lr, [r1], #8",     // w1
+    "    smlad r4, r10, r8, r4",
+    "    smlad r4, r11, r9, r4",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    cmp r1, r3",
+    "    bne 41b",
+    "    b 48f",
+    "45:",
+    "    ldr r9, [r0, #4]",
+    "    ldr r8, [r0], #8",
+    "    ldrd r10, r11, [r1], #8",
+    "    ldrd r12, lr, [r1], #8",
+    "    smlad r4, r10, r8, r4",
+    "    smlad r4, r11, r9, r4",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    "    cmp r1, r3",
+    "    bne 45b",
+    "48:",
+    "    mov r6, r4",
+    "    mov r7, r5",
+    "    b 30b",
+    // A plain entry: `groups & !(1 << 31)` values (1 to 7) by LDRSH / LDRSB and MLA, the
+    // int8 weights of w0 at w0 ([sp, #64], the sixth argument) plus r1, of w1 `kl` bytes later
+    // ([sp, #60], the fifth argument).
+    "50:",
+    "    bic r3, r3, #0x80000000",
+    "    ldr r12, [sp, #64]",         // w0's int8 weights: r1 is the byte offset
+    "    add r1, r1, r12",
+    "    ldr r12, [sp, #60]",
+    "    movs r4, #0",
+    "    movs r5, #0",
+    "    movs r6, #0",
+    "    movs r7, #0",
+    "51:",
+    "    ldrsh r8, [r0], #2",
+    "    ldrsh r9, [r2], #2",
+    "    ldrsb r10, [r1, r12]",
+    "    ldrsb r11, [r1], #1",
+    "    mla r4, r11, r8, r4",
+    "    mla r5, r10, r8, r5",
+    "    mla r6, r11, r9, r6",
+    "    mla r7, r10, r9, r7",
+    "    subs r3, #1",
+    "    bne 51b",
+    "    b 30b",
+    ".size muir_dsp_nat_block, . - muir_dsp_nat_block",
+    "",
+    // `widen_weights_nat`'s loop: r0 = w0, r1 = w1 (int8 rows, any alignment), r2 = groups (>= 1),
+    // r3 = out (word-aligned): per group LDR, LDR, 4 SXTB16 and 4 PKHBT/PKHTB into natural order
+    // ((w0, w1), (w2, w3) per channel), one STM.
+    ".section .text.muir_dsp_widen_nat,\"ax\",%progbits",
+    ".global muir_dsp_widen_nat",
+    ".type muir_dsp_widen_nat,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_widen_nat:",
+    "    push {{r4-r11}}",
+    "4:",
+    "    ldr r8, [r0], #4",
+    "    ldr r9, [r1], #4",
+    "    sxtb16 r10, r8, ror #8",     // w0: (w1, w3)
+    "    sxtb16 r8, r8",              //     (w0, w2)
+    "    sxtb16 r11, r9, ror #8",
+    "    sxtb16 r9, r9",
+    "    pkhbt r4, r8, r10, lsl #16", //     (w0, w1)
+    "    pkhtb r5, r10, r8, asr #16", //     (w2, w3)
+    "    pkhbt r6, r9, r11, lsl #16",
+    "    pkhtb r7, r11, r9, asr #16",
+    "    stm r3!, {{r4-r7}}",
+    "    subs r2, #1",
+    "    bne 4b",
+    "    pop {{r4-r11}}",
+    "    bx lr",
+    ".size muir_dsp_widen_nat, . - muir_dsp_widen_nat",
     chunk = const I16_ASM_GROUPS,
 );
 
@@ -526,7 +751,7 @@ core::arch::global_asm!(
 /// 2^22` sum below `2^31` at every step (the Helium loops' `kernels::I16_CHUNK`), so each
 /// chunk's sum is exact. Twice the portable chunk: half the chunk set-ups and 64-bit adds. The
 /// chunking does not change the integers (the chunk sums add exactly in i64).
-const I16_ASM_GROUPS: usize = 127;
+pub(crate) const I16_ASM_GROUPS: usize = 127;
 const _: () = assert!(4 * (I16_ASM_GROUPS as u64) * (1 << 22) < (1u64 << 31));
 
 unsafe extern "C" {
@@ -534,6 +759,8 @@ unsafe extern "C" {
     fn muir_dsp_dot2x2_u8(x: *const u8, w0: *const u8, w1: *const u8, groups: usize, out: *mut [i32; 4]);
     fn muir_dsp_dot2x2_w16(x: *const i16, w: *const u32, groups: usize, out: *mut [i64; 4]);
     fn muir_dsp_widen_w16(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
+    fn muir_dsp_widen_nat(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
+    fn muir_dsp_nat_block(table: *const NatEntry, n: usize, col: usize, sums: *mut [i64; 4], kl: usize, w0: *const i8, ww: *const u32);
 }
 
 impl Quad for u8 {
@@ -768,6 +995,85 @@ pub fn put_groups_i16(d: &mut [i16], s: &[i16], second: bool) {
                 core::ptr::write_unaligned(g.as_mut_ptr() as *mut u32, lo);
                 core::ptr::write_unaligned(g.as_mut_ptr().add(2) as *mut u32, hi);
             }
+        }
+    }
+}
+
+/// The `q` groups of four of a channel pair's int8 weight rows `w0`, `w1` widened in natural
+/// order for [`nat_block`] into `out` (four words per group: `w0`'s `(w0, w1)`, `(w2, w3)`,
+/// then `w1`'s); stops early where a slice is shorter.
+#[inline]
+pub fn widen_weights_nat(w0: &[i8], w1: &[i8], q: usize, out: &mut [u32]) {
+    let q = q.min(w0.len() / 4).min(w1.len() / 4).min(out.len() / 4);
+    if q > 0 {
+        // SAFETY: the loop reads `4 q` bytes from each row (unaligned word loads, which
+        // Cortex-M4/M7 allow) and writes `4 q` words of `out`, all within the slices (above).
+        unsafe { muir_dsp_widen_nat(w0.as_ptr(), w1.as_ptr(), q, out.as_mut_ptr()) };
+    }
+}
+
+/// One run of one kernel row of one part for [`nat_block`]: pixel a's values at `row + col
+/// step` bytes, pixel b's `bstep` bytes later, `groups` whole groups of four against the widened
+/// weights `w` bytes into `nat_block`'s `ww`, added to `sums[part]`. A plain entry
+/// ([`NatEntry::PLAIN`] set in `groups`): the low bits count values (1 to 7), w0's int8 weights
+/// `w` bytes into `nat_block`'s `w0`, w1's `kl` bytes later. (Offsets, not addresses: a table
+/// serves every channel pair of a row.)
+#[repr(C)]
+#[derive(Clone, Copy, Debug)]
+pub struct NatEntry {
+    /// Pixel a's first value at column 0 (`col` adds `col step` bytes).
+    pub row: *const i16,
+    /// Byte offset of the run's widened weights ([`widen_weights_nat`]) or of w0's int8 weights.
+    pub w: usize,
+    /// Bytes per column step.
+    pub step: usize,
+    /// Whole groups of the run, 1 to [`I16_ASM_GROUPS`] (or values, with [`NatEntry::PLAIN`]).
+    pub groups: usize,
+    /// Bytes from pixel a's values to pixel b's.
+    pub bstep: usize,
+    /// Index into the sums.
+    pub part: usize,
+}
+
+impl NatEntry {
+    /// The flag of a plain entry in `groups`.
+    pub const PLAIN: usize = 1 << 31;
+}
+
+/// `sums[e.part] += [w0 . a, w1 . a, w0 . b, w1 . b]` over every entry `e` of `table` (a block
+/// of two pixels, or one pixel as both, at column `col`), the activations read in place: `ww`
+/// the channel pair's widened weights, `w0` its int8 weights, w1's `kl` bytes later.
+///
+/// # Safety
+///
+/// For every entry: `row + col step` and `row + col step + bstep` are valid for reads of `8
+/// groups` bytes (`2 n` for a plain entry of `n` values; each halfword-aligned); a groups entry:
+/// `ww` is valid for reads of `4 (w / 16 + groups)` words, `w` a multiple of 16, `1 <= groups <=
+/// I16_ASM_GROUPS`; a plain entry: `w0` valid for reads of `kl + w + n` bytes, `1 <= n <= 7`;
+/// and `part < sums.len()`.
+#[inline(always)]
+pub unsafe fn nat_block(table: &[NatEntry], col: usize, sums: &mut [[i64; 4]], kl: usize, w0: &[i8], ww: &[u32]) {
+    if !table.is_empty() {
+        // SAFETY: the caller's contract: the loop reads each entry's values from pixels a and b
+        // and its weights, and adds into `sums[part]`.
+        unsafe { muir_dsp_nat_block(table.as_ptr(), table.len(), col, sums.as_mut_ptr(), kl, w0.as_ptr(), ww.as_ptr()) };
+    }
+}
+
+/// The whole groups of four u8 values of `s` widened into `d` in the i16 pair layout's order
+/// (values 0, 2, 1, 3 of each group: `UXTB16` of the group's word, then of the word rotated by
+/// 8): one load, two widenings and two stores per group instead of four of each (the gathered
+/// u8 pairs of `conv::conv_row_u8_wide`). Stops at the shorter of `s / 4` and `d / 4` groups.
+#[inline(always)]
+pub fn widen_u8_groups(d: &mut [i16], s: &[u8]) {
+    for (g, q) in d.chunks_exact_mut(4).zip(s.chunks_exact(4)) {
+        let v = word(q, 0);
+        let (lo, hi) = (uxtb16(v), uxtb16_ror8(v));
+        // SAFETY: `g` holds 4 values (8 bytes); unaligned word stores are allowed on
+        // Cortex-M4/M7.
+        unsafe {
+            core::ptr::write_unaligned(g.as_mut_ptr() as *mut u32, lo);
+            core::ptr::write_unaligned(g.as_mut_ptr().add(2) as *mut u32, hi);
         }
     }
 }
