@@ -147,6 +147,14 @@ pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + Send + Sync + 's
     fn dots4(_l: &mve::PartLens, _w: &[i8], _pair: &[Self], _d: &mut [i32; 8 * crate::model::graph::MAX_PARTS]) -> Option<bool> {
         None
     }
+    /// The twelve channels' dot products of a Helium convolution block by one assembly call per
+    /// three channels for all parts ([`mve::PartLens::dots12`], i16 activations); `None` where
+    /// this type has none (the layer then takes blocks of four).
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    #[inline(always)]
+    fn dots12(_l: &mve::PartLens, _w: &[i8], _pair: &[Self], _d: &mut [i32; 24 * crate::model::graph::MAX_PARTS]) -> Option<bool> {
+        None
+    }
     /// The slice as a conv output row.
     fn as_out(d: &mut [Self]) -> OutRow<'_>;
     /// A whole convolution row by a path of this type's own with the engine's byte scratch
@@ -273,6 +281,11 @@ impl Elem for i16 {
     #[inline(always)]
     fn dots4(l: &mve::PartLens, w: &[i8], pair: &[i16], d: &mut [i32; 8 * crate::model::graph::MAX_PARTS]) -> Option<bool> {
         Some(l.dots4(w, pair, d))
+    }
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    #[inline(always)]
+    fn dots12(l: &mve::PartLens, w: &[i8], pair: &[i16], d: &mut [i32; 24 * crate::model::graph::MAX_PARTS]) -> Option<bool> {
+        Some(l.dots12(w, pair, d))
     }
     #[cfg(all(target_arch = "arm", feature = "mve"))]
     const SPLIT_PAIRS: bool = true;
