@@ -372,6 +372,95 @@ fn check_dots12(pair: &mut [i16; 2 * MAX_N], r: &mut Rng) -> usize {
     fits + over
 }
 
+/// The twelve-channel u8 block (`mve::PartLens::dots12_u8` with `mve::pair_sums_u8`: weights
+/// flipped to `w + 128`, `VMLADAVA.U8`, `128 sum(x)` subtracted) against the plain dot products:
+/// 1 to 6 parts of random lengths 1..=140, some of 1..=8 or 15..=17, in some cases one of
+/// 500..=1100; random fills, all-extreme fills of either sign (weights -128 or 127, activations
+/// 0 or 255) and one extreme channel and patch of one part. Every value must equal the plain dot
+/// product; short slices are refused.
+#[cfg(feature = "mve")]
+fn check_dots12_u8(pair: &mut [u8; 2 * MAX_N], r: &mut Rng) -> usize {
+    use muir::kernels::mve::{PartLens, pair_sums_u8};
+    use muir::model::graph::MAX_PARTS;
+    // SAFETY: the only user of `W12` at this time, in the single thread of this program.
+    let w12 = unsafe { &mut *core::ptr::addr_of_mut!(W12) };
+    let mut cases = 0;
+    for case in 0..300u32 {
+        let np = 1 + (r.next() % MAX_PARTS as u64) as usize;
+        let mut lens = [0usize; MAX_PARTS];
+        for l in lens.iter_mut().take(np) {
+            *l = match r.next() % 5 {
+                0 => 1 + (r.next() % 8) as usize,
+                1 => 15 + (r.next() % 3) as usize,
+                _ => 1 + (r.next() % 140) as usize,
+            };
+        }
+        let hot = (r.next() % np as u64) as usize;
+        if case % 3 == 0 {
+            lens[hot] = 500 + (r.next() % 601) as usize;
+        }
+        let kl: usize = lens[..np].iter().sum();
+        if kl > W12_KL {
+            continue;
+        }
+        let mode = case % 4; // 0, 1 random; 2 all extreme; 3 one extreme channel and patch
+        let (hc, hb) = ((r.next() % 12) as usize, r.next() % 2 == 0);
+        let (wf, xf) = match r.next() % 4 {
+            0 => (Fill::Min, Fill::Max),
+            1 => (Fill::Max, Fill::Max),
+            2 => (Fill::Min, Fill::Min),
+            _ => (Fill::Max, Fill::Min),
+        };
+        let mut o = 0;
+        for (p, &n) in lens[..np].iter().enumerate() {
+            let ext = |one: bool, f: Fill| if mode == 2 || (mode == 3 && p == hot && one) { f } else { Fill::Random };
+            for c in 0..12 {
+                let f = ext(c == hc, wf);
+                for v in &mut w12[c * kl + o..c * kl + o + n] {
+                    *v = i8::sample(r, f);
+                }
+            }
+            for (i, v) in pair[2 * o..2 * o + 2 * n].iter_mut().enumerate() {
+                *v = u8::sample(r, ext((i >= n) == hb, xf));
+            }
+            o += n;
+        }
+        let Some(l) = PartLens::new(lens[..np].iter().copied(), kl) else {
+            println!("MUIR-KERNELS FAILED dots12_u8 case {case}: PartLens::new refused {:?}", &lens[..np]);
+            process::exit(1)
+        };
+        let mut s = [0i32; 2 * MAX_PARTS];
+        let mut d = [0i32; 24 * MAX_PARTS];
+        if !pair_sums_u8(&l, &pair[..2 * kl], &mut s) || !l.dots12_u8(&w12[..12 * kl], &pair[..2 * kl], &s, &mut d) {
+            println!("MUIR-KERNELS FAILED dots12_u8 case {case}: refused");
+            process::exit(1);
+        }
+        let mut o = 0;
+        for (p, &n) in lens[..np].iter().enumerate() {
+            let (a, b) = (&pair[2 * o..2 * o + n], &pair[2 * o + n..2 * o + 2 * n]);
+            for c in 0..12 {
+                let w = &w12[c * kl + o..c * kl + o + n];
+                for (x, at) in [(a, 24 * p + c), (b, 24 * p + 12 + c)] {
+                    let want = dot_plain(w, x);
+                    if d[at] as i64 != want {
+                        fail("dots12_u8", kl, &[d[at] as i64], &[want]);
+                    }
+                }
+            }
+            o += n;
+        }
+        cases += 1;
+    }
+    // Short slices are refused.
+    let l = PartLens::new([3usize, 5].into_iter(), 8);
+    let (mut s, mut d) = ([0i32; 2 * MAX_PARTS], [0i32; 24 * MAX_PARTS]);
+    if l.is_none_or(|l| pair_sums_u8(&l, &pair[..15], &mut s) || l.dots12_u8(&w12[..95], &pair[..16], &s, &mut d) || l.dots12_u8(&w12[..96], &pair[..15], &s, &mut d)) {
+        println!("MUIR-KERNELS FAILED dots12_u8: a short slice accepted");
+        process::exit(1);
+    }
+    cases
+}
+
 /// Multiplier and bias tables of one block of four channels, aligned as the blob's are.
 /// The i16 convolution block's dot products in one call per channel pair (`mve::PartLens::dots4`:
 /// four weight rows, 1 to 6 parts of random lengths 1..=140, one of 500..=699 in some extreme
@@ -1203,6 +1292,7 @@ fn main() -> ! {
     {
         cases += check_dots4(&mut i16s, &mut r);
         cases += check_dots12(&mut *i16s.pair, &mut r);
+        cases += check_dots12_u8(&mut *u8s.pair, &mut r);
         cases += check_attention(i16s.a, i16s.b, &mut r);
         cases += check_requant(&mut r);
         cases += check_popcount(&mut r);

@@ -86,19 +86,24 @@ impl Layer {
     }
 
     /// Output channels `0 .. 4 (cout / 4)` of pixels `a` and `b` (at `at_a` and `at_b` of `out`)
-    /// from their gathered pair of patches; returns the first channel not written. i16 layers
-    /// take blocks of twelve channels first ([`Elem::dots12`]: three channels per pass over the
-    /// activations instead of two), then blocks of four.
+    /// from their gathered pair of patches; returns the first channel not written. Blocks of
+    /// twelve channels first ([`Elem::dots12`]: three channels per pass over the activations
+    /// instead of two), then blocks of four.
     pub(super) fn channels<T: Elem>(&self, p: &ConvParams<'_>, pair: &[T], out: &mut OutRow<'_>, at_a: usize, at_b: usize) -> usize {
         let (kl, np) = (p.patch_len(), p.parts.len());
         let mut c = 0;
         // Filled by `dots12` / `dots4` for the block's parts before every read (no per-block
         // clearing); the four-channel blocks use its first `8 MAX_PARTS` values.
         let mut d: Dots = [0; MAX_PARTS * 24];
-        if let Some(l) = self.lens.as_ref() {
+        // u8: `128 sum(x)` per part and patch of this pair, for every twelve-channel block.
+        let mut sums = [0i32; 2 * MAX_PARTS];
+        if let Some(l) = self.lens.as_ref()
+            && p.cout >= 12
+            && T::dots12_prepare(l, pair, &mut sums)
+        {
             let blocks = p.weights.chunks_exact((12 * kl).max(1)).zip(p.mult.0.chunks_exact((96 * np).max(1))).zip(p.bias.0.chunks_exact(96));
             for ((w, m), b) in blocks.take(p.cout / 12) {
-                match T::dots12(l, w, pair, &mut d) {
+                match T::dots12(l, w, pair, &sums, &mut d) {
                     None => break,
                     Some(true) => {
                         // Block `j`'s four channels: pixel a's at `4 j`, b's at `12 + 4 j`.

@@ -813,6 +813,176 @@ unsafe extern "C" {
     fn muir_mve_dots3_i16(args: *mut Dots3Args) -> u32;
 }
 
+/// The arguments of `muir_mve_dots3_u8`, which advances `a`, `w0`, `lens`, `sums` and `out` part
+/// by part (`zero`: six zero words, loaded into the sums by one `LDM` per part).
+#[repr(C)]
+struct Dots3U8Args {
+    zero: [u32; 6],
+    a: *const u8,
+    w0: *const i8,
+    kl: usize,
+    lens: *const u32,
+    np: usize,
+    out: *mut i32,
+    sums: *const i32,
+}
+
+/// `128 sum(x)` of each part's two patches of a u8 pair (`s[2 p]`: patch `a_p`, `s[2 p + 1]`:
+/// `b_p`; parts and pair layout as [`PartLens::dots4`]) for [`PartLens::dots12_u8`], by
+/// `VADDVA.U8` (two instructions per sixteen values). False, with nothing written, when `pair`
+/// is shorter than `2 kl` or `kl` reaches `2^16` (then `128 sum(x)` might leave i32).
+#[inline]
+pub fn pair_sums_u8(l: &PartLens, pair: &[u8], s: &mut [i32; 2 * MAX_PARTS]) -> bool {
+    if pair.len() < 2 * l.kl || l.kl >= 1 << 16 {
+        return false;
+    }
+    let mut x = pair.as_ptr();
+    for (n, s) in l.lens.iter().take(l.np).zip(s.chunks_exact_mut(2)) {
+        for v in s {
+            let mut sum = 0u32;
+            // SAFETY: `n >= 1` values at `x`, inside `pair` (the lengths sum to `kl`, `2 kl <=
+            // pair.len()`); tail-predicated (disabled lanes are not added).
+            unsafe {
+                asm!(
+                    "dlstp.8 lr, {n}",
+                    "2:",
+                    "vldrb.u8 q0, [{x}], #16",
+                    "vaddva.u8 r0, q0",
+                    "letp lr, 2b",
+                    n = in(reg) *n,
+                    x = inout(reg) x => _,
+                    // (`VADDVA` takes an even register.)
+                    inout("r0") sum,
+                    out("lr") _,
+                    out("d0") _, out("d1") _,
+                    options(nostack, readonly),
+                );
+            }
+            // `sum <= 255 n < 2^24`: `128 sum < 2^31`.
+            *v = (sum << 7) as i32;
+            x = x.wrapping_add(*n as usize);
+        }
+    }
+    true
+}
+
+impl PartLens {
+    /// [`PartLens::dots12`] for u8 activations: `d[24 p + c] = w_c . a_p`, `d[24 p + 12 + c] =
+    /// w_c . b_p`, given `s` from [`pair_sums_u8`] for this `pair`. One call per three channels
+    /// for all parts (`muir_mve_dots3_u8`): each weight vector flipped to `w + 128` in u8 (`VEOR`
+    /// 0x80), `VMLADAVA.U8` of sixteen unsigned pairs into six 32-bit sums, then `w . x = (w +
+    /// 128) . x - 128 sum(x)` (15 instructions per 96 MACs; the 2x2 loop takes 13 per 64). The
+    /// 32-bit sums wrap, but the result `|w . x| < 2^15 n` is in i32 for `n < 2^16`, so it is
+    /// exact. Returns false, having written nothing, when `w` or `pair` is shorter than `12 kl`
+    /// and `2 kl`, or `kl` reaches `2^16`.
+    #[inline]
+    pub fn dots12_u8(&self, w: &[i8], pair: &[u8], s: &[i32; 2 * MAX_PARTS], d: &mut [i32; 24 * MAX_PARTS]) -> bool {
+        let kl = self.kl;
+        if w.len() < 12 * kl || pair.len() < 2 * kl || kl >= 1 << 16 {
+            return false;
+        }
+        for j in 0..4 {
+            let mut args = Dots3U8Args {
+                zero: [0; 6],
+                a: pair.as_ptr(),
+                w0: w.as_ptr().wrapping_add(3 * j * kl),
+                kl,
+                lens: self.lens.as_ptr(),
+                np: self.np,
+                out: d.as_mut_ptr().wrapping_add(3 * j),
+                sums: s.as_ptr(),
+            };
+            // SAFETY: part `p` reads `lens[p] >= 1` values at `2 o_p` and `2 o_p + lens[p]` of
+            // `pair`, at `o_p` of weight rows `3j .. 3j + 3` and `s[2 p]`, `s[2 p + 1]`, all
+            // inside the slices since the lengths sum to `kl` (`PartLens::new`), `np <=
+            // MAX_PARTS` and the lengths were checked above; it writes `d[24 p + 3 j + {0, 1, 2,
+            // 12, 13, 14}]`, inside `d`.
+            unsafe { muir_mve_dots3_u8(&mut args) };
+        }
+        true
+    }
+}
+
+core::arch::global_asm!(
+    ".syntax unified",
+    ".thumb",
+    ".cpu cortex-m55",
+    ".section .text.muir_mve_dots3_u8,\"ax\",%progbits",
+    ".global muir_mve_dots3_u8",
+    ".type muir_mve_dots3_u8,%function",
+    ".p2align 2",
+    ".thumb_func",
+    // r0 = &mut Dots3U8Args (kept in r12). Sums (even registers for VMLADAVA): pixel a's three
+    // channels in r0, r2, r4, pixel b's in r6, r8, r10; weight rows in r1, r3, r5; activations a
+    // in r7, b in r9; q3 the flip mask 0x80; LR the part's length, then the loop count; r11 and
+    // (after the loop) LR scratch. Per part: the pointers from the arguments (a predicated tail
+    // leaves them past the part), the loop, `128 sum(a_p)` and `128 sum(b_p)` subtracted, the
+    // sums stored at `out` (a at +0, +4, +8; b at +48, +52, +56).
+    "muir_mve_dots3_u8:",
+    "    push {{r4-r11, lr}}",
+    "    mov r12, r0",
+    "    vmov.i8 q3, #0x80",
+    "1:",
+    "    ldr.w r0, [r12, #36]",
+    "    ldr lr, [r0], #4",
+    "    str.w r0, [r12, #36]",
+    "    ldr.w r7, [r12, #24]",
+    "    add.w r9, r7, lr",
+    "    add.w r0, r9, lr",
+    "    str.w r0, [r12, #24]",
+    "    ldr.w r1, [r12, #28]",
+    "    add.w r0, r1, lr",
+    "    str.w r0, [r12, #28]",
+    "    ldr.w r0, [r12, #32]",
+    "    add.w r3, r1, r0",
+    "    add.w r5, r3, r0",
+    "    ldm.w r12, {{r0, r2, r4, r6, r8, r10}}",
+    "    dlstp.8 lr, lr",
+    "2:",
+    "    vldrb.u8 q0, [r7], #16",
+    "    vldrb.u8 q1, [r9], #16",
+    "    vldrb.u8 q2, [r1], #16",
+    "    veor q2, q2, q3",
+    "    vmladava.u8 r0, q0, q2",
+    "    vmladava.u8 r6, q1, q2",
+    "    vldrb.u8 q2, [r3], #16",
+    "    veor q2, q2, q3",
+    "    vmladava.u8 r2, q0, q2",
+    "    vmladava.u8 r8, q1, q2",
+    "    vldrb.u8 q2, [r5], #16",
+    "    veor q2, q2, q3",
+    "    vmladava.u8 r4, q0, q2",
+    "    vmladava.u8 r10, q1, q2",
+    "    letp lr, 2b",
+    "    ldr.w lr, [r12, #48]",
+    "    ldr r11, [lr], #4",
+    "    sub.w r0, r0, r11",
+    "    sub.w r2, r2, r11",
+    "    sub.w r4, r4, r11",
+    "    ldr r11, [lr], #4",
+    "    sub.w r6, r6, r11",
+    "    sub.w r8, r8, r11",
+    "    sub.w r10, r10, r11",
+    "    str.w lr, [r12, #48]",
+    "    ldr.w lr, [r12, #44]",
+    "    strd r0, r2, [lr]",
+    "    str.w r4, [lr, #8]",
+    "    strd r6, r8, [lr, #48]",
+    "    str.w r10, [lr, #56]",
+    "    add.w lr, lr, #96",
+    "    str.w lr, [r12, #44]",
+    "    ldr.w r11, [r12, #40]",
+    "    subs.w r11, r11, #1",
+    "    str.w r11, [r12, #40]",
+    "    bne 1b",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_mve_dots3_u8, . - muir_mve_dots3_u8",
+);
+
+unsafe extern "C" {
+    fn muir_mve_dots3_u8(args: *mut Dots3U8Args);
+}
+
 /// The per-layer constants of [`requant4`]: four 32-bit lanes each.
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(16))]
