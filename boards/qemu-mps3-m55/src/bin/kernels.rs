@@ -376,8 +376,9 @@ fn check_dots12(pair: &mut [i16; 2 * MAX_N], r: &mut Rng) -> usize {
 /// flipped to `w + 128`, `VMLADAVA.U8`, `128 sum(x)` subtracted) against the plain dot products:
 /// 1 to 6 parts of random lengths 1..=140, some of 1..=8 or 15..=17, in some cases one of
 /// 500..=1100; random fills, all-extreme fills of either sign (weights -128 or 127, activations
-/// 0 or 255) and one extreme channel and patch of one part. Every value must equal the plain dot
-/// product; short slices are refused.
+/// 0 or 255) and one extreme channel and patch of one part (one part: `muir_mve_dots12_u8_1`,
+/// else `muir_mve_dots3_u8`). Every value must equal the plain dot product; short slices are
+/// refused.
 #[cfg(feature = "mve")]
 fn check_dots12_u8(pair: &mut [u8; 2 * MAX_N], r: &mut Rng) -> usize {
     use muir::kernels::mve::{PartLens, pair_sums_u8};
