@@ -46,6 +46,9 @@ pub(super) struct Layer {
     /// The parts' patch lengths for [`Elem::dots4`] (i16 activations: one assembly call per
     /// channel pair for all parts).
     lens: Option<mve::PartLens>,
+    /// The block's dot products, filled by `dots12` / `dots4` / `dots` for the block's parts
+    /// before every read (cleared once per row, not per pixel pair: 576 bytes).
+    d: Dots,
 }
 
 impl Layer {
@@ -82,41 +85,41 @@ impl Layer {
             OutRow::I16(_) => (-32768, 32767),
         };
         let lens = mve::PartLens::new(p.parts.iter().map(|&ch| ch * p.k * p.k), p.patch_len());
-        Some(Layer { k: Requant4::new(np, lo, hi).with_out(out_lo, out_hi), lut, lens })
+        Some(Layer { k: Requant4::new(np, lo, hi).with_out(out_lo, out_hi), lut, lens, d: [0; MAX_PARTS * 24] })
     }
 
     /// Output channels `0 .. 4 (cout / 4)` of pixels `a` and `b` (at `at_a` and `at_b` of `out`)
     /// from their gathered pair of patches; returns the first channel not written. Blocks of
     /// twelve channels first ([`Elem::dots12`]: three channels per pass over the activations
     /// instead of two), then blocks of four.
-    pub(super) fn channels<T: Elem>(&self, p: &ConvParams<'_>, pair: &[T], out: &mut OutRow<'_>, at_a: usize, at_b: usize) -> usize {
+    pub(super) fn channels<T: Elem>(&mut self, p: &ConvParams<'_>, pair: &[T], out: &mut OutRow<'_>, at_a: usize, at_b: usize) -> usize {
         let (kl, np) = (p.patch_len(), p.parts.len());
         let mut c = 0;
-        // Filled by `dots12` / `dots4` for the block's parts before every read (no per-block
-        // clearing); the four-channel blocks use its first `8 MAX_PARTS` values.
-        let mut d: Dots = [0; MAX_PARTS * 24];
+        // (The four-channel blocks use the first `8 MAX_PARTS` values of `d`.)
+        let Layer { k, lut, lens, d } = self;
+        let (k, lut, lens) = (&*k, *lut, lens.as_ref());
         // u8: `128 sum(x)` per part and patch of this pair, for every twelve-channel block.
         let mut sums = [0i32; 2 * MAX_PARTS];
-        if let Some(l) = self.lens.as_ref()
+        if let Some(l) = lens
             && p.cout >= 12
             && T::dots12_prepare(l, pair, &mut sums)
         {
             let blocks = p.weights.chunks_exact((12 * kl).max(1)).zip(p.mult.0.chunks_exact((96 * np).max(1))).zip(p.bias.0.chunks_exact(96));
             for ((w, m), b) in blocks.take(p.cout / 12) {
-                match T::dots12(l, w, pair, &sums, &mut d) {
+                match T::dots12(l, w, pair, &sums, d) {
                     None => break,
                     Some(true) => {
                         // Block `j`'s four channels: pixel a's at `4 j`, b's at `12 + 4 j`.
                         for (j, (m, b)) in m.chunks_exact((32 * np).max(1)).zip(b.chunks_exact(32)).enumerate() {
-                            self.store(&d, WIDE, 4 * j, m, b, out, at_a + c + 4 * j);
-                            self.store(&d, WIDE, 12 + 4 * j, m, b, out, at_b + c + 4 * j);
+                            Self::store(k, lut, d, WIDE, 4 * j, m, b, out, at_a + c + 4 * j);
+                            Self::store(k, lut, d, WIDE, 12 + 4 * j, m, b, out, at_b + c + 4 * j);
                             // Tested per four channels: a saturation recomputes only their
                             // eight outputs (one test per twelve recomputed three times as many:
                             // 160x120 +8.7 M instructions in `recompute`).
                             if mve::take_qc() {
                                 // A lane saturated: the portable formula from the same dot products.
-                                recompute(p, &d, WIDE, 4 * j, m, b, out, at_a + c + 4 * j);
-                                recompute(p, &d, WIDE, 12 + 4 * j, m, b, out, at_b + c + 4 * j);
+                                recompute(p, d, WIDE, 4 * j, m, b, out, at_a + c + 4 * j);
+                                recompute(p, d, WIDE, 12 + 4 * j, m, b, out, at_b + c + 4 * j);
                             }
                         }
                     }
@@ -135,21 +138,21 @@ impl Layer {
         };
         let blocks = w.chunks_exact((4 * kl).max(1)).zip(m.chunks_exact((32 * np).max(1))).zip(b.chunks_exact(32));
         for ((w, m), b) in blocks.take(p.cout.saturating_sub(c) / 4) {
-            let fits = match (self.lens.as_ref(), d.first_chunk_mut::<{ MAX_PARTS * 8 }>()) {
+            let fits = match (lens, d.first_chunk_mut::<{ MAX_PARTS * 8 }>()) {
                 (Some(l), Some(d4)) => T::dots4(l, w, pair, d4),
                 _ => None,
             };
             let fits = match fits {
                 Some(fits) => fits,
-                None => dots(p, pair, w, &mut d),
+                None => dots(p, pair, w, d),
             };
             if fits {
-                self.store(&d, NARROW, 0, m, b, out, at_a + c);
-                self.store(&d, NARROW, 4, m, b, out, at_b + c);
+                Self::store(k, lut, d, NARROW, 0, m, b, out, at_a + c);
+                Self::store(k, lut, d, NARROW, 4, m, b, out, at_b + c);
                 if mve::take_qc() {
                     // A lane saturated: the portable formula from the same dot products.
-                    recompute(p, &d, NARROW, 0, m, b, out, at_a + c);
-                    recompute(p, &d, NARROW, 4, m, b, out, at_b + c);
+                    recompute(p, d, NARROW, 0, m, b, out, at_a + c);
+                    recompute(p, d, NARROW, 4, m, b, out, at_b + c);
                 }
             } else {
                 // (Whole chunks: the splits cannot fail.)
@@ -167,8 +170,8 @@ impl Layer {
     /// into `out[at..at + 4]`.
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
-    fn store(&self, d: &Dots, stride: usize, off: usize, m: &[u8], b: &[u8], out: &mut OutRow<'_>, at: usize) {
-        let np = self.k.mult_offsets[1] as usize / 8;
+    fn store(k: &Requant4, lut: Option<&[i16; 1025]>, d: &Dots, stride: usize, off: usize, m: &[u8], b: &[u8], out: &mut OutRow<'_>, at: usize) {
+        let np = k.mult_offsets[1] as usize / 8;
         // `off <= stride - 4` ([`NARROW`]: 0 or 4, [`WIDE`]: up to 20) and `np <= MAX_PARTS`:
         // `d[off + stride (np - 1) .. + 4]` is inside `d`; `m` holds `32 np` bytes and `b` 32,
         // both 4-byte aligned (`Layer::of`, whole chunks).
@@ -193,9 +196,9 @@ impl Layer {
             }
         }
         match out {
-            OutRow::U8(r) => to(&self.k, np, dp, wide, m, b, self.lut, r, at),
-            OutRow::I8(r) => to(&self.k, np, dp, wide, m, b, self.lut, r, at),
-            OutRow::I16(r) => to(&self.k, np, dp, wide, m, b, self.lut, r, at),
+            OutRow::U8(r) => to(k, np, dp, wide, m, b, lut, r, at),
+            OutRow::I8(r) => to(k, np, dp, wide, m, b, lut, r, at),
+            OutRow::I16(r) => to(k, np, dp, wide, m, b, lut, r, at),
         }
     }
 }
