@@ -20,7 +20,7 @@
 
 use super::super::mve::{self, Narrow, Requant4};
 use super::super::{Elem, OutRow};
-use super::{ConvParams, bias_at, block2x2, finish_short, mult_at, part_dot2x2};
+use super::{ConvParams, bias_at, block2x2, finish_short, mult_raw, part_dot2x2};
 use crate::arith::{lut, requantize_i32};
 use crate::model::graph::{MAX_PARTS, PostOp};
 
@@ -247,7 +247,9 @@ fn recompute(p: &ConvParams<'_>, d: &Dots, stride: usize, off: usize, m: &[u8], 
     for (i, (m, b)) in m.chunks_exact((8 * np).max(1)).zip(b.chunks_exact(8)).enumerate() {
         let mut s = 0i64;
         for (dp, m) in d.chunks_exact(stride).zip(m.chunks_exact(8)) {
-            s += requantize_i32(dp.get(off + i).copied().unwrap_or_default(), mult_at(m));
+            // `mult_raw`: every shift is in `8..=62` (`Layer::of`), where `mult_at`'s clamp to
+            // `1..=126` changes nothing.
+            s += requantize_i32(dp.get(off + i).copied().unwrap_or_default(), mult_raw(m));
         }
         out.set(at + i, finish_short(p.post, bias_at(b), s));
     }
