@@ -118,8 +118,8 @@ impl Layer {
                             // 160x120 +8.7 M instructions in `recompute`).
                             if mve::take_qc() {
                                 // A lane saturated: the portable formula from the same dot products.
-                                recompute(p, d, WIDE, 4 * j, m, b, out, at_a + c + 4 * j);
-                                recompute(p, d, WIDE, 12 + 4 * j, m, b, out, at_b + c + 4 * j);
+                                recompute::<WIDE>(p, d, 4 * j, m, b, out, at_a + c + 4 * j);
+                                recompute::<WIDE>(p, d, 12 + 4 * j, m, b, out, at_b + c + 4 * j);
                             }
                         }
                     }
@@ -151,8 +151,8 @@ impl Layer {
                 Self::store(k, lut, d, NARROW, 4, m, b, out, at_b + c);
                 if mve::take_qc() {
                     // A lane saturated: the portable formula from the same dot products.
-                    recompute(p, d, NARROW, 0, m, b, out, at_a + c);
-                    recompute(p, d, NARROW, 4, m, b, out, at_b + c);
+                    recompute::<NARROW>(p, d, 0, m, b, out, at_a + c);
+                    recompute::<NARROW>(p, d, 4, m, b, out, at_b + c);
                 }
             } else {
                 // (Whole chunks: the splits cannot fail.)
@@ -240,13 +240,13 @@ fn dots<T: Elem>(p: &ConvParams<'_>, pair: &[T], w: &[i8], d: &mut Dots) -> bool
 }
 
 /// The portable epilogue (`finish_short` of the summed `requantize_i32`s) of one pixel's four
-/// channels from the block's dot products (`stride` values per part, the four at `off`).
-#[allow(clippy::too_many_arguments)]
-fn recompute(p: &ConvParams<'_>, d: &Dots, stride: usize, off: usize, m: &[u8], b: &[u8], out: &mut OutRow<'_>, at: usize) {
+/// channels from the block's dot products (`STRIDE` values per part, the four at `off`; a
+/// constant, so that the part loop needs no division).
+fn recompute<const STRIDE: usize>(p: &ConvParams<'_>, d: &Dots, off: usize, m: &[u8], b: &[u8], out: &mut OutRow<'_>, at: usize) {
     let np = p.parts.len();
     for (i, (m, b)) in m.chunks_exact((8 * np).max(1)).zip(b.chunks_exact(8)).enumerate() {
         let mut s = 0i64;
-        for (dp, m) in d.chunks_exact(stride).zip(m.chunks_exact(8)) {
+        for (dp, m) in d.chunks_exact(STRIDE.max(1)).zip(m.chunks_exact(8)) {
             // `mult_raw`: every shift is in `8..=62` (`Layer::of`), where `mult_at`'s clamp to
             // `1..=126` changes nothing.
             s += requantize_i32(dp.get(off + i).copied().unwrap_or_default(), mult_raw(m));
