@@ -143,6 +143,12 @@ fn check_w16(buf: &Buffers<i16>, ww: &mut [u32; MAX_N], n: usize) -> usize {
 static mut WW: [u32; MAX_N] = [0; MAX_N];
 
 static mut W0: [i8; MAX_N] = [0; MAX_N];
+/// Twelve weight rows of up to `W12_KL` values for `check_dots12` (parts beyond its 504-term
+/// chunks).
+#[cfg(feature = "mve")]
+static mut W12: [i8; 12 * W12_KL] = [0; 12 * W12_KL];
+#[cfg(feature = "mve")]
+const W12_KL: usize = 1536;
 static mut W1: [i8; MAX_N] = [0; MAX_N];
 static mut A8: [u8; MAX_N] = [0; MAX_N];
 static mut B8: [u8; MAX_N] = [0; MAX_N];
@@ -255,6 +261,203 @@ fn check_aggregate_dsp(v: &mut [i16; MAX_N], r: &mut Rng) -> usize {
                 cases += 1;
             }
         }
+    }
+    cases
+}
+
+/// The twelve-channel i16 block (`mve::PartLens::dots12`: twelve weight rows, three per call,
+/// 32-bit sums in chunks of `mve::DOTS3_CHUNK` added by `QADD`) against the plain dot products:
+/// 1 to 6 parts of random lengths 1..=140, some of 1..=8, in most cases one of the chunk edges
+/// (503, 504, 505, 1007, 1008, 1009) or 500..=1100; random fills, all-extreme fills and one
+/// extreme channel and patch of one part. The reported flag must be exactly the plain model's
+/// (some chunk add leaves i32), and `true` must mean every value equals the plain dot product.
+/// Both outcomes must occur; short slices are refused.
+#[cfg(feature = "mve")]
+fn check_dots12(pair: &mut [i16; 2 * MAX_N], r: &mut Rng) -> usize {
+    use muir::kernels::mve::{DOTS3_CHUNK, PartLens};
+    use muir::model::graph::MAX_PARTS;
+    // SAFETY: the only user of `W12`, in the single thread of this program.
+    let w12 = unsafe { &mut *core::ptr::addr_of_mut!(W12) };
+    let (mut fits, mut over) = (0, 0);
+    for case in 0..300u32 {
+        let np = 1 + (r.next() % MAX_PARTS as u64) as usize;
+        let mut lens = [0usize; MAX_PARTS];
+        for l in lens.iter_mut().take(np) {
+            *l = match r.next() % 4 {
+                0 => 1 + (r.next() % 8) as usize,
+                _ => 1 + (r.next() % 140) as usize,
+            };
+        }
+        let hot = (r.next() % np as u64) as usize;
+        if case % 5 != 0 {
+            const EDGES: [usize; 6] = [503, 504, 505, 1007, 1008, 1009];
+            lens[hot] = match r.next() % 3 {
+                0 => 500 + (r.next() % 601) as usize,
+                _ => EDGES[(r.next() % 6) as usize],
+            };
+        }
+        let kl: usize = lens[..np].iter().sum();
+        if kl > W12_KL || 2 * kl > 2 * MAX_N {
+            continue;
+        }
+        let mode = case % 4; // 0, 1 random; 2 all extreme; 3 one extreme channel and patch
+        let (hc, hb) = ((r.next() % 12) as usize, r.next() % 2 == 0);
+        let ext_sign = r.next() % 2 == 0;
+        let mut o = 0;
+        for (p, &n) in lens[..np].iter().enumerate() {
+            let ext = |one: bool| match (mode == 2 || (mode == 3 && p == hot && one), ext_sign) {
+                (true, true) => Fill::Min,
+                (true, false) => Fill::Max,
+                _ => Fill::Random,
+            };
+            for c in 0..12 {
+                let f = ext(c == hc);
+                for v in &mut w12[c * kl + o..c * kl + o + n] {
+                    *v = i8::sample(r, f);
+                }
+            }
+            for (i, v) in pair[2 * o..2 * o + 2 * n].iter_mut().enumerate() {
+                *v = i16::sample(r, ext((i >= n) == hb));
+            }
+            o += n;
+        }
+        let Some(l) = PartLens::new(lens[..np].iter().copied(), kl) else {
+            println!("MUIR-KERNELS FAILED dots12 case {case}: PartLens::new refused {:?}", &lens[..np]);
+            process::exit(1)
+        };
+        let mut d = [0i32; 24 * MAX_PARTS];
+        let ok = l.dots12(&w12[..12 * kl], &pair[..2 * kl], &mut d);
+        // The plain model of the flag: chunk sums (exact), added with saturation to i32.
+        let mut want_ok = true;
+        let mut o = 0;
+        for (p, &n) in lens[..np].iter().enumerate() {
+            let (a, b) = (&pair[2 * o..2 * o + n], &pair[2 * o + n..2 * o + 2 * n]);
+            for c in 0..12 {
+                let w = &w12[c * kl + o..c * kl + o + n];
+                for (x, at) in [(a, 24 * p + c), (b, 24 * p + 12 + c)] {
+                    let want = dot_plain(w, x);
+                    let mut run: Option<i64> = None;
+                    for (wc, xc) in w.chunks(DOTS3_CHUNK).zip(x.chunks(DOTS3_CHUNK)) {
+                        let s = dot_plain(wc, xc);
+                        let t = run.map_or(s, |r| r + s);
+                        if i32::try_from(t).is_err() {
+                            want_ok = false;
+                        }
+                        run = Some(t.clamp(i32::MIN as i64, i32::MAX as i64));
+                    }
+                    if ok && d[at] as i64 != want {
+                        fail("dots12", kl, &[d[at] as i64], &[want]);
+                    }
+                }
+            }
+            o += n;
+        }
+        if ok != want_ok {
+            println!("MUIR-KERNELS FAILED dots12 case {case}: reported fit {ok}, plain model {want_ok}");
+            process::exit(1);
+        }
+        if ok {
+            fits += 1;
+        } else {
+            over += 1;
+        }
+    }
+    // Short slices are refused.
+    let l = PartLens::new([3usize, 5].into_iter(), 8);
+    let mut d = [0i32; 24 * MAX_PARTS];
+    if fits == 0 || over == 0 || l.is_none_or(|l| l.dots12(&w12[..95], &pair[..16], &mut d) || l.dots12(&w12[..96], &pair[..15], &mut d)) {
+        println!("MUIR-KERNELS FAILED dots12: fits {fits}, beyond i32 {over}, or a short slice accepted");
+        process::exit(1);
+    }
+    fits + over
+}
+
+/// The twelve-channel u8 block (`mve::PartLens::dots12_u8` with `mve::pair_sums_u8`: weights
+/// flipped to `w + 128`, `VMLADAVA.U8`, `128 sum(x)` subtracted) against the plain dot products:
+/// 1 to 6 parts of random lengths 1..=140, some of 1..=8 or 15..=17, in some cases one of
+/// 500..=1100; random fills, all-extreme fills of either sign (weights -128 or 127, activations
+/// 0 or 255) and one extreme channel and patch of one part (one part: `muir_mve_dots12_u8_1`,
+/// else `muir_mve_dots3_u8`). Every value must equal the plain dot product; short slices are
+/// refused.
+#[cfg(feature = "mve")]
+fn check_dots12_u8(pair: &mut [u8; 2 * MAX_N], r: &mut Rng) -> usize {
+    use muir::kernels::mve::{PartLens, pair_sums_u8};
+    use muir::model::graph::MAX_PARTS;
+    // SAFETY: the only user of `W12` at this time, in the single thread of this program.
+    let w12 = unsafe { &mut *core::ptr::addr_of_mut!(W12) };
+    let mut cases = 0;
+    for case in 0..300u32 {
+        let np = 1 + (r.next() % MAX_PARTS as u64) as usize;
+        let mut lens = [0usize; MAX_PARTS];
+        for l in lens.iter_mut().take(np) {
+            *l = match r.next() % 5 {
+                0 => 1 + (r.next() % 8) as usize,
+                1 => 15 + (r.next() % 3) as usize,
+                _ => 1 + (r.next() % 140) as usize,
+            };
+        }
+        let hot = (r.next() % np as u64) as usize;
+        if case % 3 == 0 {
+            lens[hot] = 500 + (r.next() % 601) as usize;
+        }
+        let kl: usize = lens[..np].iter().sum();
+        if kl > W12_KL {
+            continue;
+        }
+        let mode = case % 4; // 0, 1 random; 2 all extreme; 3 one extreme channel and patch
+        let (hc, hb) = ((r.next() % 12) as usize, r.next() % 2 == 0);
+        let (wf, xf) = match r.next() % 4 {
+            0 => (Fill::Min, Fill::Max),
+            1 => (Fill::Max, Fill::Max),
+            2 => (Fill::Min, Fill::Min),
+            _ => (Fill::Max, Fill::Min),
+        };
+        let mut o = 0;
+        for (p, &n) in lens[..np].iter().enumerate() {
+            let ext = |one: bool, f: Fill| if mode == 2 || (mode == 3 && p == hot && one) { f } else { Fill::Random };
+            for c in 0..12 {
+                let f = ext(c == hc, wf);
+                for v in &mut w12[c * kl + o..c * kl + o + n] {
+                    *v = i8::sample(r, f);
+                }
+            }
+            for (i, v) in pair[2 * o..2 * o + 2 * n].iter_mut().enumerate() {
+                *v = u8::sample(r, ext((i >= n) == hb, xf));
+            }
+            o += n;
+        }
+        let Some(l) = PartLens::new(lens[..np].iter().copied(), kl) else {
+            println!("MUIR-KERNELS FAILED dots12_u8 case {case}: PartLens::new refused {:?}", &lens[..np]);
+            process::exit(1)
+        };
+        let mut s = [0i32; 2 * MAX_PARTS];
+        let mut d = [0i32; 24 * MAX_PARTS];
+        if !pair_sums_u8(&l, &pair[..2 * kl], &mut s) || !l.dots12_u8(&w12[..12 * kl], &pair[..2 * kl], &s, &mut d) {
+            println!("MUIR-KERNELS FAILED dots12_u8 case {case}: refused");
+            process::exit(1);
+        }
+        let mut o = 0;
+        for (p, &n) in lens[..np].iter().enumerate() {
+            let (a, b) = (&pair[2 * o..2 * o + n], &pair[2 * o + n..2 * o + 2 * n]);
+            for c in 0..12 {
+                let w = &w12[c * kl + o..c * kl + o + n];
+                for (x, at) in [(a, 24 * p + c), (b, 24 * p + 12 + c)] {
+                    let want = dot_plain(w, x);
+                    if d[at] as i64 != want {
+                        fail("dots12_u8", kl, &[d[at] as i64], &[want]);
+                    }
+                }
+            }
+            o += n;
+        }
+        cases += 1;
+    }
+    // Short slices are refused.
+    let l = PartLens::new([3usize, 5].into_iter(), 8);
+    let (mut s, mut d) = ([0i32; 2 * MAX_PARTS], [0i32; 24 * MAX_PARTS]);
+    if l.is_none_or(|l| pair_sums_u8(&l, &pair[..15], &mut s) || l.dots12_u8(&w12[..95], &pair[..16], &s, &mut d) || l.dots12_u8(&w12[..96], &pair[..15], &s, &mut d)) {
+        println!("MUIR-KERNELS FAILED dots12_u8: a short slice accepted");
+        process::exit(1);
     }
     cases
 }
@@ -1235,6 +1438,8 @@ fn main() -> ! {
     #[cfg(feature = "mve")]
     {
         cases += check_dots4(&mut i16s, &mut r);
+        cases += check_dots12(&mut *i16s.pair, &mut r);
+        cases += check_dots12_u8(&mut *u8s.pair, &mut r);
         cases += check_attention(i16s.a, i16s.b, &mut r);
         cases += check_requant(&mut r);
         cases += check_popcount(&mut r);

@@ -616,13 +616,13 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
     let mut ox = 0;
     if let Some(pair) = patch.get_mut(..2 * kl) {
         #[cfg(all(target_arch = "arm", feature = "mve"))]
-        let helium = helium::Layer::of(p, out, w_out);
+        let mut helium = helium::Layer::of(p, out, w_out);
         while ox + 2 <= w_out {
             gather2(p, inputs, w_in, ox, pair);
             #[allow(unused_mut)]
             let mut c = 0;
             #[cfg(all(target_arch = "arm", feature = "mve"))]
-            if let Some(l) = &helium {
+            if let Some(l) = &mut helium {
                 c = l.channels(p, pair, out, ox * p.cout, (ox + 1) * p.cout);
             }
             let c = pair_blocks(p, kl, pair, out, ox, c);
@@ -635,7 +635,7 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
         // `ox`'s outputs are the same integers as one pixel's alone.
         #[cfg(all(target_arch = "arm", feature = "mve"))]
         if ox + 1 == w_out
-            && let Some(l) = &helium
+            && let Some(l) = &mut helium
         {
             let mut row = out.head(w_out * p.cout);
             gather2(p, inputs, w_in, ox, pair);

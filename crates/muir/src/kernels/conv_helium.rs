@@ -20,15 +20,22 @@
 
 use super::super::mve::{self, Narrow, Requant4};
 use super::super::{Elem, OutRow};
-use super::{ConvParams, bias_at, block2x2, finish_short, mult_at, part_dot2x2};
+use super::{ConvParams, bias_at, block2x2, finish_short, mult_raw, part_dot2x2};
 use crate::arith::{lut, requantize_i32};
 use crate::model::graph::{MAX_PARTS, PostOp};
 
 /// Bias magnitude bound of the vector path (the bias enters a 32-bit lane).
 const MAX_BIAS: u64 = 1 << 30;
 
-/// Dot products of a block: per part, four channels at pixel `a`, then the same at pixel `b`.
-type Dots = [i32; MAX_PARTS * 8];
+/// Dot products of a block. Four channels ([`NARROW`] layout): per part, the four channels at
+/// pixel `a`, then the same at pixel `b`. Twelve channels ([`WIDE`]): per part, twelve at `a`,
+/// then twelve at `b`.
+type Dots = [i32; MAX_PARTS * 24];
+
+/// Values per part of a four-channel block's table.
+const NARROW: usize = 8;
+/// Values per part of a twelve-channel block's table.
+const WIDE: usize = 24;
 
 /// A layer the vector epilogue serves, with its constants.
 pub(super) struct Layer {
@@ -39,6 +46,9 @@ pub(super) struct Layer {
     /// The parts' patch lengths for [`Elem::dots4`] (i16 activations: one assembly call per
     /// channel pair for all parts).
     lens: Option<mve::PartLens>,
+    /// The block's dot products, filled by `dots12` / `dots4` / `dots` for the block's parts
+    /// before every read (cleared once per row, not per pixel pair: 576 bytes).
+    d: Dots,
 }
 
 impl Layer {
@@ -75,29 +85,74 @@ impl Layer {
             OutRow::I16(_) => (-32768, 32767),
         };
         let lens = mve::PartLens::new(p.parts.iter().map(|&ch| ch * p.k * p.k), p.patch_len());
-        Some(Layer { k: Requant4::new(np, lo, hi).with_out(out_lo, out_hi), lut, lens })
+        Some(Layer { k: Requant4::new(np, lo, hi).with_out(out_lo, out_hi), lut, lens, d: [0; MAX_PARTS * 24] })
     }
 
     /// Output channels `0 .. 4 (cout / 4)` of pixels `a` and `b` (at `at_a` and `at_b` of `out`)
-    /// from their gathered pair of patches; returns the first channel not written.
-    pub(super) fn channels<T: Elem>(&self, p: &ConvParams<'_>, pair: &[T], out: &mut OutRow<'_>, at_a: usize, at_b: usize) -> usize {
+    /// from their gathered pair of patches; returns the first channel not written. Blocks of
+    /// twelve channels first ([`Elem::dots12`]: three channels per pass over the activations
+    /// instead of two), then blocks of four.
+    pub(super) fn channels<T: Elem>(&mut self, p: &ConvParams<'_>, pair: &[T], out: &mut OutRow<'_>, at_a: usize, at_b: usize) -> usize {
         let (kl, np) = (p.patch_len(), p.parts.len());
-        let blocks = p.weights.chunks_exact((4 * kl).max(1)).zip(p.mult.0.chunks_exact((32 * np).max(1))).zip(p.bias.0.chunks_exact(32));
         let mut c = 0;
-        // Filled by `dots` for the block's parts before every read (no per-block clearing).
-        let mut d: Dots = [0; MAX_PARTS * 8];
-        for ((w, m), b) in blocks.take(p.cout / 4) {
-            let fits = match self.lens.as_ref().and_then(|l| T::dots4(l, w, pair, &mut d)) {
+        // (The four-channel blocks use the first `8 MAX_PARTS` values of `d`.)
+        let Layer { k, lut, lens, d } = self;
+        let (k, lut, lens) = (&*k, *lut, lens.as_ref());
+        // u8: `128 sum(x)` per part and patch of this pair, for every twelve-channel block.
+        let mut sums = [0i32; 2 * MAX_PARTS];
+        if let Some(l) = lens
+            && p.cout >= 12
+            && T::dots12_prepare(l, pair, &mut sums)
+        {
+            let blocks = p.weights.chunks_exact((12 * kl).max(1)).zip(p.mult.0.chunks_exact((96 * np).max(1))).zip(p.bias.0.chunks_exact(96));
+            for ((w, m), b) in blocks.take(p.cout / 12) {
+                match T::dots12(l, w, pair, &sums, d) {
+                    None => break,
+                    Some(true) => {
+                        // Block `j`'s four channels: pixel a's at `4 j`, b's at `12 + 4 j`.
+                        for (j, (m, b)) in m.chunks_exact((32 * np).max(1)).zip(b.chunks_exact(32)).enumerate() {
+                            Self::store(k, lut, d, WIDE, 4 * j, m, b, out, at_a + c + 4 * j);
+                            Self::store(k, lut, d, WIDE, 12 + 4 * j, m, b, out, at_b + c + 4 * j);
+                            // Tested per four channels: a saturation recomputes only their
+                            // eight outputs (one test per twelve recomputed three times as many:
+                            // 160x120 +8.7 M instructions in `recompute`).
+                            if mve::take_qc() {
+                                // A lane saturated: the portable formula from the same dot products.
+                                recompute::<WIDE>(p, d, 4 * j, m, b, out, at_a + c + 4 * j);
+                                recompute::<WIDE>(p, d, 12 + 4 * j, m, b, out, at_b + c + 4 * j);
+                            }
+                        }
+                    }
+                    Some(false) => {
+                        // (Whole chunks: six channel pairs.)
+                        for (i, ((w, m), b)) in w.chunks_exact((2 * kl).max(1)).zip(m.chunks_exact((16 * np).max(1))).zip(b.chunks_exact(16)).enumerate() {
+                            block2x2(p, pair, w, m, b, out, at_a, at_b, c + 2 * i);
+                        }
+                    }
+                }
+                c += 12;
+            }
+        }
+        let (Some(w), Some(m), Some(b)) = (p.weights.get(c * kl..), p.mult.0.get(8 * np * c..), p.bias.0.get(8 * c..)) else {
+            return c;
+        };
+        let blocks = w.chunks_exact((4 * kl).max(1)).zip(m.chunks_exact((32 * np).max(1))).zip(b.chunks_exact(32));
+        for ((w, m), b) in blocks.take(p.cout.saturating_sub(c) / 4) {
+            let fits = match (lens, d.first_chunk_mut::<{ MAX_PARTS * 8 }>()) {
+                (Some(l), Some(d4)) => T::dots4(l, w, pair, d4),
+                _ => None,
+            };
+            let fits = match fits {
                 Some(fits) => fits,
-                None => dots(p, pair, w, &mut d),
+                None => dots(p, pair, w, d),
             };
             if fits {
-                self.store(&d, 0, m, b, out, at_a + c);
-                self.store(&d, 4, m, b, out, at_b + c);
+                Self::store(k, lut, d, NARROW, 0, m, b, out, at_a + c);
+                Self::store(k, lut, d, NARROW, 4, m, b, out, at_b + c);
                 if mve::take_qc() {
                     // A lane saturated: the portable formula from the same dot products.
-                    recompute(p, &d, 0, m, b, out, at_a + c);
-                    recompute(p, &d, 4, m, b, out, at_b + c);
+                    recompute::<NARROW>(p, d, 0, m, b, out, at_a + c);
+                    recompute::<NARROW>(p, d, 4, m, b, out, at_b + c);
                 }
             } else {
                 // (Whole chunks: the splits cannot fail.)
@@ -114,31 +169,36 @@ impl Layer {
     /// The vector epilogue of one pixel's four channels (dot products at `d[off..]`, per part)
     /// into `out[at..at + 4]`.
     #[inline(always)]
-    fn store(&self, d: &Dots, off: usize, m: &[u8], b: &[u8], out: &mut OutRow<'_>, at: usize) {
-        let np = self.k.mult_offsets[1] as usize / 8;
-        // `off <= 4` and `np <= MAX_PARTS`: `d[off + 8 (np - 1) .. + 4]` is inside `d`; `m` holds
-        // `32 np` bytes and `b` 32, both 4-byte aligned (`Layer::of`, whole chunks).
+    #[allow(clippy::too_many_arguments)]
+    fn store(k: &Requant4, lut: Option<&[i16; 1025]>, d: &Dots, stride: usize, off: usize, m: &[u8], b: &[u8], out: &mut OutRow<'_>, at: usize) {
+        let np = k.mult_offsets[1] as usize / 8;
+        // `off <= stride - 4` ([`NARROW`]: 0 or 4, [`WIDE`]: up to 20) and `np <= MAX_PARTS`:
+        // `d[off + stride (np - 1) .. + 4]` is inside `d`; `m` holds `32 np` bytes and `b` 32,
+        // both 4-byte aligned (`Layer::of`, whole chunks).
         let dp = d.as_ptr().wrapping_add(off);
+        let wide = stride == WIDE;
         /// Stores through [`mve::requant4`] (or [`mve::requant4_lut`] with a table) into
         /// `r[at..at + 4]` (nothing when the row is short, which `Layer::of` rules out).
         #[inline(always)]
         #[allow(clippy::too_many_arguments)]
-        fn to<O: Narrow>(k: &Requant4, np: usize, dp: *const i32, m: &[u8], b: &[u8], lut: Option<&[i16; 1025]>, r: &mut [O], at: usize) {
+        fn to<O: Narrow>(k: &Requant4, np: usize, dp: *const i32, wide: bool, m: &[u8], b: &[u8], lut: Option<&[i16; 1025]>, r: &mut [O], at: usize) {
             if let Some(o) = r.get_mut(at..at + 4) {
                 // SAFETY: the bounds of `store`; `o` holds four values of `O`; with a table the
                 // clamp before it is `-32768..=32767` (`Layer::of`).
                 unsafe {
-                    match lut {
-                        Some(t) => mve::requant4_lut(dp, m.as_ptr(), k, np, b.as_ptr(), t, o.as_mut_ptr()),
-                        None => mve::requant4(dp, m.as_ptr(), k, np, b.as_ptr(), o.as_mut_ptr()),
+                    match (lut, wide) {
+                        (Some(t), false) => mve::requant4_lut(dp, m.as_ptr(), k, np, b.as_ptr(), t, o.as_mut_ptr()),
+                        (None, false) => mve::requant4(dp, m.as_ptr(), k, np, b.as_ptr(), o.as_mut_ptr()),
+                        (Some(t), true) => mve::requant4_lut_wide(dp, m.as_ptr(), k, np, b.as_ptr(), t, o.as_mut_ptr()),
+                        (None, true) => mve::requant4_wide(dp, m.as_ptr(), k, np, b.as_ptr(), o.as_mut_ptr()),
                     }
                 }
             }
         }
         match out {
-            OutRow::U8(r) => to(&self.k, np, dp, m, b, self.lut, r, at),
-            OutRow::I8(r) => to(&self.k, np, dp, m, b, self.lut, r, at),
-            OutRow::I16(r) => to(&self.k, np, dp, m, b, self.lut, r, at),
+            OutRow::U8(r) => to(k, np, dp, wide, m, b, lut, r, at),
+            OutRow::I8(r) => to(k, np, dp, wide, m, b, lut, r, at),
+            OutRow::I16(r) => to(k, np, dp, wide, m, b, lut, r, at),
         }
     }
 }
@@ -180,13 +240,16 @@ fn dots<T: Elem>(p: &ConvParams<'_>, pair: &[T], w: &[i8], d: &mut Dots) -> bool
 }
 
 /// The portable epilogue (`finish_short` of the summed `requantize_i32`s) of one pixel's four
-/// channels from the block's dot products.
-fn recompute(p: &ConvParams<'_>, d: &Dots, off: usize, m: &[u8], b: &[u8], out: &mut OutRow<'_>, at: usize) {
+/// channels from the block's dot products (`STRIDE` values per part, the four at `off`; a
+/// constant, so that the part loop needs no division).
+fn recompute<const STRIDE: usize>(p: &ConvParams<'_>, d: &Dots, off: usize, m: &[u8], b: &[u8], out: &mut OutRow<'_>, at: usize) {
     let np = p.parts.len();
     for (i, (m, b)) in m.chunks_exact((8 * np).max(1)).zip(b.chunks_exact(8)).enumerate() {
         let mut s = 0i64;
-        for (dp, m) in d.chunks_exact(8).zip(m.chunks_exact(8)) {
-            s += requantize_i32(dp.get(off + i).copied().unwrap_or_default(), mult_at(m));
+        for (dp, m) in d.chunks_exact(STRIDE.max(1)).zip(m.chunks_exact(8)) {
+            // `mult_raw`: every shift is in `8..=62` (`Layer::of`), where `mult_at`'s clamp to
+            // `1..=126` changes nothing.
+            s += requantize_i32(dp.get(off + i).copied().unwrap_or_default(), mult_raw(m));
         }
         out.set(at + i, finish_short(p.post, bias_at(b), s));
     }

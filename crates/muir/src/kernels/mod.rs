@@ -147,6 +147,22 @@ pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + Send + Sync + 's
     fn dots4(_l: &mve::PartLens, _w: &[i8], _pair: &[Self], _d: &mut [i32; 8 * crate::model::graph::MAX_PARTS]) -> Option<bool> {
         None
     }
+    /// The twelve channels' dot products of a Helium convolution block by one assembly call per
+    /// three channels for all parts ([`mve::PartLens::dots12`], i16 activations); `None` where
+    /// this type has none (the layer then takes blocks of four).
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    #[inline(always)]
+    fn dots12(_l: &mve::PartLens, _w: &[i8], _pair: &[Self], _s: &[i32; 2 * crate::model::graph::MAX_PARTS], _d: &mut [i32; 24 * crate::model::graph::MAX_PARTS]) -> Option<bool> {
+        None
+    }
+    /// What [`Elem::dots12`] needs of a pair besides its values, once per pair: u8 activations
+    /// `128 sum(x)` per part and patch ([`mve::pair_sums_u8`]); false where this type has no
+    /// [`Elem::dots12`] or the pair does not fit it.
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    #[inline(always)]
+    fn dots12_prepare(_l: &mve::PartLens, _pair: &[Self], _s: &mut [i32; 2 * crate::model::graph::MAX_PARTS]) -> bool {
+        false
+    }
     /// The slice as a conv output row.
     fn as_out(d: &mut [Self]) -> OutRow<'_>;
     /// A whole convolution row by a path of this type's own with the engine's byte scratch
@@ -243,6 +259,16 @@ impl Elem for u8 {
         dsp::dot2x2(w0, w1, x).map(|v| v as i64)
     }
     #[cfg(all(target_arch = "arm", feature = "mve"))]
+    #[inline(always)]
+    fn dots12(l: &mve::PartLens, w: &[i8], pair: &[u8], s: &[i32; 2 * crate::model::graph::MAX_PARTS], d: &mut [i32; 24 * crate::model::graph::MAX_PARTS]) -> Option<bool> {
+        Some(l.dots12_u8(w, pair, s, d))
+    }
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    #[inline(always)]
+    fn dots12_prepare(l: &mve::PartLens, pair: &[u8], s: &mut [i32; 2 * crate::model::graph::MAX_PARTS]) -> bool {
+        mve::pair_sums_u8(l, pair, s)
+    }
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
     #[inline]
     fn dot2x2(w0: &[i8], w1: &[i8], x: &[u8]) -> [i64; 4] {
         // The split pair layout: patch `a`, then patch `b` (`SPLIT_PAIRS`).
@@ -273,6 +299,16 @@ impl Elem for i16 {
     #[inline(always)]
     fn dots4(l: &mve::PartLens, w: &[i8], pair: &[i16], d: &mut [i32; 8 * crate::model::graph::MAX_PARTS]) -> Option<bool> {
         Some(l.dots4(w, pair, d))
+    }
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    #[inline(always)]
+    fn dots12(l: &mve::PartLens, w: &[i8], pair: &[i16], _s: &[i32; 2 * crate::model::graph::MAX_PARTS], d: &mut [i32; 24 * crate::model::graph::MAX_PARTS]) -> Option<bool> {
+        Some(l.dots12(w, pair, d))
+    }
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    #[inline(always)]
+    fn dots12_prepare(_l: &mve::PartLens, _pair: &[i16], _s: &mut [i32; 2 * crate::model::graph::MAX_PARTS]) -> bool {
+        true
     }
     #[cfg(all(target_arch = "arm", feature = "mve"))]
     const SPLIT_PAIRS: bool = true;

@@ -649,6 +649,435 @@ unsafe extern "C" {
     fn muir_mve_dots_i16(args: *mut DotsArgs) -> u32;
 }
 
+/// The arguments of `muir_mve_dots3_i16`, which advances `a`, `w0`, `lens` and `out` part by
+/// part (`zero`: six zero words, loaded into the sums by one `LDM` per chunk; `rem` and `more`
+/// its scratch: the part's terms left and whether a chunk of the part was stored already).
+#[repr(C)]
+struct Dots3Args {
+    zero: [u32; 6],
+    a: *const i16,
+    w0: *const i8,
+    kl: usize,
+    lens: *const u32,
+    np: usize,
+    out: *mut i32,
+    rem: u32,
+    more: u32,
+}
+
+/// Terms per chunk of `muir_mve_dots3_i16`: `504 * 2^22 < 2^31` (`|w x| <= 128 * 32768`), so a
+/// chunk's 32-bit sum is exact; a multiple of 8, so only a part's last chunk has a predicated
+/// tail and the pointers run on from one chunk to the next.
+pub const DOTS3_CHUNK: usize = 504;
+
+impl PartLens {
+    /// The i32 dot products of a block of twelve output channels at two pixels, part by part:
+    /// `d[24 p + c] = w_c . a_p` and `d[24 p + 12 + c] = w_c . b_p` for channel `c < 12` (weight
+    /// row `c` of `w`, `kl` values each; parts and pair layout as [`PartLens::dots4`]). One call
+    /// per three channels for all parts (`muir_mve_dots3_i16`): six 32-bit sums by `VMLADAVA`
+    /// (12 instructions per 48 MACs; the 64-bit loop of [`PartLens::dots4`] takes 9 per 32), in
+    /// chunks of [`DOTS3_CHUNK`] terms, each exact in i32, added by `QADD`. Returns false, with
+    /// `d` partly written, when an add of chunks saturated (`APSR.Q`: then the sum may not fit in
+    /// i32) or `w` or `pair` is shorter than `12 kl` and `2 kl`; true means every value is the
+    /// exact dot product.
+    #[inline]
+    pub fn dots12(&self, w: &[i8], pair: &[i16], d: &mut [i32; 24 * MAX_PARTS]) -> bool {
+        let kl = self.kl;
+        if w.len() < 12 * kl || pair.len() < 2 * kl {
+            return false;
+        }
+        let mut bad = 0;
+        for j in 0..4 {
+            let mut args = Dots3Args {
+                zero: [0; 6],
+                a: pair.as_ptr(),
+                w0: w.as_ptr().wrapping_add(3 * j * kl),
+                kl,
+                lens: self.lens.as_ptr(),
+                np: self.np,
+                out: d.as_mut_ptr().wrapping_add(3 * j),
+                rem: 0,
+                more: 0,
+            };
+            // SAFETY: part `p` reads `lens[p] >= 1` values at `2 o_p` and `2 o_p + lens[p]` of
+            // `pair` and at `o_p` of weight rows `3j .. 3j + 3` (`3 j kl + o_p`, `+ kl`, `+ 2 kl`),
+            // all inside the slices since the lengths sum to `kl` (`PartLens::new`) and the
+            // lengths were checked above; it reads and writes `d[24 p + 3 j + {0, 1, 2, 12, 13,
+            // 14}]`, inside `d` for `p < np <= MAX_PARTS`, `j < 4`.
+            bad |= unsafe { muir_mve_dots3_i16(&mut args) };
+        }
+        bad == 0
+    }
+}
+
+core::arch::global_asm!(
+    ".syntax unified",
+    ".thumb",
+    ".cpu cortex-m55",
+    ".section .text.muir_mve_dots3_i16,\"ax\",%progbits",
+    ".global muir_mve_dots3_i16",
+    ".type muir_mve_dots3_i16,%function",
+    ".p2align 2",
+    ".thumb_func",
+    // r0 = &mut Dots3Args (kept in r12). Sums (VMLADAVA takes even registers): pixel a's three
+    // channels in r0, r2, r4, pixel b's in r6, r8, r10; weight rows in r1, r3, r5 (the widening
+    // loads take low base registers); activations a in r7, b in r9; LR the chunk's length, then
+    // the loop count; r11 scratch. Per part: the pointers from the arguments (a part's
+    // predicated tail leaves them past its end), then chunks of at most 504 terms; a chunk's
+    // sums go to `out` (pixel a at +0, +4, +8; b at +48, +52, +56), a later chunk's are first
+    // added to what is there by QADD, which sets the sticky APSR.Q on saturation (cleared on
+    // entry). Returns Q (1: some sum may not fit in i32).
+    "muir_mve_dots3_i16:",
+    "    push {{r4-r11, lr}}",
+    "    mov r12, r0",
+    "    movs r0, #0",
+    "    msr APSR_nzcvq, r0",
+    "1:",
+    "    ldr.w r0, [r12, #36]",
+    "    ldr lr, [r0], #4",
+    "    str.w r0, [r12, #36]",
+    "    str.w lr, [r12, #48]",
+    "    ldr.w r7, [r12, #24]",
+    "    add.w r9, r7, lr, lsl #1",
+    "    add.w r0, r9, lr, lsl #1",
+    "    str.w r0, [r12, #24]",
+    "    ldr.w r1, [r12, #28]",
+    "    add.w r0, r1, lr",
+    "    str.w r0, [r12, #28]",
+    "    ldr.w r0, [r12, #32]",
+    "    add.w r3, r1, r0",
+    "    add.w r5, r3, r0",
+    "    movs r0, #0",
+    "    str.w r0, [r12, #52]",
+    "2:",
+    "    ldr.w r11, [r12, #48]",
+    "    cmp.w r11, #504",
+    "    ite hi",
+    "    movhi.w lr, #504",
+    "    movls lr, r11",
+    "    sub.w r11, r11, lr",
+    "    str.w r11, [r12, #48]",
+    "    ldm.w r12, {{r0, r2, r4, r6, r8, r10}}",
+    "    dlstp.16 lr, lr",
+    "3:",
+    "    vldrh.u16 q0, [r7], #16",
+    "    vldrh.u16 q1, [r9], #16",
+    "    vldrb.s16 q2, [r1], #8",
+    "    vmladava.s16 r0, q0, q2",
+    "    vmladava.s16 r6, q1, q2",
+    "    vldrb.s16 q2, [r3], #8",
+    "    vmladava.s16 r2, q0, q2",
+    "    vmladava.s16 r8, q1, q2",
+    "    vldrb.s16 q2, [r5], #8",
+    "    vmladava.s16 r4, q0, q2",
+    "    vmladava.s16 r10, q1, q2",
+    "    letp lr, 3b",
+    "    ldr.w lr, [r12, #44]",
+    "    ldr.w r11, [r12, #52]",
+    "    cmp.w r11, #0",
+    "    beq 4f",
+    "    ldr.w r11, [lr]",
+    "    qadd r0, r0, r11",
+    "    ldr.w r11, [lr, #4]",
+    "    qadd r2, r2, r11",
+    "    ldr.w r11, [lr, #8]",
+    "    qadd r4, r4, r11",
+    "    ldr.w r11, [lr, #48]",
+    "    qadd r6, r6, r11",
+    "    ldr.w r11, [lr, #52]",
+    "    qadd r8, r8, r11",
+    "    ldr.w r11, [lr, #56]",
+    "    qadd r10, r10, r11",
+    "4:",
+    "    strd r0, r2, [lr]",
+    "    str.w r4, [lr, #8]",
+    "    strd r6, r8, [lr, #48]",
+    "    str.w r10, [lr, #56]",
+    "    str.w lr, [r12, #52]",
+    "    ldr.w r11, [r12, #48]",
+    "    cmp.w r11, #0",
+    "    bne 2b",
+    "    add.w lr, lr, #96",
+    "    str.w lr, [r12, #44]",
+    "    ldr.w r11, [r12, #40]",
+    "    subs.w r11, r11, #1",
+    "    str.w r11, [r12, #40]",
+    "    bne 1b",
+    "    mrs r0, apsr",
+    "    ubfx r0, r0, #27, #1",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_mve_dots3_i16, . - muir_mve_dots3_i16",
+);
+
+unsafe extern "C" {
+    fn muir_mve_dots3_i16(args: *mut Dots3Args) -> u32;
+}
+
+/// The arguments of `muir_mve_dots3_u8`, which advances `a`, `w0`, `lens`, `sums` and `out` part
+/// by part (`zero`: six zero words, loaded into the sums by one `LDM` per part).
+#[repr(C)]
+struct Dots3U8Args {
+    zero: [u32; 6],
+    a: *const u8,
+    w0: *const i8,
+    kl: usize,
+    lens: *const u32,
+    np: usize,
+    out: *mut i32,
+    sums: *const i32,
+}
+
+/// `128 sum(x)` of each part's two patches of a u8 pair (`s[2 p]`: patch `a_p`, `s[2 p + 1]`:
+/// `b_p`; parts and pair layout as [`PartLens::dots4`]) for [`PartLens::dots12_u8`], by
+/// `VADDVA.U8` (two instructions per sixteen values). False, with nothing written, when `pair`
+/// is shorter than `2 kl` or `kl` reaches `2^16` (then `128 sum(x)` might leave i32).
+#[inline]
+pub fn pair_sums_u8(l: &PartLens, pair: &[u8], s: &mut [i32; 2 * MAX_PARTS]) -> bool {
+    if pair.len() < 2 * l.kl || l.kl >= 1 << 16 {
+        return false;
+    }
+    let mut x = pair.as_ptr();
+    for (n, s) in l.lens.iter().take(l.np).zip(s.chunks_exact_mut(2)) {
+        for v in s {
+            let mut sum = 0u32;
+            // SAFETY: `n >= 1` values at `x`, inside `pair` (the lengths sum to `kl`, `2 kl <=
+            // pair.len()`); tail-predicated (disabled lanes are not added).
+            unsafe {
+                asm!(
+                    "dlstp.8 lr, {n}",
+                    "2:",
+                    "vldrb.u8 q0, [{x}], #16",
+                    "vaddva.u8 r0, q0",
+                    "letp lr, 2b",
+                    n = in(reg) *n,
+                    x = inout(reg) x => _,
+                    // (`VADDVA` takes an even register.)
+                    inout("r0") sum,
+                    out("lr") _,
+                    out("d0") _, out("d1") _,
+                    options(nostack, readonly),
+                );
+            }
+            // `sum <= 255 n < 2^24`: `128 sum < 2^31`.
+            *v = (sum << 7) as i32;
+            x = x.wrapping_add(*n as usize);
+        }
+    }
+    true
+}
+
+impl PartLens {
+    /// [`PartLens::dots12`] for u8 activations: `d[24 p + c] = w_c . a_p`, `d[24 p + 12 + c] =
+    /// w_c . b_p`, given `s` from [`pair_sums_u8`] for this `pair`. One call per three channels
+    /// for all parts (`muir_mve_dots3_u8`): each weight vector flipped to `w + 128` in u8 (`VEOR`
+    /// 0x80), `VMLADAVA.U8` of sixteen unsigned pairs into six 32-bit sums, then `w . x = (w +
+    /// 128) . x - 128 sum(x)` (15 instructions per 96 MACs; the 2x2 loop takes 13 per 64). The
+    /// 32-bit sums wrap, but the result `|w . x| < 2^15 n` is in i32 for `n < 2^16`, so it is
+    /// exact. Returns false, having written nothing, when `w` or `pair` is shorter than `12 kl`
+    /// and `2 kl`, or `kl` reaches `2^16`.
+    #[inline]
+    pub fn dots12_u8(&self, w: &[i8], pair: &[u8], s: &[i32; 2 * MAX_PARTS], d: &mut [i32; 24 * MAX_PARTS]) -> bool {
+        let kl = self.kl;
+        if w.len() < 12 * kl || pair.len() < 2 * kl || kl >= 1 << 16 {
+            return false;
+        }
+        if self.np == 1 {
+            // One part: the four groups of three channels in one call, the pointers and the
+            // sums' corrections in registers between groups (the per-call and per-part setup
+            // were 58 instructions per group, 22 loop iterations on average at 160x120).
+            let [sa, sb, ..] = *s;
+            let mut args = Dots12U8Args { zero: [0; 6], a: pair.as_ptr(), w0: w.as_ptr(), kl, out: d.as_mut_ptr(), sa, sb, tri: 4 };
+            // SAFETY: group `j < 4` reads `kl` values at 0 and `kl` of `pair` and of weight rows
+            // `3j .. 3j + 3` (`w[3 j kl ..]`), inside the slices by the lengths checked above;
+            // it writes `d[3 j + {0, 1, 2, 12, 13, 14}]`, inside `d`.
+            unsafe { muir_mve_dots12_u8_1(&mut args) };
+            return true;
+        }
+        for j in 0..4 {
+            let mut args = Dots3U8Args {
+                zero: [0; 6],
+                a: pair.as_ptr(),
+                w0: w.as_ptr().wrapping_add(3 * j * kl),
+                kl,
+                lens: self.lens.as_ptr(),
+                np: self.np,
+                out: d.as_mut_ptr().wrapping_add(3 * j),
+                sums: s.as_ptr(),
+            };
+            // SAFETY: part `p` reads `lens[p] >= 1` values at `2 o_p` and `2 o_p + lens[p]` of
+            // `pair`, at `o_p` of weight rows `3j .. 3j + 3` and `s[2 p]`, `s[2 p + 1]`, all
+            // inside the slices since the lengths sum to `kl` (`PartLens::new`), `np <=
+            // MAX_PARTS` and the lengths were checked above; it writes `d[24 p + 3 j + {0, 1, 2,
+            // 12, 13, 14}]`, inside `d`.
+            unsafe { muir_mve_dots3_u8(&mut args) };
+        }
+        true
+    }
+}
+
+core::arch::global_asm!(
+    ".syntax unified",
+    ".thumb",
+    ".cpu cortex-m55",
+    ".section .text.muir_mve_dots3_u8,\"ax\",%progbits",
+    ".global muir_mve_dots3_u8",
+    ".type muir_mve_dots3_u8,%function",
+    ".p2align 2",
+    ".thumb_func",
+    // r0 = &mut Dots3U8Args (kept in r12). Sums (even registers for VMLADAVA): pixel a's three
+    // channels in r0, r2, r4, pixel b's in r6, r8, r10; weight rows in r1, r3, r5; activations a
+    // in r7, b in r9; q3 the flip mask 0x80; LR the part's length, then the loop count; r11 and
+    // (after the loop) LR scratch. Per part: the pointers from the arguments (a predicated tail
+    // leaves them past the part), the loop, `128 sum(a_p)` and `128 sum(b_p)` subtracted, the
+    // sums stored at `out` (a at +0, +4, +8; b at +48, +52, +56).
+    "muir_mve_dots3_u8:",
+    "    push {{r4-r11, lr}}",
+    "    mov r12, r0",
+    "    vmov.i8 q3, #0x80",
+    "1:",
+    "    ldr.w r0, [r12, #36]",
+    "    ldr lr, [r0], #4",
+    "    str.w r0, [r12, #36]",
+    "    ldr.w r7, [r12, #24]",
+    "    add.w r9, r7, lr",
+    "    add.w r0, r9, lr",
+    "    str.w r0, [r12, #24]",
+    "    ldr.w r1, [r12, #28]",
+    "    add.w r0, r1, lr",
+    "    str.w r0, [r12, #28]",
+    "    ldr.w r0, [r12, #32]",
+    "    add.w r3, r1, r0",
+    "    add.w r5, r3, r0",
+    "    ldm.w r12, {{r0, r2, r4, r6, r8, r10}}",
+    "    dlstp.8 lr, lr",
+    "2:",
+    "    vldrb.u8 q0, [r7], #16",
+    "    vldrb.u8 q1, [r9], #16",
+    "    vldrb.u8 q2, [r1], #16",
+    "    veor q2, q2, q3",
+    "    vmladava.u8 r0, q0, q2",
+    "    vmladava.u8 r6, q1, q2",
+    "    vldrb.u8 q2, [r3], #16",
+    "    veor q2, q2, q3",
+    "    vmladava.u8 r2, q0, q2",
+    "    vmladava.u8 r8, q1, q2",
+    "    vldrb.u8 q2, [r5], #16",
+    "    veor q2, q2, q3",
+    "    vmladava.u8 r4, q0, q2",
+    "    vmladava.u8 r10, q1, q2",
+    "    letp lr, 2b",
+    "    ldr.w lr, [r12, #48]",
+    "    ldr r11, [lr], #4",
+    "    sub.w r0, r0, r11",
+    "    sub.w r2, r2, r11",
+    "    sub.w r4, r4, r11",
+    "    ldr r11, [lr], #4",
+    "    sub.w r6, r6, r11",
+    "    sub.w r8, r8, r11",
+    "    sub.w r10, r10, r11",
+    "    str.w lr, [r12, #48]",
+    "    ldr.w lr, [r12, #44]",
+    "    strd r0, r2, [lr]",
+    "    str.w r4, [lr, #8]",
+    "    strd r6, r8, [lr, #48]",
+    "    str.w r10, [lr, #56]",
+    "    add.w lr, lr, #96",
+    "    str.w lr, [r12, #44]",
+    "    ldr.w r11, [r12, #40]",
+    "    subs.w r11, r11, #1",
+    "    str.w r11, [r12, #40]",
+    "    bne 1b",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_mve_dots3_u8, . - muir_mve_dots3_u8",
+);
+
+unsafe extern "C" {
+    fn muir_mve_dots3_u8(args: *mut Dots3U8Args);
+}
+
+/// The arguments of `muir_mve_dots12_u8_1` (one part): `sa`, `sb` are `128 sum(x)` of the
+/// patches, `w0` and `out` advance group by group, `tri` counts the groups left.
+#[repr(C)]
+struct Dots12U8Args {
+    zero: [u32; 6],
+    a: *const u8,
+    w0: *const i8,
+    kl: usize,
+    out: *mut i32,
+    sa: i32,
+    sb: i32,
+    tri: u32,
+}
+
+core::arch::global_asm!(
+    ".syntax unified",
+    ".thumb",
+    ".cpu cortex-m55",
+    ".section .text.muir_mve_dots12_u8_1,\"ax\",%progbits",
+    ".global muir_mve_dots12_u8_1",
+    ".type muir_mve_dots12_u8_1,%function",
+    ".p2align 2",
+    ".thumb_func",
+    // r0 = &mut Dots12U8Args (kept in r12). Registers in the loop as `muir_mve_dots3_u8`. Per
+    // group of three channels: weight rows at `w0`, `+ kl`, `+ 2 kl` (the next group's `w0` at
+    // `+ 3 kl`), the loop over the whole patch, `sa` and `sb` subtracted, the sums stored at `out`
+    // (a at +0, +4, +8; b at +48, +52, +56), `out` 12 bytes on.
+    "muir_mve_dots12_u8_1:",
+    "    push {{r4-r11, lr}}",
+    "    mov r12, r0",
+    "    vmov.i8 q3, #0x80",
+    "1:",
+    "    ldr.w r7, [r12, #24]",
+    "    ldrd r1, lr, [r12, #28]",
+    "    add.w r9, r7, lr",
+    "    add.w r3, r1, lr",
+    "    add.w r5, r3, lr",
+    "    add.w r0, r5, lr",
+    "    str.w r0, [r12, #28]",
+    "    ldm.w r12, {{r0, r2, r4, r6, r8, r10}}",
+    "    dlstp.8 lr, lr",
+    "2:",
+    "    vldrb.u8 q0, [r7], #16",
+    "    vldrb.u8 q1, [r9], #16",
+    "    vldrb.u8 q2, [r1], #16",
+    "    veor q2, q2, q3",
+    "    vmladava.u8 r0, q0, q2",
+    "    vmladava.u8 r6, q1, q2",
+    "    vldrb.u8 q2, [r3], #16",
+    "    veor q2, q2, q3",
+    "    vmladava.u8 r2, q0, q2",
+    "    vmladava.u8 r8, q1, q2",
+    "    vldrb.u8 q2, [r5], #16",
+    "    veor q2, q2, q3",
+    "    vmladava.u8 r4, q0, q2",
+    "    vmladava.u8 r10, q1, q2",
+    "    letp lr, 2b",
+    "    ldrd r11, lr, [r12, #40]",
+    "    sub.w r0, r0, r11",
+    "    sub.w r2, r2, r11",
+    "    sub.w r4, r4, r11",
+    "    sub.w r6, r6, lr",
+    "    sub.w r8, r8, lr",
+    "    sub.w r10, r10, lr",
+    "    ldr.w lr, [r12, #36]",
+    "    strd r0, r2, [lr]",
+    "    str.w r4, [lr, #8]",
+    "    strd r6, r8, [lr, #48]",
+    "    str.w r10, [lr, #56]",
+    "    add.w lr, lr, #12",
+    "    str.w lr, [r12, #36]",
+    "    ldr.w r11, [r12, #48]",
+    "    subs.w r11, r11, #1",
+    "    str.w r11, [r12, #48]",
+    "    bne 1b",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_mve_dots12_u8_1, . - muir_mve_dots12_u8_1",
+);
+
+unsafe extern "C" {
+    fn muir_mve_dots12_u8_1(args: *mut Dots12U8Args);
+}
+
 /// The per-layer constants of [`requant4`]: four 32-bit lanes each.
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(16))]
@@ -693,14 +1122,25 @@ pub trait Narrow: Copy {
     /// # Safety
     /// See [`requant4_lut`].
     unsafe fn requant4_lut_n(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: &[i16; 1025], out: *mut Self);
+    /// [`requant4_wide`] for this output type.
+    ///
+    /// # Safety
+    /// See [`requant4_wide`].
+    unsafe fn requant4w_n(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, out: *mut Self);
+    /// [`requant4_lut_wide`] for this output type.
+    ///
+    /// # Safety
+    /// See [`requant4_lut_wide`].
+    unsafe fn requant4w_lut_n(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: &[i16; 1025], out: *mut Self);
 }
 
 /// The requantisation both [`Narrow`] kernels share, as one `asm!` template piece: the bias
 /// gathered into q6, then per part the sums' multiply (`vmulh`/`vmul`), the rounding shifts and
-/// the saturating adds, then the rounding by 8 bits and the clamp to `[k + 16, k + 32]`.
+/// the saturating adds, then the rounding by 8 bits and the clamp to `[k + 16, k + 32]`; `$stride`
+/// is the byte distance between two parts' sums (32, or 96 in the twelve-channel table).
 /// Registers as in [`narrow`].
 macro_rules! requant4_sums {
-    () => {
+    ($stride:literal) => {
         concat!(
             "vldrw.u32 q0, [{k}, #48]\n",
             "vldrw.u32 q6, [{bias}, q0]\n",
@@ -709,7 +1149,7 @@ macro_rules! requant4_sums {
             "vadd.i32 q0, q7, q0\n",
             "vmov.i32 q5, #32\n",
             "2:\n",
-            "vldrw.u32 q1, [{d}], #32\n",
+            "vldrw.u32 q1, [{d}], #", $stride, "\n",
             "vldrw.u32 q2, [r1, q7]\n",
             "vldrb.u32 q3, [r1, q0]\n",
             "vmulh.s32 q4, q1, q2\n",
@@ -735,15 +1175,14 @@ macro_rules! requant4_sums {
 /// The [`Narrow`] kernel of one output type: `$store` is the narrowing store of four 32-bit lanes
 /// (a low base register, r0 here). Registers: q7 the multipliers' offsets, q0 those of the shift
 /// bytes (4 further), q5 the constant 32, q6 the sums; q1-q4 temporaries.
-macro_rules! narrow {
-    ($t:ty, $store:literal) => {
-        impl Narrow for $t {
+macro_rules! narrow_fns {
+    ($store:literal, $plain:ident, $lut:ident, $stride:literal) => {
             #[inline(always)]
-            unsafe fn requant4_n(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, out: *mut $t) {
+            unsafe fn $plain(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, out: *mut Self) {
                 // SAFETY: the caller's bounds (`requant4`); registers as listed.
                 unsafe {
                     asm!(
-                        requant4_sums!(),
+                        requant4_sums!($stride),
                         concat!($store, " q6, [r0]"),
                         k = in(reg) k as *const Requant4,
                         bias = in(reg) bias,
@@ -758,13 +1197,13 @@ macro_rules! narrow {
                 }
             }
             #[inline(always)]
-            unsafe fn requant4_lut_n(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: &[i16; 1025], out: *mut $t) {
+            unsafe fn $lut(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: &[i16; 1025], out: *mut Self) {
                 // SAFETY: the caller's bounds (`requant4_lut`); the gathers read entries `i` and
                 // `i + 1` of the 1025-entry table for `i = (x + 32768) >> 6 <= 1023`, `x` clamped
                 // to `lo..=hi` within `-32768..=32767` first (`Requant4` of `requant4_lut`).
                 unsafe {
                     asm!(
-                        requant4_sums!(),
+                        requant4_sums!($stride),
                         // The table: u = x + 32768, entries u >> 6 and the next, fraction u & 63.
                         "vmov.i32 q1, #0x8000",
                         "vadd.i32 q6, q6, q1",
@@ -796,6 +1235,17 @@ macro_rules! narrow {
                     );
                 }
             }
+    };
+}
+
+/// The [`Narrow`] kernels of one output type: [`requant4`]'s and [`requant4_lut`]'s, parts 32
+/// bytes apart, and their twins for the twelve-channel block's table (parts 96 bytes apart,
+/// [`requant4_wide`]).
+macro_rules! narrow {
+    ($t:ty, $store:literal) => {
+        impl Narrow for $t {
+            narrow_fns!($store, requant4_n, requant4_lut_n, "32");
+            narrow_fns!($store, requant4w_n, requant4w_lut_n, "96");
         }
     };
 }
@@ -844,6 +1294,27 @@ pub unsafe fn requant4<O: Narrow>(d: *const i32, mult: *const u8, k: &Requant4, 
 pub unsafe fn requant4_lut<O: Narrow>(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: &[i16; 1025], out: *mut O) {
     // SAFETY: forwarded.
     unsafe { O::requant4_lut_n(d, mult, k, np, bias, table, out) }
+}
+
+/// [`requant4`] reading the dot products of a twelve-channel block's table
+/// ([`PartLens::dots12`]): four values per part, parts 96 bytes apart.
+///
+/// # Safety
+/// As [`requant4`], with `d` pointing at `24 (np - 1) + 4` readable `i32`s.
+#[inline(always)]
+pub unsafe fn requant4_wide<O: Narrow>(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, out: *mut O) {
+    // SAFETY: forwarded.
+    unsafe { O::requant4w_n(d, mult, k, np, bias, out) }
+}
+
+/// [`requant4_lut`] reading a twelve-channel block's table (as [`requant4_wide`]).
+///
+/// # Safety
+/// As [`requant4_lut`], with `d` pointing at `24 (np - 1) + 4` readable `i32`s.
+#[inline(always)]
+pub unsafe fn requant4_lut_wide<O: Narrow>(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: &[i16; 1025], out: *mut O) {
+    // SAFETY: forwarded.
+    unsafe { O::requant4w_lut_n(d, mult, k, np, bias, table, out) }
 }
 
 /// Whether a saturating vector instruction saturated since the flag was last cleared
