@@ -4,7 +4,11 @@
 //! The right-hand matrix is given as one pointer per row (`rows[k]`, each valid for `len`
 //! values), not as a dense matrix: a convolution points its rows into its zero-padded input
 //! (`ops::conv2d`: row `(c, ky, kx)` is the padded plane of channel `c` moved by `(ky, kx)`), so
-//! there is neither an im2col matrix nor a packed copy of it. The weights are packed into blocks
+//! there is no im2col matrix. Only the [`NR`] positions of the tile being computed are copied,
+//! every row's side by side (a panel of `kk x NR`), when several blocks of output rows read them:
+//! hundreds of scattered rows are more streams than the hardware prefetchers follow (on a
+//! Sapphire-Rapids-class Xeon the tiles waited on those loads; KITTI float frame 4.8-5.0 ->
+//! 3.7 s). The weights are packed into blocks
 //! of [`MR`] output rows, `k`-major: once per model for a layer ([`Packed`]), per call otherwise
 //! ([`product`]; `cout x kk` values, small beside the product).
 //!
@@ -93,6 +97,7 @@ std::thread_local! {
 /// Frees this thread's packing scratch.
 pub fn release_scratch() {
     PACKED.with_borrow_mut(|b| *b = Vec::new());
+    PANEL.with_borrow_mut(|p| *p = (Vec::new(), Vec::new()));
 }
 
 /// A left-hand matrix in the tiles' layout: blocks of [`MR`] output rows, `k`-major, the
@@ -197,21 +202,66 @@ unsafe fn product_blocks(packed: &[f32], cout: usize, rows: &[*const f32], len: 
         let (rows, outp) = (rowsp, outp);
         // SAFETY: `rows` outlives `run`; tasks only read it.
         let rows = unsafe { core::slice::from_raw_parts(rows.0 as *const *const f32, kk) };
-        for t in chunk * per_task..((chunk + 1) * per_task).min(tiles) {
-            let p0 = t * NR;
-            let n = (len - p0).min(NR);
-            for b in g * group..((g + 1) * group).min(blocks) {
-                let o0 = b * MR;
-                let valid = (cout - o0).min(MR);
-                let wb = &packed[b * kk * MR..][..kk * MR];
-                // SAFETY: the tile reads rows[k][p0 .. p0 + n] (valid by the caller's
-                // guarantee) and writes out[(o0 + o) * pitch + p0 ..][..n] for o < valid, inside
-                // `out` (asserted above) and written by this task only (tiles and blocks are
-                // split between tasks without overlap).
-                unsafe { tile(simd, wb, rows, p0, n, outp.0.add(o0 * pitch + p0), pitch, valid, o0, epi) };
+        let (b0, b1) = (g * group, ((g + 1) * group).min(blocks));
+        PANEL.with_borrow_mut(|(panel, ptrs)| {
+            for t in chunk * per_task..((chunk + 1) * per_task).min(tiles) {
+                let p0 = t * NR;
+                let n = (len - p0).min(NR);
+                // Several blocks: the tile's rows read from one packed panel (`pack_panel`).
+                let (tile_rows, q0): (&[*const f32], usize) = if b1 > b0 + 1 {
+                    let dst = pool::scratch(panel, kk * NR);
+                    ptrs.clear();
+                    // SAFETY: rows[k][p0 .. p0 + n] is valid (the caller's guarantee).
+                    unsafe { pack_panel(rows, p0, n, simd, dst, ptrs) };
+                    (ptrs.as_slice(), 0)
+                } else {
+                    (rows, p0)
+                };
+                for b in b0..b1 {
+                    let o0 = b * MR;
+                    let valid = (cout - o0).min(MR);
+                    let wb = &packed[b * kk * MR..][..kk * MR];
+                    // SAFETY: the tile reads tile_rows[k][q0 .. q0 + n] (the panel's, or the
+                    // rows' valid by the caller's guarantee) and writes out[(o0 + o) * pitch + p0
+                    // ..][..n] for o < valid, inside `out` (asserted above) and written by this
+                    // task only (tiles and blocks are split between tasks without overlap).
+                    unsafe { tile(simd, wb, tile_rows, q0, n, outp.0.add(o0 * pitch + p0), pitch, valid, o0, epi) };
+                }
             }
-        }
+        });
     });
+}
+
+/// Copies `n <= NR` values of every row from `p0` on into `dst` (`rows.len()` slots of
+/// [`NR`]) and appends a pointer to each slot to `ptrs`: the tile's rows side by side, which
+/// several blocks of output rows then read in order instead of from `rows.len()` scattered
+/// places each (the same values, so the same sums).
+///
+/// # Safety
+/// Every `rows[k][p0 .. p0 + n]` is valid for reading; `dst` holds `rows.len() NR` values;
+/// `simd` only with AVX-512 F.
+unsafe fn pack_panel(rows: &[*const f32], p0: usize, n: usize, simd: bool, dst: &mut [f32], ptrs: &mut Vec<*const f32>) {
+    for (d, r) in dst.chunks_exact_mut(NR).zip(rows) {
+        // SAFETY: the contract; `d` holds NR >= n values. (Three vector moves, not a call of
+        // `memcpy` per row.)
+        unsafe {
+            #[cfg(target_arch = "x86_64")]
+            if simd {
+                avx512::copy_tile_row(r.add(p0), d.as_mut_ptr(), n);
+                ptrs.push(d.as_ptr());
+                continue;
+            }
+            let _ = simd;
+            core::ptr::copy_nonoverlapping(r.add(p0), d.as_mut_ptr(), n);
+        }
+        ptrs.push(d.as_ptr());
+    }
+}
+
+std::thread_local! {
+    /// A tile's rows copied side by side, and pointers to them ([`pack_panel`]).
+    #[allow(clippy::type_complexity)]
+    static PANEL: std::cell::RefCell<(Vec<f32>, Vec<*const f32>)> = const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
 }
 
 /// One tile, on 512-bit vectors if `simd`.
@@ -267,21 +317,36 @@ pub unsafe fn product16(w: &[Packed], rows: &[Vec<*const f32>], len: usize, f: &
         // SAFETY: `rows` outlives `run`; tasks only read it.
         let rows = unsafe { core::slice::from_raw_parts(rowsp.0 as *const Vec<*const f32>, 16) };
         let mut sums = vec![0.0f32; 16 * MR * NR];
-        for t in chunk * per_task..((chunk + 1) * per_task).min(tiles) {
-            let p0 = t * NR;
-            let n = (len - p0).min(NR);
-            for b in g * group..((g + 1) * group).min(blocks) {
-                let o0 = b * MR;
-                let valid = (cout - o0).min(MR);
-                for (i, (wi, ri)) in w.iter().zip(rows).enumerate() {
-                    let wb = &wi.data[b * kk * MR..][..kk * MR];
-                    // SAFETY: reads rows[i][k][p0 .. p0 + n] (the caller's guarantee); writes
-                    // sums[i MR NR + o NR ..][..n] for o < valid, inside this task's `sums`.
-                    unsafe { tile(simd, wb, ri, p0, n, sums.as_mut_ptr().add(i * MR * NR), NR, valid, o0, &Epilogue::default()) };
+        let (b0, b1) = (g * group, ((g + 1) * group).min(blocks));
+        PANEL.with_borrow_mut(|(panel, ptrs)| {
+            for t in chunk * per_task..((chunk + 1) * per_task).min(tiles) {
+                let p0 = t * NR;
+                let n = (len - p0).min(NR);
+                // The 16 products' rows of the tile side by side when several blocks read them.
+                let packed = b1 > b0 + 1;
+                if packed {
+                    let dst = pool::scratch(panel, 16 * kk * NR);
+                    ptrs.clear();
+                    for (ri, d) in rows.iter().zip(dst.chunks_exact_mut(kk * NR)) {
+                        // SAFETY: rows[i][k][p0 .. p0 + n] is valid (the caller's guarantee).
+                        unsafe { pack_panel(ri, p0, n, simd, d, ptrs) };
+                    }
                 }
-                f(o0, valid, p0, n, &sums);
+                for b in b0..b1 {
+                    let o0 = b * MR;
+                    let valid = (cout - o0).min(MR);
+                    for (i, (wi, ri)) in w.iter().zip(rows).enumerate() {
+                        let wb = &wi.data[b * kk * MR..][..kk * MR];
+                        let (ri, q0) = if packed { (&ptrs[i * kk..(i + 1) * kk], 0) } else { (ri.as_slice(), p0) };
+                        // SAFETY: reads ri[k][q0 .. q0 + n] (the panel's, or rows[i][k]
+                        // [p0 .. p0 + n] by the caller's guarantee); writes sums[i MR NR + o NR
+                        // ..][..n] for o < valid, inside this task's `sums`.
+                        unsafe { tile(simd, wb, ri, q0, n, sums.as_mut_ptr().add(i * MR * NR), NR, valid, o0, &Epilogue::default()) };
+                    }
+                    f(o0, valid, p0, n, &sums);
+                }
             }
-        }
+        });
     });
 }
 
@@ -335,6 +400,20 @@ mod avx512 {
     /// # Safety
     /// AVX-512 F present; otherwise as `portable_tile` (masked loads and stores touch only the
     /// first `n` positions).
+    /// Copies `n <= NR` values from `src` to `dst` (a tile row into the panel).
+    ///
+    /// # Safety
+    /// AVX-512 F present; `src` readable and `dst` writable for `n` values.
+    #[target_feature(enable = "avx512f")]
+    pub unsafe fn copy_tile_row(src: *const f32, dst: *mut f32, n: usize) {
+        for v in 0..V {
+            let left = n.saturating_sub(16 * v).min(16);
+            let m = ((1u32 << left) - 1) as u16;
+            // SAFETY: masked to the first `n` values (the contract).
+            unsafe { _mm512_mask_storeu_ps(dst.add(16 * v), m, _mm512_maskz_loadu_ps(m, src.add(16 * v))) };
+        }
+    }
+
     #[allow(clippy::too_many_arguments)]
     #[target_feature(enable = "avx512f")]
     pub unsafe fn tile<const FULL: bool>(
@@ -471,6 +550,18 @@ mod tests {
                 }
             }
             pool::set_threads(1);
+            // Several blocks read the tile's rows from a packed panel, one block from the rows
+            // themselves: each block's rows alone (one block, no panel) are the same bits.
+            let full = first.unwrap_or_default();
+            for o0 in (0..cout).step_by(MR) {
+                let m = (cout - o0).min(MR);
+                let mut out = vec![f32::NAN; m * len];
+                let bias_b = &bias[o0..o0 + m];
+                let epi_b = Epilogue { bias: Some(bias_b), ..epi };
+                // SAFETY: every row is readable for len values.
+                unsafe { product(Lhs { data: &w[o0 * kk..], row: kk, col: 1 }, m, &rows, len, &epi_b, &mut out, len) };
+                assert!(out.iter().zip(&full[o0 * len..(o0 + m) * len]).all(|(a, b)| a.to_bits() == b.to_bits()), "{cout}x{kk}x{len}: block {o0} alone");
+            }
         }
     }
 }
