@@ -288,17 +288,18 @@ unsafe fn tile(simd: bool, w: &[f32], rows: &[*const f32], p0: usize, n: usize, 
 
 /// Sixteen products of the same shape side by side (Winograd's, `super::winograd`): for every
 /// block of [`MR`] output rows and tile of [`NR`] positions, `sums[(i * MR + o) * NR + q] =
-/// sum_k w[i](o0 + o, k) rows[i][k][p0 + q]` for `i < 16`, then `f(o0, valid, p0, n, &sums)` (`valid`
-/// rows from `o0`, `n` positions from `p0`; the rest of `sums` is stale). Tasks over the pool as
-/// in [`product`]; `f` must write only what belongs to its rows and positions.
-///
-/// # Safety
-/// Every `rows[i][k]` is valid for reading `len` values; `w[i].kk() == rows[i].len()`.
+/// sum_k w[i](o0 + o, k) V[i][k][p0 + q]` for `i < 16`, then `f(o0, valid, p0, n, &sums)` (`valid`
+/// rows from `o0`, `n` positions from `p0`; the rest of `sums` is stale). The right-hand sides
+/// are made per tile by `fill(p0, n, panel)`: `panel[(i * kk + k) * NR + q] = V[i][k][p0 + q]`
+/// for `q < n` (16 panels of `kk x NR`), so that no `16 x kk x len` matrix is ever stored and the
+/// tiles read their rows in order from one place. Tasks over the pool as in [`product`] (with
+/// few tiles, tasks splitting a tile's blocks each fill its panels); `f` must write only what
+/// belongs to its rows and positions.
 #[allow(clippy::type_complexity)]
-pub unsafe fn product16(w: &[Packed], rows: &[Vec<*const f32>], len: usize, f: &(dyn Fn(usize, usize, usize, usize, &[f32]) + Sync)) {
-    assert!(w.len() == 16 && rows.len() == 16, "16 products");
+pub fn product16(w: &[Packed], len: usize, fill: &(dyn Fn(usize, usize, &mut [f32]) + Sync), f: &(dyn Fn(usize, usize, usize, usize, &[f32]) + Sync)) {
+    assert!(w.len() == 16, "16 products");
     let (cout, kk) = (w[0].cout, w[0].kk);
-    assert!(w.iter().zip(rows).all(|(w, r)| w.cout == cout && w.kk == kk && r.len() == kk), "16 products of one shape");
+    assert!(w.iter().all(|w| w.cout == cout && w.kk == kk), "16 products of one shape");
     if cout == 0 || len == 0 || kk == 0 {
         assert!(kk > 0 || cout == 0 || len == 0, "product16 without rows");
         return;
@@ -310,38 +311,27 @@ pub unsafe fn product16(w: &[Packed], rows: &[Vec<*const f32>], len: usize, f: &
     let group = blocks.div_ceil(groups);
     let chunks = tiles.div_ceil(per_task);
     let simd = has_avx512();
-    let rowsp = pool::Shared(rows.as_ptr() as *mut Vec<*const f32>);
     pool::run(chunks * groups, &|task| {
         let (chunk, g) = (task / groups, task % groups);
-        let rowsp = &rowsp;
-        // SAFETY: `rows` outlives `run`; tasks only read it.
-        let rows = unsafe { core::slice::from_raw_parts(rowsp.0 as *const Vec<*const f32>, 16) };
         let mut sums = vec![0.0f32; 16 * MR * NR];
         let (b0, b1) = (g * group, ((g + 1) * group).min(blocks));
         PANEL.with_borrow_mut(|(panel, ptrs)| {
             for t in chunk * per_task..((chunk + 1) * per_task).min(tiles) {
                 let p0 = t * NR;
                 let n = (len - p0).min(NR);
-                // The 16 products' rows of the tile side by side when several blocks read them.
-                let packed = b1 > b0 + 1;
-                if packed {
-                    let dst = pool::scratch(panel, 16 * kk * NR);
-                    ptrs.clear();
-                    for (ri, d) in rows.iter().zip(dst.chunks_exact_mut(kk * NR)) {
-                        // SAFETY: rows[i][k][p0 .. p0 + n] is valid (the caller's guarantee).
-                        unsafe { pack_panel(ri, p0, n, simd, d, ptrs) };
-                    }
-                }
+                let panel = pool::scratch(panel, 16 * kk * NR);
+                fill(p0, n, panel);
+                ptrs.clear();
+                ptrs.extend(panel.chunks_exact(NR).map(|r| r.as_ptr()));
                 for b in b0..b1 {
                     let o0 = b * MR;
                     let valid = (cout - o0).min(MR);
-                    for (i, (wi, ri)) in w.iter().zip(rows).enumerate() {
+                    for (i, (wi, ri)) in w.iter().zip(ptrs.chunks_exact(kk)).enumerate() {
                         let wb = &wi.data[b * kk * MR..][..kk * MR];
-                        let (ri, q0) = if packed { (&ptrs[i * kk..(i + 1) * kk], 0) } else { (ri.as_slice(), p0) };
-                        // SAFETY: reads ri[k][q0 .. q0 + n] (the panel's, or rows[i][k]
-                        // [p0 .. p0 + n] by the caller's guarantee); writes sums[i MR NR + o NR
-                        // ..][..n] for o < valid, inside this task's `sums`.
-                        unsafe { tile(simd, wb, ri, q0, n, sums.as_mut_ptr().add(i * MR * NR), NR, valid, o0, &Epilogue::default()) };
+                        // SAFETY: reads the panel's rows ri[k][0 .. n] (`kk` rows of NR >= n
+                        // values); writes sums[i MR NR + o NR ..][..n] for o < valid, inside this
+                        // task's `sums`.
+                        unsafe { tile(simd, wb, ri, 0, n, sums.as_mut_ptr().add(i * MR * NR), NR, valid, o0, &Epilogue::default()) };
                     }
                     f(o0, valid, p0, n, &sums);
                 }

@@ -12,8 +12,10 @@
 //!
 //! The sum over channels is 16 matrix products (one per position of the 4x4 transform,
 //! [`super::gemm::product16`], `U` packed when the model is built), computed tile by tile so that
-//! a tile's 16 blocks go into the output transform while they are in cache; the input transform
-//! runs on whole rows of tiles (loops the compiler vectorises). Rounding differs from the direct sum (the
+//! a tile's 16 blocks go into the output transform while they are in cache. The input transform
+//! runs per tile of [`NR`] positions, straight into the products' panels (runs of positions on
+//! one row of tiles, loops the compiler vectorises): no `16 x cin x tiles` matrix is stored and
+//! read back from scattered rows. Rounding differs from the direct sum (the
 //! transforms add and subtract before and after it): the parity tests' tolerance covers it.
 //! Every value is computed by one task in one order, so the results are the same bits for any
 //! thread count.
@@ -66,14 +68,14 @@ impl Weights {
 }
 
 std::thread_local! {
-    /// Phase-split padded input and transformed input, reused from call to call
-    /// ([`release_scratch`] frees them).
-    static SCRATCH: std::cell::RefCell<[Vec<f32>; 2]> = const { std::cell::RefCell::new([Vec::new(), Vec::new()]) };
+    /// The phase-split padded input, reused from call to call
+    /// ([`release_scratch`] frees it).
+    static SCRATCH: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
 /// Frees this thread's scratch.
 pub fn release_scratch() {
-    SCRATCH.with_borrow_mut(|s| *s = [Vec::new(), Vec::new()]);
+    SCRATCH.with_borrow_mut(|s| *s = Vec::new());
 }
 
 /// The 3x3, stride-1, padding-1 convolution of the channel concatenation of `parts` with `w`,
@@ -91,8 +93,7 @@ pub fn conv(parts: &[&Tensor], w: &Weights, epi: &Epilogue<'_>) -> Tensor {
     let span = rows * 2 * half;
     let tiles = th * tw;
     let mut out = Tensor::zeros(cout, h, wd);
-    SCRATCH.with_borrow_mut(|s| {
-        let [padded, v] = s;
+    SCRATCH.with_borrow_mut(|padded| {
         let padded = pool::scratch(padded, cin * span);
         par::chunks(padded, span, &|at, chunk| {
             for (i, dst) in chunk.chunks_mut(span).enumerate() {
@@ -120,49 +121,56 @@ pub fn conv(parts: &[&Tensor], w: &Weights, epi: &Epilogue<'_>) -> Tensor {
             }
         });
         let padded = &*padded;
-        // V (16 x cin x tiles): V[xi][c][ty tw + tx].
-        let v = pool::scratch(v, 16 * cin * tiles);
-        let vp = pool::Shared(v.as_mut_ptr());
-        par::each(cin, cin * tiles * 16, &|c| {
-            let vp = &vp;
-            let src = &padded[c * span..][..span];
-            let mut t = vec![0.0f32; 16 * tw];
-            for ty in 0..th {
-                // d B for the 4 patch rows: t[r][j][tx]
-                for r in 0..4 {
-                    let row = &src[(2 * ty + r) * 2 * half..][..2 * half];
-                    let (e, o) = row.split_at(half);
-                    let (t0, rest) = t[r * 4 * tw..][..4 * tw].split_at_mut(tw);
-                    let (t1, rest) = rest.split_at_mut(tw);
-                    let (t2, t3) = rest.split_at_mut(tw);
-                    for tx in 0..tw {
-                        let (d0, d1, d2, d3) = (e[tx], o[tx], e[tx + 1], o[tx + 1]);
-                        t0[tx] = d0 - d2;
-                        t1[tx] = d1 + d2;
-                        t2[tx] = d2 - d1;
-                        t3[tx] = d1 - d3;
+        // V = B^T d B of tiles p0 .. p0 + n (n <= NR) for every channel, as product16's panels
+        // (`panel[(xi cin + c) NR + q]`, V[xi][c] of tile p0 + q): the tile's patches are read
+        // from the padded planes (4 rows of the even and odd columns) run by run of tiles on one
+        // row of tiles.
+        let fill = |p0: usize, n: usize, panel: &mut [f32]| {
+            let mut q = 0;
+            while q < n {
+                let (ty, tx0) = ((p0 + q) / tw, (p0 + q) % tw);
+                let run = (n - q).min(tw - tx0);
+                for c in 0..cin {
+                    let src = &padded[c * span..][..span];
+                    // d B for the 4 patch rows: t[r][j][x], x < run
+                    let mut t = [[[0.0f32; NR]; 4]; 4];
+                    for (r, tr) in t.iter_mut().enumerate() {
+                        let row = &src[(2 * ty + r) * 2 * half..][..2 * half];
+                        let (e, o) = row.split_at(half);
+                        let (e, o) = (&e[tx0..tx0 + run + 1], &o[tx0..tx0 + run + 1]);
+                        let [t0, t1, t2, t3] = tr;
+                        for x in 0..run {
+                            let (d0, d1, d2, d3) = (e[x], o[x], e[x + 1], o[x + 1]);
+                            t0[x] = d0 - d2;
+                            t1[x] = d1 + d2;
+                            t2[x] = d2 - d1;
+                            t3[x] = d1 - d3;
+                        }
+                    }
+                    // B^T (d B): V[i][j] from rows r = 0..4 of column j
+                    #[allow(clippy::needless_range_loop)] // `j` picks a column of all four rows
+                    for j in 0..4 {
+                        let (u0, u1, u2, u3) = (&t[0][j], &t[1][j], &t[2][j], &t[3][j]);
+                        let at = |i: usize| ((i * 4 + j) * cin + c) * NR + q;
+                        for (x, v) in panel[at(0)..at(0) + run].iter_mut().enumerate() {
+                            *v = u0[x] - u2[x];
+                        }
+                        for (x, v) in panel[at(1)..at(1) + run].iter_mut().enumerate() {
+                            *v = u1[x] + u2[x];
+                        }
+                        for (x, v) in panel[at(2)..at(2) + run].iter_mut().enumerate() {
+                            *v = u2[x] - u1[x];
+                        }
+                        for (x, v) in panel[at(3)..at(3) + run].iter_mut().enumerate() {
+                            *v = u1[x] - u3[x];
+                        }
                     }
                 }
-                // B^T (d B): V[i][j] from rows r = 0..4 of column j
-                for j in 0..4 {
-                    let col = |r: usize| &t[(r * 4 + j) * tw..][..tw];
-                    let (u0, u1, u2, u3) = (col(0), col(1), col(2), col(3));
-                    // SAFETY: V[xi][c][ty tw ..][..tw] for this task's c only, inside `v`.
-                    let dst = |i: usize| unsafe { vp.slice(((i * 4 + j) * cin + c) * tiles + ty * tw, tw) };
-                    let (v0, v1, v2, v3) = (dst(0), dst(1), dst(2), dst(3));
-                    for tx in 0..tw {
-                        v0[tx] = u0[tx] - u2[tx];
-                        v1[tx] = u1[tx] + u2[tx];
-                        v2[tx] = u2[tx] - u1[tx];
-                        v3[tx] = u1[tx] - u3[tx];
-                    }
-                }
+                q += run;
             }
-        });
-        let v = &*v;
+        };
         // M[xi] (cout x tiles) = U[xi] V[xi], 16 products tile by tile; each tile's 16 blocks go
         // straight into Y = A^T M A and the epilogue, then to the output.
-        let rows: Vec<Vec<*const f32>> = (0..16).map(|xi| (0..cin).map(|c| v[(xi * cin + c) * tiles..].as_ptr()).collect()).collect();
         let outp = pool::Shared(out.data.as_mut_ptr());
         let store = |o0: usize, valid: usize, p0: usize, n: usize, sums: &[f32]| {
             let outp = &outp;
@@ -199,8 +207,7 @@ pub fn conv(parts: &[&Tensor], w: &Weights, epi: &Epilogue<'_>) -> Tensor {
                 }
             }
         };
-        // SAFETY: row c of product xi is V[xi][c] (`tiles` values of `v`).
-        unsafe { product16(&w.u, &rows, tiles, &store) };
+        product16(&w.u, tiles, &fill, &store);
     });
     out
 }

@@ -8,6 +8,7 @@ information): the innermost frame that belongs to a family's kernel names it (bu
 such as dot products are looked through), so a dot product inlined into the correlation lookup
 counts as correlation and one inside a convolution as convolution."""
 import bisect
+import os
 import re
 import subprocess
 import sys
@@ -113,7 +114,7 @@ def main(pcs_path, syms_path, dis_path, elf=None, macs_path=None):
         name = re.sub(r"::h[0-9a-f]{16}$", "", name)
         per_fn[name] = per_fn.get(name, 0) + c
     print(f"{total:,} instructions executed\n\nby function:")
-    for name, c in sorted(per_fn.items(), key=lambda x: -x[1])[:15]:
+    for name, c in sorted(per_fn.items(), key=lambda x: -x[1])[:int(os.environ.get("MUIR_PROFILE_TOP", "15"))]:
         print(f"  {100 * c / total:5.1f} %  {c:>15,}  {name[:110]}")
 
     if elf and macs_path:
