@@ -278,6 +278,111 @@ pub fn pixel_costs(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], 
     }
 }
 
+/// Whether [`refine_rows`] computes a row's costs by [`row_costs`]: where no vector kernel
+/// computes a pixel's candidates at once (Helium, AVX-512), e.g. on a Cortex-M7.
+const ROW_COSTS: bool = !cfg!(any(all(target_arch = "arm", feature = "mve"), all(target_arch = "x86_64", feature = "std")));
+
+/// Most disparities of one column's sums in [`row_costs`] (the union of three neighbours'
+/// bands; a wider union leaves the pixels that need the column to [`cost_plain`]).
+const COLUMN_SPAN: usize = 2 * SLOTS;
+
+/// The census distances of one column over the window's three rows at disparities `lo .. lo +
+/// n` (`n <= COLUMN_SPAN`; `n = 0`: not computed, see [`row_costs`]).
+#[derive(Clone, Copy)]
+struct Column {
+    lo: usize,
+    n: usize,
+    v: [u16; COLUMN_SPAN],
+}
+
+/// The Hamming distance of three pairs of 64-bit codes (`count_ones` of the XORs, summed) from
+/// 4-bit partial counts: six XORs, each reduced to nibble counts (at most 4), three of them added
+/// (at most 12), the two sums folded to bytes (at most 48) and the four bytes added by one
+/// multiply (at most 192). About 50 ALU instructions on an Armv7-M core, which has no popcount
+/// instruction, against about 20 per word for `count_ones`.
+#[inline(always)]
+fn hamming3(a: [u64; 3], b: [u64; 3]) -> u32 {
+    #[inline(always)]
+    fn nibbles(x: u32) -> u32 {
+        let x = x - ((x >> 1) & 0x5555_5555);
+        (x & 0x3333_3333) + ((x >> 2) & 0x3333_3333)
+    }
+    let [a0, a1, a2] = a;
+    let [b0, b1, b2] = b;
+    let (x0, x1, x2) = (a0 ^ b0, a1 ^ b1, a2 ^ b2);
+    let lo = nibbles(x0 as u32) + nibbles(x1 as u32) + nibbles(x2 as u32);
+    let hi = nibbles((x0 >> 32) as u32) + nibbles((x1 >> 32) as u32) + nibbles((x2 >> 32) as u32);
+    let bytes = (lo & 0x0F0F_0F0F) + ((lo >> 4) & 0x0F0F_0F0F) + (hi & 0x0F0F_0F0F) + ((hi >> 4) & 0x0F0F_0F0F);
+    bytes.wrapping_mul(0x0101_0101) >> 24
+}
+
+/// The costs of a whole row, [`pixel_costs`]' integers for every column `x` (`bands`: the row's
+/// firsts, then its lengths; `costs`: [`SLOTS`] per column). A pixel's cost is the sum over the
+/// three columns of its window (clamped) of per-column sums over the three rows, and each
+/// column's sums serve the three pixels whose windows hold it: computed once per column over the
+/// union of those pixels' bands, they take about a third of the popcounts of
+/// [`pixel_costs_portable`] (which sums nine distances per candidate).
+pub fn row_costs(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w: usize, bands: &[i16], costs: &mut [u16]) {
+    let band = |x: usize| match (bands.get(x), bands.get(w + x)) {
+        (Some(&first), Some(&len)) => Band { first, len },
+        _ => Band::default(),
+    };
+    // Column `q`'s sums: the union of the bands of pixels `q - 1 ..= q + 1`.
+    let column = |q: usize| {
+        let mut col = Column { lo: 0, n: 0, v: [0; COLUMN_SPAN] };
+        let (mut lo, mut hi) = (usize::MAX, 0);
+        for x in q.saturating_sub(1)..(q + 2).min(w) {
+            let b = band(x);
+            if b.n() > 0 {
+                lo = lo.min(b.first as usize);
+                hi = hi.max(b.first as usize + b.n());
+            }
+        }
+        if lo >= hi || hi - lo > COLUMN_SPAN {
+            return col; // no candidates, or too wide: the pixels compute their own
+        }
+        let [l0, l1, l2] = left;
+        let [r0, r1, r2] = right;
+        let a = [l0.get(q), l1.get(q), l2.get(q)];
+        for (k, v) in col.v.iter_mut().enumerate().take(hi - lo) {
+            let qr = q.saturating_sub(lo + k);
+            let b = [r0.get(qr), r1.get(qr), r2.get(qr)];
+            // A code missing from a shorter row adds nothing (as in `cost_plain`).
+            let pair = |i: usize| match (a.get(i).copied().flatten(), b.get(i).copied().flatten()) {
+                (Some(&x), Some(&y)) => (x, y),
+                _ => (0, 0),
+            };
+            let (p0, p1, p2) = (pair(0), pair(1), pair(2));
+            *v = hamming3([p0.0, p1.0, p2.0], [p0.1, p1.1, p2.1]) as u16;
+        }
+        (col.lo, col.n) = (lo, hi - lo);
+        col
+    };
+    let mut ring = [Column { lo: 0, n: 0, v: [0; COLUMN_SPAN] }; 3];
+    if let Some(c) = ring.get_mut(0) {
+        *c = column(0);
+    }
+    for (x, out) in costs.chunks_exact_mut(SLOTS).enumerate().take(w) {
+        if x + 1 < w {
+            if let Some(c) = ring.get_mut((x + 1) % 3) {
+                *c = column(x + 1);
+            }
+        }
+        let b = band(x);
+        let cols = [x.saturating_sub(1), x, (x + 1).min(w - 1)];
+        let [c0, c1, c2] = cols.map(|q| ring.get(q % 3));
+        let out = head_mut(out, b.n());
+        for (k, o) in out.iter_mut().enumerate() {
+            let d = b.first as usize + k;
+            let at = |c: Option<&Column>| c.filter(|c| d >= c.lo && d < c.lo + c.n).and_then(|c| c.v.get(d - c.lo)).map(|v| *v as u32);
+            *o = match (at(c0), at(c1), at(c2)) {
+                (Some(a), Some(b), Some(c)) => (a + b + c) as u16,
+                _ => cost_plain(left, right, w, x, d),
+            };
+        }
+    }
+}
+
 /// [`pixel_costs`] by `count_ones`, candidate by candidate: the specification.
 pub fn pixel_costs_portable(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w: usize, x: usize, b: Band, out: &mut [u16]) {
     for (k, c) in head_mut(out, b.n()).iter_mut().enumerate() {
@@ -660,7 +765,12 @@ fn refine_rows(left: &ImageView<'_>, right: &ImageView<'_>, disparity: &mut [i16
             set_at(b_cur, x, b.first);
             set_at(b_cur, w + x, b.len);
             set_at(g_cur, x, grey_at(left, x, y));
-            pixel_costs(&lrows, &rrows, w, x, b, c);
+            if !ROW_COSTS {
+                pixel_costs(&lrows, &rrows, w, x, b, c);
+            }
+        }
+        if ROW_COSTS {
+            row_costs(&lrows, &rrows, w, b_cur, costs);
         }
         // The three downward paths (from above-left, above, above-right).
         for (p, (prev_plane, cur_plane)) in top_prev.chunks_exact(sw).zip(top_cur.chunks_exact_mut(sw)).enumerate() {
@@ -824,6 +934,39 @@ pub fn refine_image_plain(left: &ImageView<'_>, right: &ImageView<'_>, disparity
 #[allow(clippy::indexing_slicing)]
 mod tests {
     use super::*;
+
+    /// [`row_costs`] (shared column sums) against [`pixel_costs_portable`] on random codes:
+    /// neighbouring bands that overlap, jump apart (unions wider than a column holds) or are
+    /// empty, rows of 1 to 40 columns, a right row shorter than the left one.
+    #[test]
+    fn row_costs_match_pixel_costs() {
+        let mut r = crate::kernels::testutil::Rng(23);
+        for &w in &[1usize, 2, 3, 17, 40] {
+            for trial in 0..20 {
+                let code = |r: &mut crate::kernels::testutil::Rng| if trial % 5 == 0 { u64::MAX } else { r.next() & ((1 << 48) - 1) };
+                let rows: Vec<Vec<u64>> = (0..6).map(|i| (0..if i == 5 && trial % 3 == 1 { w.saturating_sub(1) } else { w }).map(|_| code(&mut r)).collect()).collect();
+                let left: [&[u64]; WINDOW_ROWS] = [&rows[0], &rows[1], &rows[2]];
+                let right: [&[u64]; WINDOW_ROWS] = [&rows[3], &rows[4], &rows[5]];
+                let mut bands = vec![0i16; 2 * w];
+                for x in 0..w {
+                    let (first, len) = match r.below(8) {
+                        0 => (0, 0),
+                        1 => (r.below(200) as i16, r.below(SLOTS as u64 + 1) as i16),
+                        _ => ((20 + x / 3 + r.below(3) as usize) as i16, (8 + r.below(12)) as i16),
+                    };
+                    (bands[x], bands[w + x]) = (first, len);
+                }
+                let mut got = vec![0xFFFFu16; SLOTS * w];
+                row_costs(&left, &right, w, &bands, &mut got);
+                for x in 0..w {
+                    let b = Band { first: bands[x], len: bands[w + x] };
+                    let mut want = [0u16; SLOTS];
+                    pixel_costs_portable(&left, &right, w, x, b, &mut want);
+                    assert_eq!(&got[x * SLOTS..x * SLOTS + b.n()], &want[..b.n()], "w {w} trial {trial} x {x} {b:?}");
+                }
+            }
+        }
+    }
 
     #[cfg(feature = "std")]
     #[test]
