@@ -363,10 +363,8 @@ pub fn row_costs(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w:
         *c = column(0);
     }
     for (x, out) in costs.chunks_exact_mut(SLOTS).enumerate().take(w) {
-        if x + 1 < w {
-            if let Some(c) = ring.get_mut((x + 1) % 3) {
-                *c = column(x + 1);
-            }
+        if let (true, Some(c)) = (x + 1 < w, ring.get_mut((x + 1) % 3)) {
+            *c = column(x + 1);
         }
         let b = band(x);
         let cols = [x.saturating_sub(1), x, (x + 1).min(w - 1)];
