@@ -845,11 +845,9 @@ fn check_weights(r: &mut Rng, keys: &mut [i16; MAX_N], vals: &mut [i16; MAX_N]) 
 }
 
 /// Widest image of the refinement checks.
-#[cfg(feature = "mve")]
 const REF_W: usize = 160;
 
 /// Buffers of the refinement checks (static: no large stack frames).
-#[cfg(feature = "mve")]
 struct RefineBufs {
     img: [u8; REF_W * 9 * 3],
     grey: [u8; 7 * REF_W],
@@ -858,7 +856,6 @@ struct RefineBufs {
     codes: [[u64; REF_W]; 6],
 }
 
-#[cfg(feature = "mve")]
 static mut REFINE: RefineBufs = RefineBufs {
     img: [0; REF_W * 9 * 3],
     grey: [0; 7 * REF_W],
@@ -867,14 +864,17 @@ static mut REFINE: RefineBufs = RefineBufs {
     codes: [[0; REF_W]; 6],
 };
 
-/// The refinement's Helium kernels against their portable twins (`muir::kernels::fullres`):
-/// census rows (`mve::census`) of grey and RGB images of widths 1 to 40 and up to 160, rows
+/// `row_costs`' output in the refinement checks.
+static mut ROW_COSTS: [u16; muir::kernels::fullres::SLOTS * REF_W] = [0; muir::kernels::fullres::SLOTS * REF_W];
+
+/// The refinement's kernels against their portable twins (`muir::kernels::fullres`): with
+/// Helium the vector ones, without it the DSP census (`census_interior_dsp`) and a row's costs
+/// from shared column sums (`row_costs`). Census rows (`mve::census`) of grey and RGB images of widths 1 to 40 and up to 160, rows
 /// inside and outside the image, random, two-level (equal neighbours) and constant pixels, a
 /// grey scratch too short for the vector path; the costs of a pixel's band (`mve::cost_pairs`) on
 /// random, all-ones and zero codes at every column with bands starting left and right of the
 /// clamping limit; path steps (`mve::path_update`) with shifted bands, random and extreme costs
 /// and penalties (the portable fallback beyond the u16 lanes), sentinels past the written values.
-#[cfg(feature = "mve")]
 fn check_refine(r: &mut Rng) -> usize {
     use muir::input::{ImageView, PixelFormat};
     use muir::kernels::fullres::{self, Band, SLOTS};
@@ -954,6 +954,43 @@ fn check_refine(r: &mut Rng) -> usize {
                 }
                 cases += 1;
             }
+        }
+    }
+    // A row's costs from shared column sums (`row_costs`, the DSP build's path) against the
+    // candidates' own: neighbouring bands that overlap, jump apart or are empty.
+    for case in 0..200u32 {
+        let w = 1 + (r.next() % REF_W as u64) as usize;
+        for row in b.codes.iter_mut() {
+            for c in row.iter_mut().take(w) {
+                *c = if case % 7 == 0 { u64::MAX } else { r.next() >> 16 };
+            }
+        }
+        let [l0, l1, l2, r0, r1, r2] = &b.codes;
+        let left: [&[u64]; 3] = [&l0[..w], &l1[..w], &l2[..w]];
+        let right: [&[u64]; 3] = [&r0[..w], &r1[..w], &r2[..w]];
+        let mut bands = [0i16; 2 * REF_W];
+        for x in 0..w {
+            let (first, len) = match r.next() % 8 {
+                0 => (0, 0),
+                1 => ((r.next() % 200) as i16, (r.next() % (SLOTS as u64 + 1)) as i16),
+                _ => ((10 + x / 3 + (r.next() % 3) as usize) as i16, (8 + r.next() % 12) as i16),
+            };
+            (bands[x], bands[w + x]) = (first, len);
+        }
+        // SAFETY: called once, the only user of `ROW_COSTS`.
+        let got = unsafe { &mut *core::ptr::addr_of_mut!(ROW_COSTS) };
+        got.fill(0xA5A5);
+        fullres::row_costs(&left, &right, w, &bands[..2 * w], &mut got[..SLOTS * w]);
+        for x in 0..w {
+            let band = Band { first: bands[x], len: bands[w + x] };
+            let mut want = [0xA5A5u16; SLOTS];
+            fullres::pixel_costs_portable(&left, &right, w, x, band, &mut want);
+            let n = (band.len.max(0) as usize).min(SLOTS);
+            if got[x * SLOTS..x * SLOTS + n] != want[..n] {
+                println!("MUIR-KERNELS FAILED row costs w={w} x={x} first={} len={}", band.first, band.len);
+                process::exit(1);
+            }
+            cases += 1;
         }
     }
     // Path steps.
@@ -1443,9 +1480,9 @@ fn main() -> ! {
         cases += check_attention(i16s.a, i16s.b, &mut r);
         cases += check_requant(&mut r);
         cases += check_popcount(&mut r);
-        cases += check_refine(&mut r);
         cases += check_weights(&mut r, i16s.a, i16s.b);
     }
+    cases += check_refine(&mut r);
     #[cfg(not(feature = "mve"))]
     {
         cases += check_requant_dsp(&mut r);

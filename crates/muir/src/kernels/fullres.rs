@@ -117,6 +117,12 @@ pub fn census_row(img: &ImageView<'_>, y: isize, grey: &mut [u8], out: &mut [u64
         census_codes(grey, w, (0..CENSUS_RADIUS).chain(w - CENSUS_RADIUS..w), out);
         return;
     }
+    #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+    if w > 2 * CENSUS_RADIUS && grey.len() >= (2 * CENSUS_RADIUS + 1) * w && out.len() >= w {
+        let done = census_interior_dsp(grey, w, out);
+        census_codes(grey, w, (0..CENSUS_RADIUS).chain(done..w), out);
+        return;
+    }
     #[cfg(all(target_arch = "x86_64", feature = "std"))]
     {
         let done = avx512::census_interior(grey, w, out);
@@ -125,6 +131,65 @@ pub fn census_row(img: &ImageView<'_>, y: isize, grey: &mut [u8], out: &mut [u64
     }
     #[allow(unreachable_code)]
     census_codes(grey, w, 0..w, out);
+}
+
+/// The census codes of columns `3 .. done` (returned; `done - 3` a multiple of 4, no column
+/// past `w - 4` needing a clamped neighbour) from the seven grey rows, four columns at a time
+/// with the Armv7E-M byte instructions: per neighbour one word of four grey levels against the
+/// four centres (`USUB8` sets a byte's GE flag where the neighbour is not darker, `SEL` makes
+/// the darker ones' bytes `0xFF`), its top bits shifted into four byte accumulators, so that
+/// eight neighbours make one byte of each of the four codes (neighbour order, first in bit 0).
+/// About 5 instructions per neighbour and 4 pixels, against some 30 per neighbour and pixel for
+/// [`census_codes`].
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+fn census_interior_dsp(grey: &[u8], w: usize, out: &mut [u64]) -> usize {
+    let r = CENSUS_RADIUS;
+    // The 48 neighbours (row-major, centre skipped) as offsets from column `x - 3` of row 0.
+    let mut offs = [0usize; 48];
+    let mut n = 0;
+    for dy in 0..=2 * r {
+        for dx in 0..=2 * r {
+            if (dy, dx) != (r, r) {
+                if let Some(o) = offs.get_mut(n) {
+                    *o = dy * w + dx;
+                }
+                n += 1;
+            }
+        }
+    }
+    let mut x = r;
+    // Pixels `x .. x + 4` read columns `x - 3 .. x + 7` of rows 0 ..= 6: within `7 w` bytes.
+    while x + 4 + r <= w && grey.len() >= (2 * r + 1) * w && out.len() >= x + 4 {
+        let base = grey.as_ptr().wrapping_add(x - r);
+        // SAFETY: row 3, columns `x .. x + 4` (`x + 4 <= w`).
+        let c = unsafe { base.add(r * w + r).cast::<u32>().read_unaligned() };
+        let mut acc = [0u32; 6];
+        for (a, group) in acc.iter_mut().zip(offs.chunks_exact(8)) {
+            for &o in group {
+                // SAFETY: row `dy <= 6`, columns `x - 3 + dx .. x + 1 + dx` with `dx <= 6`: below
+                // `x + 7 <= w` (the loop's condition), inside `grey`'s `7 w` bytes.
+                let nb = unsafe { base.add(o).cast::<u32>().read_unaligned() };
+                // SAFETY: register-only DSP instructions (the GE flags they set are not read
+                // after the block).
+                unsafe {
+                    core::arch::asm!(
+                        "usub8 {t}, {n}, {c}",
+                        "sel {t}, {z}, {f}",
+                        "and {t}, {t}, #0x80808080",
+                        "orr {a}, {t}, {a}, lsr #1",
+                        t = out(reg) _, n = in(reg) nb, c = in(reg) c, z = in(reg) 0u32, f = in(reg) u32::MAX, a = inout(reg) *a,
+                        options(pure, nomem, nostack),
+                    );
+                }
+            }
+        }
+        for (j, code) in out.iter_mut().skip(x).take(4).enumerate() {
+            let byte = |g: usize| ((acc.get(g).copied().unwrap_or(0) >> (8 * j)) & 0xFF) as u64;
+            *code = (0..6).fold(0u64, |v, g| v | byte(g) << (8 * g));
+        }
+        x += 4;
+    }
+    x
 }
 
 /// [`census_row`] without vector kernels: the specification.
