@@ -139,7 +139,7 @@ def main(pcs_path, syms_path, dis_path, elf=None, macs_path=None):
     if cur:
         regions.append(cur)
     print("\nhottest regions (executions of the first instruction, then the instructions):")
-    for lo, hi, c, n in sorted(regions, key=lambda r: -r[2])[:6]:
+    for lo, hi, c, n in sorted(regions, key=lambda r: -r[2])[:int(os.environ.get("MUIR_PROFILE_REGIONS", "6"))]:
         ins = [dis[k].split()[0] for k in sorted(dis) if lo <= k <= hi]
         print(f"  {100 * c / total:5.1f} %  {lo:#x}..{hi:#x}  x{n:,}  {len(ins)} instructions: {' '.join(ins[:32])}")
 

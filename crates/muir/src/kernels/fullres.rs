@@ -541,12 +541,91 @@ pub fn path_step(prev: &[u16], pband: Band, cost: &[u16], band: Band, p2: u32, o
             }
         }
     }
+    #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+    {
+        let (prev, cost) = (head(prev, pband.n()), head(cost, band.n()));
+        let out = head_mut(out, band.n());
+        if let Some(m) = prev.iter().min().copied() {
+            let mp2 = (m as u32).saturating_add(p2);
+            // (as the Helium step: larger values take the portable one)
+            if mp2 <= u16::MAX as u32 - P1 {
+                let n = out.len().min(cost.len());
+                let shift = band.first as isize - pband.first as isize;
+                // `win[i] = prev[i - 1 + shift]` where that exists, `u16::MAX` elsewhere.
+                let mut win = [u16::MAX; SLOTS + 4];
+                let lo = (1 - shift).max(0);
+                let hi = (n as isize + 2).min(prev.len() as isize + 1 - shift);
+                if lo < hi {
+                    let (lo, hi) = (lo as usize, hi as usize);
+                    if let (Some(dst), Some(src)) = (win.get_mut(lo..hi), prev.get((lo as isize - 1 + shift) as usize..)) {
+                        dst.iter_mut().zip(src).for_each(|(d, s)| *d = *s);
+                    }
+                }
+                path_update_dsp(&win, cost, m, mp2 as u16, out);
+                return;
+            }
+        }
+    }
     #[cfg(all(target_arch = "x86_64", feature = "std"))]
     if avx512::path_step(prev, pband, cost, band, p2, out) {
         return;
     }
     #[allow(unreachable_code)]
     path_step_portable(prev, pband, cost, band, p2, out)
+}
+
+/// [`path_step`]'s update once the predecessor's costs are laid out as a window (`win[k + 1]` the
+/// predecessor's cost at the candidate of `out[k]`, `u16::MAX` where it has none), two candidates
+/// a word with the Armv7E-M halfword instructions: `out[k] = cost[k] + min(win[k + 1], min(win[k],
+/// win[k + 2], mp2) + P1, mp2) - m` (`min16` by `USUB16` + `SEL`; with `mp2 + P1 <= 0xFFFF` no
+/// halfword overflows, `min(.., mp2) >= m`), for `k < min(cost.len(), out.len())`
+/// (`win.len() >= k + 4`).
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(always)]
+fn path_update_dsp(win: &[u16; SLOTS + 4], cost: &[u16], m: u16, mp2: u16, out: &mut [u16]) {
+    let n = cost.len().min(out.len()).min(SLOTS + 2);
+    let pair = |v: u16| v as u32 * 0x0001_0001;
+    let (mm, mp2s, p1s) = (pair(m), pair(mp2), pair(P1 as u16));
+    let two = |s: &[u16], k: usize| match s.get(k..k + 2) {
+        Some(&[a, b]) => a as u32 | (b as u32) << 16,
+        _ => 0,
+    };
+    let mut k = 0;
+    while k + 2 <= n {
+        let (a, b, c, cs) = (two(win, k), two(win, k + 1), two(win, k + 2), two(cost, k));
+        let r: u32;
+        // SAFETY: register-only DSP instructions (the GE flags they set are not read after the
+        // block).
+        unsafe {
+            core::arch::asm!(
+                "usub16 {t}, {a}, {c}",
+                "sel {t}, {c}, {a}",
+                "usub16 {a}, {t}, {mp2}",
+                "sel {t}, {mp2}, {t}",
+                "uadd16 {t}, {t}, {p1}",
+                "usub16 {a}, {t}, {b}",
+                "sel {t}, {b}, {t}",
+                "usub16 {a}, {t}, {mp2}",
+                "sel {t}, {mp2}, {t}",
+                "usub16 {t}, {t}, {m}",
+                "uadd16 {t}, {t}, {cs}",
+                t = out(reg) r, a = inout(reg) a => _, b = in(reg) b, c = in(reg) c, cs = in(reg) cs,
+                mp2 = in(reg) mp2s, p1 = in(reg) p1s, m = in(reg) mm,
+                options(pure, nomem, nostack),
+            );
+        }
+        if let Some([o0, o1]) = out.get_mut(k..k + 2).and_then(|o| <&mut [u16; 2]>::try_from(o).ok()) {
+            (*o0, *o1) = (r as u16, (r >> 16) as u16);
+        }
+        k += 2;
+    }
+    if k < n {
+        let w = |i: usize| win.get(i).copied().unwrap_or(u16::MAX) as u32;
+        let best = (w(k).min(w(k + 2)).min(mp2 as u32) + P1).min(w(k + 1)).min(mp2 as u32);
+        if let (Some(o), Some(&c)) = (out.get_mut(k), cost.get(k)) {
+            *o = (c as u32 + best - m as u32) as u16;
+        }
+    }
 }
 
 /// [`path_step`] value by value: the specification.
