@@ -218,6 +218,39 @@ fn check_attention(q: &mut [i16; MAX_N], k: &mut [i16; MAX_N], r: &mut Rng) -> u
     cases
 }
 
+/// The DSP build's correlation of one feature vector with four consecutive columns
+/// (`dsp::dot_i8_4cols`, the lookup's window) against plain sums: vector lengths 0 to 140 (whole
+/// quads and not), random values and all -128, rows one value short (its per-column fallback:
+/// the incomplete column is 0).
+#[cfg(not(feature = "mve"))]
+fn check_corr4(r: &mut Rng) -> usize {
+    let mut f1 = [0i8; 140];
+    let mut f2 = [0i8; 4 * 140];
+    let mut cases = 0;
+    for c in 0..=140usize {
+        for extreme in [false, true] {
+            for v in f1.iter_mut().take(c).chain(f2.iter_mut().take(4 * c)) {
+                *v = if extreme { i8::MIN } else { (r.next() >> 56) as i8 };
+            }
+            for short in [0usize, 1] {
+                let row = &f2[..(4 * c).saturating_sub(short)];
+                let got = muir::kernels::dsp::dot_i8_4cols(&f1[..c], row, c);
+                for (j, g) in got.iter().enumerate() {
+                    // (a column the row does not hold whole is 0, as `corr::corr_at` has it)
+                    let col = row.get(j * c..(j + 1) * c).unwrap_or(&[]);
+                    let want: i32 = f1[..c].iter().zip(col).map(|(a, b)| *a as i32 * *b as i32).sum();
+                    if *g != want {
+                        println!("MUIR-KERNELS FAILED corr4 c={c} extreme={extreme} short={short} column {j}: kernel {g}, plain {want}");
+                        process::exit(1);
+                    }
+                    cases += 1;
+                }
+            }
+        }
+    }
+    cases
+}
+
 /// The DSP build's MGA value sums (`dsp::aggregate`: two keys and two channels per `SMLALD`,
 /// weights of 32768 by a per-key pass, the plain loop for a block with more than four of them or
 /// over 128 keys) against a plain loop: blocks of 1 to 34 keys and around 64 and 128 (the
@@ -1487,6 +1520,7 @@ fn main() -> ! {
     {
         cases += check_requant_dsp(&mut r);
         cases += check_aggregate_dsp(i16s.a, &mut r);
+        cases += check_corr4(&mut r);
     }
     cases += check_conv(&mut r);
     #[cfg(not(feature = "mve"))]
