@@ -303,8 +303,8 @@ pub fn interp_row(src: &[i16], h: usize, w: usize, c: usize, h_out: usize, w_out
 }
 
 /// The upsampling mask's logits of a row: the 1x1 conv `p` over `mid` (`w` pixels of `mh`), then
-/// `pixel(x, logits of x)` for each pixel in order.
-pub fn mask_logits_row(p: &ConvParams<'_>, mid: &[i16], w: usize, mh: usize, mut pixel: impl FnMut(usize, &mut [i16])) {
+/// `pixel(x, logits of x)` for every pixel, the row's pixels as tasks on the kernel pool.
+pub fn mask_logits_row(p: &ConvParams<'_>, mid: &[i16], w: usize, mh: usize, pixel: &(dyn Fn(usize, &[i16]) + Sync)) {
     ROW.with_borrow_mut(|(_, patch)| {
         LOGITS.with_borrow_mut(|logits| {
             let n = p.cout;
@@ -315,9 +315,12 @@ pub fn mask_logits_row(p: &ConvParams<'_>, mid: &[i16], w: usize, mh: usize, mut
                 *r = mid.get(..w * mh);
             }
             run_conv(p, &[PartRows { rows }], w, &mut OutRow::I16(logits), patch);
-            for (x, l) in logits.chunks_exact_mut(n.max(1)).enumerate() {
-                pixel(x, l);
-            }
+            let logits = &*logits;
+            per_pixels(w.min(logits.len() / n.max(1)), &|xs| {
+                for x in xs {
+                    pixel(x, logits.get(x * n..(x + 1) * n).unwrap_or_default());
+                }
+            });
         });
     });
 }

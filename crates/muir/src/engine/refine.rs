@@ -699,6 +699,20 @@ pub fn flow_head(c: &mut Ctx<'_, '_, '_>, settled: u16) -> usize {
     moved
 }
 
+/// `put(at, row)` for each row of the `UP x UP` block of 1/8-grid pixel `(x, y)` that lies inside
+/// the `width x height` output, cropped to it: `at` the index of its first value in the output,
+/// `row` its values (`UP` or fewer at the right edge).
+fn crop_block(x: usize, y: usize, width: usize, height: usize, blk: &[i16; UP * UP], mut put: impl FnMut(usize, &[i16])) {
+    let cols = width.saturating_sub(UP * x).min(UP);
+    for (dy, row) in blk.chunks_exact(UP).enumerate() {
+        let oy = UP * y + dy;
+        if oy >= height {
+            break;
+        }
+        put(oy * width + UP * x, row.get(..cols).unwrap_or_default());
+    }
+}
+
 /// Upsampling: mask head and convex upsampling of disparity (Q10.5 px) and uncertainty (Q4.11)
 /// into the cropped `width x height` outputs.
 #[inline(never)] // a phase: its stack frame must not add to the caller's (see `engine::STACK_BUDGET`)
@@ -726,35 +740,54 @@ pub fn upsample(c: &mut Ctx<'_, '_, '_>, width: usize, height: usize, disp: &mut
         }
     }
     let u_src: Option<&[i16]> = if cfg.mud { Some(&*c.st.u) } else { None };
-    let mut dblk = [0i16; UP * UP];
-    let mut ublk = [0i16; UP * UP];
+    #[cfg(not(feature = "std"))]
+    let (mut dblk, mut ublk) = ([0i16; UP * UP], [0i16; UP * UP]);
     let flow0 = first_n(flow0, g.n8());
     let mid = first_n_mut(mid, w * mh);
     for y in 0..h8 {
         conv16(&p1, &[full(c.frame.net08, h8, w * hd, y, 3)], w, mid, c.px.patch);
-        let mut pixel = |x: usize, logits: &mut [i16]| {
-            upsample_pixel(logits, mask_frac, flow0, u_src, h8, w, y, x, &mut dblk, u_src.map(|_| &mut ublk[..]), UP);
-            // The UP x UP block, cropped to the output: `cols` columns from `UP x` on.
-            let cols = width.saturating_sub(UP * x).min(UP);
-            for (dy, (db, ub)) in dblk.chunks_exact(UP).zip(ublk.chunks_exact(UP)).enumerate() {
-                let oy = UP * y + dy;
-                if oy >= height {
-                    break;
-                }
-                let at = oy * width + UP * x;
-                if let Some(d) = disp.get_mut(at..at + cols) {
-                    d.iter_mut().zip(db).for_each(|(d, s)| *d = *s);
-                }
-                if let Some(u) = unc.as_deref_mut().and_then(|u| u.get_mut(at..at + cols)) {
-                    u.iter_mut().zip(ub).for_each(|(u, s)| *u = *s);
-                }
-            }
-        };
-        // Host: the row's logits by one conv call; firmware: by one conv call per run of pixels
+        // Host: the row's logits by one conv call, its pixels' blocks on the kernel pool (each
+        // writes its own columns of the output); firmware: by one conv call per run of pixels
         // (runs of equal length) in the idle line buffers, pixel by pixel where they cannot hold
         // one pixel's logits. A 1x1 convolution: the same integers either way.
         #[cfg(feature = "std")]
-        super::host_rows::mask_logits_row(&p2, mid, w, mh, &mut pixel);
+        {
+            let (dp, dlen) = (crate::kernels::pool::Shared(disp.as_mut_ptr()), disp.len());
+            let (up, ulen) = match unc.as_deref_mut() {
+                Some(u) => (crate::kernels::pool::Shared(u.as_mut_ptr()), u.len()),
+                None => (crate::kernels::pool::Shared(core::ptr::null_mut()), 0),
+            };
+            super::host_rows::mask_logits_row(&p2, mid, w, mh, &|x, logits| {
+                let (mut dblk, mut ublk) = ([0i16; UP * UP], [0i16; UP * UP]);
+                upsample_pixel(logits, mask_frac, flow0, u_src, h8, w, y, x, &mut dblk, u_src.map(|_| &mut ublk[..]), UP);
+                for (blk, (out, len)) in [(&dblk, (&dp, dlen)), (&ublk, (&up, ulen))] {
+                    crop_block(x, y, width, height, blk, |at, row| {
+                        if at + row.len() <= len {
+                            // SAFETY: `at .. at + row.len()` lies inside the output (`len`
+                            // values; 0 without uncertainty) and belongs to pixel `x`'s block,
+                            // which no other task writes.
+                            unsafe { out.slice(at, row.len()) }.copy_from_slice(row);
+                        }
+                    });
+                }
+            });
+        }
+        #[cfg(not(feature = "std"))]
+        let mut pixel = |x: usize, logits: &mut [i16]| {
+            upsample_pixel(logits, mask_frac, flow0, u_src, h8, w, y, x, &mut dblk, u_src.map(|_| &mut ublk[..]), UP);
+            crop_block(x, y, width, height, &dblk, |at, row| {
+                if let Some(d) = disp.get_mut(at..at + row.len()) {
+                    d.copy_from_slice(row);
+                }
+            });
+            if let Some(u) = unc.as_deref_mut() {
+                crop_block(x, y, width, height, &ublk, |at, row| {
+                    if let Some(d) = u.get_mut(at..at + row.len()) {
+                        d.copy_from_slice(row);
+                    }
+                });
+            }
+        };
         #[cfg(not(feature = "std"))]
         {
             let per = spare.len() / MASK_CHANNELS;
