@@ -421,80 +421,80 @@ core::arch::global_asm!(
     "    pop {{r4-r11, pc}}",
     ".size muir_dsp_dot2x2_u8, . - muir_dsp_dot2x2_u8",
     "",
-    // The i16 loop against weights widened beforehand (`dot2x2_w16`): per group 4 LDRD and
-    // 8 SMLAD = 12 instructions per 16 MACs. r0 = x (pair layout, word-aligned), r1 = the
-    // channel pair's widened weights (per group w0's two words, then w1's; word-aligned),
-    // r2 = groups (>= 1), r3 = out (four i64, added to). Chunks of `chunk` groups in i32 as
-    // in the i16 loop; r2 counts the groups still to do, r3 is the chunk's end of r1 (`out`
-    // waits on the stack).
+    // The i16 loop against weights widened beforehand (`dot2x2_w16`), unrolled: per group one
+    // LDM of the pair's four activation words (a's two, then b's), one LDM of the channel pair's
+    // four widened weight words (w0's two, then w1's) and 8 SMLAD = 10 instructions per 16 MACs
+    // (13 with LDRDs and the loop's CMP/BNE per two groups). The eight data registers, four
+    // accumulators and two pointers take all fourteen, so there is no loop: the body is written
+    // `chunk` times (40 bytes each, every instruction 32-bit) and a chunk of `n` groups enters it
+    // `n` copies before its end (a computed branch). r0 = x (pair layout, word-aligned), r1 = the
+    // channel pair's widened weights (per group w0's two words, then w1's; word-aligned), r2 =
+    // groups (>= 1), r3 = out (four i64, added to). Chunks of `chunk` groups in i32 as in the
+    // i16 loop; [sp] the groups still to do, [sp, #4] out.
     ".section .text.muir_dsp_dot2x2_w16,\"ax\",%progbits",
     ".global muir_dsp_dot2x2_w16",
     ".type muir_dsp_dot2x2_w16,%function",
     ".p2align 2",
     ".thumb_func",
     "muir_dsp_dot2x2_w16:",
-    "    push {{r3-r11, lr}}",
-    "2:",
-    "    mov r12, r2",
+    "    push {{r4-r11, lr}}",
+    "    sub sp, #8",
+    "    strd r2, r3, [sp]",
+    "    b.w 8f",
+    ".p2align 2",
+    "7:",
+    ".rept {chunk}",
+    "    ldm.w r0!, {{r6-r9}}",        // a: (a0, a2), (a1, a3); b: (b0, b2), (b1, b3)
+    "    ldm.w r1!, {{r10-r12, lr}}",  // w0: (w0, w2), (w1, w3); w1: the same, widened
+    "    smlad r2, r10, r6, r2",
+    "    smlad r2, r11, r7, r2",
+    "    smlad r3, r12, r6, r3",
+    "    smlad r3, lr, r7, r3",
+    "    smlad r4, r10, r8, r4",
+    "    smlad r4, r11, r9, r4",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    ".endr",
+    "9:",
+    "    ldr r12, [sp, #4]",
+    "    ldrd r8, r9, [r12]",
+    "    adds r8, r8, r2",
+    "    adc r9, r9, r2, asr #31",
+    "    strd r8, r9, [r12]",
+    "    ldrd r8, r9, [r12, #8]",
+    "    adds r8, r8, r3",
+    "    adc r9, r9, r3, asr #31",
+    "    strd r8, r9, [r12, #8]",
+    "    ldrd r8, r9, [r12, #16]",
+    "    adds r8, r8, r4",
+    "    adc r9, r9, r4, asr #31",
+    "    strd r8, r9, [r12, #16]",
+    "    ldrd r8, r9, [r12, #24]",
+    "    adds r8, r8, r5",
+    "    adc r9, r9, r5, asr #31",
+    "    strd r8, r9, [r12, #24]",
+    "8:",
+    "    ldr lr, [sp]",
+    "    cmp lr, #0",
+    "    beq 6f",
+    "    mov r12, lr",
     "    cmp r12, #{chunk}",
     "    it hi",
     "    movhi r12, #{chunk}",
-    "    sub r2, r2, r12",
-    "    add r3, r1, r12, lsl #4",
+    "    sub lr, lr, r12",
+    "    str lr, [sp]",
+    "    movs r2, #0",
+    "    movs r3, #0",
     "    movs r4, #0",
     "    movs r5, #0",
-    "    movs r6, #0",
-    "    movs r7, #0",
-    "    tst r12, #1",               // an odd group count starts at 3
-    "    bne 3f",
-    "1:",
-    "    ldrd r8, r9, [r0], #8",      // a: (a0, a2), (a1, a3)
-    "    ldrd r10, r11, [r0], #8",    // b: (b0, b2), (b1, b3)
-    "    ldrd r12, lr, [r1], #8",     // w0: (w0, w2), (w1, w3), widened
-    "    smlad r4, r12, r8, r4",
-    "    smlad r4, lr, r9, r4",
-    "    smlad r6, r12, r10, r6",
-    "    smlad r6, lr, r11, r6",
-    "    ldrd r12, lr, [r1], #8",     // w1
-    "    smlad r5, r12, r8, r5",
-    "    smlad r5, lr, r9, r5",
-    "    smlad r7, r12, r10, r7",
-    "    smlad r7, lr, r11, r7",
-    "3:",
-    "    ldrd r8, r9, [r0], #8",      // a: (a0, a2), (a1, a3)
-    "    ldrd r10, r11, [r0], #8",    // b: (b0, b2), (b1, b3)
-    "    ldrd r12, lr, [r1], #8",     // w0: (w0, w2), (w1, w3), widened
-    "    smlad r4, r12, r8, r4",
-    "    smlad r4, lr, r9, r4",
-    "    smlad r6, r12, r10, r6",
-    "    smlad r6, lr, r11, r6",
-    "    ldrd r12, lr, [r1], #8",     // w1
-    "    smlad r5, r12, r8, r5",
-    "    smlad r5, lr, r9, r5",
-    "    smlad r7, r12, r10, r7",
-    "    smlad r7, lr, r11, r7",
-    "    cmp r1, r3",
-    "    bne 1b",
-    "    ldr r12, [sp]",
-    "    ldrd r8, r9, [r12]",
-    "    adds r8, r8, r4",
-    "    adc r9, r9, r4, asr #31",
-    "    strd r8, r9, [r12]",
-    "    ldrd r8, r9, [r12, #8]",
-    "    adds r8, r8, r5",
-    "    adc r9, r9, r5, asr #31",
-    "    strd r8, r9, [r12, #8]",
-    "    ldrd r8, r9, [r12, #16]",
-    "    adds r8, r8, r6",
-    "    adc r9, r9, r6, asr #31",
-    "    strd r8, r9, [r12, #16]",
-    "    ldrd r8, r9, [r12, #24]",
-    "    adds r8, r8, r7",
-    "    adc r9, r9, r7, asr #31",
-    "    strd r8, r9, [r12, #24]",
-    "    cmp r2, #0",
-    "    bne 2b",
-    "    pop {{r3-r11, pc}}",
+    "    adr lr, 9b",
+    "    add r12, r12, r12, lsl #2",   // 40 bytes a group: the entry is 9b - 8 * (5 n)
+    "    sub lr, lr, r12, lsl #3",
+    "    orr lr, lr, #1",
+    "    bx lr",
+    "6:",
+    "    add sp, #8",
+    "    pop {{r4-r11, pc}}",
     ".size muir_dsp_dot2x2_w16, . - muir_dsp_dot2x2_w16",
     "",
     // `widen_weights`' loop: r0 = w0, r1 = w1 (int8 rows, any alignment), r2 = groups (>= 1),
