@@ -214,21 +214,49 @@ fn paired_sums(ep: &[u32], v: &[i16], cv: usize, acc: &mut [i64]) {
 /// both words. A shift outside the range gives an unspecified value, never a panic.
 #[inline(always)]
 pub fn requantize_i32(acc: i32, m: crate::arith::Multiplier) -> i64 {
-    let s = m.shift as u32;
-    // The rounding half 2^(s-1) as (low, high) words.
-    let (mut lo, mut hi) = if s >= 33 { (0u32, 1u32 << ((s - 33) & 31)) } else { (1u32 << (s.wrapping_sub(1) & 31), 0u32) };
-    // SAFETY: register-only; SMLAL touches no flags.
-    unsafe {
-        asm!("smlal {lo}, {hi}, {a}, {b}", lo = inout(reg) lo, hi = inout(reg) hi, a = in(reg) acc, b = in(reg) m.m,
-            options(pure, nomem, nostack, preserves_flags))
-    };
-    if s >= 32 {
-        ((hi as i32) >> ((s - 32) & 31)) as i64
-    } else {
-        // 8 <= s < 32: both words (|p + 2^(s-1)| < 2^63, so the shifted value is exact).
-        let l = (lo >> (s & 31)) | (hi << ((32 - s) & 31));
-        let h = (hi as i32) >> (s & 31);
-        ((h as i64) << 32) | l as i64
+    Requant::new(m).apply(acc)
+}
+
+/// A multiplier decoded for [`requantize_i32`]: the rounding half `2^(s-1)` as (low, high)
+/// words and the shift, worked out once per (channel, part) where one multiplier requantises
+/// many sums (the convolutions' per-channel-pair epilogues) instead of once per sum.
+#[derive(Clone, Copy, Debug)]
+pub struct Requant {
+    m: i32,
+    lo: u32,
+    hi: u32,
+    s: u32,
+}
+
+impl Requant {
+    /// A multiplier of 0 (requantises every sum to 0 with a shift of 8).
+    pub const ZERO: Requant = Requant { m: 0, lo: 1 << 7, hi: 0, s: 8 };
+
+    /// `m` decoded (meaningful for `8 <= m.shift <= 62`, as [`requantize_i32`]).
+    #[inline(always)]
+    pub fn new(m: crate::arith::Multiplier) -> Self {
+        let s = m.shift as u32;
+        let (lo, hi) = if s >= 33 { (0u32, 1u32 << ((s - 33) & 31)) } else { (1u32 << (s.wrapping_sub(1) & 31), 0u32) };
+        Requant { m: m.m, lo, hi, s }
+    }
+
+    /// [`requantize_i32`] of `acc`: `SMLAL` onto the rounding half, then the 64-bit shift.
+    #[inline(always)]
+    pub fn apply(&self, acc: i32) -> i64 {
+        let (mut lo, mut hi, s) = (self.lo, self.hi, self.s);
+        // SAFETY: register-only; SMLAL touches no flags.
+        unsafe {
+            asm!("smlal {lo}, {hi}, {a}, {b}", lo = inout(reg) lo, hi = inout(reg) hi, a = in(reg) acc, b = in(reg) self.m,
+                options(pure, nomem, nostack, preserves_flags))
+        };
+        if s >= 32 {
+            ((hi as i32) >> ((s - 32) & 31)) as i64
+        } else {
+            // 8 <= s < 32: both words (|p + 2^(s-1)| < 2^63, so the shifted value is exact).
+            let l = (lo >> (s & 31)) | (hi << ((32 - s) & 31));
+            let h = (hi as i32) >> (s & 31);
+            ((h as i64) << 32) | l as i64
+        }
     }
 }
 
