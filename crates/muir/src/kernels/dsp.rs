@@ -179,31 +179,21 @@ pub fn aggregate(e: &[i32], v: &[i16], cv: usize, acc: &mut [i64]) {
     }
 }
 
-/// [`aggregate`]'s paired loop: `acc[ch] += sum_t (ep[t].lo v[2t cv + ch] + ep[t].hi v[(2t+1) cv
-/// + ch])` for the even channels below `cv & !1` (`acc`: `cv` sums). Its own function, not
-/// inlined: inside `aggregate` the compiler's register allocation gave a step 18 instructions
-/// (moves around the `SMLALD`s), here 12.
+/// [`aggregate`]'s paired loop: `acc[ch] += sum_t (ep[t].lo v[2t cv + ch] + ep[t].hi
+/// v[(2t+1) cv + ch])` for the even channels below `cv & !1` (`acc`: `cv` sums). By `muir_dsp_paired_sums`:
+/// per channel pair and pair of keys, the weight word, the two keys' value words, `PKHBT`/`PKHTB`
+/// and two `SMLALD` (8 instructions, 12 compiled from Rust), the body written once per key pair
+/// of a full block and entered by a computed branch (no loop test).
 #[inline(never)]
 fn paired_sums(ep: &[u32], v: &[i16], cv: usize, acc: &mut [i64]) {
-    if ep.len().saturating_mul(2).saturating_mul(cv) > v.len() || acc.len() > cv {
-        return; // `aggregate` never calls it so
+    if ep.is_empty() || ep.len() > AGG_KEYS / 2 || ep.len().saturating_mul(2).saturating_mul(cv) > v.len() || acc.len() > cv || acc.len() < 2 {
+        return; // `aggregate` never calls it so (but for fewer than two channels: nothing to do)
     }
-    for (i, a) in acc.chunks_exact_mut(2).enumerate() {
-        if let [a0, a1] = a {
-            let (mut s0, mut s1) = (*a0, *a1);
-            // SAFETY: keys `2 t`, `2 t + 1 < 2 ep.len()` and channels `2 i`, `2 i + 1 <
-            // acc.len() <= cv`: every word read lies below `2 ep.len() cv <= v.len()` (checked
-            // above; unaligned word loads, which the Cortex-M4/M7 allow).
-            let mut x = unsafe { v.as_ptr().add(2 * i) };
-            for &p in ep {
-                let (a, b) = unsafe { (x.cast::<u32>().read_unaligned(), x.add(cv).cast::<u32>().read_unaligned()) };
-                s0 = smlald(s0, p, (a & 0xffff) | (b << 16));
-                s1 = smlald(s1, p, (a >> 16) | (b & 0xffff_0000));
-                x = x.wrapping_add(2 * cv);
-            }
-            (*a0, *a1) = (s0, s1);
-        }
-    }
+    // SAFETY: keys `2 t`, `2 t + 1 < 2 ep.len()` and channels `2 i`, `2 i + 1 < acc.len() <=
+    // cv`: every word read lies below `2 ep.len() cv <= v.len()` (checked above; unaligned word
+    // loads, which the Cortex-M4/M7 allow); `1 <= ep.len() <= AGG_KEYS / 2` words of `ep`; the
+    // `acc.len() / 2 >= 1` pairs of sums read and written.
+    unsafe { muir_dsp_paired_sums(ep.as_ptr(), ep.len(), v.as_ptr(), cv, acc.as_mut_ptr(), acc.len() / 2) };
 }
 
 /// [`crate::arith::requantize_i32`] for `8 <= m.shift <= 62` (the convolution's short epilogue,
@@ -799,7 +789,64 @@ core::arch::global_asm!(
     "    pop {{r4-r11}}",
     "    bx lr",
     ".size muir_dsp_widen_nat, . - muir_dsp_widen_nat",
+    "",
+    // `paired_sums`: r0 = ep (the key pairs' packed weights), r1 = key pairs (1 to `keyp`),
+    // r2 = v (keys' values, `cv` a key), r3 = cv; [sp] acc (i64 sums), [sp, #4] channel pairs
+    // (>= 1). Per channel pair: its two i64 sums in r4:r5 and r6:r7, the body (one key pair: the
+    // weight word, the two keys' words of the channel pair, PKHBT/PKHTB, two SMLALD; 32 bytes,
+    // every instruction 32-bit) entered `pairs` copies before its end, the sums stored back.
+    // r12 walks the channel pair's values a key pair (4 cv bytes, r3) at a time, lr = 2 cv bytes
+    // (the second key). Stack: [sp] ep, [sp, #4] the body's entry, [sp, #8] the next channel
+    // pair's values; acc at [sp, #52], channel pairs at [sp, #56] after the pushes.
+    ".section .text.muir_dsp_paired_sums,\"ax\",%progbits",
+    ".global muir_dsp_paired_sums",
+    ".type muir_dsp_paired_sums,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_paired_sums:",
+    "    push {{r4-r11, lr}}",
+    "    sub sp, #16",
+    "    str r0, [sp]",
+    "    adr r12, 1f",
+    "    rsb r1, r1, #{keyp}",
+    "    add r12, r12, r1, lsl #5",
+    "    orr r12, r12, #1",
+    "    str r12, [sp, #4]",
+    "    lsl lr, r3, #1",
+    "    lsl r3, r3, #2",
+    "    str r2, [sp, #8]",
+    "    ldr r1, [sp, #52]",
+    "    ldr r2, [sp, #56]",
+    "2:",
+    "    ldrd r4, r5, [r1]",
+    "    ldrd r6, r7, [r1, #8]",
+    "    ldr r0, [sp]",
+    "    ldr r12, [sp, #8]",
+    "    add r9, r12, #4",
+    "    str r9, [sp, #8]",
+    "    ldr r9, [sp, #4]",
+    "    bx r9",
+    ".p2align 2",
+    "1:",
+    ".rept {keyp}",
+    "    ldr.w r8, [r0], #4",         // (e[2t], e[2t+1])
+    "    ldr.w r10, [r12, lr]",       // key 2t+1: (ch, ch+1)
+    "    ldr.w r9, [r12]",            // key 2t: (ch, ch+1)
+    "    add.w r12, r12, r3",
+    "    pkhbt r11, r9, r10, lsl #16", // ch: (key 2t, key 2t+1)
+    "    pkhtb r10, r10, r9, asr #16", // ch+1
+    "    smlald r4, r5, r8, r11",
+    "    smlald r6, r7, r8, r10",
+    ".endr",
+    "    strd r4, r5, [r1], #8",
+    "    strd r6, r7, [r1], #8",
+    "    subs r2, #1",
+    "    bne 2b",
+    "    add sp, #16",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_dsp_paired_sums, . - muir_dsp_paired_sums",
     chunk = const I16_ASM_GROUPS,
+    keyp = const AGG_KEYS / 2,
 );
 
 /// Groups of four per i32 chunk of the i16 assembly loop: `4 * 127 = 508` terms of `|w x| <=
@@ -815,6 +862,7 @@ unsafe extern "C" {
     fn muir_dsp_dot2x2_w16(x: *const i16, w: *const u32, groups: usize, out: *mut [i64; 4]);
     fn muir_dsp_widen_w16(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
     fn muir_dsp_widen_nat(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
+    fn muir_dsp_paired_sums(ep: *const u32, pairs: usize, v: *const i16, cv: usize, acc: *mut i64, chpairs: usize);
     fn muir_dsp_nat_block(table: *const NatEntry, n: usize, col: usize, sums: *mut [i64; 4], kl: usize, w0: *const i8, ww: *const u32);
 }
 
