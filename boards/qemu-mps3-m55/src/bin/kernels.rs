@@ -132,6 +132,15 @@ fn check_w16(buf: &Buffers<i16>, ww: &mut [u32; MAX_N], n: usize) -> usize {
     ww.fill(0x5A5A_5A5A);
     dsp::widen_weights(w0, w1, n / 4, ww);
     untouched("dsp::widen_weights", &ww[..], 4 * (n / 4));
+    // One chunk of whole groups: the i32 sums of `dot2x2_w16_i32` (one-part layers).
+    let q = n / 4;
+    if n % 4 == 0 && (1..=127).contains(&q) {
+        match dsp::dot2x2_w16_i32(ww, &buf.pair[..2 * n], q) {
+            Some(got) if got.map(i64::from) == want => {}
+            Some(got) => fail("i16 dot2x2_w16_i32", n, &got.map(i64::from), &want),
+            None => fail("i16 dot2x2_w16_i32 (no result)", n, &[], &want),
+        }
+    }
     match dsp::dot2x2_w16(ww, w0, w1, &buf.pair[..2 * n], n) {
         Some(got) if got == want => 1,
         Some(got) => fail("i16 dot2x2_w16", n, &got, &want),

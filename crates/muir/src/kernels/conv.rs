@@ -866,8 +866,17 @@ fn w16_one_part<'s>(
     let (c0, c1) = (clamp_shift(m0), clamp_shift(m1));
     let (r0, r1) = (super::dsp::Requant::new(m0), super::dsp::Requant::new(m1));
     let post = p.post;
+    // A patch of whole groups in one i32 chunk: the sums as i32, straight into the short path.
+    let one_chunk = short && kl.is_multiple_of(4) && kl / 4 <= super::dsp::I16_ASM_GROUPS;
     for (i, slot) in slots.enumerate() {
         let (at_a, at_b) = ((ox + 2 * i) * p.cout + c, (ox + 2 * i + 1) * p.cout + c);
+        if one_chunk && let Some([a0, a1, a2, a3]) = super::dsp::dot2x2_w16_i32(ww, slot, kl / 4) {
+            out.set(at_a, finish_short(post, b0, r0.apply(a0)));
+            out.set(at_a + 1, finish_short(post, b1, r1.apply(a1)));
+            out.set(at_b, finish_short(post, b0, r0.apply(a2)));
+            out.set(at_b + 1, finish_short(post, b1, r1.apply(a3)));
+            continue;
+        }
         let Some(d) = super::dsp::dot2x2_w16(ww, w0, w1, slot, kl) else {
             // A short table: `block2x2_by` stops before the part, with sums of 0.
             for (at, bias) in [(at_a, b0), (at_a + 1, b1), (at_b, b0), (at_b + 1, b1)] {

@@ -459,8 +459,23 @@ core::arch::global_asm!(
     "    sub sp, #8",
     "    strd r2, r3, [sp]",
     "    b.w 8f",
+    // `dot2x2_w16_i32`: one chunk (1 to `chunk` groups), its four i32 sums stored as they are
+    // (no i64 sums to add to); [sp] = -1 tells the end of the body so.
+    ".global muir_dsp_dot2x2_w16_i32",
+    ".type muir_dsp_dot2x2_w16_i32,%function",
+    ".thumb_func",
+    "muir_dsp_dot2x2_w16_i32:",
+    "    push {{r4-r11, lr}}",
+    "    sub sp, #8",
+    "    mov r12, #-1",
+    "    strd r12, r3, [sp]",
+    "    mov r12, r2",
+    "    movs r2, #0",
+    "    movs r3, #0",
+    "    movs r4, #0",
+    "    movs r5, #0",
+    "    b.w 7f",
     ".p2align 2",
-    "7:",
     ".rept {chunk}",
     "    ldm.w r0!, {{r6-r9}}",        // a: (a0, a2), (a1, a3); b: (b0, b2), (b1, b3)
     "    ldm.w r1!, {{r10-r12, lr}}",  // w0: (w0, w2), (w1, w3); w1: the same, widened
@@ -474,6 +489,9 @@ core::arch::global_asm!(
     "    smlad r5, lr, r9, r5",
     ".endr",
     "9:",
+    "    ldr r12, [sp]",
+    "    adds r12, r12, #1",
+    "    beq 5f",
     "    ldr r12, [sp, #4]",
     "    ldrd r8, r9, [r12]",
     "    adds r8, r8, r2",
@@ -505,11 +523,15 @@ core::arch::global_asm!(
     "    movs r3, #0",
     "    movs r4, #0",
     "    movs r5, #0",
+    "7:",
     "    adr lr, 9b",
     "    add r12, r12, r12, lsl #2",   // 40 bytes a group: the entry is 9b - 8 * (5 n)
     "    sub lr, lr, r12, lsl #3",
     "    orr lr, lr, #1",
     "    bx lr",
+    "5:",
+    "    ldr r12, [sp, #4]",
+    "    stm r12, {{r2-r5}}",
     "6:",
     "    add sp, #8",
     "    pop {{r4-r11, pc}}",
@@ -860,6 +882,7 @@ unsafe extern "C" {
     fn muir_dsp_dot2x2_i16(x: *const i16, w0: *const u8, w1: *const u8, groups: usize, out: *mut [i64; 4]);
     fn muir_dsp_dot2x2_u8(x: *const u8, w0: *const u8, w1: *const u8, groups: usize, out: *mut [i32; 4]);
     fn muir_dsp_dot2x2_w16(x: *const i16, w: *const u32, groups: usize, out: *mut [i64; 4]);
+    fn muir_dsp_dot2x2_w16_i32(x: *const i16, w: *const u32, groups: usize, out: *mut [i32; 4]);
     fn muir_dsp_widen_w16(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
     fn muir_dsp_widen_nat(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
     fn muir_dsp_paired_sums(ep: *const u32, pairs: usize, v: *const i16, cv: usize, acc: *mut i64, chpairs: usize);
@@ -1080,6 +1103,25 @@ pub fn dot2x2_w16(ww: &[u32], w0: &[i8], w1: &[i8], x: &[i16], n: usize) -> Opti
         }
     }
     Some(acc)
+}
+
+/// [`dot2x2_w16`] of a patch of `4 q` values, `1 <= q <= I16_ASM_GROUPS` (one chunk, no last
+/// values): the four sums as the i32 the chunk gives (exact, module doc), with no i64 sums to
+/// zero, add to and range-check afterwards (the one-part layers of up to 508 values, whose
+/// sums go straight to the short epilogue). `None` where a slice is shorter, `q` is outside
+/// that range or `x` is not word-aligned.
+#[inline(always)]
+pub fn dot2x2_w16_i32(ww: &[u32], x: &[i16], q: usize) -> Option<[i32; 4]> {
+    let (wq, xq) = (ww.get(..4 * q)?, x.get(..8 * q)?);
+    if q == 0 || q > I16_ASM_GROUPS || !(xq.as_ptr() as usize).is_multiple_of(4) {
+        return None;
+    }
+    let mut out = [0i32; 4];
+    // SAFETY: the loop reads `4 q` words from `wq` and `8 q` values from the word-aligned `xq`
+    // (LDM; `wq` is a `u32` slice, so aligned too), `1 <= q <= I16_ASM_GROUPS` (one chunk), and
+    // writes `out`.
+    unsafe { muir_dsp_dot2x2_w16_i32(xq.as_ptr(), wq.as_ptr(), q, &mut out) };
+    Some(out)
 }
 
 /// `Elem::put_groups` for i16 (the pair layout's swap): each group of four as two words
