@@ -131,10 +131,29 @@ fn check_w16(buf: &Buffers<i16>, ww: &mut [u32; MAX_N], n: usize) -> usize {
     let want = [dot_plain(w0, a), dot_plain(w1, a), dot_plain(w0, b), dot_plain(w1, b)];
     ww.fill(0x5A5A_5A5A);
     dsp::widen_weights(w0, w1, n / 4, ww);
+    untouched("dsp::widen_weights", &ww[..], 4 * (n / 4));
+    // One chunk of whole groups: the i32 sums of `dot2x2_w16_i32` (one-part layers).
+    let q = n / 4;
+    if n % 4 == 0 && (1..=127).contains(&q) {
+        match dsp::dot2x2_w16_i32(ww, &buf.pair[..2 * n], q) {
+            Some(got) if got.map(i64::from) == want => {}
+            Some(got) => fail("i16 dot2x2_w16_i32", n, &got.map(i64::from), &want),
+            None => fail("i16 dot2x2_w16_i32 (no result)", n, &[], &want),
+        }
+    }
     match dsp::dot2x2_w16(ww, w0, w1, &buf.pair[..2 * n], n) {
         Some(got) if got == want => 1,
         Some(got) => fail("i16 dot2x2_w16", n, &got, &want),
         None => fail("i16 dot2x2_w16 (no result)", n, &[], &want),
+    }
+}
+
+/// A widening wrote nothing past its `end` words: the rest of `ww` still holds the fill.
+#[cfg(not(feature = "mve"))]
+fn untouched(what: &str, ww: &[u32], end: usize) {
+    if let Some(i) = ww.iter().skip(end).position(|&w| w != 0x5A5A_5A5A) {
+        println!("MUIR-KERNELS FAILED {what}: word {} written past the {end} widened words", end + i);
+        process::exit(1)
     }
 }
 
@@ -1317,6 +1336,7 @@ fn check_nat(buf: &mut Buffers<i16>, ww: &mut [u32; MAX_N], n: usize, r: &mut Rn
     let m = 1 + n % 7;
     ww.fill(0x5A5A_5A5A);
     dsp::widen_weights_nat(&buf.w0[..4 * q], &buf.w1[..4 * q], q, ww);
+    untouched("dsp::widen_weights_nat", &ww[..], 4 * q);
     // The plain entry's weights: w0's `m` then, `kl = 8` bytes later, w1's.
     let mut wp = [0i8; 16];
     wp[..m].copy_from_slice(&buf.w0[..m]);

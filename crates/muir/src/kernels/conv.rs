@@ -864,9 +864,19 @@ fn w16_one_part<'s>(
     let small = b0.unsigned_abs() < SHORT_MAX_BIAS && b1.unsigned_abs() < SHORT_MAX_BIAS;
     let short = small && short_ok(m0) && short_ok(m1);
     let (c0, c1) = (clamp_shift(m0), clamp_shift(m1));
+    let (r0, r1) = (super::dsp::Requant::new(m0), super::dsp::Requant::new(m1));
     let post = p.post;
+    // A patch of whole groups in one i32 chunk: the sums as i32, straight into the short path.
+    let one_chunk = short && kl.is_multiple_of(4) && kl / 4 <= super::dsp::I16_ASM_GROUPS;
     for (i, slot) in slots.enumerate() {
         let (at_a, at_b) = ((ox + 2 * i) * p.cout + c, (ox + 2 * i + 1) * p.cout + c);
+        if one_chunk && let Some([a0, a1, a2, a3]) = super::dsp::dot2x2_w16_i32(ww, slot, kl / 4) {
+            out.set(at_a, finish_short(post, b0, r0.apply(a0)));
+            out.set(at_a + 1, finish_short(post, b1, r1.apply(a1)));
+            out.set(at_b, finish_short(post, b0, r0.apply(a2)));
+            out.set(at_b + 1, finish_short(post, b1, r1.apply(a3)));
+            continue;
+        }
         let Some(d) = super::dsp::dot2x2_w16(ww, w0, w1, slot, kl) else {
             // A short table: `block2x2_by` stops before the part, with sums of 0.
             for (at, bias) in [(at_a, b0), (at_a + 1, b1), (at_b, b0), (at_b + 1, b1)] {
@@ -876,10 +886,10 @@ fn w16_one_part<'s>(
         };
         match (short, d.map(i32::try_from)) {
             (true, [Ok(a0), Ok(a1), Ok(a2), Ok(a3)]) => {
-                out.set(at_a, finish_short(post, b0, requant_short(a0, m0)));
-                out.set(at_a + 1, finish_short(post, b1, requant_short(a1, m1)));
-                out.set(at_b, finish_short(post, b0, requant_short(a2, m0)));
-                out.set(at_b + 1, finish_short(post, b1, requant_short(a3, m1)));
+                out.set(at_a, finish_short(post, b0, r0.apply(a0)));
+                out.set(at_a + 1, finish_short(post, b1, r1.apply(a1)));
+                out.set(at_b, finish_short(post, b0, r0.apply(a2)));
+                out.set(at_b + 1, finish_short(post, b1, r1.apply(a3)));
             }
             _ => {
                 out.set(at_a, finish_with(post, b0, 0i64.saturating_add(requantize(d[0], c0))));
@@ -992,6 +1002,18 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
             wo += 4 * k * gr;
         }
         let ww = &*ww;
+        // The channel pair's epilogue decoded once (`block2x2_by`'s short path): the parts'
+        // multipliers, the biases and whether every part and both biases allow the short path.
+        let np = p.parts.len();
+        let ((m0s, m1s), (bb0, bb1)) = (halves(m), halves(b));
+        let (b0, b1) = (bias_at(bb0), bias_at(bb1));
+        let mut reqs = [(super::dsp::Requant::ZERO, super::dsp::Requant::ZERO); crate::model::graph::MAX_PARTS];
+        let mut short = b0.unsigned_abs() < SHORT_MAX_BIAS && b1.unsigned_abs() < SHORT_MAX_BIAS && m0s.len() >= 8 * np && m1s.len() >= 8 * np;
+        for ((r, a), b) in reqs.iter_mut().zip(m0s.chunks_exact(8)).zip(m1s.chunks_exact(8)).take(np) {
+            let (a, b) = (mult_raw(a), mult_raw(b));
+            short &= short_ok(a) && short_ok(b);
+            *r = (super::dsp::Requant::new(a), super::dsp::Requant::new(b));
+        }
         // Pixels whose windows lie inside the input in pairs (one table for all of them,
         // relative to the column), the others (the `k / 2` at each end of the row, an odd one
         // left over) one at a time, as a block with both pixels the same (their own table:
@@ -1009,6 +1031,31 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
             }
             let mut sums = [[0i64; 4]; crate::model::graph::MAX_PARTS];
             t.run(if inside { xa - pad } else { 0 }, kl, w, ww, &mut sums);
+            // Every part's sums in i32: the short path's integers with the decoded epilogue;
+            // else `block2x2_by` from the start, as before.
+            if short {
+                let mut acc = [0i64; 4];
+                let mut fits = true;
+                for (d, (r0, r1)) in sums.iter().zip(&reqs).take(np) {
+                    if let [Ok(a0), Ok(a1), Ok(a2), Ok(a3)] = d.map(i32::try_from) {
+                        acc[0] += r0.apply(a0);
+                        acc[1] += r1.apply(a1);
+                        acc[2] += r0.apply(a2);
+                        acc[3] += r1.apply(a3);
+                    } else {
+                        fits = false;
+                        break;
+                    }
+                }
+                if fits {
+                    let (at_a, at_b) = (xa * p.cout + 2 * cp, xb * p.cout + 2 * cp);
+                    out.set(at_a, finish_short(p.post, b0, acc[0]));
+                    out.set(at_a + 1, finish_short(p.post, b1, acc[1]));
+                    out.set(at_b, finish_short(p.post, b0, acc[2]));
+                    out.set(at_b + 1, finish_short(p.post, b1, acc[3]));
+                    continue;
+                }
+            }
             let mut part = 0;
             block2x2_by(p, m, b, out, xa * p.cout, xb * p.cout, 2 * cp, |_, _, _| {
                 let s = sums.get(part).copied();

@@ -179,31 +179,21 @@ pub fn aggregate(e: &[i32], v: &[i16], cv: usize, acc: &mut [i64]) {
     }
 }
 
-/// [`aggregate`]'s paired loop: `acc[ch] += sum_t (ep[t].lo v[2t cv + ch] + ep[t].hi v[(2t+1) cv
-/// + ch])` for the even channels below `cv & !1` (`acc`: `cv` sums). Its own function, not
-/// inlined: inside `aggregate` the compiler's register allocation gave a step 18 instructions
-/// (moves around the `SMLALD`s), here 12.
+/// [`aggregate`]'s paired loop: `acc[ch] += sum_t (ep[t].lo v[2t cv + ch] + ep[t].hi
+/// v[(2t+1) cv + ch])` for the even channels below `cv & !1` (`acc`: `cv` sums). By `muir_dsp_paired_sums`:
+/// per channel pair and pair of keys, the weight word, the two keys' value words, `PKHBT`/`PKHTB`
+/// and two `SMLALD` (8 instructions, 12 compiled from Rust), the body written once per key pair
+/// of a full block and entered by a computed branch (no loop test).
 #[inline(never)]
 fn paired_sums(ep: &[u32], v: &[i16], cv: usize, acc: &mut [i64]) {
-    if ep.len().saturating_mul(2).saturating_mul(cv) > v.len() || acc.len() > cv {
-        return; // `aggregate` never calls it so
+    if ep.is_empty() || ep.len() > AGG_KEYS / 2 || ep.len().saturating_mul(2).saturating_mul(cv) > v.len() || acc.len() > cv || acc.len() < 2 {
+        return; // `aggregate` never calls it so (but for fewer than two channels: nothing to do)
     }
-    for (i, a) in acc.chunks_exact_mut(2).enumerate() {
-        if let [a0, a1] = a {
-            let (mut s0, mut s1) = (*a0, *a1);
-            // SAFETY: keys `2 t`, `2 t + 1 < 2 ep.len()` and channels `2 i`, `2 i + 1 <
-            // acc.len() <= cv`: every word read lies below `2 ep.len() cv <= v.len()` (checked
-            // above; unaligned word loads, which the Cortex-M4/M7 allow).
-            let mut x = unsafe { v.as_ptr().add(2 * i) };
-            for &p in ep {
-                let (a, b) = unsafe { (x.cast::<u32>().read_unaligned(), x.add(cv).cast::<u32>().read_unaligned()) };
-                s0 = smlald(s0, p, (a & 0xffff) | (b << 16));
-                s1 = smlald(s1, p, (a >> 16) | (b & 0xffff_0000));
-                x = x.wrapping_add(2 * cv);
-            }
-            (*a0, *a1) = (s0, s1);
-        }
-    }
+    // SAFETY: keys `2 t`, `2 t + 1 < 2 ep.len()` and channels `2 i`, `2 i + 1 < acc.len() <=
+    // cv`: every word read lies below `2 ep.len() cv <= v.len()` (checked above; unaligned word
+    // loads, which the Cortex-M4/M7 allow); `1 <= ep.len() <= AGG_KEYS / 2` words of `ep`; the
+    // `acc.len() / 2 >= 1` pairs of sums read and written.
+    unsafe { muir_dsp_paired_sums(ep.as_ptr(), ep.len(), v.as_ptr(), cv, acc.as_mut_ptr(), acc.len() / 2) };
 }
 
 /// [`crate::arith::requantize_i32`] for `8 <= m.shift <= 62` (the convolution's short epilogue,
@@ -214,21 +204,49 @@ fn paired_sums(ep: &[u32], v: &[i16], cv: usize, acc: &mut [i64]) {
 /// both words. A shift outside the range gives an unspecified value, never a panic.
 #[inline(always)]
 pub fn requantize_i32(acc: i32, m: crate::arith::Multiplier) -> i64 {
-    let s = m.shift as u32;
-    // The rounding half 2^(s-1) as (low, high) words.
-    let (mut lo, mut hi) = if s >= 33 { (0u32, 1u32 << ((s - 33) & 31)) } else { (1u32 << (s.wrapping_sub(1) & 31), 0u32) };
-    // SAFETY: register-only; SMLAL touches no flags.
-    unsafe {
-        asm!("smlal {lo}, {hi}, {a}, {b}", lo = inout(reg) lo, hi = inout(reg) hi, a = in(reg) acc, b = in(reg) m.m,
-            options(pure, nomem, nostack, preserves_flags))
-    };
-    if s >= 32 {
-        ((hi as i32) >> ((s - 32) & 31)) as i64
-    } else {
-        // 8 <= s < 32: both words (|p + 2^(s-1)| < 2^63, so the shifted value is exact).
-        let l = (lo >> (s & 31)) | (hi << ((32 - s) & 31));
-        let h = (hi as i32) >> (s & 31);
-        ((h as i64) << 32) | l as i64
+    Requant::new(m).apply(acc)
+}
+
+/// A multiplier decoded for [`requantize_i32`]: the rounding half `2^(s-1)` as (low, high)
+/// words and the shift, worked out once per (channel, part) where one multiplier requantises
+/// many sums (the convolutions' per-channel-pair epilogues) instead of once per sum.
+#[derive(Clone, Copy, Debug)]
+pub struct Requant {
+    m: i32,
+    lo: u32,
+    hi: u32,
+    s: u32,
+}
+
+impl Requant {
+    /// A multiplier of 0 (requantises every sum to 0 with a shift of 8).
+    pub const ZERO: Requant = Requant { m: 0, lo: 1 << 7, hi: 0, s: 8 };
+
+    /// `m` decoded (meaningful for `8 <= m.shift <= 62`, as [`requantize_i32`]).
+    #[inline(always)]
+    pub fn new(m: crate::arith::Multiplier) -> Self {
+        let s = m.shift as u32;
+        let (lo, hi) = if s >= 33 { (0u32, 1u32 << ((s - 33) & 31)) } else { (1u32 << (s.wrapping_sub(1) & 31), 0u32) };
+        Requant { m: m.m, lo, hi, s }
+    }
+
+    /// [`requantize_i32`] of `acc`: `SMLAL` onto the rounding half, then the 64-bit shift.
+    #[inline(always)]
+    pub fn apply(&self, acc: i32) -> i64 {
+        let (mut lo, mut hi, s) = (self.lo, self.hi, self.s);
+        // SAFETY: register-only; SMLAL touches no flags.
+        unsafe {
+            asm!("smlal {lo}, {hi}, {a}, {b}", lo = inout(reg) lo, hi = inout(reg) hi, a = in(reg) acc, b = in(reg) self.m,
+                options(pure, nomem, nostack, preserves_flags))
+        };
+        if s >= 32 {
+            ((hi as i32) >> ((s - 32) & 31)) as i64
+        } else {
+            // 8 <= s < 32: both words (|p + 2^(s-1)| < 2^63, so the shifted value is exact).
+            let l = (lo >> (s & 31)) | (hi << ((32 - s) & 31));
+            let h = (hi as i32) >> (s & 31);
+            ((h as i64) << 32) | l as i64
+        }
     }
 }
 
@@ -421,84 +439,108 @@ core::arch::global_asm!(
     "    pop {{r4-r11, pc}}",
     ".size muir_dsp_dot2x2_u8, . - muir_dsp_dot2x2_u8",
     "",
-    // The i16 loop against weights widened beforehand (`dot2x2_w16`): per group 4 LDRD and
-    // 8 SMLAD = 12 instructions per 16 MACs. r0 = x (pair layout, word-aligned), r1 = the
-    // channel pair's widened weights (per group w0's two words, then w1's; word-aligned),
-    // r2 = groups (>= 1), r3 = out (four i64, added to). Chunks of `chunk` groups in i32 as
-    // in the i16 loop; r2 counts the groups still to do, r3 is the chunk's end of r1 (`out`
-    // waits on the stack).
+    // The i16 loop against weights widened beforehand (`dot2x2_w16`), unrolled: per group one
+    // LDM of the pair's four activation words (a's two, then b's), one LDM of the channel pair's
+    // four widened weight words (w0's two, then w1's) and 8 SMLAD = 10 instructions per 16 MACs
+    // (13 with LDRDs and the loop's CMP/BNE per two groups). The eight data registers, four
+    // accumulators and two pointers take all fourteen, so there is no loop: the body is written
+    // `chunk` times (40 bytes each, every instruction 32-bit) and a chunk of `n` groups enters it
+    // `n` copies before its end (a computed branch). r0 = x (pair layout, word-aligned), r1 = the
+    // channel pair's widened weights (per group w0's two words, then w1's; word-aligned), r2 =
+    // groups (>= 1), r3 = out (four i64, added to). Chunks of `chunk` groups in i32 as in the
+    // i16 loop; [sp] the groups still to do, [sp, #4] out.
     ".section .text.muir_dsp_dot2x2_w16,\"ax\",%progbits",
     ".global muir_dsp_dot2x2_w16",
     ".type muir_dsp_dot2x2_w16,%function",
     ".p2align 2",
     ".thumb_func",
     "muir_dsp_dot2x2_w16:",
-    "    push {{r3-r11, lr}}",
-    "2:",
+    "    push {{r4-r11, lr}}",
+    "    sub sp, #8",
+    "    strd r2, r3, [sp]",
+    "    b.w 8f",
+    // `dot2x2_w16_i32`: one chunk (1 to `chunk` groups), its four i32 sums stored as they are
+    // (no i64 sums to add to); [sp] = -1 tells the end of the body so.
+    ".global muir_dsp_dot2x2_w16_i32",
+    ".type muir_dsp_dot2x2_w16_i32,%function",
+    ".thumb_func",
+    "muir_dsp_dot2x2_w16_i32:",
+    "    push {{r4-r11, lr}}",
+    "    sub sp, #8",
+    "    mov r12, #-1",
+    "    strd r12, r3, [sp]",
     "    mov r12, r2",
+    "    movs r2, #0",
+    "    movs r3, #0",
+    "    movs r4, #0",
+    "    movs r5, #0",
+    "    b.w 7f",
+    ".p2align 2",
+    ".rept {chunk}",
+    "    ldm.w r0!, {{r6-r9}}",        // a: (a0, a2), (a1, a3); b: (b0, b2), (b1, b3)
+    "    ldm.w r1!, {{r10-r12, lr}}",  // w0: (w0, w2), (w1, w3); w1: the same, widened
+    "    smlad r2, r10, r6, r2",
+    "    smlad r2, r11, r7, r2",
+    "    smlad r3, r12, r6, r3",
+    "    smlad r3, lr, r7, r3",
+    "    smlad r4, r10, r8, r4",
+    "    smlad r4, r11, r9, r4",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    ".endr",
+    "9:",
+    "    ldr r12, [sp]",
+    "    adds r12, r12, #1",
+    "    beq 5f",
+    "    ldr r12, [sp, #4]",
+    "    ldrd r8, r9, [r12]",
+    "    adds r8, r8, r2",
+    "    adc r9, r9, r2, asr #31",
+    "    strd r8, r9, [r12]",
+    "    ldrd r8, r9, [r12, #8]",
+    "    adds r8, r8, r3",
+    "    adc r9, r9, r3, asr #31",
+    "    strd r8, r9, [r12, #8]",
+    "    ldrd r8, r9, [r12, #16]",
+    "    adds r8, r8, r4",
+    "    adc r9, r9, r4, asr #31",
+    "    strd r8, r9, [r12, #16]",
+    "    ldrd r8, r9, [r12, #24]",
+    "    adds r8, r8, r5",
+    "    adc r9, r9, r5, asr #31",
+    "    strd r8, r9, [r12, #24]",
+    "8:",
+    "    ldr lr, [sp]",
+    "    cmp lr, #0",
+    "    beq 6f",
+    "    mov r12, lr",
     "    cmp r12, #{chunk}",
     "    it hi",
     "    movhi r12, #{chunk}",
-    "    sub r2, r2, r12",
-    "    add r3, r1, r12, lsl #4",
+    "    sub lr, lr, r12",
+    "    str lr, [sp]",
+    "    movs r2, #0",
+    "    movs r3, #0",
     "    movs r4, #0",
     "    movs r5, #0",
-    "    movs r6, #0",
-    "    movs r7, #0",
-    "    tst r12, #1",               // an odd group count starts at 3
-    "    bne 3f",
-    "1:",
-    "    ldrd r8, r9, [r0], #8",      // a: (a0, a2), (a1, a3)
-    "    ldrd r10, r11, [r0], #8",    // b: (b0, b2), (b1, b3)
-    "    ldrd r12, lr, [r1], #8",     // w0: (w0, w2), (w1, w3), widened
-    "    smlad r4, r12, r8, r4",
-    "    smlad r4, lr, r9, r4",
-    "    smlad r6, r12, r10, r6",
-    "    smlad r6, lr, r11, r6",
-    "    ldrd r12, lr, [r1], #8",     // w1
-    "    smlad r5, r12, r8, r5",
-    "    smlad r5, lr, r9, r5",
-    "    smlad r7, r12, r10, r7",
-    "    smlad r7, lr, r11, r7",
-    "3:",
-    "    ldrd r8, r9, [r0], #8",      // a: (a0, a2), (a1, a3)
-    "    ldrd r10, r11, [r0], #8",    // b: (b0, b2), (b1, b3)
-    "    ldrd r12, lr, [r1], #8",     // w0: (w0, w2), (w1, w3), widened
-    "    smlad r4, r12, r8, r4",
-    "    smlad r4, lr, r9, r4",
-    "    smlad r6, r12, r10, r6",
-    "    smlad r6, lr, r11, r6",
-    "    ldrd r12, lr, [r1], #8",     // w1
-    "    smlad r5, r12, r8, r5",
-    "    smlad r5, lr, r9, r5",
-    "    smlad r7, r12, r10, r7",
-    "    smlad r7, lr, r11, r7",
-    "    cmp r1, r3",
-    "    bne 1b",
-    "    ldr r12, [sp]",
-    "    ldrd r8, r9, [r12]",
-    "    adds r8, r8, r4",
-    "    adc r9, r9, r4, asr #31",
-    "    strd r8, r9, [r12]",
-    "    ldrd r8, r9, [r12, #8]",
-    "    adds r8, r8, r5",
-    "    adc r9, r9, r5, asr #31",
-    "    strd r8, r9, [r12, #8]",
-    "    ldrd r8, r9, [r12, #16]",
-    "    adds r8, r8, r6",
-    "    adc r9, r9, r6, asr #31",
-    "    strd r8, r9, [r12, #16]",
-    "    ldrd r8, r9, [r12, #24]",
-    "    adds r8, r8, r7",
-    "    adc r9, r9, r7, asr #31",
-    "    strd r8, r9, [r12, #24]",
-    "    cmp r2, #0",
-    "    bne 2b",
-    "    pop {{r3-r11, pc}}",
+    "7:",
+    "    adr lr, 9b",
+    "    add r12, r12, r12, lsl #2",   // 40 bytes a group: the entry is 9b - 8 * (5 n)
+    "    sub lr, lr, r12, lsl #3",
+    "    orr lr, lr, #1",
+    "    bx lr",
+    "5:",
+    "    ldr r12, [sp, #4]",
+    "    stm r12, {{r2-r5}}",
+    "6:",
+    "    add sp, #8",
+    "    pop {{r4-r11, pc}}",
     ".size muir_dsp_dot2x2_w16, . - muir_dsp_dot2x2_w16",
     "",
     // `widen_weights`' loop: r0 = w0, r1 = w1 (int8 rows, any alignment), r2 = groups (>= 1),
-    // r3 = out (word-aligned): per group LDR, LDR, 4 SXTB16, one STM.
+    // r3 = out (word-aligned): per group LDR, LDR, 4 SXTB16, one STM. The body is written 8
+    // times (28 bytes each) and entered `-groups mod 8` copies after its start (Duff's device):
+    // the loop's SUBS/BNE once per 8 groups, 7 instructions a group instead of 9.
     ".section .text.muir_dsp_widen_w16,\"ax\",%progbits",
     ".global muir_dsp_widen_w16",
     ".type muir_dsp_widen_w16,%function",
@@ -506,14 +548,26 @@ core::arch::global_asm!(
     ".thumb_func",
     "muir_dsp_widen_w16:",
     "    push {{r4-r7}}",
+    "    rsb r12, r2, #0",
+    "    and r12, r12, #7",           // copies skipped in the first pass
+    "    add r2, r2, #7",
+    "    lsr r2, r2, #3",             // passes
+    "    rsb r12, r12, r12, lsl #3",
+    "    adr r4, 4f",
+    "    add r4, r4, r12, lsl #2",
+    "    orr r4, r4, #1",
+    "    bx r4",
+    ".p2align 2",
     "4:",
-    "    ldr r4, [r0], #4",
-    "    ldr r6, [r1], #4",
+    ".rept 8",
+    "    ldr.w r4, [r0], #4",
+    "    ldr.w r6, [r1], #4",
     "    sxtb16 r5, r4, ror #8",
     "    sxtb16 r4, r4",
     "    sxtb16 r7, r6, ror #8",
     "    sxtb16 r6, r6",
-    "    stm r3!, {{r4-r7}}",
+    "    stm.w r3!, {{r4-r7}}",
+    ".endr",
     "    subs r2, #1",
     "    bne 4b",
     "    pop {{r4-r7}}",
@@ -526,9 +580,13 @@ core::arch::global_asm!(
     // `widen_weights_nat`). r0 = table, r1 = entries (>= 1), r2 = col, r3 = the parts' four i64
     // sums each (added to); [sp, #60] kl, [sp, #64] w0, [sp, #68] ww after the pushes. Per
     // entry: pixel a at row + col step, pixel b bstep bytes later, `groups` (1 to
-    // `I16_ASM_GROUPS`: one i32 chunk) groups against the widened weights at ww + w (12
-    // instructions per 16 MACs with LDRD where both pixels are word-aligned, 14 with LDR pairs;
-    // one pixel, bstep 0: 9), its four i32 sums added into the part's i64 sums.
+    // `I16_ASM_GROUPS`: one i32 chunk) groups against the widened weights at ww + w, its four
+    // i32 sums added into the part's i64 sums. The loops are unrolled as `dot2x2_w16`'s: each
+    // body written `chunk` times, entered `groups` copies before its end by a computed branch
+    // (no end pointer, no loop test): per group one LDM of the channel pair's four widened
+    // weight words, then pixel a's two words, four SMLAD, pixel b's, four SMLAD: 11
+    // instructions per 16 MACs where both pixels are word-aligned (LDRD), 13 otherwise (LDR
+    // pairs); one pixel (bstep 0): 6 (7).
     // Stack: [sp] table cursor, [sp, #4] entries left, [sp, #8] col, [sp, #12] the sums,
     // [sp, #16] this entry's sums.
     ".section .text.muir_dsp_nat_block,\"ax\",%progbits",
@@ -554,86 +612,42 @@ core::arch::global_asm!(
     "    mla r0, r5, r2, r0",         // pixel a: row + col step
     "    add r2, r0, r4",             // pixel b: bstep later
     "    cmp r3, #0",                 // a plain entry (bit 31 set): 50
-    "    blt 50f",
+    "    blt.w 50f",
     "    ldr r12, [sp, #68]",         // the widened weights: r1 is the run's byte offset
     "    add r1, r1, r12",
-    "    add r3, r1, r3, lsl #4",     // end of the run's widened weights
     "    cmp r4, #0",                 // one pixel (a block of one pixel taken twice): 40
-    "    beq 40f",
+    "    beq.w 40f",
     "    movs r4, #0",
     "    movs r5, #0",
     "    movs r6, #0",
     "    movs r7, #0",
-    "    sub r12, r3, r1",
-    "    orr r8, r0, r2",
-    "    tst r8, #3",
-    "    bne 20f",
-    "    tst r12, #16",               // an odd group count starts at the second copy
-    "    bne 11f",
-    "10:",
-    "    ldrd r8, r9, [r0], #8",
-    "    ldrd r10, r11, [r2], #8",
-    "    ldrd r12, lr, [r1], #8",
-    "    smlad r4, r12, r8, r4",
-    "    smlad r4, lr, r9, r4",
-    "    smlad r6, r12, r10, r6",
-    "    smlad r6, lr, r11, r6",
-    "    ldrd r12, lr, [r1], #8",
-    "    smlad r5, r12, r8, r5",
-    "    smlad r5, lr, r9, r5",
-    "    smlad r7, r12, r10, r7",
-    "    smlad r7, lr, r11, r7",
+    "    tst r0, #3",
+    "    bne.w 20f",
+    "    tst r2, #3",
+    "    bne.w 24f",
+    // Both pixels word-aligned: enter the body `groups` copies (44 bytes each) before its end.
+    "    adr r12, 11f",
+    "    rsb r8, r3, #{chunk}",
+    "    add r9, r8, r8, lsl #1",
+    "    add r9, r9, r8, lsl #3",
+    "    add r12, r12, r9, lsl #2",
+    "    orr r12, r12, #1",
+    "    bx r12",
+    ".p2align 2",
     "11:",
-    "    ldrd r8, r9, [r0], #8",
-    "    ldrd r10, r11, [r2], #8",
-    "    ldrd r12, lr, [r1], #8",
-    "    smlad r4, r12, r8, r4",
-    "    smlad r4, lr, r9, r4",
-    "    smlad r6, r12, r10, r6",
-    "    smlad r6, lr, r11, r6",
-    "    ldrd r12, lr, [r1], #8",
-    "    smlad r5, r12, r8, r5",
-    "    smlad r5, lr, r9, r5",
-    "    smlad r7, r12, r10, r7",
-    "    smlad r7, lr, r11, r7",
-    "    cmp r1, r3",
-    "    bne 10b",
-    "    b 30f",
-    "20:",
-    "    tst r12, #16",
-    "    bne 21f",
-    "22:",
-    "    ldr r9, [r0, #4]",
-    "    ldr r8, [r0], #8",
-    "    ldr r11, [r2, #4]",
-    "    ldr r10, [r2], #8",
-    "    ldrd r12, lr, [r1], #8",
-    "    smlad r4, r12, r8, r4",
-    "    smlad r4, lr, r9, r4",
-    "    smlad r6, r12, r10, r6",
-    "    smlad r6, lr, r11, r6",
-    "    ldrd r12, lr, [r1], #8",
-    "    smlad r5, r12, r8, r5",
-    "    smlad r5, lr, r9, r5",
-    "    smlad r7, r12, r10, r7",
-    "    smlad r7, lr, r11, r7",
-    "21:",
-    "    ldr r9, [r0, #4]",
-    "    ldr r8, [r0], #8",
-    "    ldr r11, [r2, #4]",
-    "    ldr r10, [r2], #8",
-    "    ldrd r12, lr, [r1], #8",
-    "    smlad r4, r12, r8, r4",
-    "    smlad r4, lr, r9, r4",
-    "    smlad r6, r12, r10, r6",
-    "    smlad r6, lr, r11, r6",
-    "    ldrd r12, lr, [r1], #8",
-    "    smlad r5, r12, r8, r5",
-    "    smlad r5, lr, r9, r5",
-    "    smlad r7, r12, r10, r7",
-    "    smlad r7, lr, r11, r7",
-    "    cmp r1, r3",
-    "    bne 22b",
+    ".rept {chunk}",
+    "    ldm.w r1!, {{r8-r11}}",
+    "    ldrd r12, lr, [r0], #8",
+    "    smlad r4, r8, r12, r4",
+    "    smlad r4, r9, lr, r4",
+    "    smlad r5, r10, r12, r5",
+    "    smlad r5, r11, lr, r5",
+    "    ldrd r12, lr, [r2], #8",
+    "    smlad r6, r8, r12, r6",
+    "    smlad r6, r9, lr, r6",
+    "    smlad r7, r10, r12, r7",
+    "    smlad r7, r11, lr, r7",
+    ".endr",
     "30:",
     "    ldr r12, [sp, #16]",
     "    ldrd r8, r9, [r12]",
@@ -655,42 +669,136 @@ core::arch::global_asm!(
     "    ldr r3, [sp, #4]",
     "    subs r3, #1",
     "    str r3, [sp, #4]",
-    "    bne 5b",
+    "    bne.w 5b",
     "    add sp, #24",
     "    pop {{r4-r11, pc}}",
-    // One pixel: its two sums by a loop of one pixel (9 instructions per group, 13 as a
-    // block), copied to pixel b's.
+    // A pixel not word-aligned (the 63-channel motion part's odd pixels): LDR pairs, 52 bytes
+    // a copy.
+    // Pixel a word-aligned, pixel b not (the 63-channel motion part: its pixels alternate):
+    // LDRD for a, an LDR pair for b, 48 bytes a copy; then the other way round.
+    "24:",
+    "    adr r12, 25f",
+    "    rsb r8, r3, #{chunk}",
+    "    lsl r9, r8, #3",
+    "    add r9, r9, r8, lsl #2",
+    "    add r12, r12, r9, lsl #2",
+    "    orr r12, r12, #1",
+    "    bx r12",
+    ".p2align 2",
+    "25:",
+    ".rept {chunk}",
+    "    ldm.w r1!, {{r8-r11}}",
+    "    ldrd r12, lr, [r0], #8",
+    "    smlad r4, r8, r12, r4",
+    "    smlad r4, r9, lr, r4",
+    "    smlad r5, r10, r12, r5",
+    "    smlad r5, r11, lr, r5",
+    "    ldr.w lr, [r2, #4]",
+    "    ldr.w r12, [r2], #8",
+    "    smlad r6, r8, r12, r6",
+    "    smlad r6, r9, lr, r6",
+    "    smlad r7, r10, r12, r7",
+    "    smlad r7, r11, lr, r7",
+    ".endr",
+    "    b.w 30b",
+    "26:",
+    "    adr r12, 27f",
+    "    rsb r8, r3, #{chunk}",
+    "    lsl r9, r8, #3",
+    "    add r9, r9, r8, lsl #2",
+    "    add r12, r12, r9, lsl #2",
+    "    orr r12, r12, #1",
+    "    bx r12",
+    ".p2align 2",
+    "27:",
+    ".rept {chunk}",
+    "    ldm.w r1!, {{r8-r11}}",
+    "    ldr.w lr, [r0, #4]",
+    "    ldr.w r12, [r0], #8",
+    "    smlad r4, r8, r12, r4",
+    "    smlad r4, r9, lr, r4",
+    "    smlad r5, r10, r12, r5",
+    "    smlad r5, r11, lr, r5",
+    "    ldrd r12, lr, [r2], #8",
+    "    smlad r6, r8, r12, r6",
+    "    smlad r6, r9, lr, r6",
+    "    smlad r7, r10, r12, r7",
+    "    smlad r7, r11, lr, r7",
+    ".endr",
+    "    b.w 30b",
+    "20:",
+    "    tst r2, #3",
+    "    beq.w 26b",
+    "    adr r12, 21f",
+    "    rsb r8, r3, #{chunk}",
+    "    add r9, r8, r8, lsl #2",
+    "    add r9, r9, r8, lsl #3",
+    "    add r12, r12, r9, lsl #2",
+    "    orr r12, r12, #1",
+    "    bx r12",
+    ".p2align 2",
+    "21:",
+    ".rept {chunk}",
+    "    ldm.w r1!, {{r8-r11}}",
+    "    ldr.w lr, [r0, #4]",
+    "    ldr.w r12, [r0], #8",
+    "    smlad r4, r8, r12, r4",
+    "    smlad r4, r9, lr, r4",
+    "    smlad r5, r10, r12, r5",
+    "    smlad r5, r11, lr, r5",
+    "    ldr.w lr, [r2, #4]",
+    "    ldr.w r12, [r2], #8",
+    "    smlad r6, r8, r12, r6",
+    "    smlad r6, r9, lr, r6",
+    "    smlad r7, r10, r12, r7",
+    "    smlad r7, r11, lr, r7",
+    ".endr",
+    "    b.w 30b",
+    // One pixel: its two sums (24 bytes a copy, 28 unaligned), copied to pixel b's.
     "40:",
     "    movs r4, #0",
     "    movs r5, #0",
     "    tst r0, #3",
-    "    bne 45f",
+    "    bne.w 45f",
+    "    adr r12, 41f",
+    "    rsb r8, r3, #{chunk}",
+    "    add r9, r8, r8, lsl #1",
+    "    add r12, r12, r9, lsl #3",
+    "    orr r12, r12, #1",
+    "    bx r12",
+    ".p2align 2",
     "41:",
-    "    ldrd r8, r9, [r0], #8",
-    "    ldrd r10, r11, [r1], #8",    // w0
-    "    ldrd r12, lr, [r1], #8",     // w1
-    "    smlad r4, r10, r8, r4",
-    "    smlad r4, r11, r9, r4",
-    "    smlad r5, r12, r8, r5",
-    "    smlad r5, lr, r9, r5",
-    "    cmp r1, r3",
-    "    bne 41b",
-    "    b 48f",
-    "45:",
-    "    ldr r9, [r0, #4]",
-    "    ldr r8, [r0], #8",
-    "    ldrd r10, r11, [r1], #8",
-    "    ldrd r12, lr, [r1], #8",
-    "    smlad r4, r10, r8, r4",
-    "    smlad r4, r11, r9, r4",
-    "    smlad r5, r12, r8, r5",
-    "    smlad r5, lr, r9, r5",
-    "    cmp r1, r3",
-    "    bne 45b",
+    ".rept {chunk}",
+    "    ldm.w r1!, {{r8-r11}}",
+    "    ldrd r12, lr, [r0], #8",
+    "    smlad r4, r8, r12, r4",
+    "    smlad r4, r9, lr, r4",
+    "    smlad r5, r10, r12, r5",
+    "    smlad r5, r11, lr, r5",
+    ".endr",
     "48:",
     "    mov r6, r4",
     "    mov r7, r5",
-    "    b 30b",
+    "    b.w 30b",
+    "45:",
+    "    adr r12, 46f",
+    "    rsb r8, r3, #{chunk}",
+    "    rsb r9, r8, r8, lsl #3",
+    "    add r12, r12, r9, lsl #2",
+    "    orr r12, r12, #1",
+    "    bx r12",
+    ".p2align 2",
+    "46:",
+    ".rept {chunk}",
+    "    ldm.w r1!, {{r8-r11}}",
+    "    ldr.w lr, [r0, #4]",
+    "    ldr.w r12, [r0], #8",
+    "    smlad r4, r8, r12, r4",
+    "    smlad r4, r9, lr, r4",
+    "    smlad r5, r10, r12, r5",
+    "    smlad r5, r11, lr, r5",
+    ".endr",
+    "    b.w 48b",
     // A plain entry: `groups & !(1 << 31)` values (1 to 7) by LDRSH / LDRSB and MLA, the
     // int8 weights of w0 at w0 ([sp, #64], the sixth argument) plus r1, of w1 `kl` bytes later
     // ([sp, #60], the fifth argument).
@@ -714,12 +822,13 @@ core::arch::global_asm!(
     "    mla r7, r10, r9, r7",
     "    subs r3, #1",
     "    bne 51b",
-    "    b 30b",
+    "    b.w 30b",
     ".size muir_dsp_nat_block, . - muir_dsp_nat_block",
     "",
     // `widen_weights_nat`'s loop: r0 = w0, r1 = w1 (int8 rows, any alignment), r2 = groups (>= 1),
     // r3 = out (word-aligned): per group LDR, LDR, 4 SXTB16 and 4 PKHBT/PKHTB into natural order
-    // ((w0, w1), (w2, w3) per channel), one STM.
+    // ((w0, w1), (w2, w3) per channel), one STM; written 8 times (44 bytes each) and entered as
+    // `widen_w16`'s: 11 instructions a group instead of 13.
     ".section .text.muir_dsp_widen_nat,\"ax\",%progbits",
     ".global muir_dsp_widen_nat",
     ".type muir_dsp_widen_nat,%function",
@@ -727,9 +836,21 @@ core::arch::global_asm!(
     ".thumb_func",
     "muir_dsp_widen_nat:",
     "    push {{r4-r11}}",
+    "    rsb r12, r2, #0",
+    "    and r12, r12, #7",           // copies skipped in the first pass
+    "    add r2, r2, #7",
+    "    lsr r2, r2, #3",             // passes
+    "    add r5, r12, r12, lsl #1",
+    "    add r5, r5, r12, lsl #3",    // 11 words a copy
+    "    adr r4, 4f",
+    "    add r4, r4, r5, lsl #2",
+    "    orr r4, r4, #1",
+    "    bx r4",
+    ".p2align 2",
     "4:",
-    "    ldr r8, [r0], #4",
-    "    ldr r9, [r1], #4",
+    ".rept 8",
+    "    ldr.w r8, [r0], #4",
+    "    ldr.w r9, [r1], #4",
     "    sxtb16 r10, r8, ror #8",     // w0: (w1, w3)
     "    sxtb16 r8, r8",              //     (w0, w2)
     "    sxtb16 r11, r9, ror #8",
@@ -738,13 +859,71 @@ core::arch::global_asm!(
     "    pkhtb r5, r10, r8, asr #16", //     (w2, w3)
     "    pkhbt r6, r9, r11, lsl #16",
     "    pkhtb r7, r11, r9, asr #16",
-    "    stm r3!, {{r4-r7}}",
+    "    stm.w r3!, {{r4-r7}}",
+    ".endr",
     "    subs r2, #1",
     "    bne 4b",
     "    pop {{r4-r11}}",
     "    bx lr",
     ".size muir_dsp_widen_nat, . - muir_dsp_widen_nat",
+    "",
+    // `paired_sums`: r0 = ep (the key pairs' packed weights), r1 = key pairs (1 to `keyp`),
+    // r2 = v (keys' values, `cv` a key), r3 = cv; [sp] acc (i64 sums), [sp, #4] channel pairs
+    // (>= 1). Per channel pair: its two i64 sums in r4:r5 and r6:r7, the body (one key pair: the
+    // weight word, the two keys' words of the channel pair, PKHBT/PKHTB, two SMLALD; 32 bytes,
+    // every instruction 32-bit) entered `pairs` copies before its end, the sums stored back.
+    // r12 walks the channel pair's values a key pair (4 cv bytes, r3) at a time, lr = 2 cv bytes
+    // (the second key). Stack: [sp] ep, [sp, #4] the body's entry, [sp, #8] the next channel
+    // pair's values; acc at [sp, #52], channel pairs at [sp, #56] after the pushes.
+    ".section .text.muir_dsp_paired_sums,\"ax\",%progbits",
+    ".global muir_dsp_paired_sums",
+    ".type muir_dsp_paired_sums,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_paired_sums:",
+    "    push {{r4-r11, lr}}",
+    "    sub sp, #16",
+    "    str r0, [sp]",
+    "    adr r12, 1f",
+    "    rsb r1, r1, #{keyp}",
+    "    add r12, r12, r1, lsl #5",
+    "    orr r12, r12, #1",
+    "    str r12, [sp, #4]",
+    "    lsl lr, r3, #1",
+    "    lsl r3, r3, #2",
+    "    str r2, [sp, #8]",
+    "    ldr r1, [sp, #52]",
+    "    ldr r2, [sp, #56]",
+    "2:",
+    "    ldrd r4, r5, [r1]",
+    "    ldrd r6, r7, [r1, #8]",
+    "    ldr r0, [sp]",
+    "    ldr r12, [sp, #8]",
+    "    add r9, r12, #4",
+    "    str r9, [sp, #8]",
+    "    ldr r9, [sp, #4]",
+    "    bx r9",
+    ".p2align 2",
+    "1:",
+    ".rept {keyp}",
+    "    ldr.w r8, [r0], #4",         // (e[2t], e[2t+1])
+    "    ldr.w r10, [r12, lr]",       // key 2t+1: (ch, ch+1)
+    "    ldr.w r9, [r12]",            // key 2t: (ch, ch+1)
+    "    add.w r12, r12, r3",
+    "    pkhbt r11, r9, r10, lsl #16", // ch: (key 2t, key 2t+1)
+    "    pkhtb r10, r10, r9, asr #16", // ch+1
+    "    smlald r4, r5, r8, r11",
+    "    smlald r6, r7, r8, r10",
+    ".endr",
+    "    strd r4, r5, [r1], #8",
+    "    strd r6, r7, [r1], #8",
+    "    subs r2, #1",
+    "    bne 2b",
+    "    add sp, #16",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_dsp_paired_sums, . - muir_dsp_paired_sums",
     chunk = const I16_ASM_GROUPS,
+    keyp = const AGG_KEYS / 2,
 );
 
 /// Groups of four per i32 chunk of the i16 assembly loop: `4 * 127 = 508` terms of `|w x| <=
@@ -758,8 +937,10 @@ unsafe extern "C" {
     fn muir_dsp_dot2x2_i16(x: *const i16, w0: *const u8, w1: *const u8, groups: usize, out: *mut [i64; 4]);
     fn muir_dsp_dot2x2_u8(x: *const u8, w0: *const u8, w1: *const u8, groups: usize, out: *mut [i32; 4]);
     fn muir_dsp_dot2x2_w16(x: *const i16, w: *const u32, groups: usize, out: *mut [i64; 4]);
+    fn muir_dsp_dot2x2_w16_i32(x: *const i16, w: *const u32, groups: usize, out: *mut [i32; 4]);
     fn muir_dsp_widen_w16(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
     fn muir_dsp_widen_nat(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
+    fn muir_dsp_paired_sums(ep: *const u32, pairs: usize, v: *const i16, cv: usize, acc: *mut i64, chpairs: usize);
     fn muir_dsp_nat_block(table: *const NatEntry, n: usize, col: usize, sums: *mut [i64; 4], kl: usize, w0: *const i8, ww: *const u32);
 }
 
@@ -977,6 +1158,25 @@ pub fn dot2x2_w16(ww: &[u32], w0: &[i8], w1: &[i8], x: &[i16], n: usize) -> Opti
         }
     }
     Some(acc)
+}
+
+/// [`dot2x2_w16`] of a patch of `4 q` values, `1 <= q <= I16_ASM_GROUPS` (one chunk, no last
+/// values): the four sums as the i32 the chunk gives (exact, module doc), with no i64 sums to
+/// zero, add to and range-check afterwards (the one-part layers of up to 508 values, whose
+/// sums go straight to the short epilogue). `None` where a slice is shorter, `q` is outside
+/// that range or `x` is not word-aligned.
+#[inline(always)]
+pub fn dot2x2_w16_i32(ww: &[u32], x: &[i16], q: usize) -> Option<[i32; 4]> {
+    let (wq, xq) = (ww.get(..4 * q)?, x.get(..8 * q)?);
+    if q == 0 || q > I16_ASM_GROUPS || !(xq.as_ptr() as usize).is_multiple_of(4) {
+        return None;
+    }
+    let mut out = [0i32; 4];
+    // SAFETY: the loop reads `4 q` words from `wq` and `8 q` values from the word-aligned `xq`
+    // (LDM; `wq` is a `u32` slice, so aligned too), `1 <= q <= I16_ASM_GROUPS` (one chunk), and
+    // writes `out`.
+    unsafe { muir_dsp_dot2x2_w16_i32(xq.as_ptr(), wq.as_ptr(), q, &mut out) };
+    Some(out)
 }
 
 /// `Elem::put_groups` for i16 (the pair layout's swap): each group of four as two words
