@@ -1375,6 +1375,88 @@ fn check_conv_nat(r: &mut Rng) -> usize {
     cases
 }
 
+/// `mve::lookup_samples` (the post-pooled lookup's i32 samples of one level, four a vector)
+/// against the scalar i32 formula of `corr::lookup_with`: random prefix sums (small, and any
+/// i64, so that the numerator wraps), phases 0-255, strides 1-16, 1-13 samples, shifts 1-62
+/// (also the zero multiplier), a sentinel after the samples; short prefixes, stride 0 and shifts
+/// 0 and 63 refused with nothing written.
+#[cfg(feature = "mve")]
+fn check_lookup(r: &mut Rng) -> usize {
+    use muir::arith::{Multiplier, requantize_i32, sat_i16};
+    use muir::kernels::mve;
+    let mut pre = [0i64; 16 * 14 + 2];
+    let mut cases = 0;
+    for case in 0..3000usize {
+        let sl = [1usize, 2, 4, 8, 16, 3][case % 6];
+        let k = 1 + (r.next() % 13) as usize;
+        let a = match case % 7 {
+            0 => 0,
+            1 => 255,
+            _ => (r.next() >> 56) as i32,
+        };
+        let shift = match case % 11 {
+            0 => 1,
+            1 => 62,
+            2 => 32,
+            3 => 33,
+            _ => 1 + (r.next() % 62) as u8,
+        };
+        let m = match case % 13 {
+            0 => 0,
+            1 => i32::MAX,
+            2 => 1 << 30,
+            _ => ((1u64 << 30) + (r.next() >> 34)) as i32,
+        };
+        let mult = Multiplier { m, shift };
+        let need = (k - 1) * sl + sl + 2;
+        let kind = case % 5;
+        for v in pre.iter_mut().take(need) {
+            let x = r.next() as i64;
+            *v = match kind {
+                0 => x,
+                1 => x >> 40,
+                2 => x >> 20,
+                3 => if x & 1 == 0 { i64::MAX } else { i64::MIN },
+                _ => x >> 50,
+            };
+        }
+        let mut out = [0x5a5ai16; 14];
+        if !mve::lookup_samples(&pre[..need], sl, a, mult, &mut out[..k]) {
+            println!("MUIR-KERNELS FAILED lookup_samples: refused sl={sl} k={k} shift={shift}");
+            process::exit(1);
+        }
+        for t in 0..k {
+            let (x0, x1, y0, y1) = (pre[t * sl] as i32, pre[t * sl + sl] as i32, pre[t * sl + 1] as i32, pre[t * sl + 1 + sl] as i32);
+            let (b0, b1) = (x1.wrapping_sub(x0), y1.wrapping_sub(y0));
+            let want = sat_i16(requantize_i32((256 - a).wrapping_mul(b0).wrapping_add(a.wrapping_mul(b1)), mult));
+            if out[t] != want {
+                println!("MUIR-KERNELS FAILED lookup_samples: case {case} sl={sl} k={k} a={a} m={m} shift={shift} t={t}: {} != {want}", out[t]);
+                process::exit(1);
+            }
+        }
+        if out[k] != 0x5a5a {
+            println!("MUIR-KERNELS FAILED lookup_samples: case {case} wrote past {k} samples");
+            process::exit(1);
+        }
+        cases += 1;
+        if case % 50 == 0 {
+            let mut o = [0x5a5ai16; 14];
+            let bad = [
+                mve::lookup_samples(&pre[..need - 1], sl, a, mult, &mut o[..k]),
+                mve::lookup_samples(&pre[..need], 0, a, mult, &mut o[..k]),
+                mve::lookup_samples(&pre[..need], sl, a, Multiplier { m, shift: 0 }, &mut o[..k]),
+                mve::lookup_samples(&pre[..need], sl, a, Multiplier { m, shift: 63 }, &mut o[..k]),
+            ];
+            if bad.iter().any(|&b| b) || o.iter().any(|&v| v != 0x5a5a) {
+                println!("MUIR-KERNELS FAILED lookup_samples: case {case}: invalid arguments accepted");
+                process::exit(1);
+            }
+            cases += 4;
+        }
+    }
+    cases
+}
+
 fn lengths() -> impl Iterator<Item = usize> {
     (0..=40).chain([63, 64, 65, 72, 127, 128, 129, 255, 256, 257, 260, 507, 508, 509, 511, 512, 513, 576, 1000, 1016, 1017, 1152, 2304, 5760])
 }
@@ -1445,6 +1527,7 @@ fn main() -> ! {
         cases += check_popcount(&mut r);
         cases += check_refine(&mut r);
         cases += check_weights(&mut r, i16s.a, i16s.b);
+        cases += check_lookup(&mut r);
     }
     #[cfg(not(feature = "mve"))]
     {

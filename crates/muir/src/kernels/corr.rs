@@ -163,10 +163,16 @@ pub fn lookup_with(p: &LookupParams<'_>, w: usize, x: usize, flow: i16, s: &mut 
                 && last <= n as i64
                 && let Some(pre) = pre.get(i0 as usize..=last as usize)
             {
+                let i32_ok = lvl <= 20 && mag < (1 << 21) >> lvl && (1..=62).contains(&mult.shift);
+                // Helium: the same i32 arithmetic four samples a vector.
+                #[cfg(all(target_arch = "arm", feature = "mve"))]
+                if i32_ok && crate::kernels::mve::lookup_samples(pre, sl, a as i32, mult, out) {
+                    continue;
+                }
                 let (x0, x1) = (pre.iter().step_by(sl), pre.get(sl..).unwrap_or_default().iter().step_by(sl));
                 let (y0, y1) = (pre.get(1..).unwrap_or_default().iter().step_by(sl), pre.get(1 + sl..).unwrap_or_default().iter().step_by(sl));
                 let samples = out.iter_mut().zip(x0).zip(x1).zip(y0).zip(y1);
-                if lvl <= 20 && mag < (1 << 21) >> lvl && (1..=62).contains(&mult.shift) {
+                if i32_ok {
                     // Every box of `s_l` correlations is below `2^21` in magnitude, so `num`
                     // is below `256 * 2^21 = 2^29`: i32 arithmetic (the low words of the prefix
                     // sums differ by the box exactly) and `requantize`'s own i32 path.

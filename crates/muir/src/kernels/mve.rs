@@ -1901,3 +1901,79 @@ pub fn exp_weights(e: &mut [i32], m: i32, shift: u8) -> Option<(i32, i64)> {
     take_qc();
     Some((max, ((hi as u64) << 32 | lo as u64) as i64))
 }
+
+/// The post-pooled correlation lookup's samples of one level in i32 (`corr::lookup_with`'s i32
+/// path), four samples a vector: `out[t] = sat_i16(requantize_i32((256 - a) (x1 - x0) + a (y1 -
+/// y0), mult))` in wrapping i32 arithmetic, where `x0`, `x1`, `y0`, `y1` are the low words of
+/// `pre[t sl]`, `pre[t sl + sl]`, `pre[t sl + 1]` and `pre[t sl + 1 + sl]`, for `t < out.len()`.
+/// Returns false, with nothing written, where `sl` is 0 or above 2^20, `pre` is too short (it
+/// needs `(out.len() - 1) sl + sl + 2` values) or the shift is outside `1..=62`.
+///
+/// The low words are read by four word gathers from two vectors of addresses (lane `t`: `pre[t
+/// sl]` and `pre[t sl + sl]`, the `y` words 8 bytes further), stepped by `32 sl` bytes; the
+/// numerator as `256 (x1 - x0) + a ((y1 - y0) - (x1 - x0))` (the same value modulo `2^32`); the
+/// requantisation is [`exp_weights`]'s `VQRSHL(h, 32 - s) + VRSHL_u(l, -s)` on the product's
+/// high and low words, exact where nothing saturates; where `VQRSHL` or `VQADD` saturates the
+/// exact value lies beyond `i32` on the same side, so after the saturating narrowing to i16
+/// (`VQMOVNB`) both give the same value. `FPSCR.QC` is cleared afterwards (the convolution
+/// epilogue reads it).
+#[inline]
+pub fn lookup_samples(pre: &[i64], sl: usize, a: i32, mult: crate::arith::Multiplier, out: &mut [i16]) -> bool {
+    let k = out.len();
+    if k == 0 {
+        return true;
+    }
+    if sl == 0 || sl > 1 << 20 || !(1..=62).contains(&mult.shift) || pre.len() < (k - 1) * sl + sl + 2 {
+        return false;
+    }
+    let s = mult.shift as i32;
+    // SAFETY: lane `t < k` gathers the low words of `pre[t sl + {0, sl, 1, 1 + sl}]`, all below
+    // `(k - 1) sl + sl + 2 <= pre.len()` (checked; 8-byte aligned), and writes `out[t]`
+    // (tail-predicated: disabled lanes are neither loaded nor stored).
+    unsafe {
+        asm!(
+            "vdup.32 q7, {m}",
+            "vidup.u32 q4, r0, #1",
+            "vmul.i32 q4, q4, {bsl}",
+            "vadd.i32 q4, q4, {base}",
+            "vadd.i32 q5, q4, {bsl}",
+            "lsl {bsl}, {bsl}, #2",
+            "dlstp.32 lr, {n}",
+            "2:",
+            "vldrw.u32 q0, [q4]",
+            "vldrw.u32 q1, [q5]",
+            "vldrw.u32 q2, [q4, #8]",
+            "vldrw.u32 q3, [q5, #8]",
+            "vsub.i32 q1, q1, q0",
+            "vsub.i32 q3, q3, q2",
+            "vsub.i32 q3, q3, q1",
+            "vshl.i32 q1, q1, #8",
+            "vmla.i32 q1, q3, {a}",
+            "vmulh.s32 q0, q1, q7",
+            "vmul.i32 q1, q1, q7",
+            "vqrshl.s32 q0, {sl}",
+            "vrshl.u32 q1, {sr}",
+            "vqadd.s32 q0, q0, q1",
+            "vqmovnb.s32 q0, q0",
+            "vstrh.32 q0, [{o}], #8",
+            "vadd.i32 q4, q4, {bsl}",
+            "vadd.i32 q5, q5, {bsl}",
+            "letp lr, 2b",
+            m = in(reg) mult.m,
+            inout("r0") 0u32 => _,
+            bsl = inout(reg) 8 * sl as u32 => _,
+            base = in(reg) pre.as_ptr(),
+            n = in(reg) k,
+            a = in(reg) a,
+            sl = in(reg) 32 - s,
+            sr = in(reg) -s,
+            o = inout(reg) out.as_mut_ptr() => _,
+            out("lr") _,
+            out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+            out("d8") _, out("d9") _, out("d10") _, out("d11") _, out("d14") _, out("d15") _,
+            options(nostack),
+        );
+    }
+    take_qc();
+    true
+}
