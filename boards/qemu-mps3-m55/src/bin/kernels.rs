@@ -1457,6 +1457,67 @@ fn check_lookup(r: &mut Rng) -> usize {
     cases
 }
 
+/// `corr::window` (Helium: `mve::corr_window` over the in-row columns, zeros around them)
+/// against the plain correlations: feature lengths 1-40 and around the 16-lane vectors and 256,
+/// random and extreme i8 features, windows starting left of, inside and right of the row, a row
+/// one column short of its width (the plain path then), a sentinel after the window; and
+/// `corr_window` refusing an empty feature vector and a short row.
+#[cfg(feature = "mve")]
+fn check_corr_window(f1: &mut [i8; MAX_N], f2: &mut [i8; MAX_N], r: &mut Rng) -> usize {
+    use muir::kernels::{corr, mve};
+    let mut cases = 0;
+    let cs = (1..=40usize).chain([47, 48, 49, 63, 64, 65, 128, 255, 256, 257]);
+    for (ci, c) in cs.enumerate() {
+        for rep in 0..6usize {
+            let w = 1 + (r.next() % (MAX_N as u64 / c as u64).min(40)) as usize;
+            let fill = (ci + rep) % 4;
+            for v in f1.iter_mut().take(c) {
+                *v = match fill {
+                    1 => i8::MIN,
+                    2 => i8::MAX,
+                    _ => (r.next() >> 56) as i8,
+                };
+            }
+            for v in f2.iter_mut().take(w * c) {
+                *v = match fill {
+                    1 | 2 => i8::MIN,
+                    _ => (r.next() >> 56) as i8,
+                };
+            }
+            let n = 1 + (r.next() % 24) as usize;
+            let lo = (r.next() % (w as u64 + n as u64 + 4)) as i64 - n as i64 - 2;
+            // The row one column short of `w` in every sixth case (its last column then reads 0).
+            let len = if rep == 5 { (w - 1) * c } else { w * c };
+            let mut win = [0x5a5a_5a5ai32; 25];
+            corr::window(&f1[..c], &f2[..len], w, lo, &mut win[..n]);
+            for (i, &got) in win[..n].iter().enumerate() {
+                let col = lo + i as i64;
+                let want = if col < 0 || col as usize >= w || (col as usize + 1) * c > len {
+                    0
+                } else {
+                    let f = &f2[col as usize * c..(col as usize + 1) * c];
+                    f1[..c].iter().zip(f).map(|(a, b)| *a as i32 * *b as i32).sum::<i32>()
+                };
+                if got != want {
+                    println!("MUIR-KERNELS FAILED corr_window: c={c} w={w} lo={lo} n={n} column {i}: {got} != {want}");
+                    process::exit(1);
+                }
+            }
+            if win[n] != 0x5a5a_5a5a {
+                println!("MUIR-KERNELS FAILED corr_window: c={c} wrote past {n} columns");
+                process::exit(1);
+            }
+            cases += 1;
+        }
+    }
+    let mut win = [7i32; 4];
+    if mve::corr_window(&f1[..0], &f2[..64], &mut win) || mve::corr_window(&f1[..16], &f2[..63], &mut win) || win != [7; 4] {
+        println!("MUIR-KERNELS FAILED corr_window: invalid arguments accepted");
+        process::exit(1);
+    }
+    cases + 2
+}
+
 fn lengths() -> impl Iterator<Item = usize> {
     (0..=40).chain([63, 64, 65, 72, 127, 128, 129, 255, 256, 257, 260, 507, 508, 509, 511, 512, 513, 576, 1000, 1016, 1017, 1152, 2304, 5760])
 }
@@ -1528,6 +1589,7 @@ fn main() -> ! {
         cases += check_refine(&mut r);
         cases += check_weights(&mut r, i16s.a, i16s.b);
         cases += check_lookup(&mut r);
+        cases += check_corr_window(&mut *i16s.w0, &mut *i16s.w1, &mut r);
     }
     #[cfg(not(feature = "mve"))]
     {

@@ -105,6 +105,20 @@ pub fn lookup_pixel(p: &LookupParams<'_>, f1: &[i8], f2: &[i8], w: usize, x: usi
 /// of `f1.len()` values; 0 outside them).
 pub fn window(f1: &[i8], f2: &[i8], w: usize, lo: i64, win: &mut [i32]) {
     let c = f1.len();
+    // Helium: the in-row columns `s..e` by one assembly loop, zeros around them.
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    {
+        let n = win.len() as i64;
+        let (s, e) = (lo.clamp(0, w as i64), (lo + n).clamp(0, w as i64).max(lo.clamp(0, w as i64)));
+        let (i, j) = ((s - lo).clamp(0, n) as usize, (e - lo).clamp(0, n) as usize);
+        if let (Some(f2), Some(mid)) = (f2.get(s as usize * c..e as usize * c), win.get_mut(i..j))
+            && super::mve::corr_window(f1, f2, mid)
+        {
+            win.get_mut(..i).unwrap_or_default().fill(0);
+            win.get_mut(j..).unwrap_or_default().fill(0);
+            return;
+        }
+    }
     for (i, v) in win.iter_mut().enumerate() {
         *v = corr_at(f1, f2, c, w, lo + i as i64);
     }

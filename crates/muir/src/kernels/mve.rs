@@ -1977,3 +1977,52 @@ pub fn lookup_samples(pre: &[i64], sl: usize, a: i32, mult: crate::arith::Multip
     take_qc();
     true
 }
+
+/// The correlation window's in-row columns: `win[i] = f1 . col_i` (i8 x i8, sixteen products per
+/// `VMLADAVA.S8`, tail-predicated) for `i < win.len()`, where `col_i` is `f2[i c .. (i + 1) c]`
+/// and `c = f1.len()`; one assembly loop over the columns (a column's pointer stepped by `c`,
+/// not by the loads' write-back, which a predicated tail runs past). Returns false, with nothing
+/// written, when `c` is 0 or at least 2^16 (then `|sum| < 2^14 c` might leave i32) or `f2` holds
+/// fewer than `win.len() c` values.
+#[inline]
+pub fn corr_window(f1: &[i8], f2: &[i8], win: &mut [i32]) -> bool {
+    let (c, n) = (f1.len(), win.len());
+    if c == 0 || c >= 1 << 16 || f2.len() < n * c {
+        return false;
+    }
+    if n == 0 {
+        return true;
+    }
+    // SAFETY: column `i < n` reads `f2[i c .. i c + c]` (inside: checked) and `f1` (`c` values),
+    // tail-predicated (disabled lanes are not loaded), and writes `win[i]`.
+    unsafe {
+        asm!(
+            "2:",
+            "mov {x}, {f1}",
+            "mov {y}, {col}",
+            "add {col}, {col}, {c}",
+            "movs r0, #0",
+            "dlstp.8 lr, {c}",
+            "3:",
+            "vldrb.u8 q0, [{x}], #16",
+            "vldrb.u8 q1, [{y}], #16",
+            "vmlava.s8 r0, q0, q1",
+            "letp lr, 3b",
+            "str r0, [{o}], #4",
+            "subs {n}, {n}, #1",
+            "bne 2b",
+            f1 = in(reg) f1.as_ptr(),
+            col = inout(reg) f2.as_ptr() => _,
+            c = in(reg) c,
+            n = inout(reg) n => _,
+            o = inout(reg) win.as_mut_ptr() => _,
+            x = out(reg) _,
+            y = out(reg) _,
+            out("r0") _,
+            out("lr") _,
+            out("d0") _, out("d1") _, out("d2") _, out("d3") _,
+            options(nostack),
+        );
+    }
+    true
+}
