@@ -1518,6 +1518,67 @@ fn check_corr_window(f1: &mut [i8; MAX_N], f2: &mut [i8; MAX_N], r: &mut Rng) ->
     cases + 2
 }
 
+/// `mve::blend_q15` and `mve::mul_q15` (the GRU blend and gate products) against the plain
+/// i64 formulas of `eltwise`: lengths 0-40 and around the vectors, random, extreme (both signs,
+/// so that the blend saturates) and small values, operands of unequal lengths (the shortest
+/// counts), a sentinel after the written values.
+#[cfg(feature = "mve")]
+fn check_q15(x: &mut [i16; MAX_N], y: &mut [i16; MAX_N], r: &mut Rng) -> usize {
+    use muir::arith::{rshift_round, sat_i16};
+    use muir::kernels::mve;
+    let mut cases = 0;
+    let ns = (0..=40usize).chain([63, 64, 65, 127, 128, 129, 1000]);
+    for (ni, n) in ns.enumerate() {
+        for kind in 0..5usize {
+            let pick = |r: &mut Rng, k: usize| -> i16 {
+                let v = (r.next() >> 48) as i16;
+                match k {
+                    1 => if v & 1 == 0 { i16::MIN } else { i16::MAX },
+                    2 => v >> 12,
+                    3 => if v & 1 == 0 { i16::MIN } else { v },
+                    _ => v,
+                }
+            };
+            for v in x.iter_mut().take(n + 1) {
+                *v = pick(r, kind);
+            }
+            for v in y.iter_mut().take(2 * n + 2) {
+                *v = pick(r, (kind + ni) % 5);
+            }
+            let (z, q) = y.split_at(n + 1);
+            // The blend: `h` one longer than `z` in odd cases (the last `h` then stays).
+            let extra = (ni + kind) % 2;
+            let mut h = [0i16; 1001];
+            h[..n + 1].copy_from_slice(&x[..n + 1]);
+            mve::blend_q15(&mut h[..n + extra], &z[..n], &q[..n]);
+            for i in 0..=n {
+                let want = if i < n {
+                    let d = q[i] as i64 - x[i] as i64;
+                    sat_i16(x[i] as i64 + rshift_round(z[i] as i64 * d, 15))
+                } else {
+                    x[i]
+                };
+                if h[i] != want {
+                    println!("MUIR-KERNELS FAILED blend_q15: n={n} kind={kind} i={i}: {} != {want}", h[i]);
+                    process::exit(1);
+                }
+            }
+            let mut o = [0x5a5ai16; 1001];
+            mve::mul_q15(&x[..n + extra], &z[..n], &mut o[..n + 1 - extra]);
+            let m = n.min(n + 1 - extra);
+            for i in 0..=n {
+                let want = if i < m { sat_i16(rshift_round(x[i] as i64 * z[i] as i64, 15)) } else { 0x5a5a };
+                if o[i] != want {
+                    println!("MUIR-KERNELS FAILED mul_q15: n={n} kind={kind} i={i}: {} != {want}", o[i]);
+                    process::exit(1);
+                }
+            }
+            cases += 2;
+        }
+    }
+    cases
+}
+
 fn lengths() -> impl Iterator<Item = usize> {
     (0..=40).chain([63, 64, 65, 72, 127, 128, 129, 255, 256, 257, 260, 507, 508, 509, 511, 512, 513, 576, 1000, 1016, 1017, 1152, 2304, 5760])
 }
@@ -1590,6 +1651,7 @@ fn main() -> ! {
         cases += check_weights(&mut r, i16s.a, i16s.b);
         cases += check_lookup(&mut r);
         cases += check_corr_window(&mut *i16s.w0, &mut *i16s.w1, &mut r);
+        cases += check_q15(&mut *i16s.a, &mut *i16s.b, &mut r);
     }
     #[cfg(not(feature = "mve"))]
     {

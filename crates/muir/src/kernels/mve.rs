@@ -2026,3 +2026,73 @@ pub fn corr_window(f1: &[i8], f2: &[i8], win: &mut [i32]) -> bool {
     }
     true
 }
+
+/// `eltwise::blend_q15` four lanes a vector: `h = sat_i16(h + rshift_round(z (q - h), 15))` for
+/// the first `min` of the three lengths, in 32-bit lanes (`|z (q - h)| <= 2^15 (2^16 - 1) <
+/// 2^31`; `VRSHR` rounds as `rshift_round` does; `VQMOVNB` saturates as `sat_i16`). `FPSCR.QC` is
+/// cleared afterwards (the convolution epilogue reads it).
+#[inline]
+pub fn blend_q15(h: &mut [i16], z: &[i16], q: &[i16]) {
+    let n = h.len().min(z.len()).min(q.len());
+    if n == 0 {
+        return;
+    }
+    // SAFETY: lane `i < n` reads `h[i]`, `z[i]`, `q[i]` and writes `h[i]` (tail-predicated:
+    // disabled lanes are neither loaded nor stored).
+    unsafe {
+        asm!(
+            "dlstp.32 lr, {n}",
+            "2:",
+            "vldrh.s32 q0, [{h}]",
+            "vldrh.s32 q1, [{q}], #8",
+            "vldrh.s32 q2, [{z}], #8",
+            "vsub.i32 q1, q1, q0",
+            "vmul.i32 q1, q1, q2",
+            "vrshr.s32 q1, q1, #15",
+            "vadd.i32 q0, q0, q1",
+            "vqmovnb.s32 q0, q0",
+            "vstrh.32 q0, [{h}], #8",
+            "letp lr, 2b",
+            n = in(reg) n,
+            h = inout(reg) h.as_mut_ptr() => _,
+            q = inout(reg) q.as_ptr() => _,
+            z = inout(reg) z.as_ptr() => _,
+            out("lr") _,
+            out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _,
+            options(nostack),
+        );
+    }
+    take_qc();
+}
+
+/// `eltwise::mul_q15` four lanes a vector: `out = sat_i16(rshift_round(x m, 15))` for the first
+/// `min` of the three lengths (`|x m| <= 2^30`); `FPSCR.QC` cleared afterwards.
+#[inline]
+pub fn mul_q15(x: &[i16], m: &[i16], out: &mut [i16]) {
+    let n = out.len().min(x.len()).min(m.len());
+    if n == 0 {
+        return;
+    }
+    // SAFETY: lane `i < n` reads `x[i]`, `m[i]` and writes `out[i]` (tail-predicated).
+    unsafe {
+        asm!(
+            "dlstp.32 lr, {n}",
+            "2:",
+            "vldrh.s32 q0, [{x}], #8",
+            "vldrh.s32 q1, [{m}], #8",
+            "vmul.i32 q0, q0, q1",
+            "vrshr.s32 q0, q0, #15",
+            "vqmovnb.s32 q0, q0",
+            "vstrh.32 q0, [{o}], #8",
+            "letp lr, 2b",
+            n = in(reg) n,
+            x = inout(reg) x.as_ptr() => _,
+            m = inout(reg) m.as_ptr() => _,
+            o = inout(reg) out.as_mut_ptr() => _,
+            out("lr") _,
+            out("d0") _, out("d1") _, out("d2") _, out("d3") _,
+            options(nostack),
+        );
+    }
+    take_qc();
+}
