@@ -1573,7 +1573,17 @@ fn check_q15(x: &mut [i16; MAX_N], y: &mut [i16; MAX_N], r: &mut Rng) -> usize {
                     process::exit(1);
                 }
             }
-            cases += 2;
+            let mut o = [0x5a5ai16; 1001];
+            let k = z[0];
+            mve::mul_q15_by(&x[..n + extra], k, &mut o[..n + 1 - extra]);
+            for i in 0..=n {
+                let want = if i < m { sat_i16(rshift_round(x[i] as i64 * k as i64, 15)) } else { 0x5a5a };
+                if o[i] != want {
+                    println!("MUIR-KERNELS FAILED mul_q15_by: n={n} kind={kind} i={i}: {} != {want}", o[i]);
+                    process::exit(1);
+                }
+            }
+            cases += 3;
         }
     }
     cases

@@ -68,6 +68,12 @@ pub fn mul_plane_q15(x: &[i16], m: &[i16], c: usize, out: &mut [i16]) {
         return; // no channels (and `chunks` takes no empty chunks)
     }
     for ((o, x), m) in out.chunks_mut(c).zip(x.chunks(c)).zip(m) {
+        #[cfg(all(target_arch = "arm", feature = "mve"))]
+        {
+            crate::kernels::mve::mul_q15_by(x, *m, o);
+            continue;
+        }
+        #[allow(unreachable_code)]
         for (o, x) in o.iter_mut().zip(x) {
             *o = sat_i16(rshift_round(*x as i64 * *m as i64, 15));
         }

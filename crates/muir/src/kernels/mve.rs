@@ -1955,7 +1955,7 @@ pub fn lookup_samples(pre: &[i64], sl: usize, a: i32, mult: crate::arith::Multip
             "vrshl.u32 q1, {sr}",
             "vqadd.s32 q0, q0, q1",
             "vqmovnb.s32 q0, q0",
-            "vstrh.32 q0, [{o}], #8",
+            "vstrh.32 q0, [r1], #8",
             "vadd.i32 q4, q4, {bsl}",
             "vadd.i32 q5, q5, {bsl}",
             "letp lr, 2b",
@@ -1967,7 +1967,7 @@ pub fn lookup_samples(pre: &[i64], sl: usize, a: i32, mult: crate::arith::Multip
             a = in(reg) a,
             sl = in(reg) 32 - s,
             sr = in(reg) -s,
-            o = inout(reg) out.as_mut_ptr() => _,
+            inout("r1") out.as_mut_ptr() => _,
             out("lr") _,
             out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
             out("d8") _, out("d9") _, out("d10") _, out("d11") _, out("d14") _, out("d15") _,
@@ -2043,20 +2043,20 @@ pub fn blend_q15(h: &mut [i16], z: &[i16], q: &[i16]) {
         asm!(
             "dlstp.32 lr, {n}",
             "2:",
-            "vldrh.s32 q0, [{h}]",
-            "vldrh.s32 q1, [{q}], #8",
-            "vldrh.s32 q2, [{z}], #8",
+            "vldrh.s32 q0, [r0]",
+            "vldrh.s32 q1, [r1], #8",
+            "vldrh.s32 q2, [r2], #8",
             "vsub.i32 q1, q1, q0",
             "vmul.i32 q1, q1, q2",
             "vrshr.s32 q1, q1, #15",
             "vadd.i32 q0, q0, q1",
             "vqmovnb.s32 q0, q0",
-            "vstrh.32 q0, [{h}], #8",
+            "vstrh.32 q0, [r0], #8",
             "letp lr, 2b",
             n = in(reg) n,
-            h = inout(reg) h.as_mut_ptr() => _,
-            q = inout(reg) q.as_ptr() => _,
-            z = inout(reg) z.as_ptr() => _,
+            inout("r0") h.as_mut_ptr() => _,
+            inout("r1") q.as_ptr() => _,
+            inout("r2") z.as_ptr() => _,
             out("lr") _,
             out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _,
             options(nostack),
@@ -2078,19 +2078,50 @@ pub fn mul_q15(x: &[i16], m: &[i16], out: &mut [i16]) {
         asm!(
             "dlstp.32 lr, {n}",
             "2:",
-            "vldrh.s32 q0, [{x}], #8",
-            "vldrh.s32 q1, [{m}], #8",
+            "vldrh.s32 q0, [r0], #8",
+            "vldrh.s32 q1, [r1], #8",
             "vmul.i32 q0, q0, q1",
             "vrshr.s32 q0, q0, #15",
             "vqmovnb.s32 q0, q0",
-            "vstrh.32 q0, [{o}], #8",
+            "vstrh.32 q0, [r2], #8",
             "letp lr, 2b",
             n = in(reg) n,
-            x = inout(reg) x.as_ptr() => _,
-            m = inout(reg) m.as_ptr() => _,
-            o = inout(reg) out.as_mut_ptr() => _,
+            inout("r0") x.as_ptr() => _,
+            inout("r1") m.as_ptr() => _,
+            inout("r2") out.as_mut_ptr() => _,
             out("lr") _,
             out("d0") _, out("d1") _, out("d2") _, out("d3") _,
+            options(nostack),
+        );
+    }
+    take_qc();
+}
+
+/// [`mul_q15`] by one Q0.15 scalar (`eltwise::mul_plane_q15`'s pixel): `out = sat_i16(
+/// rshift_round(x m, 15))` for the first `min` of the two lengths; `FPSCR.QC` cleared afterwards.
+#[inline]
+pub fn mul_q15_by(x: &[i16], m: i16, out: &mut [i16]) {
+    let n = out.len().min(x.len());
+    if n == 0 {
+        return;
+    }
+    // SAFETY: lane `i < n` reads `x[i]` and writes `out[i]` (tail-predicated).
+    unsafe {
+        asm!(
+            "dlstp.32 lr, {n}",
+            "2:",
+            "vldrh.s32 q0, [r0], #8",
+            "vmul.i32 q0, q0, {m}",
+            "vrshr.s32 q0, q0, #15",
+            "vqmovnb.s32 q0, q0",
+            "vstrh.32 q0, [r1], #8",
+            "letp lr, 2b",
+            n = in(reg) n,
+            m = in(reg) m as i32,
+            inout("r0") x.as_ptr() => _,
+            inout("r1") out.as_mut_ptr() => _,
+            out("lr") _,
+            out("d0") _, out("d1") _,
             options(nostack),
         );
     }
