@@ -1465,6 +1465,220 @@ fn check_conv_nat(r: &mut Rng) -> usize {
     cases
 }
 
+/// `mve::lookup_samples` (the post-pooled lookup's i32 samples of one level, four a vector)
+/// against the scalar i32 formula of `corr::lookup_with`: random prefix sums (small, and any
+/// i64, so that the numerator wraps), phases 0-255, strides 1-16, 1-13 samples, shifts 1-62
+/// (also the zero multiplier), a sentinel after the samples; short prefixes, stride 0 and shifts
+/// 0 and 63 refused with nothing written.
+#[cfg(feature = "mve")]
+fn check_lookup(r: &mut Rng) -> usize {
+    use muir::arith::{Multiplier, requantize_i32, sat_i16};
+    use muir::kernels::mve;
+    let mut pre = [0i64; 16 * 14 + 2];
+    let mut cases = 0;
+    for case in 0..3000usize {
+        let sl = [1usize, 2, 4, 8, 16, 3][case % 6];
+        let k = 1 + (r.next() % 13) as usize;
+        let a = match case % 7 {
+            0 => 0,
+            1 => 255,
+            _ => (r.next() >> 56) as i32,
+        };
+        let shift = match case % 11 {
+            0 => 1,
+            1 => 62,
+            2 => 32,
+            3 => 33,
+            _ => 1 + (r.next() % 62) as u8,
+        };
+        let m = match case % 13 {
+            0 => 0,
+            1 => i32::MAX,
+            2 => 1 << 30,
+            _ => ((1u64 << 30) + (r.next() >> 34)) as i32,
+        };
+        let mult = Multiplier { m, shift };
+        let need = (k - 1) * sl + sl + 2;
+        let kind = case % 5;
+        for v in pre.iter_mut().take(need) {
+            let x = r.next() as i64;
+            *v = match kind {
+                0 => x,
+                1 => x >> 40,
+                2 => x >> 20,
+                3 => if x & 1 == 0 { i64::MAX } else { i64::MIN },
+                _ => x >> 50,
+            };
+        }
+        let mut out = [0x5a5ai16; 14];
+        if !mve::lookup_samples(&pre[..need], sl, a, mult, &mut out[..k]) {
+            println!("MUIR-KERNELS FAILED lookup_samples: refused sl={sl} k={k} shift={shift}");
+            process::exit(1);
+        }
+        for t in 0..k {
+            let (x0, x1, y0, y1) = (pre[t * sl] as i32, pre[t * sl + sl] as i32, pre[t * sl + 1] as i32, pre[t * sl + 1 + sl] as i32);
+            let (b0, b1) = (x1.wrapping_sub(x0), y1.wrapping_sub(y0));
+            let want = sat_i16(requantize_i32((256 - a).wrapping_mul(b0).wrapping_add(a.wrapping_mul(b1)), mult));
+            if out[t] != want {
+                println!("MUIR-KERNELS FAILED lookup_samples: case {case} sl={sl} k={k} a={a} m={m} shift={shift} t={t}: {} != {want}", out[t]);
+                process::exit(1);
+            }
+        }
+        if out[k] != 0x5a5a {
+            println!("MUIR-KERNELS FAILED lookup_samples: case {case} wrote past {k} samples");
+            process::exit(1);
+        }
+        cases += 1;
+        if case % 50 == 0 {
+            let mut o = [0x5a5ai16; 14];
+            let bad = [
+                mve::lookup_samples(&pre[..need - 1], sl, a, mult, &mut o[..k]),
+                mve::lookup_samples(&pre[..need], 0, a, mult, &mut o[..k]),
+                mve::lookup_samples(&pre[..need], sl, a, Multiplier { m, shift: 0 }, &mut o[..k]),
+                mve::lookup_samples(&pre[..need], sl, a, Multiplier { m, shift: 63 }, &mut o[..k]),
+            ];
+            if bad.iter().any(|&b| b) || o.iter().any(|&v| v != 0x5a5a) {
+                println!("MUIR-KERNELS FAILED lookup_samples: case {case}: invalid arguments accepted");
+                process::exit(1);
+            }
+            cases += 4;
+        }
+    }
+    cases
+}
+
+/// `corr::window` (Helium: `mve::corr_window` over the in-row columns, zeros around them)
+/// against the plain correlations: feature lengths 1-40 and around the 16-lane vectors and 256,
+/// random and extreme i8 features, windows starting left of, inside and right of the row, a row
+/// one column short of its width (the plain path then), a sentinel after the window; and
+/// `corr_window` refusing an empty feature vector and a short row.
+#[cfg(feature = "mve")]
+fn check_corr_window(f1: &mut [i8; MAX_N], f2: &mut [i8; MAX_N], r: &mut Rng) -> usize {
+    use muir::kernels::{corr, mve};
+    let mut cases = 0;
+    let cs = (1..=40usize).chain([47, 48, 49, 63, 64, 65, 128, 255, 256, 257]);
+    for (ci, c) in cs.enumerate() {
+        for rep in 0..6usize {
+            let w = 1 + (r.next() % (MAX_N as u64 / c as u64).min(40)) as usize;
+            let fill = (ci + rep) % 4;
+            for v in f1.iter_mut().take(c) {
+                *v = match fill {
+                    1 => i8::MIN,
+                    2 => i8::MAX,
+                    _ => (r.next() >> 56) as i8,
+                };
+            }
+            for v in f2.iter_mut().take(w * c) {
+                *v = match fill {
+                    1 | 2 => i8::MIN,
+                    _ => (r.next() >> 56) as i8,
+                };
+            }
+            let n = 1 + (r.next() % 24) as usize;
+            let lo = (r.next() % (w as u64 + n as u64 + 4)) as i64 - n as i64 - 2;
+            // The row one column short of `w` in every sixth case (its last column then reads 0).
+            let len = if rep == 5 { (w - 1) * c } else { w * c };
+            let mut win = [0x5a5a_5a5ai32; 25];
+            corr::window(&f1[..c], &f2[..len], w, lo, &mut win[..n]);
+            for (i, &got) in win[..n].iter().enumerate() {
+                let col = lo + i as i64;
+                let want = if col < 0 || col as usize >= w || (col as usize + 1) * c > len {
+                    0
+                } else {
+                    let f = &f2[col as usize * c..(col as usize + 1) * c];
+                    f1[..c].iter().zip(f).map(|(a, b)| *a as i32 * *b as i32).sum::<i32>()
+                };
+                if got != want {
+                    println!("MUIR-KERNELS FAILED corr_window: c={c} w={w} lo={lo} n={n} column {i}: {got} != {want}");
+                    process::exit(1);
+                }
+            }
+            if win[n] != 0x5a5a_5a5a {
+                println!("MUIR-KERNELS FAILED corr_window: c={c} wrote past {n} columns");
+                process::exit(1);
+            }
+            cases += 1;
+        }
+    }
+    let mut win = [7i32; 4];
+    if mve::corr_window(&f1[..0], &f2[..64], &mut win) || mve::corr_window(&f1[..16], &f2[..63], &mut win) || win != [7; 4] {
+        println!("MUIR-KERNELS FAILED corr_window: invalid arguments accepted");
+        process::exit(1);
+    }
+    cases + 2
+}
+
+/// `mve::blend_q15` and `mve::mul_q15` (the GRU blend and gate products) against the plain
+/// i64 formulas of `eltwise`: lengths 0-40 and around the vectors, random, extreme (both signs,
+/// so that the blend saturates) and small values, operands of unequal lengths (the shortest
+/// counts), a sentinel after the written values.
+#[cfg(feature = "mve")]
+fn check_q15(x: &mut [i16; MAX_N], y: &mut [i16; MAX_N], r: &mut Rng) -> usize {
+    use muir::arith::{rshift_round, sat_i16};
+    use muir::kernels::mve;
+    let mut cases = 0;
+    let ns = (0..=40usize).chain([63, 64, 65, 127, 128, 129, 1000]);
+    for (ni, n) in ns.enumerate() {
+        for kind in 0..5usize {
+            let pick = |r: &mut Rng, k: usize| -> i16 {
+                let v = (r.next() >> 48) as i16;
+                match k {
+                    1 => if v & 1 == 0 { i16::MIN } else { i16::MAX },
+                    2 => v >> 12,
+                    3 => if v & 1 == 0 { i16::MIN } else { v },
+                    _ => v,
+                }
+            };
+            for v in x.iter_mut().take(n + 1) {
+                *v = pick(r, kind);
+            }
+            for v in y.iter_mut().take(2 * n + 2) {
+                *v = pick(r, (kind + ni) % 5);
+            }
+            let (z, q) = y.split_at(n + 1);
+            // The blend: `h` one longer than `z` in odd cases (the last `h` then stays).
+            let extra = (ni + kind) % 2;
+            let mut h = [0i16; 1001];
+            h[..n + 1].copy_from_slice(&x[..n + 1]);
+            mve::blend_q15(&mut h[..n + extra], &z[..n], &q[..n]);
+            for i in 0..=n {
+                let want = if i < n {
+                    let d = q[i] as i64 - x[i] as i64;
+                    sat_i16(x[i] as i64 + rshift_round(z[i] as i64 * d, 15))
+                } else {
+                    x[i]
+                };
+                if h[i] != want {
+                    println!("MUIR-KERNELS FAILED blend_q15: n={n} kind={kind} i={i}: {} != {want}", h[i]);
+                    process::exit(1);
+                }
+            }
+            let mut o = [0x5a5ai16; 1001];
+            mve::mul_q15(&x[..n + extra], &z[..n], &mut o[..n + 1 - extra]);
+            let m = n.min(n + 1 - extra);
+            for i in 0..=n {
+                let want = if i < m { sat_i16(rshift_round(x[i] as i64 * z[i] as i64, 15)) } else { 0x5a5a };
+                if o[i] != want {
+                    println!("MUIR-KERNELS FAILED mul_q15: n={n} kind={kind} i={i}: {} != {want}", o[i]);
+                    process::exit(1);
+                }
+            }
+            let mut o = [0x5a5ai16; 1001];
+            let k = z[0];
+            mve::mul_q15_by(&x[..n + extra], k, &mut o[..n + 1 - extra]);
+            for i in 0..=n {
+                let want = if i < m { sat_i16(rshift_round(x[i] as i64 * k as i64, 15)) } else { 0x5a5a };
+                if o[i] != want {
+                    println!("MUIR-KERNELS FAILED mul_q15_by: n={n} kind={kind} i={i}: {} != {want}", o[i]);
+                    process::exit(1);
+                }
+            }
+            cases += 3;
+        }
+    }
+    cases
+}
+
 fn lengths() -> impl Iterator<Item = usize> {
     (0..=40).chain([63, 64, 65, 72, 127, 128, 129, 255, 256, 257, 260, 507, 508, 509, 511, 512, 513, 576, 1000, 1016, 1017, 1152, 2304, 5760])
 }
@@ -1534,6 +1748,9 @@ fn main() -> ! {
         cases += check_requant(&mut r);
         cases += check_popcount(&mut r);
         cases += check_weights(&mut r, i16s.a, i16s.b);
+        cases += check_lookup(&mut r);
+        cases += check_corr_window(&mut *i16s.w0, &mut *i16s.w1, &mut r);
+        cases += check_q15(&mut *i16s.a, &mut *i16s.b, &mut r);
     }
     cases += check_refine(&mut r);
     #[cfg(not(feature = "mve"))]

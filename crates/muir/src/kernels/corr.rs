@@ -105,6 +105,20 @@ pub fn lookup_pixel(p: &LookupParams<'_>, f1: &[i8], f2: &[i8], w: usize, x: usi
 /// of `f1.len()` values; 0 outside them).
 pub fn window(f1: &[i8], f2: &[i8], w: usize, lo: i64, win: &mut [i32]) {
     let c = f1.len();
+    // Helium: the in-row columns `s..e` by one assembly loop, zeros around them.
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    {
+        let n = win.len() as i64;
+        let (s, e) = (lo.clamp(0, w as i64), (lo + n).clamp(0, w as i64).max(lo.clamp(0, w as i64)));
+        let (i, j) = ((s - lo).clamp(0, n) as usize, (e - lo).clamp(0, n) as usize);
+        if let (Some(f2), Some(mid)) = (f2.get(s as usize * c..e as usize * c), win.get_mut(i..j))
+            && super::mve::corr_window(f1, f2, mid)
+        {
+            win.get_mut(..i).unwrap_or_default().fill(0);
+            win.get_mut(j..).unwrap_or_default().fill(0);
+            return;
+        }
+    }
     #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
     {
         // Armv7E-M: four columns of the row at a time (`f1`'s quads widened once for the four).
@@ -186,10 +200,16 @@ pub fn lookup_with(p: &LookupParams<'_>, w: usize, x: usize, flow: i16, s: &mut 
                 && last <= n as i64
                 && let Some(pre) = pre.get(i0 as usize..=last as usize)
             {
+                let i32_ok = lvl <= 20 && mag < (1 << 21) >> lvl && (1..=62).contains(&mult.shift);
+                // Helium: the same i32 arithmetic four samples a vector.
+                #[cfg(all(target_arch = "arm", feature = "mve"))]
+                if i32_ok && crate::kernels::mve::lookup_samples(pre, sl, a as i32, mult, out) {
+                    continue;
+                }
                 let (x0, x1) = (pre.iter().step_by(sl), pre.get(sl..).unwrap_or_default().iter().step_by(sl));
                 let (y0, y1) = (pre.get(1..).unwrap_or_default().iter().step_by(sl), pre.get(1 + sl..).unwrap_or_default().iter().step_by(sl));
                 let samples = out.iter_mut().zip(x0).zip(x1).zip(y0).zip(y1);
-                if lvl <= 20 && mag < (1 << 21) >> lvl && (1..=62).contains(&mult.shift) {
+                if i32_ok {
                     // Every box of `s_l` correlations is below `2^21` in magnitude, so `num`
                     // is below `256 * 2^21 = 2^29`: i32 arithmetic (the low words of the prefix
                     // sums differ by the box exactly) and `requantize`'s own i32 path.

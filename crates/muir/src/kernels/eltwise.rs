@@ -43,6 +43,9 @@ pub enum Skip<'a, X> {
 
 /// GRU / UFI blend in place: `h = h + z * (q - h)` (= `(1 - z) h + z q`), all Q0.15.
 pub fn blend_q15(h: &mut [i16], z: &[i16], q: &[i16]) {
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    return crate::kernels::mve::blend_q15(h, z, q);
+    #[allow(unreachable_code)]
     for ((h, z), q) in h.iter_mut().zip(z).zip(q) {
         let d = *q as i64 - *h as i64;
         *h = sat_i16(*h as i64 + rshift_round(*z as i64 * d, 15));
@@ -51,6 +54,9 @@ pub fn blend_q15(h: &mut [i16], z: &[i16], q: &[i16]) {
 
 /// `out = x * m` with `m` in Q0.15 (format of `x` kept).
 pub fn mul_q15(x: &[i16], m: &[i16], out: &mut [i16]) {
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    return crate::kernels::mve::mul_q15(x, m, out);
+    #[allow(unreachable_code)]
     for ((o, x), m) in out.iter_mut().zip(x).zip(m) {
         *o = sat_i16(rshift_round(*x as i64 * *m as i64, 15));
     }
@@ -62,6 +68,12 @@ pub fn mul_plane_q15(x: &[i16], m: &[i16], c: usize, out: &mut [i16]) {
         return; // no channels (and `chunks` takes no empty chunks)
     }
     for ((o, x), m) in out.chunks_mut(c).zip(x.chunks(c)).zip(m) {
+        #[cfg(all(target_arch = "arm", feature = "mve"))]
+        {
+            crate::kernels::mve::mul_q15_by(x, *m, o);
+            continue;
+        }
+        #[allow(unreachable_code)]
         for (o, x) in o.iter_mut().zip(x) {
             *o = sat_i16(rshift_round(*x as i64 * *m as i64, 15));
         }

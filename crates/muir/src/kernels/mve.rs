@@ -1901,3 +1901,229 @@ pub fn exp_weights(e: &mut [i32], m: i32, shift: u8) -> Option<(i32, i64)> {
     take_qc();
     Some((max, ((hi as u64) << 32 | lo as u64) as i64))
 }
+
+/// The post-pooled correlation lookup's samples of one level in i32 (`corr::lookup_with`'s i32
+/// path), four samples a vector: `out[t] = sat_i16(requantize_i32((256 - a) (x1 - x0) + a (y1 -
+/// y0), mult))` in wrapping i32 arithmetic, where `x0`, `x1`, `y0`, `y1` are the low words of
+/// `pre[t sl]`, `pre[t sl + sl]`, `pre[t sl + 1]` and `pre[t sl + 1 + sl]`, for `t < out.len()`.
+/// Returns false, with nothing written, where `sl` is 0 or above 2^20, `pre` is too short (it
+/// needs `(out.len() - 1) sl + sl + 2` values) or the shift is outside `1..=62`.
+///
+/// The low words are read by four word gathers from two vectors of addresses (lane `t`: `pre[t
+/// sl]` and `pre[t sl + sl]`, the `y` words 8 bytes further), stepped by `32 sl` bytes; the
+/// numerator as `256 (x1 - x0) + a ((y1 - y0) - (x1 - x0))` (the same value modulo `2^32`); the
+/// requantisation is [`exp_weights`]'s `VQRSHL(h, 32 - s) + VRSHL_u(l, -s)` on the product's
+/// high and low words, exact where nothing saturates; where `VQRSHL` or `VQADD` saturates the
+/// exact value lies beyond `i32` on the same side, so after the saturating narrowing to i16
+/// (`VQMOVNB`) both give the same value. `FPSCR.QC` is cleared afterwards (the convolution
+/// epilogue reads it).
+#[inline]
+pub fn lookup_samples(pre: &[i64], sl: usize, a: i32, mult: crate::arith::Multiplier, out: &mut [i16]) -> bool {
+    let k = out.len();
+    if k == 0 {
+        return true;
+    }
+    if sl == 0 || sl > 1 << 20 || !(1..=62).contains(&mult.shift) || pre.len() < (k - 1) * sl + sl + 2 {
+        return false;
+    }
+    let s = mult.shift as i32;
+    // SAFETY: lane `t < k` gathers the low words of `pre[t sl + {0, sl, 1, 1 + sl}]`, all below
+    // `(k - 1) sl + sl + 2 <= pre.len()` (checked; 8-byte aligned), and writes `out[t]`
+    // (tail-predicated: disabled lanes are neither loaded nor stored).
+    unsafe {
+        asm!(
+            "vdup.32 q7, {m}",
+            "vidup.u32 q4, r0, #1",
+            "vmul.i32 q4, q4, {bsl}",
+            "vadd.i32 q4, q4, {base}",
+            "vadd.i32 q5, q4, {bsl}",
+            "lsl {bsl}, {bsl}, #2",
+            "dlstp.32 lr, {n}",
+            "2:",
+            "vldrw.u32 q0, [q4]",
+            "vldrw.u32 q1, [q5]",
+            "vldrw.u32 q2, [q4, #8]",
+            "vldrw.u32 q3, [q5, #8]",
+            "vsub.i32 q1, q1, q0",
+            "vsub.i32 q3, q3, q2",
+            "vsub.i32 q3, q3, q1",
+            "vshl.i32 q1, q1, #8",
+            "vmla.i32 q1, q3, {a}",
+            "vmulh.s32 q0, q1, q7",
+            "vmul.i32 q1, q1, q7",
+            "vqrshl.s32 q0, {sl}",
+            "vrshl.u32 q1, {sr}",
+            "vqadd.s32 q0, q0, q1",
+            "vqmovnb.s32 q0, q0",
+            "vstrh.32 q0, [r1], #8",
+            "vadd.i32 q4, q4, {bsl}",
+            "vadd.i32 q5, q5, {bsl}",
+            "letp lr, 2b",
+            m = in(reg) mult.m,
+            inout("r0") 0u32 => _,
+            bsl = inout(reg) 8 * sl as u32 => _,
+            base = in(reg) pre.as_ptr(),
+            n = in(reg) k,
+            a = in(reg) a,
+            sl = in(reg) 32 - s,
+            sr = in(reg) -s,
+            inout("r1") out.as_mut_ptr() => _,
+            out("lr") _,
+            out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+            out("d8") _, out("d9") _, out("d10") _, out("d11") _, out("d14") _, out("d15") _,
+            options(nostack),
+        );
+    }
+    take_qc();
+    true
+}
+
+/// The correlation window's in-row columns: `win[i] = f1 . col_i` (i8 x i8, sixteen products per
+/// `VMLADAVA.S8`, tail-predicated) for `i < win.len()`, where `col_i` is `f2[i c .. (i + 1) c]`
+/// and `c = f1.len()`; one assembly loop over the columns (a column's pointer stepped by `c`,
+/// not by the loads' write-back, which a predicated tail runs past). Returns false, with nothing
+/// written, when `c` is 0 or at least 2^16 (then `|sum| < 2^14 c` might leave i32) or `f2` holds
+/// fewer than `win.len() c` values.
+#[inline]
+pub fn corr_window(f1: &[i8], f2: &[i8], win: &mut [i32]) -> bool {
+    let (c, n) = (f1.len(), win.len());
+    if c == 0 || c >= 1 << 16 || f2.len() < n * c {
+        return false;
+    }
+    if n == 0 {
+        return true;
+    }
+    // SAFETY: column `i < n` reads `f2[i c .. i c + c]` (inside: checked) and `f1` (`c` values),
+    // tail-predicated (disabled lanes are not loaded), and writes `win[i]`.
+    unsafe {
+        asm!(
+            "2:",
+            "mov {x}, {f1}",
+            "mov {y}, {col}",
+            "add {col}, {col}, {c}",
+            "movs r0, #0",
+            "dlstp.8 lr, {c}",
+            "3:",
+            "vldrb.u8 q0, [{x}], #16",
+            "vldrb.u8 q1, [{y}], #16",
+            "vmlava.s8 r0, q0, q1",
+            "letp lr, 3b",
+            "str r0, [{o}], #4",
+            "subs {n}, {n}, #1",
+            "bne 2b",
+            f1 = in(reg) f1.as_ptr(),
+            col = inout(reg) f2.as_ptr() => _,
+            c = in(reg) c,
+            n = inout(reg) n => _,
+            o = inout(reg) win.as_mut_ptr() => _,
+            x = out(reg) _,
+            y = out(reg) _,
+            out("r0") _,
+            out("lr") _,
+            out("d0") _, out("d1") _, out("d2") _, out("d3") _,
+            options(nostack),
+        );
+    }
+    true
+}
+
+/// `eltwise::blend_q15` four lanes a vector: `h = sat_i16(h + rshift_round(z (q - h), 15))` for
+/// the first `min` of the three lengths, in 32-bit lanes (`|z (q - h)| <= 2^15 (2^16 - 1) <
+/// 2^31`; `VRSHR` rounds as `rshift_round` does; `VQMOVNB` saturates as `sat_i16`). `FPSCR.QC` is
+/// cleared afterwards (the convolution epilogue reads it).
+#[inline]
+pub fn blend_q15(h: &mut [i16], z: &[i16], q: &[i16]) {
+    let n = h.len().min(z.len()).min(q.len());
+    if n == 0 {
+        return;
+    }
+    // SAFETY: lane `i < n` reads `h[i]`, `z[i]`, `q[i]` and writes `h[i]` (tail-predicated:
+    // disabled lanes are neither loaded nor stored).
+    unsafe {
+        asm!(
+            "dlstp.32 lr, {n}",
+            "2:",
+            "vldrh.s32 q0, [r0]",
+            "vldrh.s32 q1, [r1], #8",
+            "vldrh.s32 q2, [r2], #8",
+            "vsub.i32 q1, q1, q0",
+            "vmul.i32 q1, q1, q2",
+            "vrshr.s32 q1, q1, #15",
+            "vadd.i32 q0, q0, q1",
+            "vqmovnb.s32 q0, q0",
+            "vstrh.32 q0, [r0], #8",
+            "letp lr, 2b",
+            n = in(reg) n,
+            inout("r0") h.as_mut_ptr() => _,
+            inout("r1") q.as_ptr() => _,
+            inout("r2") z.as_ptr() => _,
+            out("lr") _,
+            out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _,
+            options(nostack),
+        );
+    }
+    take_qc();
+}
+
+/// `eltwise::mul_q15` four lanes a vector: `out = sat_i16(rshift_round(x m, 15))` for the first
+/// `min` of the three lengths (`|x m| <= 2^30`); `FPSCR.QC` cleared afterwards.
+#[inline]
+pub fn mul_q15(x: &[i16], m: &[i16], out: &mut [i16]) {
+    let n = out.len().min(x.len()).min(m.len());
+    if n == 0 {
+        return;
+    }
+    // SAFETY: lane `i < n` reads `x[i]`, `m[i]` and writes `out[i]` (tail-predicated).
+    unsafe {
+        asm!(
+            "dlstp.32 lr, {n}",
+            "2:",
+            "vldrh.s32 q0, [r0], #8",
+            "vldrh.s32 q1, [r1], #8",
+            "vmul.i32 q0, q0, q1",
+            "vrshr.s32 q0, q0, #15",
+            "vqmovnb.s32 q0, q0",
+            "vstrh.32 q0, [r2], #8",
+            "letp lr, 2b",
+            n = in(reg) n,
+            inout("r0") x.as_ptr() => _,
+            inout("r1") m.as_ptr() => _,
+            inout("r2") out.as_mut_ptr() => _,
+            out("lr") _,
+            out("d0") _, out("d1") _, out("d2") _, out("d3") _,
+            options(nostack),
+        );
+    }
+    take_qc();
+}
+
+/// [`mul_q15`] by one Q0.15 scalar (`eltwise::mul_plane_q15`'s pixel): `out = sat_i16(
+/// rshift_round(x m, 15))` for the first `min` of the two lengths; `FPSCR.QC` cleared afterwards.
+#[inline]
+pub fn mul_q15_by(x: &[i16], m: i16, out: &mut [i16]) {
+    let n = out.len().min(x.len());
+    if n == 0 {
+        return;
+    }
+    // SAFETY: lane `i < n` reads `x[i]` and writes `out[i]` (tail-predicated).
+    unsafe {
+        asm!(
+            "dlstp.32 lr, {n}",
+            "2:",
+            "vldrh.s32 q0, [r0], #8",
+            "vmul.i32 q0, q0, {m}",
+            "vrshr.s32 q0, q0, #15",
+            "vqmovnb.s32 q0, q0",
+            "vstrh.32 q0, [r1], #8",
+            "letp lr, 2b",
+            n = in(reg) n,
+            m = in(reg) m as i32,
+            inout("r0") x.as_ptr() => _,
+            inout("r1") out.as_mut_ptr() => _,
+            out("lr") _,
+            out("d0") _, out("d1") _,
+            options(nostack),
+        );
+    }
+    take_qc();
+}
