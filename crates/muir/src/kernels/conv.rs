@@ -722,10 +722,11 @@ pub fn conv_row_u8_wide(p: &ConvParams<'_>, inputs: &[PartRows<'_, u8>], w_in: u
 }
 
 /// Fewest pixel pairs per widening of the weights for [`conv_row_w16`]: each group of four of a
-/// channel pair costs 8 instructions to widen and saves 4 per pixel pair (16 -> 12), so 2 pairs
-/// only break even.
+/// channel pair costs 7 instructions to widen and saves about 4 per pixel pair, so 2 pairs
+/// about break even on the loop alone, yet measured 2 beats 3 (the 1/16 grid's rows of 4 and
+/// 5 pixels at 64x48: -12.4 M instructions) and 1 loses (+8.1 M against 2).
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
-const W16_MIN_PAIRS: usize = 3;
+const W16_MIN_PAIRS: usize = 2;
 /// Most pixel pairs gathered at a time: the slots' room and the row's width bound it first
 /// almost everywhere (8 left 12.9 M instructions of widening at 160x120; 1024 counts the same as 32).
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
