@@ -989,7 +989,12 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
     };
     let pad = k / 2;
     let mut t = NatTable::new();
-    let mut built: Option<Option<usize>> = None;
+    // The inside blocks' table at the table's front, built once per row (its entries), and a
+    // single pixel's table (its column and entries) after it, or at the front until the inside
+    // one is built (which then overwrites it): each channel pair builds one end pixel's table
+    // instead of that and the inside one again.
+    let mut inside: Option<usize> = None;
+    let mut lone: Option<(usize, usize, usize)> = None;
     for (cp, ((w, m), b)) in channel_pairs(p, kl, 0).enumerate() {
         let (w0, w1) = halves(w);
         let (mut o, mut wo) = (0, 0);
@@ -1022,17 +1027,36 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
         // an end pixel's runs are shorter). Tables serve every channel pair, and the channel
         // pairs walk the row in alternate directions: each starts with the last one's table.
         for (xa, xb) in nat_blocks(pad, w_in, w_out, cp % 2 == 1) {
-            let inside = xb != xa;
-            let key = if inside { None } else { Some(xa) };
-            if built != Some(key) {
-                t.build(k, p.parts, inputs, w_in, words, kl, key);
-                built = Some(key);
-            }
+            let pair = xb != xa;
+            let range = match (pair, inside, lone) {
+                (true, Some(n), _) => (0, n),
+                (false, _, Some((x, a, e))) if x == xa => (a, e),
+                (true, None, _) => {
+                    t.build(0, k, p.parts, inputs, w_in, words, kl, None);
+                    inside = Some(t.ne);
+                    // A single pixel's table at the front is overwritten.
+                    lone = lone.filter(|&(_, a, _)| a >= t.ne);
+                    (0, t.ne)
+                }
+                (false, _, _) => {
+                    let at = inside.unwrap_or(0);
+                    t.build(at, k, p.parts, inputs, w_in, words, kl, Some(xa));
+                    let mut a = at;
+                    if !t.whole && at > 0 {
+                        // Both tables do not fit: this one at the front, the inside one again
+                        // when next needed.
+                        (inside, a) = (None, 0);
+                        t.build(0, k, p.parts, inputs, w_in, words, kl, Some(xa));
+                    }
+                    lone = Some((xa, a, t.ne));
+                    (a, t.ne)
+                }
+            };
             if !t.whole {
                 return true; // never: the checks above keep every table whole
             }
             let mut sums = [[0i64; 4]; crate::model::graph::MAX_PARTS];
-            t.run(if inside { xa - pad } else { 0 }, kl, w, ww, &mut sums);
+            t.run(range, if pair { xa - pad } else { 0 }, kl, w, ww, &mut sums);
             // Every part's sums in i32: the short path's integers with the decoded epilogue;
             // else `block2x2_by` from the start, as before.
             if short {
@@ -1156,11 +1180,11 @@ impl NatTable {
     /// the single pixel `lone` (both pixels the same, the kernel columns inside the input only).
     /// Entries address the widened runs (`words` of them, part by part, kernel row by kernel
     /// row) and the int8 weights (`kl` per channel) by offsets, so the table serves every
-    /// channel pair of the row.
+    /// channel pair of the row. Written from entry `at` on (the entries before it kept).
     #[allow(clippy::too_many_arguments)]
     #[inline(never)]
-    fn build(&mut self, k: usize, parts: &[usize], inputs: &[PartRows<'_, i16>], w_in: usize, words: usize, kl: usize, lone: Option<usize>) {
-        (self.ne, self.whole) = (0, true);
+    fn build(&mut self, at: usize, k: usize, parts: &[usize], inputs: &[PartRows<'_, i16>], w_in: usize, words: usize, kl: usize, lone: Option<usize>) {
+        (self.ne, self.whole) = (at, true);
         let pad = k / 2;
         let (mut o, mut wo) = (0, 0);
         for (part, (rows, &ch)) in inputs.iter().zip(parts).enumerate() {
@@ -1201,11 +1225,11 @@ impl NatTable {
         }
     }
 
-    /// The block at column `col` (0 for a single pixel's table) into `sums`, with the channel
+    /// The block at column `col` (0 for a single pixel's table), entries `from .. to`, into `sums`, with the channel
     /// pair's widened weights `ww` and int8 weights `w` (`2 kl`: w0's, then w1's).
     #[inline(always)]
-    fn run(&self, col: usize, kl: usize, w: &[i8], ww: &[u32], sums: &mut [[i64; 4]; crate::model::graph::MAX_PARTS]) {
-        let e = self.e.get(..self.ne).unwrap_or_default();
+    fn run(&self, (from, to): (usize, usize), col: usize, kl: usize, w: &[i8], ww: &[u32], sums: &mut [[i64; 4]; crate::model::graph::MAX_PARTS]) {
+        let e = self.e.get(from..to).unwrap_or_default();
         if w.len() < 2 * kl {
             return; // never: `channel_pairs` gives `2 kl` weights
         }
