@@ -989,12 +989,13 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
     };
     let pad = k / 2;
     let mut t = NatTable::new();
-    // The inside blocks' table at the table's front, built once per row (its entries), and a
-    // single pixel's table (its column and entries) after it, or at the front until the inside
-    // one is built (which then overwrites it): each channel pair builds one end pixel's table
-    // instead of that and the inside one again.
+    // The inside blocks' table at the table's front, built once per row (its entries), and the
+    // single pixels' tables (column and entries) after it, or at the front until the inside
+    // one is built (which then overwrites them): each built once per row where they fit (one
+    // that does not drops the others, then the inside one).
     let mut inside: Option<usize> = None;
-    let mut lone: Option<(usize, usize, usize)> = None;
+    let mut lone = [(0, 0, 0); 3];
+    let mut nl = 0;
     for (cp, ((w, m), b)) in channel_pairs(p, kl, 0).enumerate() {
         let (w0, w1) = halves(w);
         let (mut o, mut wo) = (0, 0);
@@ -1028,27 +1029,39 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
         // pairs walk the row in alternate directions: each starts with the last one's table.
         for (xa, xb) in nat_blocks(pad, w_in, w_out, cp % 2 == 1) {
             let pair = xb != xa;
-            let range = match (pair, inside, lone) {
+            let found = lone.get(..nl).unwrap_or_default().iter().find(|l| l.0 == xa).copied();
+            let range = match (pair, inside, found) {
                 (true, Some(n), _) => (0, n),
-                (false, _, Some((x, a, e))) if x == xa => (a, e),
+                (false, _, Some((_, a, e))) => (a, e),
                 (true, None, _) => {
                     t.build(0, k, p.parts, inputs, w_in, words, kl, None);
                     inside = Some(t.ne);
-                    // A single pixel's table at the front is overwritten.
-                    lone = lone.filter(|&(_, a, _)| a >= t.ne);
+                    // The single pixels' tables at the front are overwritten.
+                    nl = 0;
                     (0, t.ne)
                 }
-                (false, _, _) => {
-                    let at = inside.unwrap_or(0);
-                    t.build(at, k, p.parts, inputs, w_in, words, kl, Some(xa));
-                    let mut a = at;
-                    if !t.whole && at > 0 {
-                        // Both tables do not fit: this one at the front, the inside one again
+                (false, _, None) => {
+                    let base = inside.unwrap_or(0);
+                    if nl >= lone.len() {
+                        nl = 0;
+                    }
+                    let mut a = lone.get(..nl).unwrap_or_default().last().map_or(base, |l| l.2);
+                    t.build(a, k, p.parts, inputs, w_in, words, kl, Some(xa));
+                    if !t.whole && a > base {
+                        // Out of entries: the other single pixels' tables dropped.
+                        (nl, a) = (0, base);
+                        t.build(a, k, p.parts, inputs, w_in, words, kl, Some(xa));
+                    }
+                    if !t.whole && a > 0 {
+                        // Still out of entries: this one at the front, the inside one again
                         // when next needed.
-                        (inside, a) = (None, 0);
+                        (inside, nl, a) = (None, 0, 0);
                         t.build(0, k, p.parts, inputs, w_in, words, kl, Some(xa));
                     }
-                    lone = Some((xa, a, t.ne));
+                    if let Some(l) = lone.get_mut(nl) {
+                        *l = (xa, a, t.ne);
+                        nl += 1;
+                    }
                     (a, t.ne)
                 }
             };
@@ -1129,10 +1142,13 @@ const NAT_ENTRIES: usize = 3 * crate::model::graph::MAX_PARTS;
 
 /// One block's work for [`conv_row_i16_nat`]: `dsp::nat_block` entries for the runs' whole
 /// groups and, as plain entries, their other values (a run's last `k ch % 4`, an end pixel's
-/// first and last).
+/// first and last). Room for several tables one after another (a block's needs `3
+/// NAT_ENTRIES` at most): the inside blocks' and the end pixels' of a row, kept for all its
+/// channel pairs (`3 NAT_ENTRIES` left the six-part gate layers rebuilding them: 28 M
+/// instructions more at 160x120; `6 NAT_ENTRIES` counts as `4`).
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
 struct NatTable {
-    e: [super::dsp::NatEntry; 3 * NAT_ENTRIES],
+    e: [super::dsp::NatEntry; 4 * NAT_ENTRIES],
     ne: usize,
     /// Whether every entry fitted (else the row stops).
     whole: bool,
@@ -1142,7 +1158,7 @@ struct NatTable {
 impl NatTable {
     fn new() -> Self {
         let e = super::dsp::NatEntry { row: core::ptr::null(), w: 0, step: 0, groups: 0, bstep: 0, part: 0 };
-        NatTable { e: [e; 3 * NAT_ENTRIES], ne: 0, whole: true }
+        NatTable { e: [e; 4 * NAT_ENTRIES], ne: 0, whole: true }
     }
 
     #[inline(always)]
