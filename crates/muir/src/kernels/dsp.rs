@@ -576,7 +576,7 @@ core::arch::global_asm!(
     // of entries (row, w, step, groups, bstep, part: `NatEntry`), the activations read in place
     // from the input rows in natural order (so the weights are widened in natural order too,
     // `widen_weights_nat`). r0 = table, r1 = entries (>= 1), r2 = col, r3 = the parts' four i64
-    // sums each (added to); [sp, #60] kl, [sp, #64] w0, [sp, #68] ww after the pushes. Per
+    // sums each (added to); [sp, #76] kl, [sp, #80] w0, [sp, #84] ww after the pushes. Per
     // entry: pixel a at row + col step, pixel b bstep bytes later, `groups` (1 to
     // `I16_ASM_GROUPS`: one i32 chunk) groups against the widened weights at ww + w, its four
     // i32 sums added into the part's i64 sums. The loops are unrolled as `dot2x2_w16`'s: each
@@ -586,7 +586,7 @@ core::arch::global_asm!(
     // instructions per 16 MACs where both pixels are word-aligned (LDRD), 13 otherwise (LDR
     // pairs); one pixel (bstep 0): 6 (7).
     // Stack: [sp] table cursor, [sp, #4] entries left, [sp, #8] col, [sp, #12] the sums,
-    // [sp, #16] this entry's sums.
+    // [sp, #16] this entry's sums, [sp, #24] four zero words.
     ".section .text.muir_dsp_nat_block,\"ax\",%progbits",
     ".global muir_dsp_nat_block",
     ".type muir_dsp_nat_block,%function",
@@ -594,11 +594,12 @@ core::arch::global_asm!(
     ".thumb_func",
     "muir_dsp_nat_block:",
     "    push {{r4-r11, lr}}",
-    "    sub sp, #24",
-    "    str r0, [sp]",
-    "    str r1, [sp, #4]",
-    "    str r2, [sp, #8]",
-    "    str r3, [sp, #12]",
+    "    sub sp, #40",
+    "    stm sp, {{r0-r3}}",
+    "    movs r4, #0",                // four zero words at [sp, #24]: an entry's sums start
+    "    movs r5, #0",                // from them (one LDM instead of four MOVS)
+    "    strd r4, r5, [sp, #24]",
+    "    strd r4, r5, [sp, #32]",
     "5:",
     "    ldr r12, [sp]",
     "    ldm r12!, {{r0-r4, lr}}",    // row, ww, step, groups, bstep, part
@@ -611,14 +612,12 @@ core::arch::global_asm!(
     "    add r2, r0, r4",             // pixel b: bstep later
     "    cmp r3, #0",                 // a plain entry (bit 31 set): 50
     "    blt.w 50f",
-    "    ldr r12, [sp, #68]",         // the widened weights: r1 is the run's byte offset
+    "    ldr r12, [sp, #84]",         // the widened weights: r1 is the run's byte offset
     "    add r1, r1, r12",
     "    cmp r4, #0",                 // one pixel (a block of one pixel taken twice): 40
     "    beq.w 40f",
-    "    movs r4, #0",
-    "    movs r5, #0",
-    "    movs r6, #0",
-    "    movs r7, #0",
+    "    add r12, sp, #24",
+    "    ldm r12, {{r4-r7}}",
     "    tst r0, #3",
     "    bne.w 20f",
     "    tst r2, #3",
@@ -664,7 +663,7 @@ core::arch::global_asm!(
     "    subs r3, #1",
     "    str r3, [sp, #4]",
     "    bne.w 5b",
-    "    add sp, #24",
+    "    add sp, #40",
     "    pop {{r4-r11, pc}}",
     // A pixel not word-aligned (the 63-channel motion part's odd pixels): LDR pairs, 52 bytes
     // a copy.
@@ -794,17 +793,15 @@ core::arch::global_asm!(
     ".endr",
     "    b.w 48b",
     // A plain entry: `groups & !(1 << 31)` values (1 to 7) by LDRSH / LDRSB and MLA, the
-    // int8 weights of w0 at w0 ([sp, #64], the sixth argument) plus r1, of w1 `kl` bytes later
-    // ([sp, #60], the fifth argument).
+    // int8 weights of w0 at w0 ([sp, #80], the sixth argument) plus r1, of w1 `kl` bytes later
+    // ([sp, #76], the fifth argument).
     "50:",
     "    bic r3, r3, #0x80000000",
-    "    ldr r12, [sp, #64]",         // w0's int8 weights: r1 is the byte offset
+    "    ldr r12, [sp, #80]",         // w0's int8 weights: r1 is the byte offset
     "    add r1, r1, r12",
-    "    ldr r12, [sp, #60]",
-    "    movs r4, #0",
-    "    movs r5, #0",
-    "    movs r6, #0",
-    "    movs r7, #0",
+    "    add r12, sp, #24",
+    "    ldm r12, {{r4-r7}}",
+    "    ldr r12, [sp, #76]",
     "51:",
     "    ldrsh r8, [r0], #2",
     "    ldrsh r9, [r2], #2",
