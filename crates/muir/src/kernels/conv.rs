@@ -722,13 +722,15 @@ pub fn conv_row_u8_wide(p: &ConvParams<'_>, inputs: &[PartRows<'_, u8>], w_in: u
 }
 
 /// Fewest pixel pairs per widening of the weights for [`conv_row_w16`]: each group of four of a
-/// channel pair costs 8 instructions to widen and saves 4 per pixel pair (16 -> 12), so 2 pairs
-/// only break even.
+/// channel pair costs 7 instructions to widen and saves about 4 per pixel pair, so 2 pairs
+/// about break even on the loop alone, yet measured 2 beats 3 (the 1/16 grid's rows of 4 and
+/// 5 pixels at 64x48: -12.4 M instructions) and 1 loses (+8.1 M against 2).
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
-const W16_MIN_PAIRS: usize = 3;
-/// Most pixel pairs gathered at a time (beyond it the widening is amortised already).
+const W16_MIN_PAIRS: usize = 2;
+/// Most pixel pairs gathered at a time: the slots' room and the row's width bound it first
+/// almost everywhere (8 left 12.9 M instructions of widening at 160x120; 1024 counts the same as 32).
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
-const W16_MAX_PAIRS: usize = 8;
+const W16_MAX_PAIRS: usize = 32;
 
 /// The DSP build's convolution row with the weights widened once per channel pair and block of
 /// pixel pairs: the patches of up to [`W16_MAX_PAIRS`] pixel pairs are gathered first (`fill(ox,
@@ -987,7 +989,13 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
     };
     let pad = k / 2;
     let mut t = NatTable::new();
-    let mut built: Option<Option<usize>> = None;
+    // The inside blocks' table at the table's front, built once per row (its entries), and the
+    // single pixels' tables (column and entries) after it, or at the front until the inside
+    // one is built (which then overwrites them): each built once per row where they fit (one
+    // that does not drops the others, then the inside one).
+    let mut inside: Option<usize> = None;
+    let mut lone = [(0, 0, 0); 3];
+    let mut nl = 0;
     for (cp, ((w, m), b)) in channel_pairs(p, kl, 0).enumerate() {
         let (w0, w1) = halves(w);
         let (mut o, mut wo) = (0, 0);
@@ -1020,17 +1028,48 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
         // an end pixel's runs are shorter). Tables serve every channel pair, and the channel
         // pairs walk the row in alternate directions: each starts with the last one's table.
         for (xa, xb) in nat_blocks(pad, w_in, w_out, cp % 2 == 1) {
-            let inside = xb != xa;
-            let key = if inside { None } else { Some(xa) };
-            if built != Some(key) {
-                t.build(k, p.parts, inputs, w_in, words, kl, key);
-                built = Some(key);
-            }
+            let pair = xb != xa;
+            let found = lone.get(..nl).unwrap_or_default().iter().find(|l| l.0 == xa).copied();
+            let range = match (pair, inside, found) {
+                (true, Some(n), _) => (0, n),
+                (false, _, Some((_, a, e))) => (a, e),
+                (true, None, _) => {
+                    t.build(0, k, p.parts, inputs, w_in, words, kl, None);
+                    inside = Some(t.ne);
+                    // The single pixels' tables at the front are overwritten.
+                    nl = 0;
+                    (0, t.ne)
+                }
+                (false, _, None) => {
+                    let base = inside.unwrap_or(0);
+                    if nl >= lone.len() {
+                        nl = 0;
+                    }
+                    let mut a = lone.get(..nl).unwrap_or_default().last().map_or(base, |l| l.2);
+                    t.build(a, k, p.parts, inputs, w_in, words, kl, Some(xa));
+                    if !t.whole && a > base {
+                        // Out of entries: the other single pixels' tables dropped.
+                        (nl, a) = (0, base);
+                        t.build(a, k, p.parts, inputs, w_in, words, kl, Some(xa));
+                    }
+                    if !t.whole && a > 0 {
+                        // Still out of entries: this one at the front, the inside one again
+                        // when next needed.
+                        (inside, nl, a) = (None, 0, 0);
+                        t.build(0, k, p.parts, inputs, w_in, words, kl, Some(xa));
+                    }
+                    if let Some(l) = lone.get_mut(nl) {
+                        *l = (xa, a, t.ne);
+                        nl += 1;
+                    }
+                    (a, t.ne)
+                }
+            };
             if !t.whole {
                 return true; // never: the checks above keep every table whole
             }
             let mut sums = [[0i64; 4]; crate::model::graph::MAX_PARTS];
-            t.run(if inside { xa - pad } else { 0 }, kl, w, ww, &mut sums);
+            t.run(range, if pair { xa - pad } else { 0 }, kl, w, ww, &mut sums);
             // Every part's sums in i32: the short path's integers with the decoded epilogue;
             // else `block2x2_by` from the start, as before.
             if short {
@@ -1103,10 +1142,13 @@ const NAT_ENTRIES: usize = 3 * crate::model::graph::MAX_PARTS;
 
 /// One block's work for [`conv_row_i16_nat`]: `dsp::nat_block` entries for the runs' whole
 /// groups and, as plain entries, their other values (a run's last `k ch % 4`, an end pixel's
-/// first and last).
+/// first and last). Room for several tables one after another (a block's needs `3
+/// NAT_ENTRIES` at most): the inside blocks' and the end pixels' of a row, kept for all its
+/// channel pairs (`3 NAT_ENTRIES` left the six-part gate layers rebuilding them: 28 M
+/// instructions more at 160x120; `6 NAT_ENTRIES` counts as `4`).
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
 struct NatTable {
-    e: [super::dsp::NatEntry; 3 * NAT_ENTRIES],
+    e: [super::dsp::NatEntry; 4 * NAT_ENTRIES],
     ne: usize,
     /// Whether every entry fitted (else the row stops).
     whole: bool,
@@ -1116,7 +1158,7 @@ struct NatTable {
 impl NatTable {
     fn new() -> Self {
         let e = super::dsp::NatEntry { row: core::ptr::null(), w: 0, step: 0, groups: 0, bstep: 0, part: 0 };
-        NatTable { e: [e; 3 * NAT_ENTRIES], ne: 0, whole: true }
+        NatTable { e: [e; 4 * NAT_ENTRIES], ne: 0, whole: true }
     }
 
     #[inline(always)]
@@ -1154,11 +1196,11 @@ impl NatTable {
     /// the single pixel `lone` (both pixels the same, the kernel columns inside the input only).
     /// Entries address the widened runs (`words` of them, part by part, kernel row by kernel
     /// row) and the int8 weights (`kl` per channel) by offsets, so the table serves every
-    /// channel pair of the row.
+    /// channel pair of the row. Written from entry `at` on (the entries before it kept).
     #[allow(clippy::too_many_arguments)]
     #[inline(never)]
-    fn build(&mut self, k: usize, parts: &[usize], inputs: &[PartRows<'_, i16>], w_in: usize, words: usize, kl: usize, lone: Option<usize>) {
-        (self.ne, self.whole) = (0, true);
+    fn build(&mut self, at: usize, k: usize, parts: &[usize], inputs: &[PartRows<'_, i16>], w_in: usize, words: usize, kl: usize, lone: Option<usize>) {
+        (self.ne, self.whole) = (at, true);
         let pad = k / 2;
         let (mut o, mut wo) = (0, 0);
         for (part, (rows, &ch)) in inputs.iter().zip(parts).enumerate() {
@@ -1199,11 +1241,11 @@ impl NatTable {
         }
     }
 
-    /// The block at column `col` (0 for a single pixel's table) into `sums`, with the channel
+    /// The block at column `col` (0 for a single pixel's table), entries `from .. to`, into `sums`, with the channel
     /// pair's widened weights `ww` and int8 weights `w` (`2 kl`: w0's, then w1's).
     #[inline(always)]
-    fn run(&self, col: usize, kl: usize, w: &[i8], ww: &[u32], sums: &mut [[i64; 4]; crate::model::graph::MAX_PARTS]) {
-        let e = self.e.get(..self.ne).unwrap_or_default();
+    fn run(&self, (from, to): (usize, usize), col: usize, kl: usize, w: &[i8], ww: &[u32], sums: &mut [[i64; 4]; crate::model::graph::MAX_PARTS]) {
+        let e = self.e.get(from..to).unwrap_or_default();
         if w.len() < 2 * kl {
             return; // never: `channel_pairs` gives `2 kl` weights
         }
