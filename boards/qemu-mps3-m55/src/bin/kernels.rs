@@ -1749,6 +1749,43 @@ fn check_residual(r: &mut Rng) -> usize {
     cases
 }
 
+/// `mve::max_abs_i32` against the scalar maximum of `unsigned_abs`: lengths around the vector
+/// width, random, small, `i32::MIN`/`MAX` values, the largest value at each position, a
+/// sentinel `i32::MIN` after the last element (which must not be read).
+#[cfg(feature = "mve")]
+fn check_max_abs(r: &mut Rng) -> usize {
+    use muir::kernels::mve;
+    let mut cases = 0;
+    let mut v = [0i32; 1001];
+    for n in (0..=40usize).chain([63, 64, 65, 127, 128, 129, 1000]) {
+        for kind in 0..5usize {
+            for x in v.iter_mut().take(n) {
+                let t = r.next();
+                *x = match kind {
+                    0 => t as i32,
+                    1 => if t & 1 == 0 { i32::MIN } else { i32::MAX },
+                    2 => (t as i32) >> 20,
+                    3 => ((t as i32) >> 24).min(0),
+                    _ => 0,
+                };
+            }
+            if kind == 4 && n > 0 {
+                let at = (r.next() % n as u64) as usize;
+                v[at] = if n % 2 == 0 { -(1 << 21) } else { (1 << 21) - 1 };
+            }
+            v[n] = i32::MIN;
+            let want = v[..n].iter().map(|x| x.unsigned_abs()).max().unwrap_or(0);
+            let got = mve::max_abs_i32(&v[..n]);
+            if got != want {
+                println!("MUIR-KERNELS FAILED max_abs_i32: n={n} kind={kind}: {got} != {want}");
+                process::exit(1);
+            }
+            cases += 1;
+        }
+    }
+    cases
+}
+
 fn lengths() -> impl Iterator<Item = usize> {
     (0..=40).chain([63, 64, 65, 72, 127, 128, 129, 255, 256, 257, 260, 507, 508, 509, 511, 512, 513, 576, 1000, 1016, 1017, 1152, 2304, 5760])
 }
@@ -1822,6 +1859,7 @@ fn main() -> ! {
         cases += check_corr_window(&mut *i16s.w0, &mut *i16s.w1, &mut r);
         cases += check_q15(&mut *i16s.a, &mut *i16s.b, &mut r);
         cases += check_residual(&mut r);
+        cases += check_max_abs(&mut r);
     }
     cases += check_refine(&mut r);
     #[cfg(not(feature = "mve"))]

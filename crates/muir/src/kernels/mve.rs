@@ -2236,3 +2236,32 @@ pub fn residual_relu<X: 'static, O: 'static>(y: &[i16], x: &[X], shift: i32, out
     }
     false
 }
+
+/// The largest `|v|` of `v` as unsigned (`|i32::MIN| = 2^31`; 0 for an empty slice), four
+/// lanes a vector by `VMAXAV.S32`: below `2^k` exactly when the OR of the magnitudes is (the
+/// correlation lookup's test for its i32 path).
+#[inline]
+pub fn max_abs_i32(v: &[i32]) -> u32 {
+    let n = v.len();
+    if n == 0 {
+        return 0;
+    }
+    let mut m = 0u32;
+    // SAFETY: lane `i < n` reads `v[i]` (tail-predicated).
+    unsafe {
+        asm!(
+            "dlstp.32 lr, {n}",
+            "2:",
+            "vldrw.u32 q0, [{p}], #16",
+            "vmaxav.s32 {m}, q0",
+            "letp lr, 2b",
+            n = in(reg) n,
+            p = inout(reg) v.as_ptr() => _,
+            m = inout(reg) m,
+            out("lr") _,
+            out("d0") _, out("d1") _,
+            options(nostack, readonly),
+        );
+    }
+    m
+}
