@@ -1679,6 +1679,113 @@ fn check_q15(x: &mut [i16; MAX_N], y: &mut [i16; MAX_N], r: &mut Rng) -> usize {
     cases
 }
 
+/// `mve::residual_relu` (four type pairs) against the i64 reference of `eltwise::residual_relu`:
+/// `O::from_i64_sat((y + shift_round(x, shift)).max(0))`; lengths around the vector width,
+/// shifts from -255 to 24 (the dispatch's range; beyond, the i64 reference itself can overflow), random and extreme values, a sentinel after the last output.
+#[cfg(feature = "mve")]
+fn check_residual(r: &mut Rng) -> usize {
+    use muir::arith::shift_round;
+    use muir::kernels::mve;
+    let mut cases = 0;
+    let ns = (0..=40usize).chain([63, 64, 65, 127, 128, 129, 1000]);
+    let shifts = [-255i32, -100, -40, -33, -32, -31, -17, -16, -15, -8, -3, -2, -1, 0, 1, 2, 3, 7, 8, 15, 16, 17, 23, 24];
+    let mut y = [0i16; 1001];
+    let mut x16 = [0i16; 1001];
+    let mut x8 = [0u8; 1001];
+    for (ni, n) in ns.enumerate() {
+        for (si, &shift) in shifts.iter().enumerate() {
+            let kind = (ni + si) % 4;
+            for i in 0..=n {
+                let v = r.next();
+                let (a, b) = ((v >> 48) as i16, (v >> 32) as i16);
+                (y[i], x16[i]) = match kind {
+                    1 => (if a & 1 == 0 { i16::MIN } else { i16::MAX }, if b & 1 == 0 { i16::MIN } else { i16::MAX }),
+                    2 => (a >> 6, b >> 9),
+                    3 => (if a & 1 == 0 { i16::MIN } else { a }, b & 0x7fff),
+                    _ => (a, b),
+                };
+                x8[i] = if kind == 1 { if v & 4 == 0 { 0 } else { 255 } } else { v as u8 };
+            }
+            let extra = (ni + si) % 2;
+            let m = n.min(n + 1 - extra);
+            let want = |i: usize, x: i64, lim: i64| (y[i] as i64 + shift_round(x, shift)).max(0).min(lim);
+            let mut o8 = [0x5au8; 1001];
+            let mut o16 = [0x5a5ai16; 1001];
+            mve::residual_relu_u8_u8(&y[..n + extra], &x8[..n], shift, &mut o8[..n + 1 - extra]);
+            for i in 0..=n {
+                let w = if i < m { want(i, x8[i] as i64, 255) } else { 0x5a };
+                if o8[i] as i64 != w {
+                    println!("MUIR-KERNELS FAILED residual_relu_u8_u8: n={n} shift={shift} kind={kind} i={i}: {} != {w}", o8[i]);
+                    process::exit(1);
+                }
+            }
+            mve::residual_relu_i16_u8(&y[..n + extra], &x16[..n], shift, &mut o8[..n + 1 - extra]);
+            for i in 0..=n {
+                let w = if i < m { want(i, x16[i] as i64, 255) } else { 0x5a };
+                if o8[i] as i64 != w {
+                    println!("MUIR-KERNELS FAILED residual_relu_i16_u8: n={n} shift={shift} kind={kind} i={i}: {} != {w}", o8[i]);
+                    process::exit(1);
+                }
+            }
+            mve::residual_relu_u8_i16(&y[..n + extra], &x8[..n], shift, &mut o16[..n + 1 - extra]);
+            for i in 0..=n {
+                let w = if i < m { want(i, x8[i] as i64, 32767) } else { 0x5a5a };
+                if o16[i] as i64 != w {
+                    println!("MUIR-KERNELS FAILED residual_relu_u8_i16: n={n} shift={shift} kind={kind} i={i}: {} != {w}", o16[i]);
+                    process::exit(1);
+                }
+            }
+            mve::residual_relu_i16_i16(&y[..n + extra], &x16[..n], shift, &mut o16[..n + 1 - extra]);
+            for i in 0..=n {
+                let w = if i < m { want(i, x16[i] as i64, 32767) } else { 0x5a5a };
+                if o16[i] as i64 != w {
+                    println!("MUIR-KERNELS FAILED residual_relu_i16_i16: n={n} shift={shift} kind={kind} i={i}: {} != {w}", o16[i]);
+                    process::exit(1);
+                }
+            }
+            cases += 4;
+        }
+    }
+    cases
+}
+
+/// `mve::max_abs_i32` against the scalar maximum of `unsigned_abs`: lengths around the vector
+/// width, random, small, `i32::MIN`/`MAX` values, the largest value at each position, a
+/// sentinel `i32::MIN` after the last element (which must not be read).
+#[cfg(feature = "mve")]
+fn check_max_abs(r: &mut Rng) -> usize {
+    use muir::kernels::mve;
+    let mut cases = 0;
+    let mut v = [0i32; 1001];
+    for n in (0..=40usize).chain([63, 64, 65, 127, 128, 129, 1000]) {
+        for kind in 0..5usize {
+            for x in v.iter_mut().take(n) {
+                let t = r.next();
+                *x = match kind {
+                    0 => t as i32,
+                    1 => if t & 1 == 0 { i32::MIN } else { i32::MAX },
+                    2 => (t as i32) >> 20,
+                    3 => ((t as i32) >> 24).min(0),
+                    _ => 0,
+                };
+            }
+            if kind == 4 && n > 0 {
+                let at = (r.next() % n as u64) as usize;
+                v[at] = if n % 2 == 0 { -(1 << 21) } else { (1 << 21) - 1 };
+            }
+            v[n] = i32::MIN;
+            let want = v[..n].iter().map(|x| x.unsigned_abs()).max().unwrap_or(0);
+            let got = mve::max_abs_i32(&v[..n]);
+            if got != want {
+                println!("MUIR-KERNELS FAILED max_abs_i32: n={n} kind={kind}: {got} != {want}");
+                process::exit(1);
+            }
+            cases += 1;
+        }
+    }
+    cases
+}
+
 fn lengths() -> impl Iterator<Item = usize> {
     (0..=40).chain([63, 64, 65, 72, 127, 128, 129, 255, 256, 257, 260, 507, 508, 509, 511, 512, 513, 576, 1000, 1016, 1017, 1152, 2304, 5760])
 }
@@ -1751,6 +1858,8 @@ fn main() -> ! {
         cases += check_lookup(&mut r);
         cases += check_corr_window(&mut *i16s.w0, &mut *i16s.w1, &mut r);
         cases += check_q15(&mut *i16s.a, &mut *i16s.b, &mut r);
+        cases += check_residual(&mut r);
+        cases += check_max_abs(&mut r);
     }
     cases += check_refine(&mut r);
     #[cfg(not(feature = "mve"))]

@@ -165,6 +165,16 @@ pub fn lookup_with(p: &LookupParams<'_>, w: usize, x: usize, flow: i16, s: &mut 
     let mut mag = 0u32;
     if let Some((first, rest)) = pre.split_first_mut() {
         *first = 0;
+        // Helium: the largest magnitude by a vector loop (below `2^k` exactly when the OR is).
+        #[cfg(all(target_arch = "arm", feature = "mve"))]
+        {
+            mag = crate::kernels::mve::max_abs_i32(win);
+            for (q, v) in rest.iter_mut().zip(win.iter()) {
+                acc += *v as i64;
+                *q = acc;
+            }
+        }
+        #[cfg(not(all(target_arch = "arm", feature = "mve")))]
         for (q, v) in rest.iter_mut().zip(win.iter()) {
             acc += *v as i64;
             mag |= v.unsigned_abs();

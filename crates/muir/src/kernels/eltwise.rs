@@ -12,6 +12,16 @@ use crate::kernels::Elem;
 /// `out_frac`. The output is `u8` (the ReLU is the saturation) or, in a wide trunk
 /// ([`crate::model::config::Config::wide_trunk`]), `i16` clamped to `[0, 32767]`.
 pub fn residual_relu<X: Elem, O: Elem>(y: &[i16], skip: Skip<'_, X>, out_frac: i8, out: &mut [O]) {
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    {
+        let done = match skip {
+            Skip::Input { x, frac } => crate::kernels::mve::residual_relu(y, x, out_frac as i32 - frac as i32, out),
+            Skip::Projected(p) => crate::kernels::mve::residual_relu(y, p, 0, out),
+        };
+        if done {
+            return;
+        }
+    }
     let add = |y: &i16, s: i64| O::from_i64_sat((*y as i64 + s).max(0));
     match skip {
         Skip::Input { x, frac } => {

@@ -2127,3 +2127,141 @@ pub fn mul_q15_by(x: &[i16], m: i16, out: &mut [i16]) {
     }
     take_qc();
 }
+
+/// `eltwise::residual_relu` four lanes a vector: `out = clamp(y + qrshl(x, shift), 0, lim)` for
+/// the first `n` elements, in 32-bit lanes with saturating rounding shift (`VQRSHL`: a left
+/// shift saturates to i32, a right one rounds half up as `rshift_round`) and saturating add, so
+/// every lane equals `O::from_i64_sat((y + rescale(x)).max(0))` of the i64 reference (the
+/// saturated lanes are beyond `lim` or below 0 both ways). `$ld` loads four skip values widened
+/// to 32 bits from `r1`, `$st` stores four outputs narrowed from 32 bits to `r2`.
+macro_rules! residual_relu_kernel {
+    ($name:ident, $x:ty, $o:ty, $ld:literal, $st:literal, $lim:expr) => {
+        /// See [`residual_relu_kernel`]: `n <= y.len()`, `n <= x.len()`, `n <= out.len()` lanes;
+        /// `shift` is `out_frac - frac`; `FPSCR.QC` cleared afterwards.
+        #[inline]
+        pub fn $name(y: &[i16], x: &[$x], shift: i32, out: &mut [$o]) {
+            let n = out.len().min(x.len()).min(y.len());
+            if n == 0 {
+                return;
+            }
+            // Shifts beyond 40 either way give the same lanes (saturated or 0) as the exact
+            // ones, and the register form reads only the bottom byte.
+            let sh = shift.clamp(-40, 40);
+            // SAFETY: lane `i < n` reads `y[i]`, `x[i]` and writes `out[i]` (tail-predicated).
+            unsafe {
+                asm!(
+                    "vmov.i32 q2, #0",
+                    "vdup.32 q3, {lim}",
+                    "dlstp.32 lr, {n}",
+                    "2:",
+                    "vldrh.s32 q0, [r0], #8",
+                    $ld,
+                    "vqrshl.s32 q1, {sh}",
+                    "vqadd.s32 q0, q0, q1",
+                    "vmax.s32 q0, q0, q2",
+                    "vmin.s32 q0, q0, q3",
+                    $st,
+                    "letp lr, 2b",
+                    n = in(reg) n,
+                    sh = in(reg) sh,
+                    lim = in(reg) $lim,
+                    inout("r0") y.as_ptr() => _,
+                    inout("r1") x.as_ptr() => _,
+                    inout("r2") out.as_mut_ptr() => _,
+                    out("lr") _,
+                    out("d0") _, out("d1") _, out("d2") _, out("d3") _,
+                    out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+                    options(nostack),
+                );
+            }
+            take_qc();
+        }
+    };
+}
+
+residual_relu_kernel!(residual_relu_u8_u8, u8, u8, "vldrb.u32 q1, [r1], #4", "vstrb.32 q0, [r2], #4", 255i32);
+residual_relu_kernel!(residual_relu_i16_u8, i16, u8, "vldrh.s32 q1, [r1], #8", "vstrb.32 q0, [r2], #4", 255i32);
+residual_relu_kernel!(residual_relu_u8_i16, u8, i16, "vldrb.u32 q1, [r1], #4", "vstrh.32 q0, [r2], #8", 32767i32);
+residual_relu_kernel!(residual_relu_i16_i16, i16, i16, "vldrh.s32 q1, [r1], #8", "vstrh.32 q0, [r2], #8", 32767i32);
+
+/// `x` as a slice of `U` when `T` is `U`.
+#[inline(always)]
+fn cast<T: 'static, U: 'static>(x: &[T]) -> Option<&[U]> {
+    if core::any::TypeId::of::<T>() == core::any::TypeId::of::<U>() {
+        // SAFETY: `T` and `U` are the same type.
+        Some(unsafe { core::slice::from_raw_parts(x.as_ptr().cast::<U>(), x.len()) })
+    } else {
+        None
+    }
+}
+
+/// `x` as a mutable slice of `U` when `T` is `U`.
+#[inline(always)]
+fn cast_mut<T: 'static, U: 'static>(x: &mut [T]) -> Option<&mut [U]> {
+    if core::any::TypeId::of::<T>() == core::any::TypeId::of::<U>() {
+        // SAFETY: `T` and `U` are the same type; the borrow moves into the result.
+        Some(unsafe { core::slice::from_raw_parts_mut(x.as_mut_ptr().cast::<U>(), x.len()) })
+    } else {
+        None
+    }
+}
+
+/// `eltwise::residual_relu` on Helium for skip values `X` in `{u8, i16}` and outputs `O` in
+/// `{u8, i16}` (`shift = out_frac - frac`, 0 for a projected skip): `false` (nothing written)
+/// for other types and for shifts outside `-255..=24` (the i64 reference `y + (x << shift)` can
+/// wrap beyond; the model's shifts are a few bits).
+#[inline(always)]
+pub fn residual_relu<X: 'static, O: 'static>(y: &[i16], x: &[X], shift: i32, out: &mut [O]) -> bool {
+    if !(-255..=24).contains(&shift) {
+        return false;
+    }
+    if let Some(x) = cast::<X, u8>(x) {
+        if let Some(o) = cast_mut::<O, u8>(out) {
+            residual_relu_u8_u8(y, x, shift, o);
+            return true;
+        }
+        if let Some(o) = cast_mut::<O, i16>(out) {
+            residual_relu_u8_i16(y, x, shift, o);
+            return true;
+        }
+    } else if let Some(x) = cast::<X, i16>(x) {
+        if let Some(o) = cast_mut::<O, u8>(out) {
+            residual_relu_i16_u8(y, x, shift, o);
+            return true;
+        }
+        if let Some(o) = cast_mut::<O, i16>(out) {
+            residual_relu_i16_i16(y, x, shift, o);
+            return true;
+        }
+    }
+    false
+}
+
+/// The largest `|v|` of `v` as unsigned (`|i32::MIN| = 2^31`; 0 for an empty slice), four
+/// lanes a vector by `VMAXAV.S32`: below `2^k` exactly when the OR of the magnitudes is (the
+/// correlation lookup's test for its i32 path).
+#[inline]
+pub fn max_abs_i32(v: &[i32]) -> u32 {
+    let n = v.len();
+    if n == 0 {
+        return 0;
+    }
+    let mut m = 0u32;
+    // SAFETY: lane `i < n` reads `v[i]` (tail-predicated).
+    unsafe {
+        asm!(
+            "dlstp.32 lr, {n}",
+            "2:",
+            "vldrw.u32 q0, [{p}], #16",
+            "vmaxav.s32 {m}, q0",
+            "letp lr, 2b",
+            n = in(reg) n,
+            p = inout(reg) v.as_ptr() => _,
+            m = inout(reg) m,
+            out("lr") _,
+            out("d0") _, out("d1") _,
+            options(nostack, readonly),
+        );
+    }
+    m
+}

@@ -6,7 +6,7 @@
 //! and `u = div_round(sum e_k u_k, S)`, with `S = sum e_k` and zero padding outside the grid.
 #![deny(clippy::indexing_slicing)]
 
-use crate::arith::{div_round, lut, sat_i16, shift_round};
+use crate::arith::{div_round, lut, sat_i16};
 
 /// Upsamples one 1/8 pixel `(y, x)` into its 8x8 block: `logits` are its 576 mask values
 /// (format `mask_frac`), `flow` / `u` the whole 1/8 maps (`h x w`, one channel; `u` optional).
@@ -19,38 +19,49 @@ pub fn upsample_pixel(logits: &[i16], mask_frac: i8, flow: &[i16], u: Option<&[i
     let Some(logits) = logits.get(..576) else {
         return;
     };
-    let mut nb_flow = [0i64; 9];
-    let mut nb_u = [0i64; 9];
+    let mut nb_flow = [0i32; 9];
+    let mut nb_u = [0i32; 9];
     for (k, (nf, nu)) in nb_flow.iter_mut().zip(&mut nb_u).enumerate() {
         let (ny, nx) = ((y + k / 3) as isize - 1, (x + k % 3) as isize - 1);
         if ny >= 0 && nx >= 0 && (ny as usize) < h && (nx as usize) < w {
             let i = ny as usize * w + nx as usize;
-            *nf = flow.get(i).map_or(0, |v| *v as i64);
-            *nu = u.and_then(|u| u.get(i)).map_or(0, |v| *v as i64);
+            *nf = flow.get(i).map_or(0, |v| *v as i32);
+            *nu = u.and_then(|u| u.get(i)).map_or(0, |v| *v as i32);
         }
     }
+    // `clamp(shift_round(l - max, 11 - mask_frac), -32768, 0)` in i32: `l - max` is in
+    // `-65535..=0`, so a left shift by more than 15 and a right one by more than 20 give the
+    // same clamped values as 15 and 20 (every non-zero difference reaches -32768, resp. rounds
+    // to 0), and neither overflows i32.
     let to_q11 = 11 - mask_frac as i32;
+    let (lsh, rsh) = if to_q11 >= 0 { (to_q11.min(15) as u32, 0u32) } else { (0u32, (-to_q11).min(20) as u32) };
+    let half = if rsh > 0 { 1i32 << (rsh - 1) } else { 0 };
     let mut u_out = u_out;
     for dy in 0..8 {
         for dx in 0..8 {
             let sub = dy * 8 + dx;
             // Logit `k` of sub-pixel `sub`: `logits[k * 64 + sub]` (always there: 576 of them).
-            let logit = |k: usize| logits.get(k * 64 + sub).map_or(0, |v| *v as i64);
-            let max = (0..9).map(logit).max().unwrap_or(0);
-            let mut e = [0i64; 9];
-            let mut s = 0i64;
-            for (k, ek) in e.iter_mut().enumerate() {
-                let d = shift_round(logit(k) - max, to_q11);
-                *ek = lut::exp_q11(d.clamp(-32768, 0) as i32) as i64;
+            let mut l = [0i32; 9];
+            for (k, lk) in l.iter_mut().enumerate() {
+                *lk = logits.get(k * 64 + sub).map_or(0, |v| *v as i32);
+            }
+            let max = l.iter().copied().max().unwrap_or(0);
+            // Weights `e_k <= 32768` (Q0.15), so `S <= 9 * 2^15` and `|e_k v_k| <= 2^30`.
+            let mut e = [0i32; 9];
+            let mut s = 0i32;
+            for (ek, lk) in e.iter_mut().zip(&l) {
+                let v = *lk - max;
+                let d = if rsh == 0 { v << lsh } else { (v + half) >> rsh };
+                *ek = lut::exp_q11(d.max(-32768));
                 s += *ek;
             }
-            let fd: i64 = e.iter().zip(&nb_flow).map(|(a, b)| a * b).sum();
+            let fd: i64 = e.iter().zip(&nb_flow).map(|(a, b)| (*a * *b) as i64).sum();
             if let Some(o) = disp_out.get_mut(dy * stride + dx) {
-                *o = sat_i16(-div_round(fd, s));
+                *o = sat_i16(-div_round(fd, s as i64));
             }
             if let Some(o) = u_out.as_deref_mut().and_then(|uo| uo.get_mut(dy * stride + dx)) {
-                let fu: i64 = e.iter().zip(&nb_u).map(|(a, b)| a * b).sum();
-                *o = sat_i16(div_round(fu, s));
+                let fu: i64 = e.iter().zip(&nb_u).map(|(a, b)| (*a * *b) as i64).sum();
+                *o = sat_i16(div_round(fu, s as i64));
             }
         }
     }
@@ -74,5 +85,63 @@ mod tests {
         // corner pixel: 4 of 9 neighbours inside
         upsample_pixel(&logits, 4, &flow, Some(&u), 3, 3, 0, 0, &mut d, Some(&mut uo), 8);
         assert_eq!(d[0], div_round(256 * 4, 9) as i16);
+    }
+
+    /// The i32 weights against the former i64 formulas (`shift_round` of `l - max` by any
+    /// `11 - mask_frac`, products and sums in i64), random and extreme logits and neighbours.
+    #[test]
+    fn matches_i64_formulas() {
+        use crate::arith::shift_round;
+        let mut r = 0x9E37_79B9_7F4A_7C15u64;
+        let mut next = || {
+            r ^= r << 13;
+            r ^= r >> 7;
+            r ^= r << 17;
+            r
+        };
+        for case in 0..400 {
+            let mask_frac = (case % 80) as i8 - 40;
+            let kind = case / 80;
+            let mut logits = [0i16; 576];
+            for l in logits.iter_mut() {
+                let v = (next() >> 48) as i16;
+                *l = match kind {
+                    0 => v,
+                    1 => if v & 1 == 0 { i16::MIN } else { i16::MAX },
+                    2 => v >> 10,
+                    3 => v >> 4,
+                    _ => if v & 3 == 0 { i16::MIN } else { v >> 12 },
+                };
+            }
+            let mut flow = [0i16; 9];
+            let mut u = [0i16; 9];
+            for (f, uu) in flow.iter_mut().zip(&mut u) {
+                let v = next();
+                (*f, *uu) = if kind == 1 { (if v & 1 == 0 { i16::MIN } else { i16::MAX }, i16::MAX) } else { ((v >> 48) as i16, (v >> 32) as i16) };
+            }
+            let (y, x) = (case % 3, (case / 3) % 3);
+            let (mut d, mut uo) = ([0i16; 64], [0i16; 64]);
+            upsample_pixel(&logits, mask_frac, &flow, Some(&u), 3, 3, y, x, &mut d, Some(&mut uo), 8);
+            for sub in 0..64 {
+                let l = |k: usize| logits[k * 64 + sub] as i64;
+                let max = (0..9).map(l).max().unwrap();
+                let mut e = [0i64; 9];
+                for (k, ek) in e.iter_mut().enumerate() {
+                    *ek = lut::exp_q11(shift_round(l(k) - max, 11 - mask_frac as i32).clamp(-32768, 0) as i32) as i64;
+                }
+                let s: i64 = e.iter().sum();
+                let (mut fd, mut fu) = (0i64, 0i64);
+                for (k, ek) in e.iter().enumerate() {
+                    let (ny, nx) = ((y + k / 3) as isize - 1, (x + k % 3) as isize - 1);
+                    if (0..3).contains(&ny) && (0..3).contains(&nx) {
+                        let i = ny as usize * 3 + nx as usize;
+                        fd += ek * flow[i] as i64;
+                        fu += ek * u[i] as i64;
+                    }
+                }
+                assert_eq!(d[sub], sat_i16(-div_round(fd, s)), "case {case} sub {sub}");
+                assert_eq!(uo[sub], sat_i16(div_round(fu, s)), "case {case} sub {sub}");
+            }
+        }
     }
 }
