@@ -92,13 +92,8 @@ mod tests {
     #[test]
     fn matches_i64_formulas() {
         use crate::arith::shift_round;
-        let mut r = 0x9E37_79B9_7F4A_7C15u64;
-        let mut next = || {
-            r ^= r << 13;
-            r ^= r >> 7;
-            r ^= r << 17;
-            r
-        };
+        let mut r = super::super::testutil::Rng(0x9E37_79B9_7F4A_7C15);
+        let mut next = || r.next();
         for case in 0..400 {
             let mask_frac = (case % 80) as i8 - 40;
             let kind = case / 80;
