@@ -270,6 +270,36 @@ fn check_corr4(r: &mut Rng) -> usize {
     cases
 }
 
+/// The DSP build's MGA logit (`dsp::dot_i16_i64`: `LDRD` and `SMLALD`, eight products a step,
+/// when both slices are word-aligned; else the plain loop) against the plain sum: the usual
+/// lengths, random and extreme values (`i16::MIN` squared at every product, the largest sums),
+/// both slices aligned, and each or both starting one value later (misaligned: the plain path).
+#[cfg(not(feature = "mve"))]
+fn check_logit_dsp(q: &mut [i16; MAX_N], k: &mut [i16; MAX_N], r: &mut Rng) -> usize {
+    use muir::kernels::dsp;
+    let mut cases = 0;
+    // The first word-aligned value of each buffer (the statics are only 2-byte aligned).
+    let (aq, ak) = ((q.as_ptr() as usize / 2) % 2, (k.as_ptr() as usize / 2) % 2);
+    for n in lengths().filter(|n| n + 2 <= MAX_N) {
+        for fill in [Fill::Random, Fill::Min, Fill::Max] {
+            for i in 0..n + 2 {
+                q[i] = i16::sample(r, fill);
+                k[i] = i16::sample(r, if matches!(fill, Fill::Max) { Fill::Min } else { fill });
+            }
+            for (oq, ok) in [(aq, ak), (aq + 1, ak), (aq, ak + 1), (aq + 1, ak + 1)] {
+                let (qs, ks) = (&q[oq..oq + n], &k[ok..ok + n]);
+                let want: i64 = qs.iter().zip(ks).map(|(a, b)| *a as i64 * *b as i64).sum();
+                let got = dsp::dot_i16_i64(qs, ks);
+                if got != want {
+                    fail("dsp logit", n * 10 + 2 * (oq - aq) + ok - ak, &[got], &[want]);
+                }
+                cases += 1;
+            }
+        }
+    }
+    cases
+}
+
 /// The DSP build's MGA value sums (`dsp::aggregate`: two keys and two channels per `SMLALD`,
 /// weights of 32768 by a per-key pass, the plain loop for a block with more than four of them or
 /// over 128 keys) against a plain loop: blocks of 1 to 34 keys and around 64 and 128 (the
@@ -1867,6 +1897,7 @@ fn main() -> ! {
         cases += check_requant_dsp(&mut r);
         cases += check_aggregate_dsp(i16s.a, &mut r);
         cases += check_corr4(&mut r);
+        cases += check_logit_dsp(i16s.a, i16s.b, &mut r);
     }
     cases += check_conv(&mut r);
     #[cfg(not(feature = "mve"))]

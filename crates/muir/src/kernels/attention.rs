@@ -34,6 +34,8 @@ pub fn rope_pixel(v: &mut [i16], x: usize, y: usize, phase: &[u32]) {
 fn logit(q: &[i16], k: &[i16]) -> i64 {
     #[cfg(all(target_arch = "arm", feature = "mve"))]
     return super::mve::dot_i16_i64(q, k);
+    #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+    return super::dsp::dot_i16_i64(q, k);
     #[allow(unreachable_code)]
     let mut s = 0i64;
     for (a, b) in q.iter().zip(k) {

@@ -96,16 +96,49 @@ fn smlad(a: u32, b: u32, acc: i32) -> i32 {
     r
 }
 
-/// `acc + a.lo * b.lo + a.hi * b.hi` (signed 16-bit halves) in 64 bits: `SMLALD`.
+/// `sum_i q[i] k[i]` over the shorter slice, exact in i64 (the MGA logits, `attention::logit`).
+/// Both slices word-aligned (the engine's keys and queries are): eight products a step by two
+/// `LDRD` of each and two `SMLALD` per four products (10 instructions per 8 products, where the
+/// portable loop compiled into the attention's closures took about 24 with its spills); else, and
+/// for the last products, the portable loop. Exact, so the same integer as the portable loop.
 #[inline(always)]
-fn smlald(acc: i64, a: u32, b: u32) -> i64 {
-    let (mut lo, mut hi) = (acc as u32, (acc >> 32) as u32);
-    // SAFETY: register-only; SMLALD touches no flags.
-    unsafe {
-        asm!("smlald {lo}, {hi}, {a}, {b}", lo = inout(reg) lo, hi = inout(reg) hi, a = in(reg) a, b = in(reg) b,
-            options(pure, nomem, nostack, preserves_flags))
-    };
-    (((hi as u64) << 32) | lo as u64) as i64
+pub fn dot_i16_i64(q: &[i16], k: &[i16]) -> i64 {
+    let n = q.len().min(k.len());
+    let steps = n / 8;
+    let mut i = 0;
+    let (mut lo, mut hi) = (0u32, 0u32);
+    if steps > 0 && (q.as_ptr() as usize | k.as_ptr() as usize).is_multiple_of(4) {
+        // SAFETY: `steps` steps read `8 steps <= n` values of each slice, word-aligned (checked:
+        // `LDRD` needs it); register-only otherwise, no flags read after.
+        unsafe {
+            asm!(
+                "2:",
+                "ldrd {a0}, {a1}, [{q}], #8",
+                "ldrd {b0}, {b1}, [{k}], #8",
+                "smlald {lo}, {hi}, {a0}, {b0}",
+                "smlald {lo}, {hi}, {a1}, {b1}",
+                "ldrd {a0}, {a1}, [{q}], #8",
+                "ldrd {b0}, {b1}, [{k}], #8",
+                "smlald {lo}, {hi}, {a0}, {b0}",
+                "smlald {lo}, {hi}, {a1}, {b1}",
+                "subs {n}, #1",
+                "bne 2b",
+                q = inout(reg) q.as_ptr() => _,
+                k = inout(reg) k.as_ptr() => _,
+                n = inout(reg) steps => _,
+                lo = inout(reg) lo,
+                hi = inout(reg) hi,
+                a0 = out(reg) _, a1 = out(reg) _, b0 = out(reg) _, b1 = out(reg) _,
+                options(nostack, readonly),
+            );
+        }
+        i = 8 * steps;
+    }
+    let mut s = ((hi as u64) << 32 | lo as u64) as i64;
+    for (a, b) in q.iter().zip(k).take(n).skip(i) {
+        s += *a as i64 * *b as i64;
+    }
+    s
 }
 
 /// Most keys per call of [`aggregate`]'s paired loop: the engine's blocks (the packed weights
