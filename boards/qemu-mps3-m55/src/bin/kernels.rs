@@ -347,6 +347,70 @@ fn check_aggregate_dsp(v: &mut [i16; MAX_N], r: &mut Rng) -> usize {
     cases
 }
 
+/// The DSP build's MGA value sums with the values channel-major (`dsp::aggregate_cm`: channel
+/// `ch` of key `j` at `ch n + j`, a block of keys from `j0` on; two keys of a channel a word, four
+/// key pairs a step, weights of 32768 by a per-key pass, the plain loop past four of them or 128
+/// keys) against a plain loop: blocks of 1 to 34 keys and around 64 and 128 at key offsets 0, 1
+/// and 3 of planes with 0 to 5 keys more (odd strides: rows at odd addresses), odd and even
+/// channel counts, weights as in `check_aggregate_dsp`, random starting sums; a block past the
+/// plane's keys must leave the sums as they are.
+#[cfg(not(feature = "mve"))]
+fn check_aggregate_cm(v: &mut [i16; MAX_N], r: &mut Rng) -> usize {
+    use muir::kernels::dsp;
+    let mut cases = 0;
+    for cv in [1usize, 2, 3, 5, 44, 64] {
+        for nb in (1..=34usize).chain([63, 64, 65, 127, 128, 129, 130]) {
+            for (j0, more) in [(0usize, 0usize), (1, 2), (3, 5)] {
+                let n = j0 + nb + more;
+                if n * cv > MAX_N {
+                    continue;
+                }
+                for kind in 0..5 {
+                    let mut e = [0i32; 130];
+                    for (j, w) in e.iter_mut().enumerate().take(nb) {
+                        *w = match kind {
+                            0 => (r.next() % 32768) as i32,
+                            1 if j % 3 == 0 => 0,
+                            1 | 2 => 32767,
+                            3 if j == nb / 2 => 32768,
+                            4 if j % 29 == 0 => 32768,
+                            _ => (r.next() % 32769) as i32,
+                        };
+                    }
+                    let fill = [Fill::Random, Fill::Max, Fill::Min, Fill::Random, Fill::Max][kind];
+                    for x in v.iter_mut().take(n * cv) {
+                        *x = i16::sample(r, fill);
+                    }
+                    let mut got = [0i64; 64];
+                    let mut want = [0i64; 64];
+                    for (g, w) in got.iter_mut().zip(want.iter_mut()).take(cv) {
+                        let start = (r.next() >> 40) as i64 - (1 << 23);
+                        (*g, *w) = (start, start);
+                    }
+                    for (ch, w) in want.iter_mut().enumerate().take(cv) {
+                        *w += (0..nb).map(|j| e[j] as i64 * v[ch * n + j0 + j] as i64).sum::<i64>();
+                    }
+                    dsp::aggregate_cm(&e[..nb], &v[..n * cv], n, j0, cv, &mut got[..cv]);
+                    if got[..cv] != want[..cv] {
+                        fail("dsp aggregate_cm", (nb * 1000 + cv) * 10 + j0, &got[..cv], &want[..cv]);
+                    }
+                    cases += 1;
+                    if kind == 0 {
+                        // The block one key past the plane: refused, nothing added.
+                        let before = got;
+                        dsp::aggregate_cm(&e[..nb], &v[..n * cv], n, j0 + more + 1, cv, &mut got[..cv]);
+                        if got[..cv] != before[..cv] {
+                            fail("dsp aggregate_cm past the plane", nb * 1000 + cv, &got[..cv], &before[..cv]);
+                        }
+                        cases += 1;
+                    }
+                }
+            }
+        }
+    }
+    cases
+}
+
 /// The twelve-channel i16 block (`mve::PartLens::dots12`: twelve weight rows, three per call,
 /// 32-bit sums in chunks of `mve::DOTS3_CHUNK` added by `QADD`) against the plain dot products:
 /// 1 to 6 parts of random lengths 1..=140, some of 1..=8, in most cases one of the chunk edges
@@ -1898,6 +1962,7 @@ fn main() -> ! {
         cases += check_aggregate_dsp(i16s.a, &mut r);
         cases += check_corr4(&mut r);
         cases += check_logit_dsp(i16s.a, i16s.b, &mut r);
+        cases += check_aggregate_cm(i16s.a, &mut r);
     }
     cases += check_conv(&mut r);
     #[cfg(not(feature = "mve"))]

@@ -20,7 +20,7 @@ use super::ring::{Carver, Ring, chunk, chunk_mut, copy_row, first_n, first_n_mut
 use crate::arith::{lut, sat_i16};
 use crate::format::QuantModel;
 use crate::kernels::OutRow;
-use crate::kernels::attention::{aggregate_query, query_stats, rope_pixel};
+use crate::kernels::attention::{query_stats, rope_pixel};
 use crate::kernels::conv::{ConvParams, MAX_K, PartRows};
 use crate::kernels::corr::{LookupParams, LookupScratch, lookup_pixel, peaks_pixel};
 use crate::kernels::eltwise::{blend_q15, mud_mask, mul_plane_q15, mul_q15, proposal_flow};
@@ -500,6 +500,10 @@ pub fn mga_values(c: &mut Ctx<'_, '_, '_>) {
             let (hm, v) = (first_n_mut(hm, w), first_n_mut(v, w * hd));
             conv16(&pm, &parts, w, hm, c.px.patch);
             conv16(&pv, &[full(c.frame.net08, h8, w * hd, r, 1)], w, v, c.px.patch);
+            // Armv7E-M: channel-major (`aggregate_query_cm` reads two keys of a channel a word).
+            #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+            crate::kernels::eltwise::mul_plane_q15_cm(v, hm, hd, c.st.values, w * h8, r * w);
+            #[cfg(not(all(target_arch = "arm", feature = "dsp", not(feature = "mve"))))]
             mul_plane_q15(v, hm, hd, chunk_mut(c.st.values, r, w * hd));
         }
     }
@@ -631,7 +635,11 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
                             [mx, sum] => (mx, sum),
                             _ => (0, 0),
                         };
-                        aggregate_query(q, st.keys, st.values, hd, stats, am, glb_shift, acc, chunk_mut(d, x, hd));
+                        // Armv7E-M: the values channel-major (`mga_values`).
+                        #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+                        crate::kernels::attention::aggregate_query_cm(q, st.keys, st.values, w * h8, hd, stats, am, glb_shift, acc, chunk_mut(d, x, hd));
+                        #[cfg(not(all(target_arch = "arm", feature = "dsp", not(feature = "mve"))))]
+                        crate::kernels::attention::aggregate_query(q, st.keys, st.values, hd, stats, am, glb_shift, acc, chunk_mut(d, x, hd));
                     });
                 });
             }

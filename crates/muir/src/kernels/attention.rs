@@ -128,6 +128,33 @@ pub fn aggregate_query(q: &[i16], keys: &[i16], values: &[i16], cv: usize, stats
     }
 }
 
+/// [`aggregate_query`] with the values channel-major (`values[ch n + j]` for the `n` keys of
+/// `keys`, `n x q.len()`): the Armv7E-M firmware's layout (`refine::mga_values` writes it so),
+/// whose value sums read two keys of a channel as one word ([`super::dsp::aggregate_cm`]). The
+/// same weights, blocks and exact sums as [`aggregate_query`], so the same outputs.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[allow(clippy::too_many_arguments)]
+pub fn aggregate_query_cm(q: &[i16], keys: &[i16], values: &[i16], n: usize, cv: usize, stats: (i64, i64), m: Multiplier, shift: i8, acc: &mut [i64], out: &mut [i16]) {
+    let Some(acc) = acc.get_mut(..cv) else {
+        return; // scratch shorter than the values (the engine's never is)
+    };
+    acc.fill(0);
+    let c = q.len();
+    if c > 0 && cv > 0 {
+        let keys = keys.get(..n.saturating_mul(c)).unwrap_or(keys);
+        let mut e = [0i32; KEY_BLOCK];
+        for (b, kb) in keys.chunks(c.saturating_mul(KEY_BLOCK).max(1)).enumerate() {
+            let (nb, _, any) = block_weights(q, kb, stats.0, m, &mut e);
+            if any {
+                super::dsp::aggregate_cm(e.get(..nb).unwrap_or_default(), values, n, b * KEY_BLOCK, cv, acc);
+            }
+        }
+    }
+    for (o, a) in out.iter_mut().zip(acc.iter()) {
+        *o = aggregated(*a, shift, stats.1);
+    }
+}
+
 /// An aggregated value from its weighted sum `acc = sum_j e_j v_j` and the query's sum of
 /// weights `sum`, in the values' format shifted by `shift` fraction bits.
 #[inline(always)]

@@ -212,6 +212,150 @@ pub fn aggregate(e: &[i32], v: &[i16], cv: usize, acc: &mut [i64]) {
     }
 }
 
+/// [`aggregate`] with the values channel-major: `acc[ch] += sum_j e[j] v[ch n + j0 + j]` for the
+/// block of keys `j0 .. j0 + e.len()` of `n` (the Armv7E-M firmware's layout of the MGA values,
+/// `eltwise::mul_plane_q15_cm`). Two keys of a channel are one word, so per channel pair and pair
+/// of keys the weight word, one word of each channel and two `SMLALD` (5 instructions per 4
+/// products, `pair_sums_cm`), where the key-major layout re-pairs two keys' words with
+/// `PKHBT`/`PKHTB` (8). Weights of 32768 as in [`aggregate`] (packed as 0, their keys added by a
+/// per-key pass; more than [`WIDE_KEYS`] of them, or more than [`AGG_KEYS`] keys: the plain loop);
+/// the odd last channel and key by the plain loop. Exact sums, so the same integers in any order.
+/// A block or `acc` the slices do not hold leaves `acc` as it is (the engine's always fit).
+pub fn aggregate_cm(e: &[i32], v: &[i16], n: usize, j0: usize, cv: usize, acc: &mut [i64]) {
+    let nb = e.len();
+    let fits = j0.checked_add(nb).is_some_and(|end| end <= n) && n.checked_mul(cv).is_some_and(|len| len <= v.len());
+    let Some(acc) = acc.get_mut(..cv).filter(|_| fits) else {
+        return;
+    };
+    // Channel `ch`'s values of the block (every caller below passes `ch < cv`).
+    let row = |ch: usize| -> &[i16] {
+        debug_assert!(ch < cv);
+        // SAFETY: `ch < cv` and `j0 + nb <= n`, so `ch n + j0 + nb <= cv n <= v.len()` (`fits`).
+        unsafe { core::slice::from_raw_parts(v.as_ptr().add(ch * n + j0), nb) }
+    };
+    let pairs = nb / 2;
+    let mut done = 0;
+    let mut ep = [0u32; AGG_KEYS / 2];
+    let (mut wide, mut nw) = ([0usize; WIDE_KEYS], 0);
+    if pairs > 0 && nb <= AGG_KEYS {
+        for (t, (p, w)) in ep.iter_mut().zip(e.chunks_exact(2)).enumerate().take(pairs) {
+            let &[a, b] = w else {
+                continue;
+            };
+            if (a | b) as u32 >> 15 == 0 {
+                // Both in `0 ..= 32767` (every weight but exp(0)): one word.
+                *p = a as u32 | (b as u32) << 16;
+                continue;
+            }
+            for (k, w) in [a, b].into_iter().enumerate() {
+                let half = if w as i16 as i32 == w {
+                    w as u32 & 0xffff
+                } else {
+                    if let Some(slot) = wide.get_mut(nw) {
+                        *slot = 2 * t + k;
+                    }
+                    nw += 1;
+                    0
+                };
+                *p |= half << (16 * k);
+            }
+        }
+    }
+    if pairs > 0 && nb <= AGG_KEYS && nw <= WIDE_KEYS {
+        let ep = ep.get(..pairs).unwrap_or_default();
+        for (i, a) in acc.chunks_exact_mut(2).enumerate() {
+            let [a0, a1] = a else {
+                continue;
+            };
+            let (r0, r1) = (row(2 * i), row(2 * i + 1));
+            let (s0, s1) = pair_sums_cm(ep, r0, r1);
+            *a0 += s0;
+            *a1 += s1;
+            // The keys packed as 0.
+            for &j in wide.get(..nw).unwrap_or_default() {
+                if let (Some(&w), Some(&x0), Some(&x1)) = (e.get(j), r0.get(j), r1.get(j)) {
+                    *a0 += w as i64 * x0 as i64;
+                    *a1 += w as i64 * x1 as i64;
+                }
+            }
+        }
+        if cv % 2 == 1
+            && let Some(a) = acc.last_mut()
+        {
+            for (w, x) in e.iter().zip(row(cv - 1)).take(2 * pairs) {
+                *a += *w as i64 * *x as i64;
+            }
+        }
+        done = 2 * pairs;
+    }
+    if done < nb {
+        for (ch, a) in acc.iter_mut().enumerate() {
+            for (w, x) in e.iter().zip(row(ch)).skip(done) {
+                *a += *w as i64 * *x as i64;
+            }
+        }
+    }
+}
+
+/// [`aggregate_cm`]'s paired loop: `(sum_t (ep[t].lo r0[2t] + ep[t].hi r0[2t+1]), the same of
+/// r1)` over the pairs all three slices hold: per pair the weight word, a word of each row and
+/// two `SMLALD` (unaligned word loads, which the Cortex-M4/M7 allow), four pairs a step, the last
+/// 0 to 3 pairs in Rust.
+#[inline(always)]
+fn pair_sums_cm(ep: &[u32], r0: &[i16], r1: &[i16]) -> (i64, i64) {
+    let pairs = ep.len().min(r0.len() / 2).min(r1.len() / 2);
+    let quads = pairs / 4;
+    let (mut l0, mut h0, mut l1, mut h1) = (0u32, 0u32, 0u32, 0u32);
+    if quads > 0 {
+        // SAFETY: `quads` steps read `4 quads <= pairs` words of `ep` and `8 quads <= 2 pairs`
+        // values of each row, all inside the slices (`pairs` above); no stack; the flags
+        // (`subs`) are clobbered, which `asm!` assumes by default.
+        unsafe {
+            asm!(
+                "2:",
+                "ldr {e}, [{ep}], #4",
+                "ldr {t}, [{p0}], #4",
+                "smlald {l0}, {h0}, {e}, {t}",
+                "ldr {t}, [{p1}], #4",
+                "smlald {l1}, {h1}, {e}, {t}",
+                "ldr {e}, [{ep}], #4",
+                "ldr {t}, [{p0}], #4",
+                "smlald {l0}, {h0}, {e}, {t}",
+                "ldr {t}, [{p1}], #4",
+                "smlald {l1}, {h1}, {e}, {t}",
+                "ldr {e}, [{ep}], #4",
+                "ldr {t}, [{p0}], #4",
+                "smlald {l0}, {h0}, {e}, {t}",
+                "ldr {t}, [{p1}], #4",
+                "smlald {l1}, {h1}, {e}, {t}",
+                "ldr {e}, [{ep}], #4",
+                "ldr {t}, [{p0}], #4",
+                "smlald {l0}, {h0}, {e}, {t}",
+                "ldr {t}, [{p1}], #4",
+                "smlald {l1}, {h1}, {e}, {t}",
+                "subs {q}, #1",
+                "bne 2b",
+                ep = inout(reg) ep.as_ptr() => _,
+                p0 = inout(reg) r0.as_ptr() => _,
+                p1 = inout(reg) r1.as_ptr() => _,
+                q = inout(reg) quads => _,
+                l0 = inout(reg) l0, h0 = inout(reg) h0, l1 = inout(reg) l1, h1 = inout(reg) h1,
+                e = out(reg) _, t = out(reg) _,
+                options(nostack, readonly),
+            );
+        }
+    }
+    let (mut s0, mut s1) = (((h0 as u64) << 32 | l0 as u64) as i64, ((h1 as u64) << 32 | l1 as u64) as i64);
+    for t in 4 * quads..pairs {
+        if let (Some(&w), Some(&[a0, a1]), Some(&[b0, b1])) = (ep.get(t), r0.get(2 * t..2 * t + 2), r1.get(2 * t..2 * t + 2)) {
+            let (wl, wh) = (w as u16 as i16 as i64, (w >> 16) as u16 as i16 as i64);
+            s0 += wl * a0 as i64 + wh * a1 as i64;
+            s1 += wl * b0 as i64 + wh * b1 as i64;
+        }
+    }
+    (s0, s1)
+}
+
 /// [`aggregate`]'s paired loop: `acc[ch] += sum_t (ep[t].lo v[2t cv + ch] + ep[t].hi
 /// v[(2t+1) cv + ch])` for the even channels below `cv & !1` (`acc`: `cv` sums). By `muir_dsp_paired_sums`:
 /// per channel pair and pair of keys, the weight word, the two keys' value words, `PKHBT`/`PKHTB`

@@ -90,6 +90,24 @@ pub fn mul_plane_q15(x: &[i16], m: &[i16], c: usize, out: &mut [i16]) {
     }
 }
 
+/// [`mul_plane_q15`] of one row of `w = x.len() / c` pixels into a channel-major plane: pixel
+/// `i`'s channel `ch` to `out[ch n + at + i]` (the Armv7E-M firmware's MGA values, read two keys
+/// of a channel a word by `dsp::aggregate_cm`). Pixels or channels `out` does not hold are not
+/// written.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+pub fn mul_plane_q15_cm(x: &[i16], m: &[i16], c: usize, out: &mut [i16], n: usize, at: usize) {
+    if c == 0 {
+        return;
+    }
+    for (i, (x, m)) in x.chunks_exact(c).zip(m).enumerate() {
+        for (ch, x) in x.iter().enumerate() {
+            if let Some(o) = out.get_mut(ch * n + at + i) {
+                *o = sat_i16(rshift_round(*x as i64 * *m as i64, 15));
+            }
+        }
+    }
+}
+
 /// Converts i16 values between fraction bits, saturating.
 pub fn rescale_i16(x: &[i16], from: i8, to: i8, out: &mut [i16]) {
     for (o, x) in out.iter_mut().zip(x) {
