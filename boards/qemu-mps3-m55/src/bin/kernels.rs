@@ -888,10 +888,18 @@ fn check_popcount(r: &mut Rng) -> usize {
 /// afterwards. Then whole queries (`query_stats`, `aggregate_query`, which take the vector weights
 /// per block of keys) against plain loops over `weight`, with key counts that leave partial
 /// blocks and logits whose distance to the maximum does not fit `i32` (the scalar fallback).
-#[cfg(feature = "mve")]
+///
+/// The DSP build (`dsp::exp_weights`, shifts `1..=62`, no `FPSCR`) takes the same cases, and its
+/// whole queries also through `attention::aggregate_query_cm` with the values read channel-major.
 fn check_weights(r: &mut Rng, keys: &mut [i16; MAX_N], vals: &mut [i16; MAX_N]) -> usize {
     use muir::arith::Multiplier;
-    use muir::kernels::{attention, mve};
+    use muir::kernels::attention;
+    #[cfg(feature = "mve")]
+    use muir::kernels::mve::exp_weights;
+    #[cfg(not(feature = "mve"))]
+    use muir::kernels::dsp::exp_weights;
+    // Shifts each kernel takes (the others it must refuse).
+    let takes = |s: u8| if cfg!(feature = "mve") { (2..=62).contains(&s) } else { (1..=62).contains(&s) };
     let mut cases = 0;
     for case in 0..6000u32 {
         let n = (case % 34) as usize;
@@ -917,21 +925,22 @@ fn check_weights(r: &mut Rng, keys: &mut [i16; MAX_N], vals: &mut [i16; MAX_N]) 
         }
         let mut e = [-7i32; 34];
         e[..n].copy_from_slice(&d[..n]);
-        let got = mve::exp_weights(&mut e[..n], m, shift);
-        if mve::take_qc() {
+        let got = exp_weights(&mut e[..n], m, shift);
+        #[cfg(feature = "mve")]
+        if muir::kernels::mve::take_qc() {
             println!("MUIR-KERNELS FAILED exp_weights case {case}: FPSCR.QC left set");
             process::exit(1);
         }
         let mult = Multiplier { m, shift };
         match got {
-            None if (2..=62).contains(&shift) => fail("exp_weights refused", case as usize, &[shift as i64], &[]),
+            None if takes(shift) => fail("exp_weights refused", case as usize, &[shift as i64], &[]),
             None => {
                 if e[..n] != d[..n] {
                     fail("exp_weights wrote", case as usize, &[], &[]);
                 }
             }
             Some((most, sum)) => {
-                if !(2..=62).contains(&shift) {
+                if !takes(shift) {
                     fail("exp_weights accepted", case as usize, &[shift as i64], &[]);
                 }
                 let want: [i64; 34] = core::array::from_fn(|k| if k < n { attention::weight(d[k] as i64, 0, mult) as i64 } else { -7 });
@@ -986,6 +995,20 @@ fn check_weights(r: &mut Rng, keys: &mut [i16; MAX_N], vals: &mut [i16; MAX_N]) 
             fail("aggregate_query", case as usize, &have[..cv], &want[..cv]);
         }
         cases += 1;
+        // The same values read channel-major (channel `ch` of key `j` at `ch n + j`).
+        #[cfg(not(feature = "mve"))]
+        {
+            attention::aggregate_query_cm(q, ks, &vals[..n * cv], n, cv, st, mult, -1, &mut acc, &mut got[..cv]);
+            for (ch, w) in want.iter_mut().enumerate().take(cv) {
+                let a: i64 = ks.chunks_exact(c).enumerate().map(|(j, k)| attention::weight(logit(k), max, mult) as i64 * vals[ch * n + j] as i64).sum();
+                *w = muir::arith::sat_i16(muir::arith::div_round(muir::arith::shift_round(a, -1), sum)) as i64;
+            }
+            let have: [i64; 64] = core::array::from_fn(|k| got[k] as i64);
+            if have[..cv] != want[..cv] {
+                fail("aggregate_query_cm", case as usize, &have[..cv], &want[..cv]);
+            }
+            cases += 1;
+        }
     }
     cases
 }
@@ -1963,6 +1986,7 @@ fn main() -> ! {
         cases += check_corr4(&mut r);
         cases += check_logit_dsp(i16s.a, i16s.b, &mut r);
         cases += check_aggregate_cm(i16s.a, &mut r);
+        cases += check_weights(&mut r, i16s.a, i16s.b);
     }
     cases += check_conv(&mut r);
     #[cfg(not(feature = "mve"))]

@@ -62,9 +62,10 @@ pub fn query_stats(q: &[i16], keys: &[i16], m: Multiplier) -> (i64, i64) {
         return (0, 0); // no query channels: no logits
     }
     let max = keys.chunks_exact(c).map(|k| logit(q, k)).max().unwrap_or(0);
-    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    #[cfg(all(target_arch = "arm", any(feature = "mve", feature = "dsp")))]
     if (2..=62).contains(&m.shift) {
-        // Helium: the weights of a block of keys four a vector (`block_weights`).
+        // Helium: the weights of a block of keys four a vector; Armv7E-M: by one tight loop
+        // (`block_weights`).
         let mut e = [0i32; KEY_BLOCK];
         let mut sum = 0i64;
         for kb in keys.chunks(c.saturating_mul(KEY_BLOCK).max(1)) {
@@ -84,7 +85,7 @@ pub fn query_stats(q: &[i16], keys: &[i16], m: Multiplier) -> (i64, i64) {
 #[inline(always)]
 fn block_weights(q: &[i16], kb: &[i16], max: i64, m: Multiplier, e: &mut [i32; KEY_BLOCK]) -> (usize, i64, bool) {
     let c = q.len().max(1);
-    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    #[cfg(all(target_arch = "arm", any(feature = "mve", feature = "dsp")))]
     {
         // The distances to the maximum in `e`, then their weights in place.
         let (mut nb, mut fits) = (0, true);
@@ -94,7 +95,11 @@ fn block_weights(q: &[i16], kb: &[i16], max: i64, m: Multiplier, e: &mut [i32; K
             fits &= *dk as i64 == l;
             nb += 1;
         }
-        if fits && let Some(ek) = e.get_mut(..nb) && let Some((most, sum)) = super::mve::exp_weights(ek, m.m, m.shift) {
+        #[cfg(feature = "mve")]
+        let weights = super::mve::exp_weights;
+        #[cfg(not(feature = "mve"))]
+        let weights = super::dsp::exp_weights;
+        if fits && let Some(ek) = e.get_mut(..nb) && let Some((most, sum)) = weights(ek, m.m, m.shift) {
             return (nb, sum, most != 0);
         }
     }

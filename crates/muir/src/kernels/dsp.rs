@@ -212,6 +212,54 @@ pub fn aggregate(e: &[i32], v: &[i16], cv: usize, acc: &mut [i64]) {
     }
 }
 
+/// The MGA softmax weights of a block of keys, in place (the Armv7E-M twin of
+/// `mve::exp_weights`): each `e[k]`, the logit minus the query's maximum, becomes
+/// `exp_q11(clamp(requantize_i32(e[k], m), -32768, 0))` for shifts `1..=62` (others: nothing
+/// written, `None`); returns the largest weight and the sum. One loop per shift range with the
+/// requantisation's constants hoisted (`SMULL`, then for `s >= 33` the high word's rounding
+/// shift), the table read as `exp_q11`'s with the index `min(u >> 5, 1023)` and the fraction `u -
+/// 32 i` (32 at `u = 32768`: the last entry exactly); about 20 instructions a key where the
+/// per-key `attention::weight` (range checks, 64-bit rounding, `exp_q11`'s branch) took about 40.
+/// Exact: `requantize(d, m) = requantize_i32(d, m)` for an `i32` `d` and these shifts.
+#[inline(never)]
+pub fn exp_weights(e: &mut [i32], m: i32, shift: u8) -> Option<(i32, i64)> {
+    if !(1..=62).contains(&shift) {
+        return None;
+    }
+    let table = crate::arith::lut::exp_table();
+    let (mut most, mut sum) = (0i32, 0i64);
+    let mut put = |v: &mut i32, x: i32| {
+        let u = (x.clamp(-32768, 0) + 32768) as u32;
+        let i = (u >> 5).min(1023) as usize;
+        let f = (u - 32 * i as u32) as i32;
+        let (a, b) = match table.get(i..i + 2) {
+            Some(&[a, b]) => (a as i32, b as i32),
+            _ => (0, 0),
+        };
+        // `b >= a` (the table rises), so the product is at most `32768 * 32`: no overflow.
+        let w = a + (((b - a) * f + 16) >> 5);
+        *v = w;
+        most = most.max(w);
+        sum += w as i64;
+    };
+    let s = shift as u32;
+    if s >= 33 {
+        let (half, k) = (1i32 << (s - 33), s - 32);
+        for v in e.iter_mut() {
+            let hi = ((*v as i64 * m as i64) >> 32) as i32;
+            put(v, hi.wrapping_add(half) >> k);
+        }
+    } else {
+        let half = 1i64 << (s - 1);
+        for v in e.iter_mut() {
+            let x = (*v as i64 * m as i64 + half) >> s;
+            // (`x` beyond i32 is beyond the clamp on the same side.)
+            put(v, x.clamp(-32768, 0) as i32);
+        }
+    }
+    Some((most, sum))
+}
+
 /// [`aggregate`] with the values channel-major: `acc[ch] += sum_j e[j] v[ch n + j0 + j]` for the
 /// block of keys `j0 .. j0 + e.len()` of `n` (the Armv7E-M firmware's layout of the MGA values,
 /// `eltwise::mul_plane_q15_cm`). Two keys of a channel are one word, so per channel pair and pair
