@@ -297,6 +297,31 @@ fn check_logit_dsp(q: &mut [i16; MAX_N], k: &mut [i16; MAX_N], r: &mut Rng) -> u
             }
         }
     }
+    // Two keys a call (`dsp::logits2`): query lengths 32 and 64 (others refused), both slices
+    // aligned or either misaligned (refused), keys stored one after the other.
+    for c in [32usize, 64, 16, 33, 0] {
+        for fill in [Fill::Random, Fill::Min, Fill::Max] {
+            for i in 0..2 * c + 2 {
+                q[i] = i16::sample(r, fill);
+                k[i] = i16::sample(r, if matches!(fill, Fill::Max) { Fill::Min } else { fill });
+            }
+            for (oq, ok) in [(aq, ak), (aq + 1, ak), (aq, ak + 1)] {
+                let (qs, ks) = (&q[oq..oq + c], &k[ok..ok + 2 * c]);
+                let plain = |kk: &[i16]| qs.iter().zip(kk).map(|(a, b)| *a as i64 * *b as i64).sum::<i64>();
+                let want = ((c == 32 || c == 64) && (oq, ok) == (aq, ak)).then(|| (plain(&ks[..c]), plain(&ks[c..])));
+                let got = dsp::logits2(qs, ks);
+                if got != want {
+                    let (g, w) = (got.unwrap_or((-1, -1)), want.unwrap_or((-1, -1)));
+                    fail("dsp logits2", c * 10 + 2 * (oq - aq) + ok - ak, &[g.0, g.1], &[w.0, w.1]);
+                }
+                cases += 1;
+            }
+            // A second key one value short: refused.
+            if c == 32 && dsp::logits2(&q[aq..aq + c], &k[ak..ak + 2 * c - 1]).is_some() {
+                fail("dsp logits2 short", c, &[], &[]);
+            }
+        }
+    }
     cases
 }
 

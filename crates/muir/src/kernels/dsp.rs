@@ -212,6 +212,54 @@ pub fn aggregate(e: &[i32], v: &[i16], cv: usize, acc: &mut [i64]) {
     }
 }
 
+/// The MGA logits of two consecutive keys (`k`: key `a`'s `q.len()` values, then key `b`'s):
+/// `(q . a, q . b)`, exact in i64, for the query lengths the models use (32 and 64: the loop is
+/// unrolled at compile time, key `b` read at a constant offset from key `a`), both slices
+/// word-aligned. Per four values of the query: its two words by one `LDRD`, each key's by one,
+/// four `SMLALD` (7 instructions for 8 products, where two [`dot_i16_i64`] calls take 10 and
+/// their loop steps). `None` for other lengths, misaligned or short slices.
+#[inline(always)]
+pub fn logits2(q: &[i16], k: &[i16]) -> Option<(i64, i64)> {
+    let c = q.len();
+    if k.len() < 2 * c || !(q.as_ptr() as usize | k.as_ptr() as usize).is_multiple_of(4) {
+        return None;
+    }
+    let (mut al, mut ah, mut bl, mut bh) = (0u32, 0u32, 0u32, 0u32);
+    macro_rules! pair {
+        ($c:literal) => {
+            // SAFETY: `$c / 4` steps read `$c` values of `q` and of each key (`k.len() >= 2 c`,
+            // checked), all word-aligned (checked: `LDRD` needs it; `2 c` bytes between the keys
+            // is a multiple of 4); register-only otherwise, no flags.
+            unsafe {
+                asm!(
+                    ".rept {steps}",
+                    "ldrd {q0}, {q1}, [{q}], #8",
+                    "ldrd {t0}, {t1}, [{k}, #{off}]",
+                    "smlald {bl}, {bh}, {q0}, {t0}",
+                    "smlald {bl}, {bh}, {q1}, {t1}",
+                    "ldrd {t0}, {t1}, [{k}], #8",
+                    "smlald {al}, {ah}, {q0}, {t0}",
+                    "smlald {al}, {ah}, {q1}, {t1}",
+                    ".endr",
+                    steps = const $c / 4,
+                    off = const 2 * $c,
+                    q = inout(reg) q.as_ptr() => _,
+                    k = inout(reg) k.as_ptr() => _,
+                    al = inout(reg) al, ah = inout(reg) ah, bl = inout(reg) bl, bh = inout(reg) bh,
+                    q0 = out(reg) _, q1 = out(reg) _, t0 = out(reg) _, t1 = out(reg) _,
+                    options(nostack, readonly, preserves_flags),
+                )
+            }
+        };
+    }
+    match c {
+        32 => pair!(32),
+        64 => pair!(64),
+        _ => return None,
+    }
+    Some((((ah as u64) << 32 | al as u64) as i64, ((bh as u64) << 32 | bl as u64) as i64))
+}
+
 /// The MGA softmax weights of a block of keys, in place (the Armv7E-M twin of
 /// `mve::exp_weights`): each `e[k]`, the logit minus the query's maximum, becomes
 /// `exp_q11(clamp(requantize_i32(e[k], m), -32768, 0))` for shifts `1..=62` (others: nothing
