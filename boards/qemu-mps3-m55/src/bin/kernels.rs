@@ -372,6 +372,45 @@ fn check_aggregate_dsp(v: &mut [i16; MAX_N], r: &mut Rng) -> usize {
     cases
 }
 
+/// The DSP build's least value of a path step's predecessor (`dsp::min_u16`, two words a step by
+/// `USUB16`/`SEL`) against `iter().min()`: lengths 0 to 40 and 63-65, random values, values at
+/// 0 and `u16::MAX`, the least one at each position (in either half of a word, in the tail).
+#[cfg(not(feature = "mve"))]
+fn check_min_dsp(r: &mut Rng) -> usize {
+    let mut v = [0u16; 65];
+    let mut cases = 0;
+    for n in (0..=40usize).chain([63, 64, 65]) {
+        for kind in 0..4 {
+            for x in v.iter_mut().take(n) {
+                *x = match kind {
+                    0 => (r.next() >> 48) as u16,
+                    1 => u16::MAX - (r.next() % 3) as u16,
+                    2 => (r.next() % 3) as u16,
+                    _ => 1000 + (r.next() % 60000) as u16,
+                };
+            }
+            for at in 0..n.max(1) {
+                if kind == 3 && at < n {
+                    v[at] = 7; // the least value, at every position in turn
+                }
+                let got = muir::kernels::dsp::min_u16(&v[..n]);
+                let want = v[..n].iter().min().copied();
+                if got != want {
+                    fail("dsp min_u16", n * 100 + at, &[got.map_or(-1, |g| g as i64)], &[want.map_or(-1, |w| w as i64)]);
+                }
+                cases += 1;
+                if kind == 3 && at < n {
+                    v[at] = 1000;
+                }
+                if kind != 3 {
+                    break;
+                }
+            }
+        }
+    }
+    cases
+}
+
 /// The DSP build's MGA value sums with the values channel-major (`dsp::aggregate_cm`: channel
 /// `ch` of key `j` at `ch n + j`, a block of keys from `j0` on; two keys of a channel a word, four
 /// key pairs a step, weights of 32768 by a per-key pass, the plain loop past four of them or 128
@@ -2011,6 +2050,7 @@ fn main() -> ! {
         cases += check_corr4(&mut r);
         cases += check_logit_dsp(i16s.a, i16s.b, &mut r);
         cases += check_aggregate_cm(i16s.a, &mut r);
+        cases += check_min_dsp(&mut r);
         cases += check_weights(&mut r, i16s.a, i16s.b);
     }
     cases += check_conv(&mut r);

@@ -212,6 +212,40 @@ pub fn aggregate(e: &[i32], v: &[i16], cv: usize, acc: &mut [i64]) {
     }
 }
 
+/// The least value of `s` (`None` when empty): two values a word, `USUB16` and `SEL` keeping the
+/// lesser halfword of each lane, two words a step, then the lesser lane (the path steps of the
+/// full-resolution refinement, `fullres::path_step`). The same value as `s.iter().min()`.
+#[inline(always)]
+pub fn min_u16(s: &[u16]) -> Option<u16> {
+    let &first = s.first()?;
+    let mut m = first as u32 * 0x0001_0001;
+    let pair = |k: usize| match s.get(k..k + 2) {
+        Some(&[a, b]) => a as u32 | (b as u32) << 16,
+        _ => first as u32 * 0x0001_0001,
+    };
+    let mut k = 0;
+    while k + 4 <= s.len() {
+        let (a, b) = (pair(k), pair(k + 2));
+        // SAFETY: register-only DSP instructions (the GE flags they set are not read after).
+        unsafe {
+            asm!(
+                "usub16 {t}, {m}, {a}",
+                "sel {m}, {a}, {m}",
+                "usub16 {t}, {m}, {b}",
+                "sel {m}, {b}, {m}",
+                m = inout(reg) m, a = in(reg) a, b = in(reg) b, t = out(reg) _,
+                options(pure, nomem, nostack),
+            );
+        }
+        k += 4;
+    }
+    let mut least = (m as u16).min((m >> 16) as u16);
+    for v in s.iter().skip(k) {
+        least = least.min(*v);
+    }
+    Some(least)
+}
+
 /// The MGA logits of two consecutive keys (`k`: key `a`'s `q.len()` values, then key `b`'s):
 /// `(q . a, q . b)`, exact in i64, for the query lengths the models use (32 and 64: the loop is
 /// unrolled at compile time, key `b` read at a constant offset from key `a`), both slices
@@ -225,23 +259,22 @@ pub fn logits2(q: &[i16], k: &[i16]) -> Option<(i64, i64)> {
         return None;
     }
     let (mut al, mut ah, mut bl, mut bh) = (0u32, 0u32, 0u32, 0u32);
+    // One step of four query values, written out (not `.rept`: the compiler sizes an `asm!`
+    // block by its lines, and branches and literal pools around a block larger than it thinks
+    // can land out of place).
+    macro_rules! step {
+        () => {
+            "ldrd {q0}, {q1}, [{q}], #8\nldrd {t0}, {t1}, [{k}, #{off}]\nsmlald {bl}, {bh}, {q0}, {t0}\nsmlald {bl}, {bh}, {q1}, {t1}\nldrd {t0}, {t1}, [{k}], #8\nsmlald {al}, {ah}, {q0}, {t0}\nsmlald {al}, {ah}, {q1}, {t1}\n"
+        };
+    }
     macro_rules! pair {
-        ($c:literal) => {
+        ($c:literal, $($steps:tt)*) => {
             // SAFETY: `$c / 4` steps read `$c` values of `q` and of each key (`k.len() >= 2 c`,
             // checked), all word-aligned (checked: `LDRD` needs it; `2 c` bytes between the keys
             // is a multiple of 4); register-only otherwise, no flags.
             unsafe {
                 asm!(
-                    ".rept {steps}",
-                    "ldrd {q0}, {q1}, [{q}], #8",
-                    "ldrd {t0}, {t1}, [{k}, #{off}]",
-                    "smlald {bl}, {bh}, {q0}, {t0}",
-                    "smlald {bl}, {bh}, {q1}, {t1}",
-                    "ldrd {t0}, {t1}, [{k}], #8",
-                    "smlald {al}, {ah}, {q0}, {t0}",
-                    "smlald {al}, {ah}, {q1}, {t1}",
-                    ".endr",
-                    steps = const $c / 4,
+                    $($steps)*
                     off = const 2 * $c,
                     q = inout(reg) q.as_ptr() => _,
                     k = inout(reg) k.as_ptr() => _,
@@ -253,8 +286,8 @@ pub fn logits2(q: &[i16], k: &[i16]) -> Option<(i64, i64)> {
         };
     }
     match c {
-        32 => pair!(32),
-        64 => pair!(64),
+        32 => pair!(32, step!(), step!(), step!(), step!(), step!(), step!(), step!(), step!(),),
+        64 => pair!(64, step!(), step!(), step!(), step!(), step!(), step!(), step!(), step!(), step!(), step!(), step!(), step!(), step!(), step!(), step!(), step!(),),
         _ => return None,
     }
     Some((((ah as u64) << 32 | al as u64) as i64, ((bh as u64) << 32 | bl as u64) as i64))

@@ -545,7 +545,7 @@ pub fn path_step(prev: &[u16], pband: Band, cost: &[u16], band: Band, p2: u32, o
     {
         let (prev, cost) = (head(prev, pband.n()), head(cost, band.n()));
         let out = head_mut(out, band.n());
-        if let Some(m) = prev.iter().min().copied() {
+        if let Some(m) = super::dsp::min_u16(prev) {
             let mp2 = (m as u32).saturating_add(p2);
             // (as the Helium step: larger values take the portable one)
             if mp2 <= u16::MAX as u32 - P1 {
