@@ -25,6 +25,20 @@ pub fn residual_relu<X: Elem, O: Elem>(y: &[i16], skip: Skip<'_, X>, out_frac: i
     let add = |y: &i16, s: i64| O::from_i64_sat((*y as i64 + s).max(0));
     match skip {
         Skip::Input { x, frac } => {
+            // The model's shifts are a few bits: then the rescaled skip and the sum fit i32 (the
+            // inputs are u8 or i16, `|x| <= 2^15`: a left shift of up to 15 stays below 2^30, a
+            // rounded right one below 2^15, and `y` adds at most 2^15), so one i32 formula per
+            // element with the shift hoisted, the same integers as `shift_round`'s i64 one.
+            let sh = out_frac as i32 - frac as i32;
+            if (-30..=15).contains(&sh) {
+                let (left, right) = (sh.max(0) as u32, (-sh).max(0) as u32);
+                let half = if right > 0 { 1i32 << (right - 1) } else { 0 };
+                for ((o, y), x) in out.iter_mut().zip(y).zip(x) {
+                    let r = ((x.to_i32() << left) + half) >> right;
+                    *o = O::from_i64_sat((*y as i32 + r).max(0) as i64);
+                }
+                return;
+            }
             for ((o, y), x) in out.iter_mut().zip(y).zip(x) {
                 *o = add(y, rescale(x.to_i32() as i64, frac, out_frac));
             }
@@ -149,5 +163,28 @@ mod tests {
         assert_eq!(o16, [14, 0, 140, 270, 32767]);
         residual_relu::<i16, i16>(&[-3, 7], Skip::Projected(&[1, 1]), 1, &mut o16[..2]);
         assert_eq!(o16[..2], [0, 8]);
+    }
+
+    /// The i32 path for shifts -30..=15 against `rescale`'s i64 formula, every shift from -40 to
+    /// 40 (both paths), u8 and i16 skips (random and extreme), u8 and i16 outputs.
+    #[test]
+    #[allow(clippy::indexing_slicing)]
+    fn residual_matches_the_i64_formula() {
+        use crate::arith::rescale;
+        let mut r = crate::kernels::testutil::Rng(0x5eed_0003);
+        let y: Vec<i16> = (0..64).map(|i| if i < 4 { [i16::MIN, i16::MAX, 0, -1][i] } else { r.i16() }).collect();
+        let x16: Vec<i16> = (0..64).map(|i| if i >= 60 { [i16::MIN, i16::MAX, 0, -1][i - 60] } else { r.i16() }).collect();
+        let x8: Vec<u8> = (0..64).map(|i| if i >= 62 { [0, 255][i - 62] } else { r.next() as u8 }).collect();
+        for sh in -40i32..=40 {
+            let (frac, out_frac) = (if sh >= 0 { 0 } else { (-sh) as i8 }, if sh >= 0 { sh as i8 } else { 0 });
+            let want = |x: i64, y: i16, lim: i64| (y as i64 + rescale(x, frac, out_frac)).clamp(0, lim);
+            let (mut o8, mut o16) = ([0u8; 64], [0i16; 64]);
+            residual_relu(&y, Skip::Input { x: &x8, frac }, out_frac, &mut o8);
+            residual_relu(&y, Skip::Input { x: &x16, frac }, out_frac, &mut o16);
+            for i in 0..64 {
+                assert_eq!(o8[i] as i64, want(x8[i] as i64, y[i], 255), "u8 shift {sh} at {i}");
+                assert_eq!(o16[i] as i64, want(x16[i] as i64, y[i], 32767), "i16 shift {sh} at {i}");
+            }
+        }
     }
 }
