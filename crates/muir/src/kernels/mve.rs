@@ -1341,6 +1341,14 @@ pub fn take_qc() -> bool {
 #[inline]
 pub fn popcount20(w: &[u32; 20]) -> u32 {
     let n: u32;
+    // Four words' counts added to q4, written out five times (not `.rept`: the compiler sizes an
+    // `asm!` block by its lines, and a block larger than it thinks can put branches or literal
+    // pools around it out of place).
+    macro_rules! four_words {
+        () => {
+            "vldrw.u32 q0, [{p}], #16\nvshr.u32 q1, q0, #1\nvand q1, q1, q7\nvsub.i32 q0, q0, q1\nvshr.u32 q1, q0, #2\nvand q1, q1, q6\nvand q0, q0, q6\nvadd.i32 q0, q0, q1\nvshr.u32 q1, q0, #4\nvadd.i32 q0, q0, q1\nvand q0, q0, q5\nvadd.i32 q4, q4, q0"
+        };
+    }
     // SAFETY: reads the 80 bytes of `w`; the sum in an even register (`VADDV`).
     unsafe {
         asm!(
@@ -1348,20 +1356,11 @@ pub fn popcount20(w: &[u32; 20]) -> u32 {
             "vmov.i8 q6, #0x33",
             "vmov.i8 q5, #0x0f",
             "vmov.i32 q4, #0",
-            ".rept 5",
-            "vldrw.u32 q0, [{p}], #16",
-            "vshr.u32 q1, q0, #1",
-            "vand q1, q1, q7",
-            "vsub.i32 q0, q0, q1",
-            "vshr.u32 q1, q0, #2",
-            "vand q1, q1, q6",
-            "vand q0, q0, q6",
-            "vadd.i32 q0, q0, q1",
-            "vshr.u32 q1, q0, #4",
-            "vadd.i32 q0, q0, q1",
-            "vand q0, q0, q5",
-            "vadd.i32 q4, q4, q0",
-            ".endr",
+            four_words!(),
+            four_words!(),
+            four_words!(),
+            four_words!(),
+            four_words!(),
             "vaddv.u8 r0, q4",
             p = inout(reg) w.as_ptr() => _,
             out("r0") n,
