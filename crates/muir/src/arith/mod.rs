@@ -167,6 +167,41 @@ pub const fn div_round(n: i64, d: i64) -> i64 {
     }
 }
 
+/// `sat_i16(div_round(n, d))` without a 64-bit division where `0 < d < 2^31` (the MGA's
+/// aggregated values: value sums over softmax sums, 40-bit numerators, every `__aeabi_uldivmod`
+/// about 80 instructions on Cortex-M): a quotient of 32768 or more saturates, found by one
+/// comparison; below that the divisor, normalised to its top bit, is estimated from its top 16
+/// bits by one 32-bit division, and the remainder corrects the estimate (at most a few steps).
+/// Other divisors take `div_round` itself. The same value for every input.
+#[inline]
+pub const fn div_round_sat_i16(n: i64, d: i64) -> i16 {
+    if d <= 0 || d > i32::MAX as i64 {
+        return sat_i16(div_round(n, d));
+    }
+    let (n_abs, du) = (n.unsigned_abs(), d as u64);
+    // `n_abs <= 2^63`, `d / 2 < 2^30`: no overflow.
+    let s = n_abs + du / 2;
+    if s >= 32768 * du {
+        // |quotient| >= 32768: `i16::MAX` (positive), `i16::MIN` (negative: -32768 exactly or
+        // saturated).
+        return if n < 0 { i16::MIN } else { i16::MAX };
+    }
+    // `s < 2^15 d`: shifted by `z`, `s < 2^47` and `d` has its top bit at 31.
+    let z = (d as u32).leading_zeros();
+    let (sn, dn) = (s << z, (d as u32) << z);
+    let mut q = ((sn >> 16) as u32 / (dn >> 16)) as i64;
+    let mut r = s as i64 - q * d;
+    while r < 0 {
+        q -= 1;
+        r += d;
+    }
+    while r >= d {
+        q += 1;
+        r -= d;
+    }
+    (if n < 0 { -q } else { q }) as i16
+}
+
 /// A real multiplier `m * 2^-shift` with `m` in `[2^30, 2^31)`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
@@ -365,6 +400,30 @@ impl QFormat {
 #[cfg(test)]
 #[allow(clippy::indexing_slicing)]
 mod tests {
+    /// `div_round_sat_i16` against `sat_i16(div_round(..))`: divisors across `1 ..= 2^31 - 1`
+    /// and beyond (the fallback), numerators around the saturation bound, zero, extremes and
+    /// random 40-bit values, both signs.
+    #[test]
+    fn div_round_sat_i16_matches() {
+        let mut r = crate::kernels::testutil::Rng(0xd1d0_0001);
+        let mut ds = vec![1i64, 2, 3, 7, 65535, 65536, 65537, (1 << 31) - 1, 1 << 31, 0, -5, i64::MAX];
+        ds.extend((0..200).map(|_| (r.next() >> (33 + r.next() % 31)) as i64 + 1));
+        for &d in &ds {
+            let mut ns = vec![0i64, 1, -1, i64::MAX, i64::MIN, i64::MIN + 1];
+            for k in [32766i64, 32767, 32768, 32769] {
+                if let Some(b) = d.checked_mul(k) {
+                    for e in [-1i64, 0, 1, d / 2, d / 2 + 1, -(d / 2), -(d / 2) - 1] {
+                        ns.extend([b + e, -(b + e)]);
+                    }
+                }
+            }
+            ns.extend((0..100).map(|_| ((r.next() as i64) >> (r.next() % 40))));
+            for n in ns {
+                assert_eq!(div_round_sat_i16(n, d), sat_i16(div_round(n, d)), "n={n} d={d}");
+            }
+        }
+    }
+
     use super::*;
 
     #[test]

@@ -7,7 +7,7 @@
 //! the keys. No N x N matrix exists; the plain twin builds it and must give the same bits.
 #![deny(clippy::indexing_slicing)]
 
-use crate::arith::{Multiplier, div_round, lut, requantize, rshift_round, sat_i16, shift_round};
+use crate::arith::{Multiplier, lut, requantize, rshift_round, sat_i16, shift_round};
 
 #[cfg(all(target_arch = "x86_64", feature = "std"))]
 #[path = "attention_avx512.rs"]
@@ -179,7 +179,7 @@ pub fn aggregate_query_cm(q: &[i16], keys: &[i16], values: &[i16], n: usize, cv:
 /// weights `sum`, in the values' format shifted by `shift` fraction bits.
 #[inline(always)]
 pub fn aggregated(acc: i64, shift: i8, sum: i64) -> i16 {
-    sat_i16(div_round(shift_round(acc, shift as i32), sum))
+    crate::arith::div_round_sat_i16(shift_round(acc, shift as i32), sum)
 }
 
 /// Keys per block of [`aggregate_blocked`]: their softmax weights wait on the stack (512 bytes;
@@ -267,7 +267,7 @@ pub fn attention_plain(queries: &[i16], keys: &[i16], values: &[i16], c: usize, 
         let s: i64 = e.iter().sum();
         for ch in 0..cv {
             let a: i64 = (0..n).map(|j| e[j] * values[j * cv + ch] as i64).sum();
-            out[i * cv + ch] = sat_i16(div_round(shift_round(a, shift as i32), s));
+            out[i * cv + ch] = sat_i16(crate::arith::div_round(shift_round(a, shift as i32), s));
         }
     }
     out
@@ -305,7 +305,7 @@ mod tests {
                 let st = query_stats(&q[i * c..][..c], &k, m);
                 let mut sums = vec![0i64; cv];
                 aggregate_blocked(&q[i * c..][..c], &k, &v, cv, st.0, m, &mut sums);
-                let out: Vec<i16> = sums.iter().map(|a| sat_i16(div_round(shift_round(*a, -1), st.1))).collect();
+                let out: Vec<i16> = sums.iter().map(|a| sat_i16(crate::arith::div_round(shift_round(*a, -1), st.1))).collect();
                 assert_eq!(out, want[i * cv..(i + 1) * cv], "portable {n}x{c}, query {i}");
             }
         }
