@@ -68,6 +68,20 @@ pub fn interp_cols(src: &[i16], h: usize, w: usize, c: usize, h_out: usize, w_ou
         let x1 = (x0 + 1).min(w.saturating_sub(1));
         let (a, b, e, f) = (px(y0, x0), px(y0, x1), px(y1, x0), px(y1, x1));
         let at_out = (x - x_first) * c;
+        if dx * dy <= 1 << 15 {
+            // The four corner weights once per pixel: `(dy - ry) ((dx - rx) a + rx b) + ry ((dx -
+            // rx) e + rx f)` is the same integer as their weighted sum, below `dx dy 2^15 <= 2^30`
+            // in magnitude, so i32 products and the 32-bit rounded division (`div_round`'s).
+            let (wa, wb, we, wf) = ((dy - ry) * (dx - rx), (dy - ry) * rx, ry * (dx - rx), ry * rx);
+            let (wa, wb, we, wf, d) = (wa as i32, wb as i32, we as i32, wf as i32, (dx * dy) as u32);
+            let at32 = |p: &[i16], ch: usize| p.get(ch).map_or(0, |v| *v as i32);
+            for (ch, o) in out.get_mut(at_out..at_out + c).unwrap_or_default().iter_mut().enumerate() {
+                let num = wa * at32(a, ch) + wb * at32(b, ch) + we * at32(e, ch) + wf * at32(f, ch);
+                let q = ((num.unsigned_abs() + d / 2) / d) as i64;
+                *o = sat_i16(if num < 0 { -q } else { q });
+            }
+            continue;
+        }
         for (ch, o) in out.get_mut(at_out..at_out + c).unwrap_or_default().iter_mut().enumerate() {
             let top = (dx - rx) * at(a, ch) + rx * at(b, ch);
             let bot = (dx - rx) * at(e, ch) + rx * at(f, ch);
@@ -107,8 +121,10 @@ mod tests {
             x ^= x << 17;
             x as i16
         };
-        for (h, w, c) in [(5, 7, 3), (4, 6, 70), (1, 1, 2), (9, 5, 128)] {
-            let src: Vec<i16> = (0..h * w * c).map(|_| rnd()).collect();
+        // (The last two: extreme values, whose weighted sums reach the i32 path's bound; and
+        // an output whose `dx dy` exceeds 2^15, the i64 path.)
+        for (h, w, c, extreme) in [(5, 7, 3, false), (4, 6, 70, false), (1, 1, 2, false), (9, 5, 128, false), (6, 9, 3, true), (60, 150, 2, false)] {
+            let src: Vec<i16> = (0..h * w * c).map(|i| if extreme { [i16::MIN, i16::MAX, i16::MIN, i16::MIN][i % 4] } else { rnd() }).collect();
             let at = |y: isize, x: isize, ch: usize| if y < 0 || x < 0 || y >= h as isize || x >= w as isize { 0 } else { src[(y as usize * w + x as usize) * c + ch] as i64 };
             let wo = w.div_ceil(2);
             for y in 0..h.div_ceil(2) {
