@@ -97,7 +97,8 @@ fn smlad(a: u32, b: u32, acc: i32) -> i32 {
 }
 
 /// `sum_i q[i] k[i]` over the shorter slice, exact in i64 (the MGA logits, `attention::logit`).
-/// Both slices word-aligned (the engine's keys and queries are): eight products a step by two
+/// Where both slices are word-aligned (the engine's keys and queries rows usually are; `LDRD`
+/// faults otherwise): eight products a step by two
 /// `LDRD` of each and two `SMLALD` per four products (10 instructions per 8 products, where the
 /// portable loop compiled into the attention's closures took about 24 with its spills); else, and
 /// for the last products, the portable loop. Exact, so the same integer as the portable loop.
@@ -299,8 +300,9 @@ pub fn logits2(q: &[i16], k: &[i16]) -> Option<(i64, i64)> {
 /// written, `None`); returns the largest weight and the sum. One loop per shift range with the
 /// requantisation's constants hoisted (`SMULL`, then for `s >= 33` the high word's rounding
 /// shift), the table read as `exp_q11`'s with the index `min(u >> 5, 1023)` and the fraction `u -
-/// 32 i` (32 at `u = 32768`: the last entry exactly); about 20 instructions a key where the
-/// per-key `attention::weight` (range checks, 64-bit rounding, `exp_q11`'s branch) took about 40.
+/// 32 i` (32 at `u = 32768`: the last entry exactly): about 33 instructions a key in the
+/// 160x120 profile, where the per-key `attention::weight` (range checks, 64-bit rounding,
+/// `exp_q11`'s branch) took about 43.
 /// Exact: `requantize(d, m) = requantize_i32(d, m)` for an `i32` `d` and these shifts.
 #[inline(never)]
 pub fn exp_weights(e: &mut [i32], m: i32, shift: u8) -> Option<(i32, i64)> {
