@@ -213,6 +213,38 @@ pub fn aggregate(e: &[i32], v: &[i16], cv: usize, acc: &mut [i64]) {
     }
 }
 
+/// `dst[i] = src[i]` for `i` below both lengths, two values a word (unaligned `LDR`/`STR`, which
+/// the Cortex-M4/M7 allow) by one `asm!` loop: a short copy of halfwords by `memcpy` takes the
+/// library's byte loop (the path steps' windows, `fullres::path_step`).
+#[inline(always)]
+pub fn copy_u16(dst: &mut [u16], src: &[u16]) {
+    let n = dst.len().min(src.len());
+    let words = n / 2;
+    if words > 0 {
+        // SAFETY: `words` words read from `src` and written to `dst`, `2 words <= n` values of
+        // each; no stack; `subs` sets the flags (clobbered by default).
+        unsafe {
+            asm!(
+                "2:",
+                "ldr {t}, [{s}], #4",
+                "str {t}, [{d}], #4",
+                "subs {n}, #1",
+                "bne 2b",
+                s = inout(reg) src.as_ptr() => _,
+                d = inout(reg) dst.as_mut_ptr() => _,
+                n = inout(reg) words => _,
+                t = out(reg) _,
+                options(nostack),
+            );
+        }
+    }
+    if n % 2 == 1
+        && let (Some(d), Some(s)) = (dst.get_mut(n - 1), src.get(n - 1))
+    {
+        *d = *s;
+    }
+}
+
 /// The least value of `s` (`None` when empty): two values a word, `USUB16` and `SEL` keeping the
 /// lesser halfword of each lane, two words a step, then the lesser lane (the path steps of the
 /// full-resolution refinement, `fullres::path_step`). The same value as `s.iter().min()`.

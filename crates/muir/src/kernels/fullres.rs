@@ -558,7 +558,9 @@ pub fn path_step(prev: &[u16], pband: Band, cost: &[u16], band: Band, p2: u32, o
                 if lo < hi {
                     let (lo, hi) = (lo as usize, hi as usize);
                     if let (Some(dst), Some(src)) = (win.get_mut(lo..hi), prev.get((lo as isize - 1 + shift) as usize..)) {
-                        dst.iter_mut().zip(src).for_each(|(d, s)| *d = *s);
+                        // Two values a word (a `memcpy` call of some 30 halfwords cost about 200
+                        // instructions: the library's byte loop for unaligned ends).
+                        super::dsp::copy_u16(dst, src);
                     }
                 }
                 path_update_dsp(&win, cost, m, mp2 as u16, out);
