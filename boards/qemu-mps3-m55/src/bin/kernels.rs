@@ -168,6 +168,9 @@ static mut W0: [i8; MAX_N] = [0; MAX_N];
 static mut W12: [i8; 12 * W12_KL] = [0; 12 * W12_KL];
 #[cfg(feature = "mve")]
 const W12_KL: usize = 1536;
+/// A copy of the pair `check_dots_flipped` flips.
+#[cfg(feature = "mve")]
+static mut ORIG8: [u8; 2 * MAX_N + 1] = [0; 2 * MAX_N + 1];
 static mut W1: [i8; MAX_N] = [0; MAX_N];
 static mut A8: [u8; MAX_N] = [0; MAX_N];
 static mut B8: [u8; MAX_N] = [0; MAX_N];
@@ -1786,6 +1789,119 @@ fn check_max_abs(r: &mut Rng) -> usize {
     cases
 }
 
+/// The one-part u8 pair of every channel in one call (`mve::dots_flipped`: activations flipped in
+/// place to `x - 128`, `VMLADAVA.S8` in groups of three channels, the last group overlapping
+/// when `cout` is not a multiple of 3, `128 sum(w)` added) with the weight sums of `mve::sum_i8`,
+/// against the plain dot products: `cout` 3..=72 (every value in turn), patch lengths 1..=40,
+/// 15..=17, 63..=65 and random up to the weight buffer, random fills, all-extreme fills of every
+/// sign pair (weights -128 or 127, activations 0 or 255), one extreme channel and patch; the
+/// pair must come back flipped (every byte `^ 0x80`, none past `2 kl`), the table untouched
+/// outside the channels written (sentinels). Refused with nothing flipped or written: `cout` 0,
+/// 1, 2, 73, `kl` 0 and `2^16`, short weights, pair or sums. `sum_i8` also against the plain sum
+/// at lengths 0..=40, 63..=65, 1000, 18432.
+#[cfg(feature = "mve")]
+fn check_dots_flipped(pair: &mut [u8; 2 * MAX_N], r: &mut Rng) -> usize {
+    use muir::kernels::mve::{FLIP_MAX, dots_flipped, sum_i8};
+    use muir::model::graph::MAX_PARTS;
+    // SAFETY: the only user of `W12` at this time, in the single thread of this program.
+    let w12 = unsafe { &mut *core::ptr::addr_of_mut!(W12) };
+    // SAFETY: the only user of `ORIG8`.
+    let orig = unsafe { &mut *core::ptr::addr_of_mut!(ORIG8) };
+    let mut cases = 0;
+    const SENTINEL: i32 = 0x5a5a_1234;
+    for n in (0..=40usize).chain([63, 64, 65, 1000, 12 * W12_KL]) {
+        for v in &mut w12[..n] {
+            *v = i8::sample(r, if n % 3 == 0 { Fill::Random } else if n % 3 == 1 { Fill::Min } else { Fill::Max });
+        }
+        let want: i32 = w12[..n].iter().map(|&w| w as i32).sum();
+        if sum_i8(&w12[..n]) != want {
+            fail("sum_i8", n, &[sum_i8(&w12[..n]) as i64], &[want as i64]);
+        }
+        cases += 1;
+    }
+    for case in 0..420u32 {
+        let cout = 3 + (case as usize % (FLIP_MAX - 2));
+        let most = (12 * W12_KL / cout).min(MAX_N);
+        let kl = match r.next() % 5 {
+            0 => 1 + (r.next() % 40) as usize,
+            1 => 15 + (r.next() % 3) as usize,
+            2 => 63 + (r.next() % 3) as usize,
+            _ => 1 + (r.next() % most as u64) as usize,
+        }
+        .min(most);
+        let mode = (case / 70) % 4; // 0, 1 random; 2 all extreme; 3 one extreme channel and patch
+        let (hc, hb) = ((r.next() % cout as u64) as usize, r.next() % 2 == 0);
+        let (wf, xf) = match r.next() % 4 {
+            0 => (Fill::Min, Fill::Max),
+            1 => (Fill::Max, Fill::Max),
+            2 => (Fill::Min, Fill::Min),
+            _ => (Fill::Max, Fill::Min),
+        };
+        let ext = |one: bool, f: Fill| if mode == 2 || (mode == 3 && one) { f } else { Fill::Random };
+        for c in 0..cout {
+            let f = ext(c == hc, wf);
+            for v in &mut w12[c * kl..(c + 1) * kl] {
+                *v = i8::sample(r, f);
+            }
+        }
+        for (i, v) in pair[..2 * kl].iter_mut().enumerate() {
+            *v = u8::sample(r, ext((i >= kl) == hb, xf));
+        }
+        pair[2 * kl] = 0x3c;
+        orig[..2 * kl + 1].copy_from_slice(&pair[..2 * kl + 1]);
+        let mut ws = [0i32; FLIP_MAX];
+        for (s, w) in ws.iter_mut().zip(w12.chunks_exact(kl)).take(cout) {
+            *s = sum_i8(w).wrapping_mul(128);
+        }
+        let mut d = [SENTINEL; 24 * MAX_PARTS];
+        if !dots_flipped(&ws[..cout], &w12[..cout * kl], kl, cout, &mut pair[..], &mut d) {
+            println!("MUIR-KERNELS FAILED dots_flipped case {case}: refused cout={cout} kl={kl}");
+            process::exit(1);
+        }
+        if pair[..2 * kl].iter().zip(orig.iter()).any(|(p, o)| *p != *o ^ 0x80) || pair[2 * kl] != 0x3c {
+            println!("MUIR-KERNELS FAILED dots_flipped case {case}: the pair is not flipped exactly (cout={cout} kl={kl})");
+            process::exit(1);
+        }
+        let (a, b) = (&orig[..kl], &orig[kl..2 * kl]);
+        for (c, w) in w12.chunks_exact(kl).take(cout).enumerate() {
+            for (x, at) in [(a, c), (b, FLIP_MAX + c)] {
+                let want = dot_plain(w, x);
+                if d[at] as i64 != want {
+                    println!("MUIR-KERNELS FAILED dots_flipped case {case}: cout={cout} kl={kl} channel {c} at {at}");
+                    fail("dots_flipped", kl, &[d[at] as i64], &[want]);
+                }
+            }
+        }
+        if d[cout..FLIP_MAX].iter().chain(&d[FLIP_MAX + cout..]).any(|&v| v != SENTINEL) {
+            println!("MUIR-KERNELS FAILED dots_flipped case {case}: written past channel {cout} (kl={kl})");
+            process::exit(1);
+        }
+        cases += 1;
+    }
+    // Refused, with nothing flipped or written.
+    let ws = [0i32; FLIP_MAX + 1];
+    for v in pair.iter_mut().take(64) {
+        *v = 7;
+    }
+    let mut d = [SENTINEL; 24 * MAX_PARTS];
+    let refused = [
+        dots_flipped(&ws, &w12[..], 8, 0, &mut pair[..], &mut d),
+        dots_flipped(&ws, &w12[..], 8, 1, &mut pair[..], &mut d),
+        dots_flipped(&ws, &w12[..], 8, 2, &mut pair[..], &mut d),
+        dots_flipped(&ws, &w12[..], 8, FLIP_MAX + 1, &mut pair[..], &mut d),
+        dots_flipped(&ws, &w12[..], 0, 4, &mut pair[..], &mut d),
+        dots_flipped(&ws, &w12[..], 1 << 16, 4, &mut pair[..], &mut d),
+        dots_flipped(&ws, &w12[..31], 8, 4, &mut pair[..], &mut d),
+        dots_flipped(&ws, &w12[..32], 8, 4, &mut pair[..15], &mut d),
+        dots_flipped(&ws[..3], &w12[..32], 8, 4, &mut pair[..], &mut d),
+    ];
+    if refused.iter().any(|&x| x) || pair[..64].iter().any(|&v| v != 7) || d.iter().any(|&v| v != SENTINEL) {
+        println!("MUIR-KERNELS FAILED dots_flipped: a bad shape accepted ({refused:?}) or something written");
+        process::exit(1);
+    }
+    cases + refused.len()
+}
+
 fn lengths() -> impl Iterator<Item = usize> {
     (0..=40).chain([63, 64, 65, 72, 127, 128, 129, 255, 256, 257, 260, 507, 508, 509, 511, 512, 513, 576, 1000, 1016, 1017, 1152, 2304, 5760])
 }
@@ -1860,6 +1976,7 @@ fn main() -> ! {
         cases += check_q15(&mut *i16s.a, &mut *i16s.b, &mut r);
         cases += check_residual(&mut r);
         cases += check_max_abs(&mut r);
+        cases += check_dots_flipped(&mut *u8s.pair, &mut r);
     }
     cases += check_refine(&mut r);
     #[cfg(not(feature = "mve"))]

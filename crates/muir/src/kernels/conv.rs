@@ -616,7 +616,7 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
     let mut ox = 0;
     if let Some(pair) = patch.get_mut(..2 * kl) {
         #[cfg(all(target_arch = "arm", feature = "mve"))]
-        let mut helium = helium::Layer::of(p, out, w_out);
+        let mut helium = helium::Layer::of::<T>(p, out, w_out);
         while ox + 2 <= w_out {
             gather2(p, inputs, w_in, ox, pair);
             #[allow(unused_mut)]

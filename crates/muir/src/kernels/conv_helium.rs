@@ -36,6 +36,9 @@ type Dots = [i32; MAX_PARTS * 24];
 const NARROW: usize = 8;
 /// Values per part of a twelve-channel block's table.
 const WIDE: usize = 24;
+/// The table's length: its one part's stride in [`mve::dots_flipped`]'s layout (pixel `a`'s
+/// channels at `0..FLIP_MAX`, pixel `b`'s at `FLIP_MAX..`).
+const FLIP: usize = MAX_PARTS * 24;
 
 /// A layer the vector epilogue serves, with its constants.
 pub(super) struct Layer {
@@ -49,13 +52,16 @@ pub(super) struct Layer {
     /// The block's dot products, filled by `dots12` / `dots4` / `dots` for the block's parts
     /// before every read (cleared once per row, not per pixel pair: 576 bytes).
     d: Dots,
+    /// u8 layers of one part and `3..=FLIP_MAX` channels: `128 sum(w_c)` per output channel
+    /// (wrapping), for [`Elem::dots_flipped`] (every channel of a pair in one call).
+    ws: Option<[i32; mve::FLIP_MAX]>,
 }
 
 impl Layer {
     /// The vector epilogue's constants for `p` writing `w_out` pixels into `out`, or `None` where
     /// the portable path must run: a shift outside `8..=62`, a bias beyond [`MAX_BIAS`], tables or
     /// the output row shorter than the parameters say, or tables not 4-byte aligned.
-    pub(super) fn of(p: &ConvParams<'_>, out: &OutRow<'_>, w_out: usize) -> Option<Layer> {
+    pub(super) fn of<T: Elem>(p: &ConvParams<'_>, out: &OutRow<'_>, w_out: usize) -> Option<Layer> {
         let np = p.parts.len();
         if np == 0 || np > MAX_PARTS || p.cout < 4 || out.len() < w_out * p.cout || p.weights.len() < p.cout * p.patch_len() {
             return None;
@@ -84,20 +90,50 @@ impl Layer {
             OutRow::I8(_) => (-128, 127),
             OutRow::I16(_) => (-32768, 32767),
         };
-        let lens = mve::PartLens::new(p.parts.iter().map(|&ch| ch * p.k * p.k), p.patch_len());
-        Some(Layer { k: Requant4::new(np, lo, hi).with_out(out_lo, out_hi), lut, lens, d: [0; MAX_PARTS * 24] })
+        let kl = p.patch_len();
+        let lens = mve::PartLens::new(p.parts.iter().map(|&ch| ch * p.k * p.k), kl);
+        // Once per row: `cout` sums of `kl` weights, two instructions per sixteen.
+        let ws = (T::FLIPS && np == 1 && (3..=mve::FLIP_MAX).contains(&p.cout) && (1..1 << 16).contains(&kl)).then(|| {
+            let mut ws = [0i32; mve::FLIP_MAX];
+            for (s, w) in ws.iter_mut().zip(p.weights.chunks_exact(kl.max(1))) {
+                *s = mve::sum_i8(w).wrapping_mul(128);
+            }
+            ws
+        });
+        Some(Layer { k: Requant4::new(np, lo, hi).with_out(out_lo, out_hi), lut, lens, d: [0; MAX_PARTS * 24], ws })
     }
 
     /// Output channels `0 .. 4 (cout / 4)` of pixels `a` and `b` (at `at_a` and `at_b` of `out`)
     /// from their gathered pair of patches; returns the first channel not written. Blocks of
     /// twelve channels first ([`Elem::dots12`]: three channels per pass over the activations
     /// instead of two), then blocks of four.
-    pub(super) fn channels<T: Elem>(&mut self, p: &ConvParams<'_>, pair: &[T], out: &mut OutRow<'_>, at_a: usize, at_b: usize) -> usize {
+    pub(super) fn channels<T: Elem>(&mut self, p: &ConvParams<'_>, pair: &mut [T], out: &mut OutRow<'_>, at_a: usize, at_b: usize) -> usize {
         let (kl, np) = (p.patch_len(), p.parts.len());
         let mut c = 0;
         // (The four-channel blocks use the first `8 MAX_PARTS` values of `d`.)
-        let Layer { k, lut, lens, d } = self;
+        let Layer { k, lut, lens, d, ws } = self;
         let (k, lut, lens) = (&*k, *lut, lens.as_ref());
+        // u8, one part: every channel in one pass over the flipped activations, then the
+        // epilogues four channels at a time (`np == 1`: multipliers 32 bytes per four channels).
+        if let Some(ws) = ws
+            && T::dots_flipped(ws, p.weights, kl, p.cout, pair, d)
+        {
+            let n4 = p.cout / 4;
+            for (j, (m, b)) in p.mult.0.chunks_exact(32).zip(p.bias.0.chunks_exact(32)).take(n4).enumerate() {
+                Self::store(k, lut, d, FLIP, 4 * j, m, b, out, at_a + 4 * j);
+                Self::store(k, lut, d, FLIP, mve::FLIP_MAX + 4 * j, m, b, out, at_b + 4 * j);
+                if mve::take_qc() {
+                    // A lane saturated: the portable formula from the same dot products.
+                    recompute::<FLIP>(p, d, 4 * j, m, b, out, at_a + 4 * j);
+                    recompute::<FLIP>(p, d, mve::FLIP_MAX + 4 * j, m, b, out, at_b + 4 * j);
+                }
+            }
+            if 4 * n4 < p.cout {
+                // The last channels read the pair again (`pair_blocks`, `odd_channel`).
+                T::unflip(pair.get_mut(..2 * kl).unwrap_or_default());
+            }
+            return 4 * n4;
+        }
         // u8: `128 sum(x)` per part and patch of this pair, for every twelve-channel block.
         let mut sums = [0i32; 2 * MAX_PARTS];
         if let Some(l) = lens
@@ -172,7 +208,8 @@ impl Layer {
     #[allow(clippy::too_many_arguments)]
     fn store(k: &Requant4, lut: Option<&[i16; 1025]>, d: &Dots, stride: usize, off: usize, m: &[u8], b: &[u8], out: &mut OutRow<'_>, at: usize) {
         let np = k.mult_offsets[1] as usize / 8;
-        // `off <= stride - 4` ([`NARROW`]: 0 or 4, [`WIDE`]: up to 20) and `np <= MAX_PARTS`:
+        // `off <= stride - 4` ([`NARROW`]: 0 or 4, [`WIDE`]: up to 20, [`FLIP`] (one part): up
+        // to `2 FLIP_MAX - 4`) and `np <= MAX_PARTS` (`np == 1` with [`FLIP`]):
         // `d[off + stride (np - 1) .. + 4]` is inside `d`; `m` holds `32 np` bytes and `b` 32,
         // both 4-byte aligned (`Layer::of`, whole chunks).
         let dp = d.as_ptr().wrapping_add(off);

@@ -1078,6 +1078,197 @@ unsafe extern "C" {
     fn muir_mve_dots12_u8_1(args: *mut Dots12U8Args);
 }
 
+/// Channels per call of [`dots_flipped`]: a pixel's sums fill half of a block's table
+/// (`24 MAX_PARTS` values: pixel `a` at `0..FLIP_MAX`, pixel `b` at `FLIP_MAX..`).
+pub const FLIP_MAX: usize = 12 * MAX_PARTS;
+
+/// `x ^= 0x80` on every byte: u8 activations to `x - 128` in i8 and back (sixteen bytes per load,
+/// flip and store, tail-predicated).
+#[inline]
+pub fn flip_u8(x: &mut [u8]) {
+    if x.is_empty() {
+        return;
+    }
+    // SAFETY: `x.len()` bytes at `x` (tail-predicated: disabled lanes are neither loaded nor
+    // stored), read and written in place.
+    unsafe {
+        asm!(
+            "vmov.i8 q1, #0x80",
+            "dlstp.8 lr, {n}",
+            "2:",
+            "vldrb.u8 q0, [{p}]",
+            "veor q0, q0, q1",
+            "vstrb.8 q0, [{p}], #16",
+            "letp lr, 2b",
+            n = in(reg) x.len(),
+            p = inout(reg) x.as_mut_ptr() => _,
+            out("lr") _,
+            out("d0") _, out("d1") _, out("d2") _, out("d3") _,
+            options(nostack),
+        );
+    }
+}
+
+/// `sum(w)` of at most `2^24` int8 values by `VADDVA.S8` (sixteen a vector; exact in i32).
+/// Longer slices: the first `2^24` values.
+#[inline]
+pub fn sum_i8(w: &[i8]) -> i32 {
+    let n = w.len().min(1 << 24);
+    if n == 0 {
+        return 0;
+    }
+    let mut s = 0i32;
+    // SAFETY: `n >= 1` bytes at `w` (tail-predicated: disabled lanes are not added).
+    unsafe {
+        asm!(
+            "dlstp.8 lr, {n}",
+            "2:",
+            "vldrb.u8 q0, [{w}], #16",
+            "vaddva.s8 r0, q0",
+            "letp lr, 2b",
+            n = in(reg) n,
+            w = inout(reg) w.as_ptr() => _,
+            inout("r0") s,
+            out("lr") _,
+            out("d0") _, out("d1") _,
+            options(nostack, readonly),
+        );
+    }
+    s
+}
+
+/// The arguments of `muir_mve_dots_s8_1` (one part, activations flipped to `x - 128`): `w0`, `ws`
+/// and `out` advance group by group, `tri` counts the groups left.
+#[repr(C)]
+struct DotsS8Args {
+    zero: [u32; 6],
+    a: *const u8,
+    w0: *const i8,
+    kl: usize,
+    out: *mut i32,
+    ws: *const i32,
+    tri: u32,
+}
+
+/// The i32 dot products of output channels `0..cout` at the two pixels of a one-part u8 pair:
+/// `d[c] = w_c . a` and `d[FLIP_MAX + c] = w_c . b` (weight row `c` of `w`, `kl` values each;
+/// `pair`: `a`, then `b`), given `ws[c] = 128 sum(w_c)` ([`sum_i8`], wrapping). The pair's first
+/// `2 kl` values are flipped in place to `x - 128` ([`flip_u8`]) and stay so (the caller flips
+/// them back where it reads them again). One call of
+/// `muir_mve_dots_s8_1` for the whole groups of three channels (`VMLADAVA.S8` of sixteen signed
+/// pairs into six 32-bit sums, 12 instructions per 96 MACs), one more for channels `cout - 3 ..`
+/// when `cout` is not a multiple of 3 (those values are written twice, the same both times).
+/// `w . x = w . (x - 128) + 128 sum(w)`: the 32-bit sums wrap, but `|w . x| < 2^15 kl` is in i32
+/// for `kl < 2^16`, so the wrapped result is the exact one. Returns false, having written
+/// nothing, when `cout` is outside `3..=FLIP_MAX`, `kl` is 0 or reaches `2^16`, or `w`, `pair` or
+/// `ws` is shorter than `cout kl`, `2 kl` and `cout`.
+#[inline]
+pub fn dots_flipped(ws: &[i32], w: &[i8], kl: usize, cout: usize, pair: &mut [u8], d: &mut [i32; 24 * MAX_PARTS]) -> bool {
+    if !(3..=FLIP_MAX).contains(&cout) || kl == 0 || kl >= 1 << 16 || w.len() < cout * kl || ws.len() < cout {
+        return false;
+    }
+    let Some(pair) = pair.get_mut(..2 * kl) else {
+        return false;
+    };
+    flip_u8(pair);
+    let (whole, rest) = (cout / 3, cout % 3);
+    for (first, tri) in [(0, whole), (cout - 3, usize::from(rest != 0))] {
+        if tri == 0 {
+            continue;
+        }
+        let mut args = DotsS8Args {
+            zero: [0; 6],
+            a: pair.as_ptr(),
+            w0: w.as_ptr().wrapping_add(first * kl),
+            kl,
+            out: d.as_mut_ptr().wrapping_add(first),
+            ws: ws.as_ptr().wrapping_add(first),
+            tri: tri as u32,
+        };
+        // SAFETY: group `j < tri` reads `kl` values at 0 and `kl` of `pair`, weight rows
+        // `first + 3j .. first + 3j + 3 <= cout` of `w` and `ws[first + 3j .. + 3]`, inside the
+        // slices by the lengths checked above; it writes `d[first + 3 j + {0, 1, 2}]` and
+        // `d[FLIP_MAX + first + 3 j + {0, 1, 2}]`, inside `d` for `first + 3 j + 3 <= cout <=
+        // FLIP_MAX`.
+        unsafe { muir_mve_dots_s8_1(&mut args) };
+    }
+    true
+}
+
+const _: () = assert!(FLIP_MAX * 4 <= 1020 - 8 && 2 * FLIP_MAX == 24 * MAX_PARTS);
+
+core::arch::global_asm!(
+    ".syntax unified",
+    ".thumb",
+    ".cpu cortex-m55",
+    ".section .text.muir_mve_dots_s8_1,\"ax\",%progbits",
+    ".global muir_mve_dots_s8_1",
+    ".type muir_mve_dots_s8_1,%function",
+    ".p2align 2",
+    ".thumb_func",
+    // r0 = &mut DotsS8Args (kept in r12). Sums (even registers for VMLADAVA): pixel a's three
+    // channels in r0, r2, r4, pixel b's in r6, r8, r10; weight rows in r1, r3, r5; activations a
+    // in r7, b in r9; LR the patch length, then the loop count; r11 and (after the loop) LR
+    // scratch. Per group of three channels: weight rows at `w0`, `+ kl`, `+ 2 kl` (the next
+    // group's `w0` at `+ 3 kl`), the loop over the whole patch, `ws[0..3]` added to both pixels'
+    // sums, the sums stored at `out` (a at +0, +4, +8; b at +288, +292, +296, i.e. FLIP_MAX
+    // values on), `out` and `ws` 12 bytes on.
+    "muir_mve_dots_s8_1:",
+    "    push {{r4-r11, lr}}",
+    "    mov r12, r0",
+    "1:",
+    "    ldr.w r7, [r12, #24]",
+    "    ldrd r1, lr, [r12, #28]",
+    "    add.w r9, r7, lr",
+    "    add.w r3, r1, lr",
+    "    add.w r5, r3, lr",
+    "    add.w r0, r5, lr",
+    "    str.w r0, [r12, #28]",
+    "    ldm.w r12, {{r0, r2, r4, r6, r8, r10}}",
+    "    dlstp.8 lr, lr",
+    "2:",
+    "    vldrb.u8 q0, [r7], #16",
+    "    vldrb.u8 q1, [r9], #16",
+    "    vldrb.u8 q2, [r1], #16",
+    "    vmladava.s8 r0, q0, q2",
+    "    vmladava.s8 r6, q1, q2",
+    "    vldrb.u8 q2, [r3], #16",
+    "    vmladava.s8 r2, q0, q2",
+    "    vmladava.s8 r8, q1, q2",
+    "    vldrb.u8 q2, [r5], #16",
+    "    vmladava.s8 r4, q0, q2",
+    "    vmladava.s8 r10, q1, q2",
+    "    letp lr, 2b",
+    "    ldr.w lr, [r12, #40]",
+    "    ldr r11, [lr], #4",
+    "    add.w r0, r0, r11",
+    "    add.w r6, r6, r11",
+    "    ldr r11, [lr], #4",
+    "    add.w r2, r2, r11",
+    "    add.w r8, r8, r11",
+    "    ldr r11, [lr], #4",
+    "    add.w r4, r4, r11",
+    "    add.w r10, r10, r11",
+    "    str.w lr, [r12, #40]",
+    "    ldr.w lr, [r12, #36]",
+    "    strd r0, r2, [lr]",
+    "    str.w r4, [lr, #8]",
+    "    strd r6, r8, [lr, #288]",
+    "    str.w r10, [lr, #296]",
+    "    add.w lr, lr, #12",
+    "    str.w lr, [r12, #36]",
+    "    ldr.w r11, [r12, #44]",
+    "    subs.w r11, r11, #1",
+    "    str.w r11, [r12, #44]",
+    "    bne 1b",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_mve_dots_s8_1, . - muir_mve_dots_s8_1",
+);
+
+unsafe extern "C" {
+    fn muir_mve_dots_s8_1(args: *mut DotsS8Args);
+}
+
 /// The per-layer constants of [`requant4`]: four 32-bit lanes each.
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(16))]
