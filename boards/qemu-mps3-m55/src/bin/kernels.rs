@@ -1902,6 +1902,143 @@ fn check_dots_flipped(pair: &mut [u8; 2 * MAX_N], r: &mut Rng) -> usize {
     cases + refused.len()
 }
 
+/// One case of `check_requant_pair` for output type `O`: the pair kernel against two calls of the
+/// one-pixel kernel (same outputs, `FPSCR.QC` set exactly when one of them saturates) and, where
+/// nothing saturated, the portable formula `want`; the outputs at 1 and 9 of a sentinel-filled
+/// row (nothing else written).
+#[cfg(feature = "mve")]
+#[allow(clippy::too_many_arguments)]
+fn requant_pair_case<O: muir::kernels::mve::Narrow + Default + PartialEq + Into<i64>>(
+    sentinel: O,
+    case: u32,
+    d: &[i32; 288],
+    wide: bool,
+    t: &Tables,
+    k: &muir::kernels::mve::Requant4,
+    np: usize,
+    table: Option<&[i16; 1025]>,
+    want: &[[i64; 4]; 2],
+) -> bool {
+    use muir::kernels::mve;
+    let (off_b, stride) = if wide { (12, 24) } else { (4, 8) };
+    let mut one = [[sentinel; 4]; 2];
+    let mut qc_one = false;
+    for (i, o) in one.iter_mut().enumerate() {
+        let dp = d.as_ptr().wrapping_add(i * off_b);
+        // SAFETY: `d` holds `stride (np - 1) + off_b + 4 <= 288` values, the tables 4 channels of
+        // `np` parts, `o` four.
+        unsafe {
+            match (table, wide) {
+                (None, false) => mve::requant4(dp, t.mult.as_ptr(), k, np, t.bias.as_ptr(), o.as_mut_ptr()),
+                (None, true) => mve::requant4_wide(dp, t.mult.as_ptr(), k, np, t.bias.as_ptr(), o.as_mut_ptr()),
+                (Some(tb), false) => mve::requant4_lut(dp, t.mult.as_ptr(), k, np, t.bias.as_ptr(), tb, o.as_mut_ptr()),
+                (Some(tb), true) => mve::requant4_lut_wide(dp, t.mult.as_ptr(), k, np, t.bias.as_ptr(), tb, o.as_mut_ptr()),
+            }
+        }
+        qc_one |= mve::take_qc();
+    }
+    let mut row = [sentinel; 16];
+    let o = row.as_mut_ptr();
+    let _ = stride;
+    // SAFETY: as above for both pixels; outputs at 1..5 and 9..13 of the 16-value row.
+    unsafe { mve::requant4_pair([d.as_ptr(), d.as_ptr().wrapping_add(off_b)], t.mult.as_ptr(), k, np, t.bias.as_ptr(), table, wide, [o.wrapping_add(1), o.wrapping_add(9)]) };
+    let qc = mve::take_qc();
+    let got = [[row[1], row[2], row[3], row[4]], [row[9], row[10], row[11], row[12]]];
+    if qc != qc_one || got != one || [0, 5, 6, 7, 8, 13, 14, 15].iter().any(|&i| row[i] != sentinel) {
+        println!("MUIR-KERNELS FAILED requant4_pair case {case}: np={np} wide={wide} table={}: QC {qc} vs {qc_one}, or outputs differ from one-pixel calls, or written outside", table.is_some());
+        process::exit(1);
+    }
+    if !qc {
+        for (g, w) in got.iter().zip(want) {
+            let g = g.map(Into::into);
+            if g != *w {
+                fail("requant4_pair", case as usize, &g, w);
+            }
+        }
+    }
+    !qc
+}
+
+/// `mve::requant4_pair` (two pixels' epilogues, each part's multipliers gathered once, with and
+/// without a sigmoid or tanh table, parts 32 or 96 bytes apart) against two one-pixel calls and
+/// the portable formula, as `check_requant`: 1-6 parts, extreme multipliers and sums (saturating
+/// cases), random and small operands, every output type.
+#[cfg(feature = "mve")]
+fn check_requant_pair(r: &mut Rng) -> usize {
+    use muir::arith::{Multiplier, requantize_i32, rshift_round};
+    use muir::arith::lut;
+    use muir::kernels::mve::Requant4;
+    let mut t = Tables { mult: [0; 8 * 4 * 6], bias: [0; 32] };
+    let (mut exact, mut cases) = (0usize, 0usize);
+    let _ = muir::kernels::mve::take_qc();
+    for case in 0..3000u32 {
+        let np = 1 + (case % 6) as usize;
+        let kind = (case / 6) % 5;
+        let wide = (case / 30) % 2 == 1;
+        let (off_b, stride) = if wide { (12, 24) } else { (4, 8) };
+        let mut d = [0i32; 288];
+        let mut ms = [Multiplier { m: 0, shift: 8 }; 24];
+        for ch in 0..4 {
+            for p in 0..np {
+                let shift = 8 + (r.next() % 55) as u8;
+                let m = match kind {
+                    0 => i32::MIN,
+                    1 => i32::MAX,
+                    3 => ((r.next() >> 32) as i32) >> 12,
+                    _ => (r.next() >> 32) as i32,
+                };
+                ms[ch * np + p] = Multiplier { m, shift };
+                let e = &mut t.mult[8 * (ch * np + p)..8 * (ch * np + p + 1)];
+                e[..4].copy_from_slice(&m.to_le_bytes());
+                e[4] = shift;
+                e[5..].fill(0);
+                for px in 0..2 {
+                    d[stride * p + px * off_b + ch] = match kind {
+                        0 | 1 => if r.next() % 2 == 0 { i32::MIN } else { i32::MAX },
+                        2 => ((r.next() >> 32) as i32) >> 12,
+                        3 => (r.next() % 2001) as i32 - 1000,
+                        _ => (r.next() >> 32) as i32,
+                    };
+                }
+            }
+            let b = ((r.next() >> 33) as i64) - (1 << 30) + 1;
+            let b = if kind == 3 { b >> 12 } else { b };
+            t.bias[8 * ch..8 * ch + 8].copy_from_slice(&b.to_le_bytes());
+        }
+        let lut_case = case % 3 == 2;
+        let (lo, hi) = if lut_case { (-32768, 32767) } else { [(0, 255), (-128, 127), (-32768, 32767), (0, 32767)][(case % 4) as usize] };
+        let (f, table): (fn(i16) -> i16, _) = if case % 2 == 0 { (lut::sigmoid_q12, lut::sigmoid_table()) } else { (lut::tanh_q12, lut::tanh_table()) };
+        let (olo, ohi) = if lut_case { [(0i64, 255i64), (-128, 127), (-32768, 32767)][(case / 3 % 3) as usize] } else { (lo as i64, hi as i64) };
+        let mut want = [[0i64; 4]; 2];
+        for (px, w) in want.iter_mut().enumerate() {
+            for (ch, w) in w.iter_mut().enumerate() {
+                let s: i64 = (0..np).map(|p| requantize_i32(d[stride * p + px * off_b + ch], ms[ch * np + p])).sum();
+                let b = i64::from_le_bytes(t.bias[8 * ch..8 * ch + 8].try_into().unwrap_or_default());
+                let v = rshift_round(s + b, 8).clamp(lo as i64, hi as i64);
+                *w = if lut_case { (f(v as i16) as i64).clamp(olo, ohi) } else { v };
+            }
+        }
+        let k = Requant4::new(np, lo, hi).with_out(olo as i32, ohi as i32);
+        let table = lut_case.then_some(table);
+        let ok = match (olo, ohi) {
+            (-128, _) => requant_pair_case::<i8>(0x55, case, &d, wide, &t, &k, np, table, &want),
+            (0, 255) => requant_pair_case::<u8>(0x55, case, &d, wide, &t, &k, np, table, &want),
+            _ => requant_pair_case::<i16>(0x5555, case, &d, wide, &t, &k, np, table, &want),
+        };
+        if kind == 3 && !ok {
+            println!("MUIR-KERNELS FAILED requant4_pair case {case}: saturation reported for small operands");
+            process::exit(1);
+        }
+        exact += usize::from(ok);
+        cases += 1;
+    }
+    if exact < 500 || cases - exact < 100 {
+        println!("MUIR-KERNELS FAILED requant4_pair: {exact} exact of {cases} cases (saturated ones must occur too)");
+        process::exit(1);
+    }
+    cases
+}
+
 fn lengths() -> impl Iterator<Item = usize> {
     (0..=40).chain([63, 64, 65, 72, 127, 128, 129, 255, 256, 257, 260, 507, 508, 509, 511, 512, 513, 576, 1000, 1016, 1017, 1152, 2304, 5760])
 }
@@ -1977,6 +2114,7 @@ fn main() -> ! {
         cases += check_residual(&mut r);
         cases += check_max_abs(&mut r);
         cases += check_dots_flipped(&mut *u8s.pair, &mut r);
+        cases += check_requant_pair(&mut r);
     }
     cases += check_refine(&mut r);
     #[cfg(not(feature = "mve"))]

@@ -120,8 +120,7 @@ impl Layer {
         {
             let n4 = p.cout / 4;
             for (j, (m, b)) in p.mult.0.chunks_exact(32).zip(p.bias.0.chunks_exact(32)).take(n4).enumerate() {
-                Self::store(k, lut, d, FLIP, 4 * j, m, b, out, at_a + 4 * j);
-                Self::store(k, lut, d, FLIP, mve::FLIP_MAX + 4 * j, m, b, out, at_b + 4 * j);
+                Self::store2(k, lut, d, FLIP, [4 * j, mve::FLIP_MAX + 4 * j], m, b, out, [at_a + 4 * j, at_b + 4 * j]);
                 if mve::take_qc() {
                     // A lane saturated: the portable formula from the same dot products.
                     recompute::<FLIP>(p, d, 4 * j, m, b, out, at_a + 4 * j);
@@ -147,8 +146,7 @@ impl Layer {
                     Some(true) => {
                         // Block `j`'s four channels: pixel a's at `4 j`, b's at `12 + 4 j`.
                         for (j, (m, b)) in m.chunks_exact((32 * np).max(1)).zip(b.chunks_exact(32)).enumerate() {
-                            Self::store(k, lut, d, WIDE, 4 * j, m, b, out, at_a + c + 4 * j);
-                            Self::store(k, lut, d, WIDE, 12 + 4 * j, m, b, out, at_b + c + 4 * j);
+                            Self::store2(k, lut, d, WIDE, [4 * j, 12 + 4 * j], m, b, out, [at_a + c + 4 * j, at_b + c + 4 * j]);
                             // Tested per four channels: a saturation recomputes only their
                             // eight outputs (one test per twelve recomputed three times as many:
                             // 160x120 +8.7 M instructions in `recompute`).
@@ -183,8 +181,7 @@ impl Layer {
                 None => dots(p, pair, w, d),
             };
             if fits {
-                Self::store(k, lut, d, NARROW, 0, m, b, out, at_a + c);
-                Self::store(k, lut, d, NARROW, 4, m, b, out, at_b + c);
+                Self::store2(k, lut, d, NARROW, [0, 4], m, b, out, [at_a + c, at_b + c]);
                 if mve::take_qc() {
                     // A lane saturated: the portable formula from the same dot products.
                     recompute::<NARROW>(p, d, 0, m, b, out, at_a + c);
@@ -202,40 +199,61 @@ impl Layer {
         c
     }
 
-    /// The vector epilogue of one pixel's four channels (dot products at `d[off..]`, per part)
-    /// into `out[at..at + 4]`.
+    /// The vector epilogue of two pixels' four channels (pixel `i`'s dot products at
+    /// `d[off[i]..]`, per part, into `out[at[i]..at[i] + 4]`) in one call
+    /// ([`mve::requant4_pair`]: each part's multipliers gathered once); where one pixel's outputs
+    /// lie outside the row (the odd width's last pixel), the other's alone ([`Layer::to`]).
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
-    fn store(k: &Requant4, lut: Option<&[i16; 1025]>, d: &Dots, stride: usize, off: usize, m: &[u8], b: &[u8], out: &mut OutRow<'_>, at: usize) {
+    fn store2(k: &Requant4, lut: Option<&[i16; 1025]>, d: &Dots, stride: usize, off: [usize; 2], m: &[u8], b: &[u8], out: &mut OutRow<'_>, at: [usize; 2]) {
         let np = k.mult_offsets[1] as usize / 8;
-        // `off <= stride - 4` ([`NARROW`]: 0 or 4, [`WIDE`]: up to 20, [`FLIP`] (one part): up
-        // to `2 FLIP_MAX - 4`) and `np <= MAX_PARTS` (`np == 1` with [`FLIP`]):
-        // `d[off + stride (np - 1) .. + 4]` is inside `d`; `m` holds `32 np` bytes and `b` 32,
-        // both 4-byte aligned (`Layer::of`, whole chunks).
-        let dp = d.as_ptr().wrapping_add(off);
+        // `off[i] <= stride - 4` ([`NARROW`]: 0 or 4, [`WIDE`]: up to 20, [`FLIP`] (one part):
+        // up to `2 FLIP_MAX - 4`) and `np <= MAX_PARTS` (`np == 1` with [`FLIP`]):
+        // `d[off[i] + stride (np - 1) .. + 4]` is inside `d`; `m` holds `32 np` bytes and `b`
+        // 32, both 4-byte aligned (`Layer::of`, whole chunks).
+        let dp = off.map(|o| d.as_ptr().wrapping_add(o));
         let wide = stride == WIDE;
-        /// Stores through [`mve::requant4`] (or [`mve::requant4_lut`] with a table) into
-        /// `r[at..at + 4]` (nothing when the row is short, which `Layer::of` rules out).
+        /// Both pixels through [`mve::requant4_pair`] when both ranges lie inside `r` and apart,
+        /// else each one that does through [`Layer::to`].
         #[inline(always)]
         #[allow(clippy::too_many_arguments)]
-        fn to<O: Narrow>(k: &Requant4, np: usize, dp: *const i32, wide: bool, m: &[u8], b: &[u8], lut: Option<&[i16; 1025]>, r: &mut [O], at: usize) {
-            if let Some(o) = r.get_mut(at..at + 4) {
-                // SAFETY: the bounds of `store`; `o` holds four values of `O`; with a table the
-                // clamp before it is `-32768..=32767` (`Layer::of`).
-                unsafe {
-                    match (lut, wide) {
-                        (Some(t), false) => mve::requant4_lut(dp, m.as_ptr(), k, np, b.as_ptr(), t, o.as_mut_ptr()),
-                        (None, false) => mve::requant4(dp, m.as_ptr(), k, np, b.as_ptr(), o.as_mut_ptr()),
-                        (Some(t), true) => mve::requant4_lut_wide(dp, m.as_ptr(), k, np, b.as_ptr(), t, o.as_mut_ptr()),
-                        (None, true) => mve::requant4_wide(dp, m.as_ptr(), k, np, b.as_ptr(), o.as_mut_ptr()),
-                    }
-                }
+        fn to<O: Narrow>(k: &Requant4, np: usize, dp: [*const i32; 2], wide: bool, m: &[u8], b: &[u8], lut: Option<&[i16; 1025]>, r: &mut [O], at: [usize; 2]) {
+            let [a0, a1] = at;
+            if a0.max(a1) + 4 <= r.len() && a0.abs_diff(a1) >= 4 {
+                let o = r.as_mut_ptr();
+                // SAFETY: the bounds of `store2`; both four-value ranges are inside `r` and do
+                // not overlap; with a table the clamp before it is `-32768..=32767`
+                // (`Layer::of`).
+                unsafe { mve::requant4_pair(dp, m.as_ptr(), k, np, b.as_ptr(), lut, wide, [o.wrapping_add(a0), o.wrapping_add(a1)]) };
+                return;
+            }
+            for (dp, at) in dp.into_iter().zip(at) {
+                Layer::to(k, np, dp, wide, m, b, lut, r, at);
             }
         }
         match out {
             OutRow::U8(r) => to(k, np, dp, wide, m, b, lut, r, at),
             OutRow::I8(r) => to(k, np, dp, wide, m, b, lut, r, at),
             OutRow::I16(r) => to(k, np, dp, wide, m, b, lut, r, at),
+        }
+    }
+
+    /// Stores through [`mve::requant4`] (or [`mve::requant4_lut`] with a table) into
+    /// `r[at..at + 4]` (nothing when the row is short, which `Layer::of` rules out).
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn to<O: Narrow>(k: &Requant4, np: usize, dp: *const i32, wide: bool, m: &[u8], b: &[u8], lut: Option<&[i16; 1025]>, r: &mut [O], at: usize) {
+        if let Some(o) = r.get_mut(at..at + 4) {
+            // SAFETY: the bounds of `store2`; `o` holds four values of `O`; with a table the
+            // clamp before it is `-32768..=32767` (`Layer::of`).
+            unsafe {
+                match (lut, wide) {
+                    (Some(t), false) => mve::requant4_lut(dp, m.as_ptr(), k, np, b.as_ptr(), t, o.as_mut_ptr()),
+                    (None, false) => mve::requant4(dp, m.as_ptr(), k, np, b.as_ptr(), o.as_mut_ptr()),
+                    (Some(t), true) => mve::requant4_lut_wide(dp, m.as_ptr(), k, np, b.as_ptr(), t, o.as_mut_ptr()),
+                    (None, true) => mve::requant4_wide(dp, m.as_ptr(), k, np, b.as_ptr(), o.as_mut_ptr()),
+                }
+            }
         }
     }
 }

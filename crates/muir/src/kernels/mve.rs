@@ -1323,6 +1323,16 @@ pub trait Narrow: Copy {
     /// # Safety
     /// See [`requant4_lut_wide`].
     unsafe fn requant4w_lut_n(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: &[i16; 1025], out: *mut Self);
+    /// [`requant4_pair`] for this output type (parts 32 bytes apart).
+    ///
+    /// # Safety
+    /// See [`requant4_pair`].
+    unsafe fn requant4x2_n(d: [*const i32; 2], mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: Option<&[i16; 1025]>, out: [*mut Self; 2]);
+    /// [`requant4_pair`] for this output type, parts 96 bytes apart.
+    ///
+    /// # Safety
+    /// See [`requant4_pair`].
+    unsafe fn requant4x2w_n(d: [*const i32; 2], mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: Option<&[i16; 1025]>, out: [*mut Self; 2]);
 }
 
 /// The requantisation both [`Narrow`] kernels share, as one `asm!` template piece: the bias
@@ -1429,6 +1439,136 @@ macro_rules! narrow_fns {
     };
 }
 
+/// [`requant4_sums`] for two pixels at once: the multipliers and shifts of each part gathered
+/// once for both; pixel `a`'s sums in q6, `b`'s in q5 (both start from the gathered bias), its
+/// dot products read through `{da}` and `{db}`; q7 the multipliers' offsets, `{m4}` the shift
+/// bytes' base (`r1 + 4`), `{c32}` the constant 32; then both rounded by 8 bits and clamped to
+/// `[k + 16, k + 32]`. Temporaries q0-q4.
+macro_rules! requant4_sums_pair {
+    ($stride:literal) => {
+        concat!(
+            "vldrw.u32 q0, [{k}, #48]\n",
+            "vldrw.u32 q6, [{c32}, q0]\n",
+            "vmov q5, q6\n",
+            "vldrw.u32 q7, [{k}]\n",
+            "mov.w {c32}, #32\n",
+            "2:\n",
+            "vldrw.u32 q2, [r1, q7]\n",
+            "vldrb.u32 q3, [{m4}, q7]\n",
+            "vneg.s32 q3, q3\n",
+            "vadd.i32 q4, q3, {c32}\n",
+            "vldrw.u32 q0, [{da}], #", $stride, "\n",
+            "vmulh.s32 q1, q0, q2\n",
+            "vmul.i32 q0, q0, q2\n",
+            "vrshl.u32 q0, q0, q3\n",
+            "vqrshl.s32 q1, q1, q4\n",
+            "vqadd.s32 q1, q1, q0\n",
+            "vqadd.s32 q6, q6, q1\n",
+            "vldrw.u32 q0, [{db}], #", $stride, "\n",
+            "vmulh.s32 q1, q0, q2\n",
+            "vmul.i32 q0, q0, q2\n",
+            "vrshl.u32 q0, q0, q3\n",
+            "vqrshl.s32 q1, q1, q4\n",
+            "vqadd.s32 q1, q1, q0\n",
+            "vqadd.s32 q5, q5, q1\n",
+            "add r1, r1, #8\n",
+            "add {m4}, {m4}, #8\n",
+            "subs {n}, {n}, #1\n",
+            "bne 2b\n",
+            "vrshr.s32 q6, q6, #8\n",
+            "vrshr.s32 q5, q5, #8\n",
+            "vldrw.u32 q1, [{k}, #16]\n",
+            "vmax.s32 q6, q6, q1\n",
+            "vmax.s32 q5, q5, q1\n",
+            "vldrw.u32 q1, [{k}, #32]\n",
+            "vmin.s32 q6, q6, q1\n",
+            "vmin.s32 q5, q5, q1\n",
+        )
+    };
+}
+
+/// The table of [`requant4_lut`] on the clamped q-register `$q` (temporaries q0-q4, `{tab}` the
+/// table, `{tab1}` the table one entry on), then the clamp to `[k + 64, k + 80]`.
+macro_rules! lut_pair_piece {
+    ($q:literal) => {
+        concat!(
+            "vmov.i32 q1, #0x8000\n",
+            "vadd.i32 ", $q, ", ", $q, ", q1\n",
+            "vshr.u32 q2, ", $q, ", #6\n",
+            "vmov.i32 q1, #63\n",
+            "vand ", $q, ", ", $q, ", q1\n",
+            "vldrh.s32 q3, [{tab}, q2, uxtw #1]\n",
+            "vldrh.s32 q4, [{tab1}, q2, uxtw #1]\n",
+            "vsub.i32 q4, q4, q3\n",
+            "vmul.i32 q4, q4, ", $q, "\n",
+            "vrshr.s32 q4, q4, #6\n",
+            "vadd.i32 ", $q, ", q3, q4\n",
+        )
+    };
+}
+
+/// The two-pixel kernels of one output type ([`requant4_pair`]): `$store` the narrowing store
+/// (low base registers r0 and r2 here).
+macro_rules! narrow_pair_fn {
+    ($store:literal, $name:ident, $stride:literal) => {
+        #[inline(always)]
+        unsafe fn $name(d: [*const i32; 2], mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: Option<&[i16; 1025]>, out: [*mut Self; 2]) {
+            // SAFETY: the caller's bounds (`requant4_pair`); registers as listed.
+            unsafe {
+                match table {
+                    None => asm!(
+                        requant4_sums_pair!($stride),
+                        concat!($store, " q6, [r0]"),
+                        concat!($store, " q5, [r2]"),
+                        k = in(reg) k as *const Requant4,
+                        c32 = inout(reg) bias => _,
+                        da = inout(reg) d[0] => _,
+                        db = inout(reg) d[1] => _,
+                        n = inout(reg) np => _,
+                        m4 = inout(reg) mult.wrapping_add(4) => _,
+                        inout("r1") mult => _,
+                        in("r0") out[0],
+                        in("r2") out[1],
+                        out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+                        out("d8") _, out("d9") _, out("d10") _, out("d11") _, out("d12") _, out("d13") _, out("d14") _, out("d15") _,
+                        options(nostack),
+                    ),
+                    // The table's clamp before it is `-32768..=32767` (`Requant4` of
+                    // `requant4_lut`): entries `i`, `i + 1` for `i <= 1023`.
+                    Some(t) => asm!(
+                        requant4_sums_pair!($stride),
+                        "add.w {tab1}, {tab}, #2",
+                        lut_pair_piece!("q6"),
+                        lut_pair_piece!("q5"),
+                        "vldrw.u32 q1, [{k}, #64]",
+                        "vmax.s32 q6, q6, q1",
+                        "vmax.s32 q5, q5, q1",
+                        "vldrw.u32 q1, [{k}, #80]",
+                        "vmin.s32 q6, q6, q1",
+                        "vmin.s32 q5, q5, q1",
+                        concat!($store, " q6, [r0]"),
+                        concat!($store, " q5, [r2]"),
+                        k = in(reg) k as *const Requant4,
+                        c32 = inout(reg) bias => _,
+                        da = inout(reg) d[0] => _,
+                        db = inout(reg) d[1] => _,
+                        n = inout(reg) np => _,
+                        m4 = inout(reg) mult.wrapping_add(4) => _,
+                        tab = in(reg) t.as_ptr(),
+                        tab1 = out(reg) _,
+                        inout("r1") mult => _,
+                        in("r0") out[0],
+                        in("r2") out[1],
+                        out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+                        out("d8") _, out("d9") _, out("d10") _, out("d11") _, out("d12") _, out("d13") _, out("d14") _, out("d15") _,
+                        options(nostack),
+                    ),
+                }
+            }
+        }
+    };
+}
+
 /// The [`Narrow`] kernels of one output type: [`requant4`]'s and [`requant4_lut`]'s, parts 32
 /// bytes apart, and their twins for the twelve-channel block's table (parts 96 bytes apart,
 /// [`requant4_wide`]).
@@ -1437,6 +1577,8 @@ macro_rules! narrow {
         impl Narrow for $t {
             narrow_fns!($store, requant4_n, requant4_lut_n, "32");
             narrow_fns!($store, requant4w_n, requant4w_lut_n, "96");
+            narrow_pair_fn!($store, requant4x2_n, "32");
+            narrow_pair_fn!($store, requant4x2w_n, "96");
         }
     };
 }
@@ -1506,6 +1648,27 @@ pub unsafe fn requant4_wide<O: Narrow>(d: *const i32, mult: *const u8, k: &Requa
 pub unsafe fn requant4_lut_wide<O: Narrow>(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: &[i16; 1025], out: *mut O) {
     // SAFETY: forwarded.
     unsafe { O::requant4w_lut_n(d, mult, k, np, bias, table, out) }
+}
+
+/// [`requant4`] (`table` `None`) or [`requant4_lut`] (`Some`) of two pixels at once: pixel `i`'s
+/// dot products at `d[i]` (four per part, parts 32 bytes apart, or 96 with `wide`), its four
+/// outputs at `out[i]`; the same multipliers and biases. Each part's multipliers and shifts are
+/// gathered once for both pixels. The same values as two calls, the same `FPSCR.QC` semantics.
+///
+/// # Safety
+/// As [`requant4`] (or [`requant4_lut`] with a table) for each pixel; `out[0]` and `out[1]` do
+/// not overlap.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+pub unsafe fn requant4_pair<O: Narrow>(d: [*const i32; 2], mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: Option<&[i16; 1025]>, wide: bool, out: [*mut O; 2]) {
+    // SAFETY: forwarded.
+    unsafe {
+        if wide {
+            O::requant4x2w_n(d, mult, k, np, bias, table, out)
+        } else {
+            O::requant4x2_n(d, mult, k, np, bias, table, out)
+        }
+    }
 }
 
 /// Whether a saturating vector instruction saturated since the flag was last cleared
