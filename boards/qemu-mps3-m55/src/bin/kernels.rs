@@ -2039,6 +2039,73 @@ fn check_requant_pair(r: &mut Rng) -> usize {
     cases
 }
 
+/// `mve::logits32` (the MGA logits of a 32-value query against a block of keys, less the maximum,
+/// the query kept in registers) against the plain i64 dot products: blocks of 1..=130 keys, a key
+/// block with a partial key at its end, `e` shorter than the block, random, extreme
+/// (`i16::MIN`/`MAX`) and small values, the maximum the block's largest logit (every difference
+/// fits) or far off (`None` must come back exactly when some difference leaves i32); a sentinel
+/// after the last key's value; queries of 31 or 33 values and empty blocks refused.
+#[cfg(feature = "mve")]
+fn check_logits32(keys: &mut [i16; MAX_N], r: &mut Rng) -> usize {
+    use muir::kernels::mve::logits32;
+    let mut cases = 0;
+    let mut q = [0i16; 33];
+    let mut e = [0i32; 131];
+    for case in 0..400u32 {
+        let nk = 1 + (case as usize % 130);
+        let kind = (case / 130) % 4;
+        let sample = |r: &mut Rng| -> i16 {
+            match kind {
+                0 => (r.next() >> 48) as i16,
+                1 => if r.next() % 2 == 0 { i16::MIN } else { i16::MAX },
+                2 => ((r.next() >> 48) as i16) >> 8,
+                _ => if r.next() % 3 == 0 { i16::MIN } else { (r.next() >> 48) as i16 },
+            }
+        };
+        for v in q.iter_mut() {
+            *v = sample(r);
+        }
+        let extra = (r.next() % 3) as usize * 7; // a partial key after the last whole one
+        for v in keys[..32 * nk + extra].iter_mut() {
+            *v = sample(r);
+        }
+        let ne = if case % 5 == 0 { (nk / 2).max(1) } else { nk };
+        let plain: [i64; 130] = core::array::from_fn(|j| if j < nk { keys[32 * j..32 * j + 32].iter().zip(&q[..32]).map(|(a, b)| *a as i64 * *b as i64).sum() } else { 0 });
+        let top = plain[..nk].iter().copied().max().unwrap_or(0);
+        let max = match case % 4 {
+            0 | 1 => top,
+            2 => top + (r.next() % (1 << 33)) as i64,
+            _ => top - (1 << 31) + (r.next() % 4) as i64,
+        };
+        e.fill(0x5a5a_5a5a);
+        let got = logits32(&q[..32], &keys[..32 * nk + extra], max, &mut e[..ne]);
+        let n = nk.min(ne);
+        let fits = plain[..n].iter().all(|&l| i32::try_from(l - max).is_ok());
+        if got != fits.then_some(n) {
+            println!("MUIR-KERNELS FAILED logits32 case {case}: {got:?}, want {:?} (keys {nk}, e {ne})", fits.then_some(n));
+            process::exit(1);
+        }
+        if fits {
+            for j in 0..n {
+                if e[j] as i64 != plain[j] - max {
+                    fail("logits32", j, &[e[j] as i64], &[plain[j] - max]);
+                }
+            }
+        }
+        if e[n..].iter().any(|&v| v != 0x5a5a_5a5a) {
+            println!("MUIR-KERNELS FAILED logits32 case {case}: written past key {n}");
+            process::exit(1);
+        }
+        cases += 1;
+    }
+    let refused = [logits32(&q[..31], &keys[..64], 0, &mut e), logits32(&q[..33], &keys[..64], 0, &mut e), logits32(&q[..32], &keys[..31], 0, &mut e), logits32(&q[..32], &keys[..64], 0, &mut e[..0])];
+    if refused.iter().any(Option::is_some) {
+        println!("MUIR-KERNELS FAILED logits32: a bad shape accepted");
+        process::exit(1);
+    }
+    cases + refused.len()
+}
+
 fn lengths() -> impl Iterator<Item = usize> {
     (0..=40).chain([63, 64, 65, 72, 127, 128, 129, 255, 256, 257, 260, 507, 508, 509, 511, 512, 513, 576, 1000, 1016, 1017, 1152, 2304, 5760])
 }
@@ -2115,6 +2182,7 @@ fn main() -> ! {
         cases += check_max_abs(&mut r);
         cases += check_dots_flipped(&mut *u8s.pair, &mut r);
         cases += check_requant_pair(&mut r);
+        cases += check_logits32(&mut *i16s.a, &mut r);
     }
     cases += check_refine(&mut r);
     #[cfg(not(feature = "mve"))]

@@ -84,13 +84,19 @@ fn block_weights(q: &[i16], kb: &[i16], max: i64, m: Multiplier, e: &mut [i32; K
     let c = q.len().max(1);
     #[cfg(all(target_arch = "arm", feature = "mve"))]
     {
-        // The distances to the maximum in `e`, then their weights in place.
+        // The distances to the maximum in `e` (32-value queries: the query in registers for the
+        // whole block, `mve::logits32`), then their weights in place.
         let (mut nb, mut fits) = (0, true);
-        for (dk, k) in e.iter_mut().zip(kb.chunks_exact(c)) {
-            let l = logit(q, k) - max;
-            *dk = l as i32;
-            fits &= *dk as i64 == l;
-            nb += 1;
+        match super::mve::logits32(q, kb, max, e) {
+            Some(n) => nb = n,
+            _ => {
+                for (dk, k) in e.iter_mut().zip(kb.chunks_exact(c)) {
+                    let l = logit(q, k) - max;
+                    *dk = l as i32;
+                    fits &= *dk as i64 == l;
+                    nb += 1;
+                }
+            }
         }
         if fits && let Some(ek) = e.get_mut(..nb) && let Some((most, sum)) = super::mve::exp_weights(ek, m.m, m.shift) {
             return (nb, sum, most != 0);
