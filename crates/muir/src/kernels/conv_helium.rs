@@ -12,7 +12,9 @@
 //!   through the portable block ([`super::block2x2`]) instead;
 //! - the vector epilogue is exact unless one of its saturating instructions saturates, which sets
 //!   `FPSCR.QC` ([`mve::take_qc`]); the block's outputs are then recomputed with the portable
-//!   formula from the same dot products.
+//!   formula from the same dot products (layers of several parts; with one part a saturation
+//!   leaves the outputs at the clamp's bound, as the exact value does: see `qc` in
+//!   [`Layer::channels`]).
 //!
 //! `boards/qemu-mps3-m55` checks the vector epilogue against the portable formula on the target
 //! (random and extreme operands, saturating cases included) and the whole frame against the host.
@@ -91,6 +93,11 @@ impl Layer {
             OutRow::I16(_) => (-32768, 32767),
         };
         let kl = p.patch_len();
+        if np > 1 {
+            // `channels` tests `FPSCR.QC` after the epilogues of layers of several parts only: a
+            // flag left set by a one-part layer (or any kernel) must not count here.
+            let _ = mve::take_qc();
+        }
         let lens = mve::PartLens::new(p.parts.iter().map(|&ch| ch * p.k * p.k), kl);
         // Once per row: `cout` sums of `kl` weights, two instructions per sixteen.
         let ws = (T::FLIPS && np == 1 && (3..=mve::FLIP_MAX).contains(&p.cout) && (1..1 << 16).contains(&kl)).then(|| {
@@ -120,12 +127,8 @@ impl Layer {
         {
             let n4 = p.cout / 4;
             for (j, (m, b)) in p.mult.0.chunks_exact(32).zip(p.bias.0.chunks_exact(32)).take(n4).enumerate() {
+                // (One part: a saturation cannot change the outputs, see `qc` below.)
                 Self::store2(k, lut, d, FLIP, [4 * j, mve::FLIP_MAX + 4 * j], m, b, out, [at_a + 4 * j, at_b + 4 * j]);
-                if mve::take_qc() {
-                    // A lane saturated: the portable formula from the same dot products.
-                    recompute::<FLIP>(p, d, 4 * j, m, b, out, at_a + 4 * j);
-                    recompute::<FLIP>(p, d, mve::FLIP_MAX + 4 * j, m, b, out, at_b + 4 * j);
-                }
             }
             if 4 * n4 < p.cout {
                 // The last channels read the pair again (`pair_blocks`, `odd_channel`).
@@ -133,6 +136,19 @@ impl Layer {
             }
             return 4 * n4;
         }
+        // Whether a saturation of the vector epilogue (`FPSCR.QC`) must be tested. With one part
+        // it cannot change the outputs: each step saturates only where the exact value is beyond
+        // i32 on the same side, and then the output is the clamp's bound on that side either way.
+        // `VQRSHL` of the product's high word saturating means the requantised value `x` is at
+        // least `2^31` (resp. at most `-2^31`); the saturated `2^31 - 1` plus the low word's
+        // rounded part (`>= 0`), or `-2^31` plus it (`<= 2^24`, shifts `>= 8`), then plus the bias
+        // (`|b| < 2^30`, `Layer::of`), is at least `2^30` (at most `-2^30 + 2^24`), so after the
+        // rounding by 8 bits beyond `+-2^21`, past every clamp bound (`|lo|, |hi| <= 32768`), as
+        // is the exact `(x + b) / 2^8`; the two `VQADD`s saturate only where `x`, resp. `x + b`,
+        // is beyond i32 on that side, the same. With several parts, parts saturated in opposite
+        // directions could cancel: the test stays (`Layer::of` clears a flag left by earlier
+        // layers).
+        let qc = np > 1;
         // u8: `128 sum(x)` per part and patch of this pair, for every twelve-channel block.
         let mut sums = [0i32; 2 * MAX_PARTS];
         if let Some(l) = lens
@@ -150,7 +166,7 @@ impl Layer {
                             // Tested per four channels: a saturation recomputes only their
                             // eight outputs (one test per twelve recomputed three times as many:
                             // 160x120 +8.7 M instructions in `recompute`).
-                            if mve::take_qc() {
+                            if qc && mve::take_qc() {
                                 // A lane saturated: the portable formula from the same dot products.
                                 recompute::<WIDE>(p, d, 4 * j, m, b, out, at_a + c + 4 * j);
                                 recompute::<WIDE>(p, d, 12 + 4 * j, m, b, out, at_b + c + 4 * j);
@@ -182,7 +198,7 @@ impl Layer {
             };
             if fits {
                 Self::store2(k, lut, d, NARROW, [0, 4], m, b, out, [at_a + c, at_b + c]);
-                if mve::take_qc() {
+                if qc && mve::take_qc() {
                     // A lane saturated: the portable formula from the same dot products.
                     recompute::<NARROW>(p, d, 0, m, b, out, at_a + c);
                     recompute::<NARROW>(p, d, 4, m, b, out, at_b + c);
