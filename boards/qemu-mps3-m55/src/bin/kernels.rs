@@ -2115,6 +2115,139 @@ fn check_logits32(keys: &mut [i16; MAX_N], r: &mut Rng) -> usize {
     cases + refused.len()
 }
 
+/// Multiplier and bias tables of up to 32 groups of four channels of 6 parts (`check_requant_groups`).
+#[cfg(feature = "mve")]
+#[repr(C, align(8))]
+struct BigTables {
+    mult: [u8; 32 * 6 * 32],
+    bias: [u8; 32 * 32],
+}
+
+#[cfg(feature = "mve")]
+static mut BIG: BigTables = BigTables { mult: [0; 32 * 6 * 32], bias: [0; 32 * 32] };
+
+/// One case of `check_requant_groups` for output type `O`: `requant4_groups` against a loop of
+/// `requant4_pair` calls (same outputs, saturation bit `g` exactly when group `g`'s call set
+/// `FPSCR.QC`), outputs in a sentinel-filled row (pixel `a`'s groups at 1, `b`'s after a gap).
+#[cfg(feature = "mve")]
+#[allow(clippy::too_many_arguments)]
+fn requant_groups_case<O: muir::kernels::mve::Narrow + Default + PartialEq + Copy + Into<i64>>(
+    sentinel: O,
+    case: u32,
+    d: &[i32; 512],
+    wide: bool,
+    t: &BigTables,
+    k: &muir::kernels::mve::Requant4,
+    np: usize,
+    table: Option<&[i16; 1025]>,
+    groups: usize,
+) -> u32 {
+    use muir::kernels::mve;
+    let off_b = 4 * groups;
+    let mut one = [sentinel; 2 * 4 * 32 + 8];
+    let mut mask_one = 0u32;
+    let bo = 4 * groups + 3; // pixel b's outputs
+    for g in 0..groups {
+        let o = one.as_mut_ptr();
+        // SAFETY: group `g` reads `d[4 g + {0, off_b}] + stride (np - 1) + 4 <= 512` values,
+        // `32 np` multiplier and 32 bias bytes at `32 np g` and `32 g` (inside the tables), and
+        // writes four values at `1 + 4 g` and `bo + 4 g` of the row (inside it, apart).
+        unsafe {
+            mve::requant4_pair(
+                [d.as_ptr().wrapping_add(4 * g), d.as_ptr().wrapping_add(off_b + 4 * g)],
+                t.mult.as_ptr().wrapping_add(32 * np * g),
+                k,
+                np,
+                t.bias.as_ptr().wrapping_add(32 * g),
+                table,
+                wide,
+                [o.wrapping_add(1 + 4 * g), o.wrapping_add(bo + 4 * g)],
+            )
+        };
+        mask_one |= u32::from(mve::take_qc()) << g;
+    }
+    let mut row = [sentinel; 2 * 4 * 32 + 8];
+    let o = row.as_mut_ptr();
+    // SAFETY: as above for every group; `1 <= groups <= 32`; the two pixels' outputs apart.
+    let mask = unsafe { mve::requant4_groups([d.as_ptr(), d.as_ptr().wrapping_add(off_b)], t.mult.as_ptr(), k, np, t.bias.as_ptr(), table, wide, [o.wrapping_add(1), o.wrapping_add(bo)], groups) };
+    if mve::take_qc() || mask != mask_one || row != one {
+        let at = row.iter().zip(&one).position(|(a, b)| a != b);
+        println!("MUIR-KERNELS FAILED requant4_groups case {case}: np={np} wide={wide} table={} groups={groups}: mask {mask:#x} vs {mask_one:#x}, first differing output {at:?}", table.is_some());
+        process::exit(1);
+    }
+    mask
+}
+
+/// `mve::requant4_groups` (the epilogues of 1..=32 groups of four channels of two pixels in one
+/// call, each group's saturation reported) against group-by-group `mve::requant4_pair` calls:
+/// 1-6 parts, parts 32 or 96 bytes apart, with and without a sigmoid or tanh table, every output
+/// type, random, extreme (saturating) and small operands; a sentinel-filled output row (nothing
+/// written between or after the two pixels' outputs). Saturated and unsaturated groups must both
+/// occur.
+#[cfg(feature = "mve")]
+fn check_requant_groups(r: &mut Rng) -> usize {
+    use muir::arith::lut;
+    use muir::kernels::mve::Requant4;
+    // SAFETY: the only user of `BIG`.
+    let t = unsafe { &mut *core::ptr::addr_of_mut!(BIG) };
+    let (mut cases, mut sat, mut clean) = (0usize, 0u32, 0u32);
+    let _ = muir::kernels::mve::take_qc();
+    for case in 0..600u32 {
+        let np = 1 + (case % 6) as usize;
+        let kind = (case / 6) % 5;
+        let wide = (case / 30) % 2 == 1;
+        let groups = match case % 7 {
+            0 => 32,
+            1 => 3,
+            _ => 1 + (r.next() % 18) as usize,
+        };
+        let mut d = [0i32; 512];
+        for v in d.iter_mut() {
+            *v = match kind {
+                0 | 1 => if r.next() % 2 == 0 { i32::MIN } else { i32::MAX },
+                2 => ((r.next() >> 32) as i32) >> 12,
+                3 => (r.next() % 2001) as i32 - 1000,
+                _ => if r.next() % 8 == 0 { (r.next() >> 32) as i32 } else { ((r.next() >> 32) as i32) >> 14 },
+            };
+        }
+        for e in t.mult[..32 * np * groups].chunks_exact_mut(8) {
+            let m = match kind {
+                0 => i32::MIN,
+                1 => i32::MAX,
+                3 => ((r.next() >> 32) as i32) >> 12,
+                _ => (r.next() >> 32) as i32,
+            };
+            e[..4].copy_from_slice(&m.to_le_bytes());
+            e[4] = 8 + (r.next() % 55) as u8;
+            e[5..].fill(0);
+        }
+        for e in t.bias[..32 * groups].chunks_exact_mut(8) {
+            let b = ((r.next() >> 33) as i64) - (1 << 30) + 1;
+            let b = if kind == 3 { b >> 12 } else { b };
+            e.copy_from_slice(&b.to_le_bytes());
+        }
+        let lut_case = case % 3 == 2;
+        let (lo, hi) = if lut_case { (-32768, 32767) } else { [(0, 255), (-128, 127), (-32768, 32767), (0, 32767)][(case % 4) as usize] };
+        let table = if case % 2 == 0 { lut::sigmoid_table() } else { lut::tanh_table() };
+        let (olo, ohi) = if lut_case { [(0, 255), (-128, 127), (-32768, 32767)][(case / 3 % 3) as usize] } else { (lo, hi) };
+        let k = Requant4::new(np, lo, hi).with_out(olo, ohi);
+        let table = lut_case.then_some(table);
+        let mask = match (olo, ohi) {
+            (-128, _) => requant_groups_case::<i8>(0x55, case, &d, wide, t, &k, np, table, groups),
+            (0, 255) => requant_groups_case::<u8>(0x55, case, &d, wide, t, &k, np, table, groups),
+            _ => requant_groups_case::<i16>(0x5555, case, &d, wide, t, &k, np, table, groups),
+        };
+        sat += mask.count_ones();
+        clean += groups as u32 - mask.count_ones();
+        cases += 1;
+    }
+    if sat < 100 || clean < 100 {
+        println!("MUIR-KERNELS FAILED requant4_groups: {sat} saturated and {clean} clean groups (both must occur)");
+        process::exit(1);
+    }
+    cases
+}
+
 fn lengths() -> impl Iterator<Item = usize> {
     (0..=40).chain([63, 64, 65, 72, 127, 128, 129, 255, 256, 257, 260, 507, 508, 509, 511, 512, 513, 576, 1000, 1016, 1017, 1152, 2304, 5760])
 }
@@ -2191,6 +2324,7 @@ fn main() -> ! {
         cases += check_max_abs(&mut r);
         cases += check_dots_flipped(&mut *u8s.pair, &mut r);
         cases += check_requant_pair(&mut r);
+        cases += check_requant_groups(&mut r);
         cases += check_logits32(&mut *i16s.a, &mut r);
     }
     cases += check_refine(&mut r);

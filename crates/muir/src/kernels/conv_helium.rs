@@ -126,9 +126,11 @@ impl Layer {
             && T::dots_flipped(ws, p.weights, kl, p.cout, pair, d)
         {
             let n4 = p.cout / 4;
-            for (j, (m, b)) in p.mult.0.chunks_exact(32).zip(p.bias.0.chunks_exact(32)).take(n4).enumerate() {
-                // (One part: a saturation cannot change the outputs, see `qc` below.)
-                Self::store2(k, lut, d, FLIP, [4 * j, mve::FLIP_MAX + 4 * j], m, b, out, [at_a + 4 * j, at_b + 4 * j]);
+            // (One part: a saturation cannot change the outputs, see `qc` below.)
+            if Self::store_groups(k, lut, d, FLIP, [0, mve::FLIP_MAX], p.mult.0, p.bias.0, out, [at_a, at_b], n4).is_none() {
+                for (j, (m, b)) in p.mult.0.chunks_exact(32).zip(p.bias.0.chunks_exact(32)).take(n4).enumerate() {
+                    Self::store2(k, lut, d, FLIP, [4 * j, mve::FLIP_MAX + 4 * j], m, b, out, [at_a + 4 * j, at_b + 4 * j]);
+                }
             }
             if 4 * n4 < p.cout {
                 // The last channels read the pair again (`pair_blocks`, `odd_channel`).
@@ -160,16 +162,29 @@ impl Layer {
                 match T::dots12(l, w, pair, &sums, d) {
                     None => break,
                     Some(true) => {
-                        // Block `j`'s four channels: pixel a's at `4 j`, b's at `12 + 4 j`.
-                        for (j, (m, b)) in m.chunks_exact((32 * np).max(1)).zip(b.chunks_exact(32)).enumerate() {
-                            Self::store2(k, lut, d, WIDE, [4 * j, 12 + 4 * j], m, b, out, [at_a + c + 4 * j, at_b + c + 4 * j]);
-                            // Tested per four channels: a saturation recomputes only their
-                            // eight outputs (one test per twelve recomputed three times as many:
-                            // 160x120 +8.7 M instructions in `recompute`).
-                            if qc && mve::take_qc() {
-                                // A lane saturated: the portable formula from the same dot products.
-                                recompute::<WIDE>(p, d, 4 * j, m, b, out, at_a + c + 4 * j);
-                                recompute::<WIDE>(p, d, 12 + 4 * j, m, b, out, at_b + c + 4 * j);
+                        // Block `j`'s four channels: pixel a's at `4 j`, b's at `12 + 4 j`; the
+                        // three groups' epilogues in one call, each group's saturation reported
+                        // (bit `j`: a saturation recomputes only that group's eight outputs; one
+                        // test per twelve recomputed three times as many: 160x120 +8.7 M
+                        // instructions in `recompute`).
+                        let sat = match Self::store_groups(k, lut, d, WIDE, [0, 12], m, b, out, [at_a + c, at_b + c], 3) {
+                            Some(sat) => sat,
+                            None => {
+                                let mut sat = 0;
+                                for (j, (m, b)) in m.chunks_exact((32 * np).max(1)).zip(b.chunks_exact(32)).enumerate() {
+                                    Self::store2(k, lut, d, WIDE, [4 * j, 12 + 4 * j], m, b, out, [at_a + c + 4 * j, at_b + c + 4 * j]);
+                                    sat |= u32::from(mve::take_qc()) << j;
+                                }
+                                sat
+                            }
+                        };
+                        if qc && sat != 0 {
+                            for (j, (m, b)) in m.chunks_exact((32 * np).max(1)).zip(b.chunks_exact(32)).enumerate() {
+                                if sat & (1 << j) != 0 {
+                                    // A lane saturated: the portable formula from the same dot products.
+                                    recompute::<WIDE>(p, d, 4 * j, m, b, out, at_a + c + 4 * j);
+                                    recompute::<WIDE>(p, d, 12 + 4 * j, m, b, out, at_b + c + 4 * j);
+                                }
                             }
                         }
                     }
@@ -251,6 +266,46 @@ impl Layer {
             OutRow::U8(r) => to(k, np, dp, wide, m, b, lut, r, at),
             OutRow::I8(r) => to(k, np, dp, wide, m, b, lut, r, at),
             OutRow::I16(r) => to(k, np, dp, wide, m, b, lut, r, at),
+        }
+    }
+
+    /// The vector epilogues of `groups` consecutive groups of four channels of two pixels in one
+    /// call ([`mve::requant4_groups`]): group `j`'s dot products at `d[off[i] + 4 j..]` (pixel
+    /// `i`, per part), multipliers and biases at `32 np j` of `m` and `32 j` of `b`, outputs at
+    /// `out[at[i] + 4 j..]`. Returns the groups that saturated (bit `j`), or `None`, having
+    /// written nothing, where the outputs, tables or dot products do not cover every group or
+    /// the two pixels' outputs overlap (the caller then stores group by group).
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn store_groups(k: &Requant4, lut: Option<&[i16; 1025]>, d: &Dots, stride: usize, off: [usize; 2], m: &[u8], b: &[u8], out: &mut OutRow<'_>, at: [usize; 2], groups: usize) -> Option<u32> {
+        let np = k.mult_offsets[1] as usize / 8;
+        let span = 4 * groups;
+        // Every group's `d[off[i] + 4 j + stride (np - 1) .. + 4]` inside `d`, its multipliers
+        // and biases inside `m` and `b` (both 4-byte aligned, `Layer::of`).
+        if !(1..=32).contains(&groups) || off[0].max(off[1]) + span + stride * (np - 1) > d.len() || m.len() < 32 * np * groups || b.len() < 32 * groups {
+            return None;
+        }
+        let dp = off.map(|o| d.as_ptr().wrapping_add(o));
+        let wide = stride == WIDE;
+        #[inline(always)]
+        #[allow(clippy::too_many_arguments)]
+        fn to<O: Narrow>(k: &Requant4, np: usize, dp: [*const i32; 2], wide: bool, m: &[u8], b: &[u8], lut: Option<&[i16; 1025]>, r: &mut [O], at: [usize; 2], groups: usize) -> Option<u32> {
+            let [a0, a1] = at;
+            let span = 4 * groups;
+            if a0.max(a1) + span > r.len() || a0.abs_diff(a1) < span {
+                return None;
+            }
+            let o = r.as_mut_ptr();
+            // SAFETY: checked above and in `store_groups`: every group's dot products, tables
+            // and outputs are inside their slices, the two pixels' outputs do not overlap, `1
+            // <= groups <= 32`; with a table the clamp before it is `-32768..=32767`
+            // (`Layer::of`).
+            Some(unsafe { mve::requant4_groups(dp, m.as_ptr(), k, np, b.as_ptr(), lut, wide, [o.wrapping_add(a0), o.wrapping_add(a1)], groups) })
+        }
+        match out {
+            OutRow::U8(r) => to(k, np, dp, wide, m, b, lut, r, at, groups),
+            OutRow::I8(r) => to(k, np, dp, wide, m, b, lut, r, at, groups),
+            OutRow::I16(r) => to(k, np, dp, wide, m, b, lut, r, at, groups),
         }
     }
 

@@ -1390,6 +1390,16 @@ pub trait Narrow: Copy {
     /// # Safety
     /// See [`requant4_pair`].
     unsafe fn requant4x2w_n(d: [*const i32; 2], mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: Option<&[i16; 1025]>, out: [*mut Self; 2]);
+    /// [`requant4_groups`]' loop for this output type (parts 32 bytes apart).
+    ///
+    /// # Safety
+    /// See [`requant4_groups`].
+    unsafe fn requant4g_n(g: *mut GroupState, k: &Requant4, table: Option<&[i16; 1025]>);
+    /// [`requant4_groups`]' loop for this output type, parts 96 bytes apart.
+    ///
+    /// # Safety
+    /// See [`requant4_groups`].
+    unsafe fn requant4gw_n(g: *mut GroupState, k: &Requant4, table: Option<&[i16; 1025]>);
 }
 
 /// The requantisation both [`Narrow`] kernels share, as one `asm!` template piece: the bias
@@ -1626,23 +1636,178 @@ macro_rules! narrow_pair_fn {
     };
 }
 
+/// The state of [`requant4_groups`]' loop over groups of four channels, advanced in place (built
+/// by [`requant4_groups`] only).
+#[repr(C)]
+pub struct GroupState {
+    /// Pixel `a`'s and `b`'s dot products of the group (part 0).
+    da: *const i32,
+    db: *const i32,
+    /// The group's multipliers and biases.
+    mult: *const u8,
+    bias: *const u8,
+    /// Pixel `a`'s and `b`'s four outputs of the group.
+    oa: usize,
+    ob: usize,
+    /// Groups left; the parts; bit `g` set when group `g` saturated; the current group's bit.
+    left: u32,
+    np: u32,
+    mask: u32,
+    bit: u32,
+}
+
+/// The per-group loop of [`requant4_groups`] around [`requant4_sums_pair`]: `$size` is the output
+/// bytes of four values, `$lut` the table piece (empty without a table). State in `{g}`
+/// ([`GroupState`]), `{da}`/`{db}`/`{c32}` reloaded per group.
+macro_rules! groups_loop {
+    ($store:literal, $size:literal, $stride:literal, $lut:expr) => {
+        concat!(
+            "1:\n",
+            "ldrd {da}, {db}, [{g}]\n",
+            "ldrd r1, {c32}, [{g}, #8]\n",
+            "add.w {m4}, r1, #4\n",
+            "ldr.w {n}, [{g}, #28]\n",
+            requant4_sums_pair!($stride),
+            $lut,
+            "ldrd r0, r2, [{g}, #16]\n",
+            $store, " q6, [r0]\n",
+            $store, " q5, [r2]\n",
+            "adds r0, r0, #", $size, "\n",
+            "adds r2, r2, #", $size, "\n",
+            "strd r0, r2, [{g}, #16]\n",
+            "ldrd {da}, {db}, [{g}]\n",
+            "adds {da}, {da}, #16\n",
+            "adds {db}, {db}, #16\n",
+            "strd {da}, {db}, [{g}]\n",
+            "ldrd r1, {c32}, [{g}, #8]\n",
+            "ldr.w {n}, [{g}, #28]\n",
+            "add.w r1, r1, {n}, lsl #5\n",
+            "adds {c32}, {c32}, #32\n",
+            "strd r1, {c32}, [{g}, #8]\n",
+            "vmrs {n}, fpscr\n",
+            "tst.w {n}, #0x8000000\n",
+            "beq 3f\n",
+            "bic {n}, {n}, #0x8000000\n",
+            "vmsr fpscr, {n}\n",
+            "ldrd {n}, {da}, [{g}, #32]\n",
+            "orrs {n}, {n}, {da}\n",
+            "str.w {n}, [{g}, #32]\n",
+            "3:\n",
+            "ldr.w {n}, [{g}, #36]\n",
+            "lsls {n}, {n}, #1\n",
+            "str.w {n}, [{g}, #36]\n",
+            "ldr.w {n}, [{g}, #24]\n",
+            "subs {n}, {n}, #1\n",
+            "str.w {n}, [{g}, #24]\n",
+            "bne 1b\n",
+        )
+    };
+}
+
+/// The table piece of [`groups_loop`] (after the clamp to `[k + 16, k + 32]`): both pixels
+/// through the sigmoid or tanh table (`{da}` as the table one entry on), then the clamp to
+/// `[k + 64, k + 80]`.
+macro_rules! groups_lut {
+    () => {
+        concat!(
+            "add.w {da}, {tab}, #2\n",
+            lut_pair_piece_da!("q6"),
+            lut_pair_piece_da!("q5"),
+            "vldrw.u32 q1, [{k}, #64]\n",
+            "vmax.s32 q6, q6, q1\n",
+            "vmax.s32 q5, q5, q1\n",
+            "vldrw.u32 q1, [{k}, #80]\n",
+            "vmin.s32 q6, q6, q1\n",
+            "vmin.s32 q5, q5, q1\n",
+        )
+    };
+}
+
+/// [`lut_pair_piece`] with the table one entry on in `{da}`.
+macro_rules! lut_pair_piece_da {
+    ($q:literal) => {
+        concat!(
+            "vmov.i32 q1, #0x8000\n",
+            "vadd.i32 ", $q, ", ", $q, ", q1\n",
+            "vshr.u32 q2, ", $q, ", #6\n",
+            "vmov.i32 q1, #63\n",
+            "vand ", $q, ", ", $q, ", q1\n",
+            "vldrh.s32 q3, [{tab}, q2, uxtw #1]\n",
+            "vldrh.s32 q4, [{da}, q2, uxtw #1]\n",
+            "vsub.i32 q4, q4, q3\n",
+            "vmul.i32 q4, q4, ", $q, "\n",
+            "vrshr.s32 q4, q4, #6\n",
+            "vadd.i32 ", $q, ", q3, q4\n",
+        )
+    };
+}
+
+/// The group loops of one output type (parts `$stride` bytes apart), with and without a table.
+macro_rules! narrow_groups_fn {
+    ($store:literal, $size:literal, $name:ident, $stride:literal) => {
+        #[inline(always)]
+        unsafe fn $name(g: *mut GroupState, k: &Requant4, table: Option<&[i16; 1025]>) {
+            // SAFETY: the caller's bounds (`requant4_groups`); registers as listed.
+            unsafe {
+                match table {
+                    None => asm!(
+                        groups_loop!($store, $size, $stride, ""),
+                        g = in(reg) g,
+                        k = in(reg) k as *const Requant4,
+                        c32 = out(reg) _,
+                        da = out(reg) _,
+                        db = out(reg) _,
+                        n = out(reg) _,
+                        m4 = out(reg) _,
+                        out("r0") _,
+                        out("r1") _,
+                        out("r2") _,
+                        out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+                        out("d8") _, out("d9") _, out("d10") _, out("d11") _, out("d12") _, out("d13") _, out("d14") _, out("d15") _,
+                        options(nostack),
+                    ),
+                    Some(t) => asm!(
+                        groups_loop!($store, $size, $stride, groups_lut!()),
+                        g = in(reg) g,
+                        k = in(reg) k as *const Requant4,
+                        tab = in(reg) t.as_ptr(),
+                        c32 = out(reg) _,
+                        da = out(reg) _,
+                        db = out(reg) _,
+                        n = out(reg) _,
+                        m4 = out(reg) _,
+                        out("r0") _,
+                        out("r1") _,
+                        out("r2") _,
+                        out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+                        out("d8") _, out("d9") _, out("d10") _, out("d11") _, out("d12") _, out("d13") _, out("d14") _, out("d15") _,
+                        options(nostack),
+                    ),
+                }
+            }
+        }
+    };
+}
+
 /// The [`Narrow`] kernels of one output type: [`requant4`]'s and [`requant4_lut`]'s, parts 32
 /// bytes apart, and their twins for the twelve-channel block's table (parts 96 bytes apart,
 /// [`requant4_wide`]).
 macro_rules! narrow {
-    ($t:ty, $store:literal) => {
+    ($t:ty, $store:literal, $size:literal) => {
         impl Narrow for $t {
             narrow_fns!($store, requant4_n, requant4_lut_n, "32");
             narrow_fns!($store, requant4w_n, requant4w_lut_n, "96");
             narrow_pair_fn!($store, requant4x2_n, "32");
             narrow_pair_fn!($store, requant4x2w_n, "96");
+            narrow_groups_fn!($store, $size, requant4g_n, "32");
+            narrow_groups_fn!($store, $size, requant4gw_n, "96");
         }
     };
 }
 
-narrow!(u8, "vstrb.32");
-narrow!(i8, "vstrb.32");
-narrow!(i16, "vstrh.32");
+narrow!(u8, "vstrb.32", "4");
+narrow!(i8, "vstrb.32", "4");
+narrow!(i16, "vstrh.32", "8");
 
 /// The convolution epilogue of four output channels `c .. c + 4` at one pixel, on 32-bit lanes:
 /// `out[i] = clamp(rshift_round(bias[c + i] + sum_p requantize_i32(d[8 p + i], mult(c + i, p)),
@@ -1726,6 +1891,30 @@ pub unsafe fn requant4_pair<O: Narrow>(d: [*const i32; 2], mult: *const u8, k: &
             O::requant4x2_n(d, mult, k, np, bias, table, out)
         }
     }
+}
+
+/// [`requant4_pair`] for `groups` consecutive groups of four channels in one call: group `g`'s
+/// dot products at `d[i] + 4 g` (pixel `i`; parts 32 or, with `wide`, 96 bytes apart), its
+/// multipliers at `mult + 32 np g`, biases at `bias + 32 g`, outputs at `out[i] + 4 g`. Returns
+/// the groups whose epilogue saturated (`FPSCR.QC` tested and cleared after each group: bit `g`);
+/// the outputs are [`requant4_pair`]'s.
+///
+/// # Safety
+/// As [`requant4_pair`] for every group (`d[i] + 4 g`, ..., each within its bounds); `1 <=
+/// groups <= 32`; the outputs of all groups of both pixels do not overlap.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+pub unsafe fn requant4_groups<O: Narrow>(d: [*const i32; 2], mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: Option<&[i16; 1025]>, wide: bool, out: [*mut O; 2], groups: usize) -> u32 {
+    let mut g = GroupState { da: d[0], db: d[1], mult, bias, oa: out[0] as usize, ob: out[1] as usize, left: groups as u32, np: np as u32, mask: 0, bit: 1 };
+    // SAFETY: forwarded; `g` lives across the call.
+    unsafe {
+        if wide {
+            O::requant4gw_n(&mut g, k, table)
+        } else {
+            O::requant4g_n(&mut g, k, table)
+        }
+    }
+    g.mask
 }
 
 /// Whether a saturating vector instruction saturated since the flag was last cleared
