@@ -789,18 +789,15 @@ impl PartLens {
             return false;
         }
         let mut bad = 0;
+        // Built once: the calls leave `zero` and `kl` as they are and set `rem` and `more` before
+        // reading them; the fields they advance are reset per group.
+        let mut args = Dots3Args { zero: [0; 6], a: pair.as_ptr(), w0: w.as_ptr(), kl, lens: self.lens.as_ptr(), np: self.np, out: d.as_mut_ptr(), rem: 0, more: 0 };
         for j in 0..4 {
-            let mut args = Dots3Args {
-                zero: [0; 6],
-                a: pair.as_ptr(),
-                w0: w.as_ptr().wrapping_add(3 * j * kl),
-                kl,
-                lens: self.lens.as_ptr(),
-                np: self.np,
-                out: d.as_mut_ptr().wrapping_add(3 * j),
-                rem: 0,
-                more: 0,
-            };
+            args.a = pair.as_ptr();
+            args.w0 = w.as_ptr().wrapping_add(3 * j * kl);
+            args.lens = self.lens.as_ptr();
+            args.np = self.np;
+            args.out = d.as_mut_ptr().wrapping_add(3 * j);
             // SAFETY: part `p` reads `lens[p] >= 1` values at `2 o_p` and `2 o_p + lens[p]` of
             // `pair` and at `o_p` of weight rows `3j .. 3j + 3` (`3 j kl + o_p`, `+ kl`, `+ 2 kl`),
             // all inside the slices since the lengths sum to `kl` (`PartLens::new`) and the
