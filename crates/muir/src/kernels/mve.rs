@@ -1976,6 +1976,49 @@ macro_rules! groups_loop {
     };
 }
 
+/// [`groups_loop`] without a table, two registers spare: the parts in `{np}` and the groups
+/// left in `{left}` instead of the state's fields (three loads and a store fewer per group).
+macro_rules! groups_loop_reg {
+    ($store:literal, $size:literal, $stride:literal) => {
+        concat!(
+            "1:\n",
+            "ldrd {da}, {db}, [{g}]\n",
+            "ldrd r1, {c32}, [{g}, #8]\n",
+            "add.w {m4}, r1, #4\n",
+            "mov {n}, {np}\n",
+            requant4_sums_pair!($stride),
+            "ldrd r0, r2, [{g}, #16]\n",
+            $store, " q6, [r0]\n",
+            $store, " q5, [r2]\n",
+            "adds r0, r0, #", $size, "\n",
+            "adds r2, r2, #", $size, "\n",
+            "strd r0, r2, [{g}, #16]\n",
+            "ldrd {da}, {db}, [{g}]\n",
+            "adds {da}, {da}, #16\n",
+            "adds {db}, {db}, #16\n",
+            "strd {da}, {db}, [{g}]\n",
+            "ldrd r1, {c32}, [{g}, #8]\n",
+            "add.w r1, r1, {np}, lsl #5\n",
+            "adds {c32}, {c32}, #32\n",
+            "strd r1, {c32}, [{g}, #8]\n",
+            "vmrs {n}, fpscr\n",
+            "tst.w {n}, #0x8000000\n",
+            "beq 3f\n",
+            "bic {n}, {n}, #0x8000000\n",
+            "vmsr fpscr, {n}\n",
+            "ldrd {n}, {da}, [{g}, #32]\n",
+            "orrs {n}, {n}, {da}\n",
+            "str.w {n}, [{g}, #32]\n",
+            "3:\n",
+            "ldr.w {n}, [{g}, #36]\n",
+            "lsls {n}, {n}, #1\n",
+            "str.w {n}, [{g}, #36]\n",
+            "subs {left}, {left}, #1\n",
+            "bne 1b\n",
+        )
+    };
+}
+
 /// The table piece of [`groups_loop`] (after the clamp to `[k + 16, k + 32]`): both pixels
 /// through the sigmoid or tanh table (`{da}` as the table one entry on), then the clamp to
 /// `[k + 64, k + 80]`.
@@ -2023,9 +2066,11 @@ macro_rules! narrow_groups_fn {
             unsafe {
                 match table {
                     None => asm!(
-                        groups_loop!($store, $size, $stride, ""),
+                        groups_loop_reg!($store, $size, $stride),
                         g = in(reg) g,
                         k = in(reg) k as *const Requant4,
+                        np = in(reg) (*g).np,
+                        left = inout(reg) (*g).left => _,
                         c32 = out(reg) _,
                         da = out(reg) _,
                         db = out(reg) _,
