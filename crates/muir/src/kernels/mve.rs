@@ -1672,6 +1672,11 @@ pub trait Narrow: Copy {
     /// # Safety
     /// See [`requant4_groups`].
     unsafe fn requant4gw_n(g: *mut GroupState, k: &Requant4, table: Option<&[i16; 1025]>);
+    /// [`requant4_groups`]' loop for this output type, one part, no table.
+    ///
+    /// # Safety
+    /// See [`requant4_groups`] (`np == 1`, no table).
+    unsafe fn requant4g1_n(g: *mut GroupState, k: &Requant4);
 }
 
 /// The requantisation both [`Narrow`] kernels share, as one `asm!` template piece: the bias
@@ -1814,6 +1819,45 @@ macro_rules! requant4_sums_pair {
             "add {m4}, {m4}, #8\n",
             "subs {n}, {n}, #1\n",
             "bne 2b\n",
+            "vrshr.s32 q6, q6, #8\n",
+            "vrshr.s32 q5, q5, #8\n",
+            "vldrw.u32 q1, [{k}, #16]\n",
+            "vmax.s32 q6, q6, q1\n",
+            "vmax.s32 q5, q5, q1\n",
+            "vldrw.u32 q1, [{k}, #32]\n",
+            "vmin.s32 q6, q6, q1\n",
+            "vmin.s32 q5, q5, q1\n",
+        )
+    };
+}
+
+/// [`requant4_sums_pair`] for one part (no part loop; `{n}` unused).
+macro_rules! requant4_sums_pair1 {
+    () => {
+        concat!(
+            "vldrw.u32 q0, [{k}, #48]\n",
+            "vldrw.u32 q6, [{c32}, q0]\n",
+            "vmov q5, q6\n",
+            "vldrw.u32 q7, [{k}]\n",
+            "mov.w {c32}, #32\n",
+            "vldrw.u32 q2, [r1, q7]\n",
+            "vldrb.u32 q3, [{m4}, q7]\n",
+            "vneg.s32 q3, q3\n",
+            "vadd.i32 q4, q3, {c32}\n",
+            "vldrw.u32 q0, [{da}]\n",
+            "vmulh.s32 q1, q0, q2\n",
+            "vmul.i32 q0, q0, q2\n",
+            "vrshl.u32 q0, q0, q3\n",
+            "vqrshl.s32 q1, q1, q4\n",
+            "vqadd.s32 q1, q1, q0\n",
+            "vqadd.s32 q6, q6, q1\n",
+            "vldrw.u32 q0, [{db}]\n",
+            "vmulh.s32 q1, q0, q2\n",
+            "vmul.i32 q0, q0, q2\n",
+            "vrshl.u32 q0, q0, q3\n",
+            "vqrshl.s32 q1, q1, q4\n",
+            "vqadd.s32 q1, q1, q0\n",
+            "vqadd.s32 q5, q5, q1\n",
             "vrshr.s32 q6, q6, #8\n",
             "vrshr.s32 q5, q5, #8\n",
             "vldrw.u32 q1, [{k}, #16]\n",
@@ -2019,6 +2063,47 @@ macro_rules! groups_loop_reg {
     };
 }
 
+/// [`groups_loop_reg`] for one part: no part loop, the multipliers 32 bytes a group.
+macro_rules! groups_loop_reg1 {
+    ($store:literal, $size:literal) => {
+        concat!(
+            "1:\n",
+            "ldrd {da}, {db}, [{g}]\n",
+            "ldrd r1, {c32}, [{g}, #8]\n",
+            "add.w {m4}, r1, #4\n",
+            requant4_sums_pair1!(),
+            "ldrd r0, r2, [{g}, #16]\n",
+            $store, " q6, [r0]\n",
+            $store, " q5, [r2]\n",
+            "adds r0, r0, #", $size, "\n",
+            "adds r2, r2, #", $size, "\n",
+            "strd r0, r2, [{g}, #16]\n",
+            "ldrd {da}, {db}, [{g}]\n",
+            "adds {da}, {da}, #16\n",
+            "adds {db}, {db}, #16\n",
+            "strd {da}, {db}, [{g}]\n",
+            "ldrd r1, {c32}, [{g}, #8]\n",
+            "add.w r1, r1, #32\n",
+            "adds {c32}, {c32}, #32\n",
+            "strd r1, {c32}, [{g}, #8]\n",
+            "vmrs {n}, fpscr\n",
+            "tst.w {n}, #0x8000000\n",
+            "beq 3f\n",
+            "bic {n}, {n}, #0x8000000\n",
+            "vmsr fpscr, {n}\n",
+            "ldrd {n}, {da}, [{g}, #32]\n",
+            "orrs {n}, {n}, {da}\n",
+            "str.w {n}, [{g}, #32]\n",
+            "3:\n",
+            "ldr.w {n}, [{g}, #36]\n",
+            "lsls {n}, {n}, #1\n",
+            "str.w {n}, [{g}, #36]\n",
+            "subs {left}, {left}, #1\n",
+            "bne 1b\n",
+        )
+    };
+}
+
 /// The table piece of [`groups_loop`] (after the clamp to `[k + 16, k + 32]`): both pixels
 /// through the sigmoid or tanh table (`{da}` as the table one entry on), then the clamp to
 /// `[k + 64, k + 80]`.
@@ -2118,6 +2203,29 @@ macro_rules! narrow {
             narrow_pair_fn!($store, requant4x2w_n, "96");
             narrow_groups_fn!($store, $size, requant4g_n, "32");
             narrow_groups_fn!($store, $size, requant4gw_n, "96");
+            #[inline(always)]
+            unsafe fn requant4g1_n(g: *mut GroupState, k: &Requant4) {
+                // SAFETY: the caller's bounds (`requant4_groups`, one part); registers as listed.
+                unsafe {
+                    asm!(
+                        groups_loop_reg1!($store, $size),
+                        g = in(reg) g,
+                        k = in(reg) k as *const Requant4,
+                        left = inout(reg) (*g).left => _,
+                        c32 = out(reg) _,
+                        da = out(reg) _,
+                        db = out(reg) _,
+                        n = out(reg) _,
+                        m4 = out(reg) _,
+                        out("r0") _,
+                        out("r1") _,
+                        out("r2") _,
+                        out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+                        out("d8") _, out("d9") _, out("d10") _, out("d11") _, out("d12") _, out("d13") _, out("d14") _, out("d15") _,
+                        options(nostack),
+                    )
+                }
+            }
         }
     };
 }
@@ -2225,7 +2333,9 @@ pub unsafe fn requant4_groups<O: Narrow>(d: [*const i32; 2], mult: *const u8, k:
     let mut g = GroupState { da: d[0], db: d[1], mult, bias, oa: out[0] as usize, ob: out[1] as usize, left: groups as u32, np: np as u32, mask: 0, bit: 1 };
     // SAFETY: forwarded; `g` lives across the call.
     unsafe {
-        if wide {
+        if np == 1 && table.is_none() {
+            O::requant4g1_n(&mut g, k)
+        } else if wide {
             O::requant4gw_n(&mut g, k, table)
         } else {
             O::requant4g_n(&mut g, k, table)
