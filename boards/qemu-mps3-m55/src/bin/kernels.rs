@@ -168,6 +168,9 @@ static mut W0: [i8; MAX_N] = [0; MAX_N];
 static mut W12: [i8; 12 * W12_KL] = [0; 12 * W12_KL];
 #[cfg(feature = "mve")]
 const W12_KL: usize = 1536;
+/// A copy of the pair `check_dots_flipped` flips.
+#[cfg(feature = "mve")]
+static mut ORIG8: [u8; 2 * MAX_N + 1] = [0; 2 * MAX_N + 1];
 static mut W1: [i8; MAX_N] = [0; MAX_N];
 static mut A8: [u8; MAX_N] = [0; MAX_N];
 static mut B8: [u8; MAX_N] = [0; MAX_N];
@@ -859,6 +862,11 @@ fn check_requant(r: &mut Rng) -> usize {
                 println!("MUIR-KERNELS FAILED requant4 case {case}: saturation reported for small operands");
                 process::exit(1);
             }
+            // One part: saturated lanes end at the clamp's bound, as the exact values do
+            // (`conv_helium`'s `qc`: no recompute for one-part layers).
+            if np == 1 && got != want {
+                fail("requant4 (one part, saturated)", case as usize, &got, &want);
+            }
             saturated += 1;
         } else {
             if got != want {
@@ -900,6 +908,9 @@ fn check_requant(r: &mut Rng) -> usize {
             if kind == 3 {
                 println!("MUIR-KERNELS FAILED requant4_lut case {case}: saturation reported for small operands");
                 process::exit(1);
+            }
+            if np == 1 && got != want {
+                fail("requant4_lut (one part, saturated)", case as usize, &got, &want);
             }
         } else {
             if got != want {
@@ -1967,6 +1978,457 @@ fn check_max_abs(r: &mut Rng) -> usize {
     cases
 }
 
+/// The one-part u8 pair of every channel in one call (`mve::dots_flipped`: activations flipped in
+/// place to `x - 128`, `VMLADAVA.S8` in groups of three channels, the last group overlapping
+/// when `cout` is not a multiple of 3, `128 sum(w)` added) with the weight sums of `mve::sum_i8`,
+/// against the plain dot products: `cout` 3..=72 (every value in turn), patch lengths 1..=40,
+/// 15..=17, 63..=65 and random up to the weight buffer, random fills, all-extreme fills of every
+/// sign pair (weights -128 or 127, activations 0 or 255), one extreme channel and patch; the
+/// pair must come back flipped (every byte `^ 0x80`, none past `2 kl`), the table untouched
+/// outside the channels written (sentinels). Refused with nothing flipped or written: `cout` 0,
+/// 1, 2, 73, `kl` 0 and `2^16`, short weights, pair or sums. `sum_i8` also against the plain sum
+/// at lengths 0..=40, 63..=65, 1000, 18432.
+#[cfg(feature = "mve")]
+fn check_dots_flipped(pair: &mut [u8; 2 * MAX_N], r: &mut Rng) -> usize {
+    use muir::kernels::mve::{FLIP_MAX, dots_flipped, sum_i8};
+    use muir::model::graph::MAX_PARTS;
+    // SAFETY: the only user of `W12` at this time, in the single thread of this program.
+    let w12 = unsafe { &mut *core::ptr::addr_of_mut!(W12) };
+    // SAFETY: the only user of `ORIG8`.
+    let orig = unsafe { &mut *core::ptr::addr_of_mut!(ORIG8) };
+    let mut cases = 0;
+    const SENTINEL: i32 = 0x5a5a_1234;
+    for n in (0..=40usize).chain([63, 64, 65, 1000, 12 * W12_KL]) {
+        for v in &mut w12[..n] {
+            *v = i8::sample(r, if n % 3 == 0 { Fill::Random } else if n % 3 == 1 { Fill::Min } else { Fill::Max });
+        }
+        let want: i32 = w12[..n].iter().map(|&w| w as i32).sum();
+        if sum_i8(&w12[..n]) != want {
+            fail("sum_i8", n, &[sum_i8(&w12[..n]) as i64], &[want as i64]);
+        }
+        cases += 1;
+    }
+    for case in 0..420u32 {
+        let cout = 3 + (case as usize % (FLIP_MAX - 2));
+        let most = (12 * W12_KL / cout).min(MAX_N);
+        let kl = match r.next() % 5 {
+            0 => 1 + (r.next() % 40) as usize,
+            1 => 15 + (r.next() % 3) as usize,
+            2 => 63 + (r.next() % 3) as usize,
+            _ => 1 + (r.next() % most as u64) as usize,
+        }
+        .min(most);
+        let mode = (case / 70) % 4; // 0, 1 random; 2 all extreme; 3 one extreme channel and patch
+        let (hc, hb) = ((r.next() % cout as u64) as usize, r.next() % 2 == 0);
+        let (wf, xf) = match r.next() % 4 {
+            0 => (Fill::Min, Fill::Max),
+            1 => (Fill::Max, Fill::Max),
+            2 => (Fill::Min, Fill::Min),
+            _ => (Fill::Max, Fill::Min),
+        };
+        let ext = |one: bool, f: Fill| if mode == 2 || (mode == 3 && one) { f } else { Fill::Random };
+        for c in 0..cout {
+            let f = ext(c == hc, wf);
+            for v in &mut w12[c * kl..(c + 1) * kl] {
+                *v = i8::sample(r, f);
+            }
+        }
+        for (i, v) in pair[..2 * kl].iter_mut().enumerate() {
+            *v = u8::sample(r, ext((i >= kl) == hb, xf));
+        }
+        pair[2 * kl] = 0x3c;
+        orig[..2 * kl + 1].copy_from_slice(&pair[..2 * kl + 1]);
+        let mut ws = [0i32; FLIP_MAX];
+        for (s, w) in ws.iter_mut().zip(w12.chunks_exact(kl)).take(cout) {
+            *s = sum_i8(w).wrapping_mul(128);
+        }
+        let mut d = [SENTINEL; 24 * MAX_PARTS];
+        if !dots_flipped(&ws[..cout], &w12[..cout * kl], kl, cout, &mut pair[..], &mut d) {
+            println!("MUIR-KERNELS FAILED dots_flipped case {case}: refused cout={cout} kl={kl}");
+            process::exit(1);
+        }
+        if pair[..2 * kl].iter().zip(orig.iter()).any(|(p, o)| *p != *o ^ 0x80) || pair[2 * kl] != 0x3c {
+            println!("MUIR-KERNELS FAILED dots_flipped case {case}: the pair is not flipped exactly (cout={cout} kl={kl})");
+            process::exit(1);
+        }
+        let (a, b) = (&orig[..kl], &orig[kl..2 * kl]);
+        for (c, w) in w12.chunks_exact(kl).take(cout).enumerate() {
+            for (x, at) in [(a, c), (b, FLIP_MAX + c)] {
+                let want = dot_plain(w, x);
+                if d[at] as i64 != want {
+                    println!("MUIR-KERNELS FAILED dots_flipped case {case}: cout={cout} kl={kl} channel {c} at {at}");
+                    fail("dots_flipped", kl, &[d[at] as i64], &[want]);
+                }
+            }
+        }
+        if d[cout..FLIP_MAX].iter().chain(&d[FLIP_MAX + cout..]).any(|&v| v != SENTINEL) {
+            println!("MUIR-KERNELS FAILED dots_flipped case {case}: written past channel {cout} (kl={kl})");
+            process::exit(1);
+        }
+        cases += 1;
+    }
+    // Refused, with nothing flipped or written.
+    let ws = [0i32; FLIP_MAX + 1];
+    for v in pair.iter_mut().take(64) {
+        *v = 7;
+    }
+    let mut d = [SENTINEL; 24 * MAX_PARTS];
+    let refused = [
+        dots_flipped(&ws, &w12[..], 8, 0, &mut pair[..], &mut d),
+        dots_flipped(&ws, &w12[..], 8, 1, &mut pair[..], &mut d),
+        dots_flipped(&ws, &w12[..], 8, 2, &mut pair[..], &mut d),
+        dots_flipped(&ws, &w12[..], 8, FLIP_MAX + 1, &mut pair[..], &mut d),
+        dots_flipped(&ws, &w12[..], 0, 4, &mut pair[..], &mut d),
+        dots_flipped(&ws, &w12[..], 1 << 16, 4, &mut pair[..], &mut d),
+        dots_flipped(&ws, &w12[..31], 8, 4, &mut pair[..], &mut d),
+        dots_flipped(&ws, &w12[..32], 8, 4, &mut pair[..15], &mut d),
+        dots_flipped(&ws[..3], &w12[..32], 8, 4, &mut pair[..], &mut d),
+    ];
+    if refused.iter().any(|&x| x) || pair[..64].iter().any(|&v| v != 7) || d.iter().any(|&v| v != SENTINEL) {
+        println!("MUIR-KERNELS FAILED dots_flipped: a bad shape accepted ({refused:?}) or something written");
+        process::exit(1);
+    }
+    cases + refused.len()
+}
+
+/// One case of `check_requant_pair` for output type `O`: the pair kernel against two calls of the
+/// one-pixel kernel (same outputs, `FPSCR.QC` set exactly when one of them saturates) and, where
+/// nothing saturated, the portable formula `want`; the outputs at 1 and 9 of a sentinel-filled
+/// row (nothing else written).
+#[cfg(feature = "mve")]
+#[allow(clippy::too_many_arguments)]
+fn requant_pair_case<O: muir::kernels::mve::Narrow + Default + PartialEq + Into<i64>>(
+    sentinel: O,
+    case: u32,
+    d: &[i32; 288],
+    wide: bool,
+    t: &Tables,
+    k: &muir::kernels::mve::Requant4,
+    np: usize,
+    table: Option<&[i16; 1025]>,
+    want: &[[i64; 4]; 2],
+) -> bool {
+    use muir::kernels::mve;
+    let (off_b, stride) = if wide { (12, 24) } else { (4, 8) };
+    let mut one = [[sentinel; 4]; 2];
+    let mut qc_one = false;
+    for (i, o) in one.iter_mut().enumerate() {
+        let dp = d.as_ptr().wrapping_add(i * off_b);
+        // SAFETY: `d` holds `stride (np - 1) + off_b + 4 <= 288` values, the tables 4 channels of
+        // `np` parts, `o` four.
+        unsafe {
+            match (table, wide) {
+                (None, false) => mve::requant4(dp, t.mult.as_ptr(), k, np, t.bias.as_ptr(), o.as_mut_ptr()),
+                (None, true) => mve::requant4_wide(dp, t.mult.as_ptr(), k, np, t.bias.as_ptr(), o.as_mut_ptr()),
+                (Some(tb), false) => mve::requant4_lut(dp, t.mult.as_ptr(), k, np, t.bias.as_ptr(), tb, o.as_mut_ptr()),
+                (Some(tb), true) => mve::requant4_lut_wide(dp, t.mult.as_ptr(), k, np, t.bias.as_ptr(), tb, o.as_mut_ptr()),
+            }
+        }
+        qc_one |= mve::take_qc();
+    }
+    let mut row = [sentinel; 16];
+    let o = row.as_mut_ptr();
+    let _ = stride;
+    // SAFETY: as above for both pixels; outputs at 1..5 and 9..13 of the 16-value row.
+    unsafe { mve::requant4_pair([d.as_ptr(), d.as_ptr().wrapping_add(off_b)], t.mult.as_ptr(), k, np, t.bias.as_ptr(), table, wide, [o.wrapping_add(1), o.wrapping_add(9)]) };
+    let qc = mve::take_qc();
+    let got = [[row[1], row[2], row[3], row[4]], [row[9], row[10], row[11], row[12]]];
+    if qc != qc_one || got != one || [0, 5, 6, 7, 8, 13, 14, 15].iter().any(|&i| row[i] != sentinel) {
+        println!("MUIR-KERNELS FAILED requant4_pair case {case}: np={np} wide={wide} table={}: QC {qc} vs {qc_one}, or outputs differ from one-pixel calls, or written outside", table.is_some());
+        process::exit(1);
+    }
+    // One part: the portable values even where a lane saturated (`conv_helium`'s `qc`).
+    if !qc || np == 1 {
+        for (g, w) in got.iter().zip(want) {
+            let g = g.map(Into::into);
+            if g != *w {
+                fail("requant4_pair", case as usize, &g, w);
+            }
+        }
+    }
+    !qc
+}
+
+/// `mve::requant4_pair` (two pixels' epilogues, each part's multipliers gathered once, with and
+/// without a sigmoid or tanh table, parts 32 or 96 bytes apart) against two one-pixel calls and
+/// the portable formula, as `check_requant`: 1-6 parts, extreme multipliers and sums (saturating
+/// cases), random and small operands, every output type.
+#[cfg(feature = "mve")]
+fn check_requant_pair(r: &mut Rng) -> usize {
+    use muir::arith::{Multiplier, requantize_i32, rshift_round};
+    use muir::arith::lut;
+    use muir::kernels::mve::Requant4;
+    let mut t = Tables { mult: [0; 8 * 4 * 6], bias: [0; 32] };
+    let (mut exact, mut cases) = (0usize, 0usize);
+    let _ = muir::kernels::mve::take_qc();
+    for case in 0..3000u32 {
+        let np = 1 + (case % 6) as usize;
+        let kind = (case / 6) % 5;
+        let wide = (case / 30) % 2 == 1;
+        let (off_b, stride) = if wide { (12, 24) } else { (4, 8) };
+        let mut d = [0i32; 288];
+        let mut ms = [Multiplier { m: 0, shift: 8 }; 24];
+        for ch in 0..4 {
+            for p in 0..np {
+                let shift = 8 + (r.next() % 55) as u8;
+                let m = match kind {
+                    0 => i32::MIN,
+                    1 => i32::MAX,
+                    3 => ((r.next() >> 32) as i32) >> 12,
+                    _ => (r.next() >> 32) as i32,
+                };
+                ms[ch * np + p] = Multiplier { m, shift };
+                let e = &mut t.mult[8 * (ch * np + p)..8 * (ch * np + p + 1)];
+                e[..4].copy_from_slice(&m.to_le_bytes());
+                e[4] = shift;
+                e[5..].fill(0);
+                for px in 0..2 {
+                    d[stride * p + px * off_b + ch] = match kind {
+                        0 | 1 => if r.next() % 2 == 0 { i32::MIN } else { i32::MAX },
+                        2 => ((r.next() >> 32) as i32) >> 12,
+                        3 => (r.next() % 2001) as i32 - 1000,
+                        _ => (r.next() >> 32) as i32,
+                    };
+                }
+            }
+            let b = ((r.next() >> 33) as i64) - (1 << 30) + 1;
+            let b = if kind == 3 { b >> 12 } else { b };
+            t.bias[8 * ch..8 * ch + 8].copy_from_slice(&b.to_le_bytes());
+        }
+        let lut_case = case % 3 == 2;
+        let (lo, hi) = if lut_case { (-32768, 32767) } else { [(0, 255), (-128, 127), (-32768, 32767), (0, 32767)][(case % 4) as usize] };
+        let (f, table): (fn(i16) -> i16, _) = if case % 2 == 0 { (lut::sigmoid_q12, lut::sigmoid_table()) } else { (lut::tanh_q12, lut::tanh_table()) };
+        let (olo, ohi) = if lut_case { [(0i64, 255i64), (-128, 127), (-32768, 32767)][(case / 3 % 3) as usize] } else { (lo as i64, hi as i64) };
+        let mut want = [[0i64; 4]; 2];
+        for (px, w) in want.iter_mut().enumerate() {
+            for (ch, w) in w.iter_mut().enumerate() {
+                let s: i64 = (0..np).map(|p| requantize_i32(d[stride * p + px * off_b + ch], ms[ch * np + p])).sum();
+                let b = i64::from_le_bytes(t.bias[8 * ch..8 * ch + 8].try_into().unwrap_or_default());
+                let v = rshift_round(s + b, 8).clamp(lo as i64, hi as i64);
+                *w = if lut_case { (f(v as i16) as i64).clamp(olo, ohi) } else { v };
+            }
+        }
+        let k = Requant4::new(np, lo, hi).with_out(olo as i32, ohi as i32);
+        let table = lut_case.then_some(table);
+        let ok = match (olo, ohi) {
+            (-128, _) => requant_pair_case::<i8>(0x55, case, &d, wide, &t, &k, np, table, &want),
+            (0, 255) => requant_pair_case::<u8>(0x55, case, &d, wide, &t, &k, np, table, &want),
+            _ => requant_pair_case::<i16>(0x5555, case, &d, wide, &t, &k, np, table, &want),
+        };
+        if kind == 3 && !ok {
+            println!("MUIR-KERNELS FAILED requant4_pair case {case}: saturation reported for small operands");
+            process::exit(1);
+        }
+        exact += usize::from(ok);
+        cases += 1;
+    }
+    if exact < 500 || cases - exact < 100 {
+        println!("MUIR-KERNELS FAILED requant4_pair: {exact} exact of {cases} cases (saturated ones must occur too)");
+        process::exit(1);
+    }
+    cases
+}
+
+/// `mve::logits32` (the MGA logits of a 32-value query against a block of keys, less the maximum,
+/// the query kept in registers) against the plain i64 dot products: blocks of 1..=130 keys, a key
+/// block with a partial key at its end, `e` shorter than the block, random, extreme
+/// (`i16::MIN`/`MAX`) and small values, the maximum the block's largest logit (every difference
+/// fits) or far off (`None` must come back exactly when some difference leaves i32); a sentinel
+/// after the last key's value; queries of 31 or 33 values and empty blocks refused.
+#[cfg(feature = "mve")]
+fn check_logits32(keys: &mut [i16; MAX_N], r: &mut Rng) -> usize {
+    use muir::kernels::mve::logits32;
+    let mut cases = 0;
+    let mut q = [0i16; 33];
+    let mut e = [0i32; 131];
+    for case in 0..400u32 {
+        let nk = 1 + (case as usize % 130);
+        let kind = (case / 130) % 4;
+        let sample = |r: &mut Rng| -> i16 {
+            match kind {
+                0 => (r.next() >> 48) as i16,
+                1 => if r.next() % 2 == 0 { i16::MIN } else { i16::MAX },
+                2 => ((r.next() >> 48) as i16) >> 8,
+                _ => if r.next() % 3 == 0 { i16::MIN } else { (r.next() >> 48) as i16 },
+            }
+        };
+        for v in q.iter_mut() {
+            *v = sample(r);
+        }
+        let extra = (r.next() % 3) as usize * 7; // a partial key after the last whole one
+        for v in keys[..32 * nk + extra].iter_mut() {
+            *v = sample(r);
+        }
+        let ne = if case % 5 == 0 { (nk / 2).max(1) } else { nk };
+        let plain: [i64; 130] = core::array::from_fn(|j| if j < nk { keys[32 * j..32 * j + 32].iter().zip(&q[..32]).map(|(a, b)| *a as i64 * *b as i64).sum() } else { 0 });
+        let top = plain[..nk].iter().copied().max().unwrap_or(0);
+        let max = match case % 4 {
+            0 | 1 => top,
+            2 => top + (r.next() % (1 << 33)) as i64,
+            _ => top - (1 << 31) + (r.next() % 4) as i64,
+        };
+        e.fill(0x5a5a_5a5a);
+        let got = logits32(&q[..32], &keys[..32 * nk + extra], max, &mut e[..ne]);
+        let n = nk.min(ne);
+        let fits = plain[..n].iter().all(|&l| i32::try_from(l - max).is_ok());
+        if got != fits.then_some(n) {
+            println!("MUIR-KERNELS FAILED logits32 case {case}: {got:?}, want {:?} (keys {nk}, e {ne})", fits.then_some(n));
+            process::exit(1);
+        }
+        if fits {
+            for j in 0..n {
+                if e[j] as i64 != plain[j] - max {
+                    fail("logits32", j, &[e[j] as i64], &[plain[j] - max]);
+                }
+            }
+        }
+        if e[n..].iter().any(|&v| v != 0x5a5a_5a5a) {
+            println!("MUIR-KERNELS FAILED logits32 case {case}: written past key {n}");
+            process::exit(1);
+        }
+        cases += 1;
+    }
+    let refused = [logits32(&q[..31], &keys[..64], 0, &mut e), logits32(&q[..33], &keys[..64], 0, &mut e), logits32(&q[..32], &keys[..31], 0, &mut e), logits32(&q[..32], &keys[..64], 0, &mut e[..0])];
+    if refused.iter().any(Option::is_some) {
+        println!("MUIR-KERNELS FAILED logits32: a bad shape accepted");
+        process::exit(1);
+    }
+    cases + refused.len()
+}
+
+/// Multiplier and bias tables of up to 32 groups of four channels of 6 parts (`check_requant_groups`).
+#[cfg(feature = "mve")]
+#[repr(C, align(8))]
+struct BigTables {
+    mult: [u8; 32 * 6 * 32],
+    bias: [u8; 32 * 32],
+}
+
+#[cfg(feature = "mve")]
+static mut BIG: BigTables = BigTables { mult: [0; 32 * 6 * 32], bias: [0; 32 * 32] };
+
+/// One case of `check_requant_groups` for output type `O`: `requant4_groups` against a loop of
+/// `requant4_pair` calls (same outputs, saturation bit `g` exactly when group `g`'s call set
+/// `FPSCR.QC`), outputs in a sentinel-filled row (pixel `a`'s groups at 1, `b`'s after a gap).
+#[cfg(feature = "mve")]
+#[allow(clippy::too_many_arguments)]
+fn requant_groups_case<O: muir::kernels::mve::Narrow + Default + PartialEq + Copy + Into<i64>>(
+    sentinel: O,
+    case: u32,
+    d: &[i32; 512],
+    wide: bool,
+    t: &BigTables,
+    k: &muir::kernels::mve::Requant4,
+    np: usize,
+    table: Option<&[i16; 1025]>,
+    groups: usize,
+) -> u32 {
+    use muir::kernels::mve;
+    let off_b = 4 * groups;
+    let mut one = [sentinel; 2 * 4 * 32 + 8];
+    let mut mask_one = 0u32;
+    let bo = 4 * groups + 3; // pixel b's outputs
+    for g in 0..groups {
+        let o = one.as_mut_ptr();
+        // SAFETY: group `g` reads `d[4 g + {0, off_b}] + stride (np - 1) + 4 <= 512` values,
+        // `32 np` multiplier and 32 bias bytes at `32 np g` and `32 g` (inside the tables), and
+        // writes four values at `1 + 4 g` and `bo + 4 g` of the row (inside it, apart).
+        unsafe {
+            mve::requant4_pair(
+                [d.as_ptr().wrapping_add(4 * g), d.as_ptr().wrapping_add(off_b + 4 * g)],
+                t.mult.as_ptr().wrapping_add(32 * np * g),
+                k,
+                np,
+                t.bias.as_ptr().wrapping_add(32 * g),
+                table,
+                wide,
+                [o.wrapping_add(1 + 4 * g), o.wrapping_add(bo + 4 * g)],
+            )
+        };
+        mask_one |= u32::from(mve::take_qc()) << g;
+    }
+    let mut row = [sentinel; 2 * 4 * 32 + 8];
+    let o = row.as_mut_ptr();
+    // SAFETY: as above for every group; `1 <= groups <= 32`; the two pixels' outputs apart.
+    let mask = unsafe { mve::requant4_groups([d.as_ptr(), d.as_ptr().wrapping_add(off_b)], t.mult.as_ptr(), k, np, t.bias.as_ptr(), table, wide, [o.wrapping_add(1), o.wrapping_add(bo)], groups) };
+    if mve::take_qc() || mask != mask_one || row != one {
+        let at = row.iter().zip(&one).position(|(a, b)| a != b);
+        println!("MUIR-KERNELS FAILED requant4_groups case {case}: np={np} wide={wide} table={} groups={groups}: mask {mask:#x} vs {mask_one:#x}, first differing output {at:?}", table.is_some());
+        process::exit(1);
+    }
+    mask
+}
+
+/// `mve::requant4_groups` (the epilogues of 1..=32 groups of four channels of two pixels in one
+/// call, each group's saturation reported) against group-by-group `mve::requant4_pair` calls:
+/// 1-6 parts, parts 32 or 96 bytes apart, with and without a sigmoid or tanh table, every output
+/// type, random, extreme (saturating) and small operands; a sentinel-filled output row (nothing
+/// written between or after the two pixels' outputs). Saturated and unsaturated groups must both
+/// occur.
+#[cfg(feature = "mve")]
+fn check_requant_groups(r: &mut Rng) -> usize {
+    use muir::arith::lut;
+    use muir::kernels::mve::Requant4;
+    // SAFETY: the only user of `BIG`.
+    let t = unsafe { &mut *core::ptr::addr_of_mut!(BIG) };
+    let (mut cases, mut sat, mut clean) = (0usize, 0u32, 0u32);
+    let _ = muir::kernels::mve::take_qc();
+    for case in 0..600u32 {
+        let np = 1 + (case % 6) as usize;
+        let kind = (case / 6) % 5;
+        let wide = (case / 30) % 2 == 1;
+        let groups = match case % 7 {
+            0 => 32,
+            1 => 3,
+            _ => 1 + (r.next() % 18) as usize,
+        };
+        let mut d = [0i32; 512];
+        for v in d.iter_mut() {
+            *v = match kind {
+                0 | 1 => if r.next() % 2 == 0 { i32::MIN } else { i32::MAX },
+                2 => ((r.next() >> 32) as i32) >> 12,
+                3 => (r.next() % 2001) as i32 - 1000,
+                _ => if r.next() % 8 == 0 { (r.next() >> 32) as i32 } else { ((r.next() >> 32) as i32) >> 14 },
+            };
+        }
+        for e in t.mult[..32 * np * groups].chunks_exact_mut(8) {
+            let m = match kind {
+                0 => i32::MIN,
+                1 => i32::MAX,
+                3 => ((r.next() >> 32) as i32) >> 12,
+                _ => (r.next() >> 32) as i32,
+            };
+            e[..4].copy_from_slice(&m.to_le_bytes());
+            e[4] = 8 + (r.next() % 55) as u8;
+            e[5..].fill(0);
+        }
+        for e in t.bias[..32 * groups].chunks_exact_mut(8) {
+            let b = ((r.next() >> 33) as i64) - (1 << 30) + 1;
+            let b = if kind == 3 { b >> 12 } else { b };
+            e.copy_from_slice(&b.to_le_bytes());
+        }
+        let lut_case = case % 3 == 2;
+        let (lo, hi) = if lut_case { (-32768, 32767) } else { [(0, 255), (-128, 127), (-32768, 32767), (0, 32767)][(case % 4) as usize] };
+        let table = if case % 2 == 0 { lut::sigmoid_table() } else { lut::tanh_table() };
+        let (olo, ohi) = if lut_case { [(0, 255), (-128, 127), (-32768, 32767)][(case / 3 % 3) as usize] } else { (lo, hi) };
+        let k = Requant4::new(np, lo, hi).with_out(olo, ohi);
+        let table = lut_case.then_some(table);
+        let mask = match (olo, ohi) {
+            (-128, _) => requant_groups_case::<i8>(0x55, case, &d, wide, t, &k, np, table, groups),
+            (0, 255) => requant_groups_case::<u8>(0x55, case, &d, wide, t, &k, np, table, groups),
+            _ => requant_groups_case::<i16>(0x5555, case, &d, wide, t, &k, np, table, groups),
+        };
+        sat += mask.count_ones();
+        clean += groups as u32 - mask.count_ones();
+        cases += 1;
+    }
+    if sat < 100 || clean < 100 {
+        println!("MUIR-KERNELS FAILED requant4_groups: {sat} saturated and {clean} clean groups (both must occur)");
+        process::exit(1);
+    }
+    cases
+}
+
 fn lengths() -> impl Iterator<Item = usize> {
     (0..=40).chain([63, 64, 65, 72, 127, 128, 129, 255, 256, 257, 260, 507, 508, 509, 511, 512, 513, 576, 1000, 1016, 1017, 1152, 2304, 5760])
 }
@@ -2041,6 +2503,10 @@ fn main() -> ! {
         cases += check_q15(&mut *i16s.a, &mut *i16s.b, &mut r);
         cases += check_residual(&mut r);
         cases += check_max_abs(&mut r);
+        cases += check_dots_flipped(&mut *u8s.pair, &mut r);
+        cases += check_requant_pair(&mut r);
+        cases += check_requant_groups(&mut r);
+        cases += check_logits32(&mut *i16s.a, &mut r);
     }
     cases += check_refine(&mut r);
     #[cfg(not(feature = "mve"))]

@@ -89,20 +89,23 @@ fn block_weights(q: &[i16], kb: &[i16], max: i64, m: Multiplier, e: &mut [i32; K
     {
         // The distances to the maximum in `e`, then their weights in place.
         let (mut nb, mut fits) = (0, true);
+        // Helium: 32-value queries with the query in registers for the whole block.
+        #[cfg(feature = "mve")]
+        if let Some(n) = super::mve::logits32(q, kb, max, e) {
+            nb = n;
+        }
+        // Armv7E-M: two keys per call where the query length allows (`dsp::logits2`).
         #[cfg(not(feature = "mve"))]
-        {
-            // Armv7E-M: two keys per call where the query length allows (`dsp::logits2`).
-            for (de, k) in e.chunks_exact_mut(2).zip(kb.chunks_exact(2 * c)) {
-                let Some((la, lb)) = super::dsp::logits2(q, k) else {
-                    break;
-                };
-                if let [da, db] = de {
-                    let (la, lb) = (la - max, lb - max);
-                    (*da, *db) = (la as i32, lb as i32);
-                    fits &= *da as i64 == la && *db as i64 == lb;
-                }
-                nb += 2;
+        for (de, k) in e.chunks_exact_mut(2).zip(kb.chunks_exact(2 * c)) {
+            let Some((la, lb)) = super::dsp::logits2(q, k) else {
+                break;
+            };
+            if let [da, db] = de {
+                let (la, lb) = (la - max, lb - max);
+                (*da, *db) = (la as i32, lb as i32);
+                fits &= *da as i64 == la && *db as i64 == lb;
             }
+            nb += 2;
         }
         for (dk, k) in e.iter_mut().zip(kb.chunks_exact(c)).skip(nb) {
             let l = logit(q, k) - max;

@@ -163,6 +163,21 @@ pub trait Elem: Copy + Default + PartialEq + core::fmt::Debug + Send + Sync + 's
     fn dots12_prepare(_l: &mve::PartLens, _pair: &[Self], _s: &mut [i32; 2 * crate::model::graph::MAX_PARTS]) -> bool {
         false
     }
+    /// Whether one-part Helium layers of this type take [`Elem::dots_flipped`] (u8).
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    const FLIPS: bool = false;
+    /// All `cout` channels' dot products of a one-part Helium pair in one pass over the
+    /// activations flipped in place to `x - 128` ([`mve::dots_flipped`], u8; `ws[c]` is `128
+    /// sum(w_c)`); false, with `pair` untouched, where this type or the shapes have none.
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    #[inline(always)]
+    fn dots_flipped(_ws: &[i32], _w: &[i8], _kl: usize, _cout: usize, _pair: &mut [Self], _d: &mut [i32; 24 * crate::model::graph::MAX_PARTS]) -> bool {
+        false
+    }
+    /// Flips the values [`Elem::dots_flipped`] flipped back (`x ^ 0x80` on u8).
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    #[inline(always)]
+    fn unflip(_pair: &mut [Self]) {}
     /// The slice as a conv output row.
     fn as_out(d: &mut [Self]) -> OutRow<'_>;
     /// A whole convolution row by a path of this type's own with the engine's byte scratch
@@ -267,6 +282,18 @@ impl Elem for u8 {
     #[inline(always)]
     fn dots12_prepare(l: &mve::PartLens, pair: &[u8], s: &mut [i32; 2 * crate::model::graph::MAX_PARTS]) -> bool {
         mve::pair_sums_u8(l, pair, s)
+    }
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    const FLIPS: bool = true;
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    #[inline(always)]
+    fn dots_flipped(ws: &[i32], w: &[i8], kl: usize, cout: usize, pair: &mut [u8], d: &mut [i32; 24 * crate::model::graph::MAX_PARTS]) -> bool {
+        mve::dots_flipped(ws, w, kl, cout, pair, d)
+    }
+    #[cfg(all(target_arch = "arm", feature = "mve"))]
+    #[inline(always)]
+    fn unflip(pair: &mut [u8]) {
+        mve::flip_u8(pair)
     }
     #[cfg(all(target_arch = "arm", feature = "mve"))]
     #[inline]

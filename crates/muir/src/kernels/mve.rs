@@ -166,6 +166,63 @@ pub fn dot_i16_i64(q: &[i16], k: &[i16]) -> i64 {
     ((hi as u64) << 32 | lo as u64) as i64
 }
 
+/// The MGA logits of one query of 32 values against a block of keys, less the query's maximum:
+/// `e[j] = q . k_j - max` for the `nb = min(kb.len() / 32, e.len())` keys `k_j = kb[32 j ..]`, each
+/// exact in 64 bits (`VMLALDAVA.S16`) and checked to fit in i32. The query stays in four vector
+/// registers for the whole block: per key four loads, four `VMLALDAVA`, the 64-bit subtraction,
+/// the i32 test and the store (14 instructions; `dot_i16_i64` per key took about 26 with its
+/// call). Returns `Some(nb)`, or `None` (with `e` partly written) when `q` is not 32 values long,
+/// there is no key, or some difference does not fit in i32.
+#[inline]
+pub fn logits32(q: &[i16], kb: &[i16], max: i64, e: &mut [i32]) -> Option<usize> {
+    let nb = (kb.len() / 32).min(e.len());
+    if q.len() != 32 || nb == 0 {
+        return None;
+    }
+    let bad: u32;
+    // SAFETY: reads the 32 values of `q` and `32 nb <= kb.len()` values of `kb`, writes `nb <=
+    // e.len()` values of `e`; the sums in the even/odd pair r0/r1 (`VMLALDAVA`).
+    unsafe {
+        asm!(
+            "vldrw.u32 q4, [{q}]",
+            "vldrw.u32 q5, [{q}, #16]",
+            "vldrw.u32 q6, [{q}, #32]",
+            "vldrw.u32 q7, [{q}, #48]",
+            "mov.w {bad}, #0",
+            "dls lr, {n}",
+            "2:",
+            "vldrh.u16 q0, [{k}], #16",
+            "vldrh.u16 q1, [{k}], #16",
+            "vldrh.u16 q2, [{k}], #16",
+            "vldrh.u16 q3, [{k}], #16",
+            "vmlaldav.s16 r0, r1, q0, q4",
+            "vmlaldava.s16 r0, r1, q1, q5",
+            "vmlaldava.s16 r0, r1, q2, q6",
+            "vmlaldava.s16 r0, r1, q3, q7",
+            "subs.w r0, r0, {mlo}",
+            "sbc.w r1, r1, {mhi}",
+            "eor.w r1, r1, r0, asr #31",
+            "orr.w {bad}, {bad}, r1",
+            "str r0, [{e}], #4",
+            "le lr, 2b",
+            q = in(reg) q.as_ptr(),
+            k = inout(reg) kb.as_ptr() => _,
+            e = inout(reg) e.as_mut_ptr() => _,
+            n = in(reg) nb,
+            mlo = in(reg) max as u32,
+            mhi = in(reg) (max >> 32) as u32,
+            bad = out(reg) bad,
+            out("r0") _,
+            out("r1") _,
+            out("lr") _,
+            out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+            out("d8") _, out("d9") _, out("d10") _, out("d11") _, out("d12") _, out("d13") _, out("d14") _, out("d15") _,
+            options(nostack),
+        );
+    }
+    (bad == 0).then_some(nb)
+}
+
 /// The MGA value sums of one block of keys: `acc[ch] += sum_j e[j] * v[j * cv + ch]` for every
 /// `ch < acc.len()` and key `j < e.len()` (`v` key-major, `cv` values per key; the softmax
 /// weights `e` are `0..=32768`). Lanes run over four keys: a gather load (`VLDRH.S32` with the
@@ -592,7 +649,7 @@ core::arch::global_asm!(
     // [sp]; returns that OR.
     "muir_mve_dots_i16:",
     "    push {{r4-r11, lr}}",
-    "    sub sp, #4",
+    "    sub sp, #8",
     "    mov r12, r0",
     "    movs r0, #0",
     "    str r0, [sp]",
@@ -608,8 +665,14 @@ core::arch::global_asm!(
     "    add r5, r4",
     "    add.w r1, r4, lr",
     "    str.w r1, [r12, #36]",
+    // Whole groups of 32 terms unpredicated, four vectors an iteration (`LE`), then the last
+    // `n % 32` (kept at [sp, #4]) by the tail-predicated loop (skipped by `WLSTP` when 0).
+    "    and r0, lr, #31",
+    "    str r0, [sp, #4]",
     "    ldm.w r12, {{r0-r3, r8-r11}}",
-    "    dlstp.16 lr, lr",
+    "    lsrs.w lr, lr, #5",
+    "    beq 5f",
+    "    dls lr, lr",
     "2:",
     "    vldrh.u16 q0, [r6], #16",
     "    vldrh.u16 q1, [r7], #16",
@@ -619,7 +682,45 @@ core::arch::global_asm!(
     "    vldrb.s16 q2, [r5], #8",
     "    vmlaldava.s16 r8, r9, q0, q2",
     "    vmlaldava.s16 r10, r11, q1, q2",
-    "    letp lr, 2b",
+    "    vldrh.u16 q0, [r6], #16",
+    "    vldrh.u16 q1, [r7], #16",
+    "    vldrb.s16 q2, [r4], #8",
+    "    vmlaldava.s16 r0, r1, q0, q2",
+    "    vmlaldava.s16 r2, r3, q1, q2",
+    "    vldrb.s16 q2, [r5], #8",
+    "    vmlaldava.s16 r8, r9, q0, q2",
+    "    vmlaldava.s16 r10, r11, q1, q2",
+    "    vldrh.u16 q0, [r6], #16",
+    "    vldrh.u16 q1, [r7], #16",
+    "    vldrb.s16 q2, [r4], #8",
+    "    vmlaldava.s16 r0, r1, q0, q2",
+    "    vmlaldava.s16 r2, r3, q1, q2",
+    "    vldrb.s16 q2, [r5], #8",
+    "    vmlaldava.s16 r8, r9, q0, q2",
+    "    vmlaldava.s16 r10, r11, q1, q2",
+    "    vldrh.u16 q0, [r6], #16",
+    "    vldrh.u16 q1, [r7], #16",
+    "    vldrb.s16 q2, [r4], #8",
+    "    vmlaldava.s16 r0, r1, q0, q2",
+    "    vmlaldava.s16 r2, r3, q1, q2",
+    "    vldrb.s16 q2, [r5], #8",
+    "    vmlaldava.s16 r8, r9, q0, q2",
+    "    vmlaldava.s16 r10, r11, q1, q2",
+    "    le lr, 2b",
+    "5:",
+    "    ldr lr, [sp, #4]",
+    "    wlstp.16 lr, lr, 6f",
+    "7:",
+    "    vldrh.u16 q0, [r6], #16",
+    "    vldrh.u16 q1, [r7], #16",
+    "    vldrb.s16 q2, [r4], #8",
+    "    vmlaldava.s16 r0, r1, q0, q2",
+    "    vmlaldava.s16 r2, r3, q1, q2",
+    "    vldrb.s16 q2, [r5], #8",
+    "    vmlaldava.s16 r8, r9, q0, q2",
+    "    vmlaldava.s16 r10, r11, q1, q2",
+    "    letp lr, 7b",
+    "6:",
     "    ldr.w lr, [r12, #52]",
     "    strd r0, r8, [lr]",
     "    strd r2, r10, [lr, #16]",
@@ -640,7 +741,7 @@ core::arch::global_asm!(
     "    str.w r0, [r12, #48]",
     "    bne 1b",
     "    ldr r0, [sp]",
-    "    add sp, #4",
+    "    add sp, #8",
     "    pop {{r4-r11, pc}}",
     ".size muir_mve_dots_i16, . - muir_mve_dots_i16",
 );
@@ -675,7 +776,8 @@ impl PartLens {
     /// `d[24 p + c] = w_c . a_p` and `d[24 p + 12 + c] = w_c . b_p` for channel `c < 12` (weight
     /// row `c` of `w`, `kl` values each; parts and pair layout as [`PartLens::dots4`]). One call
     /// per three channels for all parts (`muir_mve_dots3_i16`): six 32-bit sums by `VMLADAVA`
-    /// (12 instructions per 48 MACs; the 64-bit loop of [`PartLens::dots4`] takes 9 per 32), in
+    /// (12 instructions per 48 MACs, 45 per 192 for whole groups of 32 terms, four vectors an
+    /// iteration; the 64-bit loop of [`PartLens::dots4`] takes 9 per 32), in
     /// chunks of [`DOTS3_CHUNK`] terms, each exact in i32, added by `QADD`. Returns false, with
     /// `d` partly written, when an add of chunks saturated (`APSR.Q`: then the sum may not fit in
     /// i32) or `w` or `pair` is shorter than `12 kl` and `2 kl`; true means every value is the
@@ -687,18 +789,15 @@ impl PartLens {
             return false;
         }
         let mut bad = 0;
+        // Built once: the calls leave `zero` and `kl` as they are and set `rem` and `more` before
+        // reading them; the fields they advance are reset per group.
+        let mut args = Dots3Args { zero: [0; 6], a: pair.as_ptr(), w0: w.as_ptr(), kl, lens: self.lens.as_ptr(), np: self.np, out: d.as_mut_ptr(), rem: 0, more: 0 };
         for j in 0..4 {
-            let mut args = Dots3Args {
-                zero: [0; 6],
-                a: pair.as_ptr(),
-                w0: w.as_ptr().wrapping_add(3 * j * kl),
-                kl,
-                lens: self.lens.as_ptr(),
-                np: self.np,
-                out: d.as_mut_ptr().wrapping_add(3 * j),
-                rem: 0,
-                more: 0,
-            };
+            args.a = pair.as_ptr();
+            args.w0 = w.as_ptr().wrapping_add(3 * j * kl);
+            args.lens = self.lens.as_ptr();
+            args.np = self.np;
+            args.out = d.as_mut_ptr().wrapping_add(3 * j);
             // SAFETY: part `p` reads `lens[p] >= 1` values at `2 o_p` and `2 o_p + lens[p]` of
             // `pair` and at `o_p` of weight rows `3j .. 3j + 3` (`3 j kl + o_p`, `+ kl`, `+ 2 kl`),
             // all inside the slices since the lengths sum to `kl` (`PartLens::new`) and the
@@ -736,7 +835,6 @@ core::arch::global_asm!(
     "    ldr.w r0, [r12, #36]",
     "    ldr lr, [r0], #4",
     "    str.w r0, [r12, #36]",
-    "    str.w lr, [r12, #48]",
     "    ldr.w r7, [r12, #24]",
     "    add.w r9, r7, lr, lsl #1",
     "    add.w r0, r9, lr, lsl #1",
@@ -747,6 +845,85 @@ core::arch::global_asm!(
     "    ldr.w r0, [r12, #32]",
     "    add.w r3, r1, r0",
     "    add.w r5, r3, r0",
+    // A part of at most 504 terms (one chunk): the loop, then the sums stored, without the
+    // chunk bookkeeping below.
+    "    cmp.w lr, #504",
+    "    bhi 8f",
+    "    ldm.w r12, {{r0, r2, r4, r6, r8, r10}}",
+    "    and r11, lr, #31",
+    "    lsrs.w lr, lr, #5",
+    "    beq 15f",
+    "    dls lr, lr",
+    "13:",
+    "    vldrh.u16 q0, [r7], #16",
+    "    vldrh.u16 q1, [r9], #16",
+    "    vldrb.s16 q2, [r1], #8",
+    "    vmladava.s16 r0, q0, q2",
+    "    vmladava.s16 r6, q1, q2",
+    "    vldrb.s16 q2, [r3], #8",
+    "    vmladava.s16 r2, q0, q2",
+    "    vmladava.s16 r8, q1, q2",
+    "    vldrb.s16 q2, [r5], #8",
+    "    vmladava.s16 r4, q0, q2",
+    "    vmladava.s16 r10, q1, q2",
+    "    vldrh.u16 q0, [r7], #16",
+    "    vldrh.u16 q1, [r9], #16",
+    "    vldrb.s16 q2, [r1], #8",
+    "    vmladava.s16 r0, q0, q2",
+    "    vmladava.s16 r6, q1, q2",
+    "    vldrb.s16 q2, [r3], #8",
+    "    vmladava.s16 r2, q0, q2",
+    "    vmladava.s16 r8, q1, q2",
+    "    vldrb.s16 q2, [r5], #8",
+    "    vmladava.s16 r4, q0, q2",
+    "    vmladava.s16 r10, q1, q2",
+    "    vldrh.u16 q0, [r7], #16",
+    "    vldrh.u16 q1, [r9], #16",
+    "    vldrb.s16 q2, [r1], #8",
+    "    vmladava.s16 r0, q0, q2",
+    "    vmladava.s16 r6, q1, q2",
+    "    vldrb.s16 q2, [r3], #8",
+    "    vmladava.s16 r2, q0, q2",
+    "    vmladava.s16 r8, q1, q2",
+    "    vldrb.s16 q2, [r5], #8",
+    "    vmladava.s16 r4, q0, q2",
+    "    vmladava.s16 r10, q1, q2",
+    "    vldrh.u16 q0, [r7], #16",
+    "    vldrh.u16 q1, [r9], #16",
+    "    vldrb.s16 q2, [r1], #8",
+    "    vmladava.s16 r0, q0, q2",
+    "    vmladava.s16 r6, q1, q2",
+    "    vldrb.s16 q2, [r3], #8",
+    "    vmladava.s16 r2, q0, q2",
+    "    vmladava.s16 r8, q1, q2",
+    "    vldrb.s16 q2, [r5], #8",
+    "    vmladava.s16 r4, q0, q2",
+    "    vmladava.s16 r10, q1, q2",
+    "    le lr, 13b",
+    "15:",
+    "    wlstp.16 lr, r11, 16f",
+    "17:",
+    "    vldrh.u16 q0, [r7], #16",
+    "    vldrh.u16 q1, [r9], #16",
+    "    vldrb.s16 q2, [r1], #8",
+    "    vmladava.s16 r0, q0, q2",
+    "    vmladava.s16 r6, q1, q2",
+    "    vldrb.s16 q2, [r3], #8",
+    "    vmladava.s16 r2, q0, q2",
+    "    vmladava.s16 r8, q1, q2",
+    "    vldrb.s16 q2, [r5], #8",
+    "    vmladava.s16 r4, q0, q2",
+    "    vmladava.s16 r10, q1, q2",
+    "    letp lr, 17b",
+    "16:",
+    "    ldr.w lr, [r12, #44]",
+    "    strd r0, r2, [lr]",
+    "    str.w r4, [lr, #8]",
+    "    strd r6, r8, [lr, #48]",
+    "    str.w r10, [lr, #56]",
+    "    b 9f",
+    "8:",
+    "    str.w lr, [r12, #48]",
     "    movs r0, #0",
     "    str.w r0, [r12, #52]",
     "2:",
@@ -758,7 +935,12 @@ core::arch::global_asm!(
     "    sub.w r11, r11, lr",
     "    str.w r11, [r12, #48]",
     "    ldm.w r12, {{r0, r2, r4, r6, r8, r10}}",
-    "    dlstp.16 lr, lr",
+    // Whole groups of 32 terms unpredicated, four vectors an iteration (`LE`), then the last
+    // `n % 32` by the tail-predicated loop (skipped by `WLSTP` when 0).
+    "    and r11, lr, #31",
+    "    lsrs.w lr, lr, #5",
+    "    beq 5f",
+    "    dls lr, lr",
     "3:",
     "    vldrh.u16 q0, [r7], #16",
     "    vldrh.u16 q1, [r9], #16",
@@ -771,7 +953,56 @@ core::arch::global_asm!(
     "    vldrb.s16 q2, [r5], #8",
     "    vmladava.s16 r4, q0, q2",
     "    vmladava.s16 r10, q1, q2",
-    "    letp lr, 3b",
+    "    vldrh.u16 q0, [r7], #16",
+    "    vldrh.u16 q1, [r9], #16",
+    "    vldrb.s16 q2, [r1], #8",
+    "    vmladava.s16 r0, q0, q2",
+    "    vmladava.s16 r6, q1, q2",
+    "    vldrb.s16 q2, [r3], #8",
+    "    vmladava.s16 r2, q0, q2",
+    "    vmladava.s16 r8, q1, q2",
+    "    vldrb.s16 q2, [r5], #8",
+    "    vmladava.s16 r4, q0, q2",
+    "    vmladava.s16 r10, q1, q2",
+    "    vldrh.u16 q0, [r7], #16",
+    "    vldrh.u16 q1, [r9], #16",
+    "    vldrb.s16 q2, [r1], #8",
+    "    vmladava.s16 r0, q0, q2",
+    "    vmladava.s16 r6, q1, q2",
+    "    vldrb.s16 q2, [r3], #8",
+    "    vmladava.s16 r2, q0, q2",
+    "    vmladava.s16 r8, q1, q2",
+    "    vldrb.s16 q2, [r5], #8",
+    "    vmladava.s16 r4, q0, q2",
+    "    vmladava.s16 r10, q1, q2",
+    "    vldrh.u16 q0, [r7], #16",
+    "    vldrh.u16 q1, [r9], #16",
+    "    vldrb.s16 q2, [r1], #8",
+    "    vmladava.s16 r0, q0, q2",
+    "    vmladava.s16 r6, q1, q2",
+    "    vldrb.s16 q2, [r3], #8",
+    "    vmladava.s16 r2, q0, q2",
+    "    vmladava.s16 r8, q1, q2",
+    "    vldrb.s16 q2, [r5], #8",
+    "    vmladava.s16 r4, q0, q2",
+    "    vmladava.s16 r10, q1, q2",
+    "    le lr, 3b",
+    "5:",
+    "    wlstp.16 lr, r11, 6f",
+    "7:",
+    "    vldrh.u16 q0, [r7], #16",
+    "    vldrh.u16 q1, [r9], #16",
+    "    vldrb.s16 q2, [r1], #8",
+    "    vmladava.s16 r0, q0, q2",
+    "    vmladava.s16 r6, q1, q2",
+    "    vldrb.s16 q2, [r3], #8",
+    "    vmladava.s16 r2, q0, q2",
+    "    vmladava.s16 r8, q1, q2",
+    "    vldrb.s16 q2, [r5], #8",
+    "    vmladava.s16 r4, q0, q2",
+    "    vmladava.s16 r10, q1, q2",
+    "    letp lr, 7b",
+    "6:",
     "    ldr.w lr, [r12, #44]",
     "    ldr.w r11, [r12, #52]",
     "    cmp.w r11, #0",
@@ -797,6 +1028,7 @@ core::arch::global_asm!(
     "    ldr.w r11, [r12, #48]",
     "    cmp.w r11, #0",
     "    bne 2b",
+    "9:",
     "    add.w lr, lr, #96",
     "    str.w lr, [r12, #44]",
     "    ldr.w r11, [r12, #40]",
@@ -1078,6 +1310,294 @@ unsafe extern "C" {
     fn muir_mve_dots12_u8_1(args: *mut Dots12U8Args);
 }
 
+/// Channels per call of [`dots_flipped`]: a pixel's sums fill half of a block's table
+/// (`24 MAX_PARTS` values: pixel `a` at `0..FLIP_MAX`, pixel `b` at `FLIP_MAX..`).
+pub const FLIP_MAX: usize = 12 * MAX_PARTS;
+
+/// `x ^= 0x80` on every byte: u8 activations to `x - 128` in i8 and back (sixteen bytes per load,
+/// flip and store, tail-predicated).
+#[inline]
+pub fn flip_u8(x: &mut [u8]) {
+    if x.is_empty() {
+        return;
+    }
+    // SAFETY: `x.len()` bytes at `x` (tail-predicated: disabled lanes are neither loaded nor
+    // stored), read and written in place.
+    unsafe {
+        asm!(
+            // Whole groups of 64 bytes four vectors an iteration (`LE`), the rest
+            // tail-predicated (skipped by `WLSTP` when 0).
+            "vmov.i8 q1, #0x80",
+            "and {t}, {n}, #63",
+            "lsrs {n}, {n}, #6",
+            "beq 5f",
+            "dls lr, {n}",
+            "2:",
+            "vldrb.u8 q0, [{p}]",
+            "veor q0, q0, q1",
+            "vstrb.8 q0, [{p}], #16",
+            "vldrb.u8 q0, [{p}]",
+            "veor q0, q0, q1",
+            "vstrb.8 q0, [{p}], #16",
+            "vldrb.u8 q0, [{p}]",
+            "veor q0, q0, q1",
+            "vstrb.8 q0, [{p}], #16",
+            "vldrb.u8 q0, [{p}]",
+            "veor q0, q0, q1",
+            "vstrb.8 q0, [{p}], #16",
+            "le lr, 2b",
+            "5:",
+            "wlstp.8 lr, {t}, 6f",
+            "7:",
+            "vldrb.u8 q0, [{p}]",
+            "veor q0, q0, q1",
+            "vstrb.8 q0, [{p}], #16",
+            "letp lr, 7b",
+            "6:",
+            n = inout(reg) x.len() => _,
+            t = out(reg) _,
+            p = inout(reg) x.as_mut_ptr() => _,
+            out("lr") _,
+            out("d0") _, out("d1") _, out("d2") _, out("d3") _,
+            options(nostack),
+        );
+    }
+}
+
+/// `sum(w)` of at most `2^24` int8 values by `VADDVA.S8` (sixteen a vector; exact in i32).
+/// Longer slices: the first `2^24` values.
+#[inline]
+pub fn sum_i8(w: &[i8]) -> i32 {
+    let n = w.len().min(1 << 24);
+    if n == 0 {
+        return 0;
+    }
+    let mut s = 0i32;
+    // SAFETY: `n >= 1` bytes at `w` (tail-predicated: disabled lanes are not added).
+    unsafe {
+        asm!(
+            // Whole groups of 64 bytes four vectors an iteration (`LE`), the rest
+            // tail-predicated (skipped by `WLSTP` when 0).
+            "and {t}, {n}, #63",
+            "lsrs {n}, {n}, #6",
+            "beq 5f",
+            "dls lr, {n}",
+            "2:",
+            "vldrb.u8 q0, [{w}], #16",
+            "vaddva.s8 r0, q0",
+            "vldrb.u8 q0, [{w}], #16",
+            "vaddva.s8 r0, q0",
+            "vldrb.u8 q0, [{w}], #16",
+            "vaddva.s8 r0, q0",
+            "vldrb.u8 q0, [{w}], #16",
+            "vaddva.s8 r0, q0",
+            "le lr, 2b",
+            "5:",
+            "wlstp.8 lr, {t}, 6f",
+            "7:",
+            "vldrb.u8 q0, [{w}], #16",
+            "vaddva.s8 r0, q0",
+            "letp lr, 7b",
+            "6:",
+            n = inout(reg) n => _,
+            t = out(reg) _,
+            w = inout(reg) w.as_ptr() => _,
+            inout("r0") s,
+            out("lr") _,
+            out("d0") _, out("d1") _,
+            options(nostack, readonly),
+        );
+    }
+    s
+}
+
+/// The arguments of `muir_mve_dots_s8_1` (one part, activations flipped to `x - 128`): `w0`, `ws`
+/// and `out` advance group by group, `tri` counts the groups left.
+#[repr(C)]
+struct DotsS8Args {
+    zero: [u32; 6],
+    a: *const u8,
+    w0: *const i8,
+    kl: usize,
+    out: *mut i32,
+    ws: *const i32,
+    tri: u32,
+}
+
+/// The i32 dot products of output channels `0..cout` at the two pixels of a one-part u8 pair:
+/// `d[c] = w_c . a` and `d[FLIP_MAX + c] = w_c . b` (weight row `c` of `w`, `kl` values each;
+/// `pair`: `a`, then `b`), given `ws[c] = 128 sum(w_c)` ([`sum_i8`], wrapping). The pair's first
+/// `2 kl` values are flipped in place to `x - 128` ([`flip_u8`]) and stay so (the caller flips
+/// them back where it reads them again). One call of
+/// `muir_mve_dots_s8_1` for the whole groups of three channels (`VMLADAVA.S8` of sixteen signed
+/// pairs into six 32-bit sums, 12 instructions per 96 MACs; whole groups of 64 terms four vectors
+/// an iteration, 45 per 384), one more for channels `cout - 3 ..`
+/// when `cout` is not a multiple of 3 (those values are written twice, the same both times).
+/// `w . x = w . (x - 128) + 128 sum(w)`: the 32-bit sums wrap, but `|w . x| < 2^15 kl` is in i32
+/// for `kl < 2^16`, so the wrapped result is the exact one. Returns false, having written
+/// nothing, when `cout` is outside `3..=FLIP_MAX`, `kl` is 0 or reaches `2^16`, or `w`, `pair` or
+/// `ws` is shorter than `cout kl`, `2 kl` and `cout`.
+#[inline]
+pub fn dots_flipped(ws: &[i32], w: &[i8], kl: usize, cout: usize, pair: &mut [u8], d: &mut [i32; 24 * MAX_PARTS]) -> bool {
+    if !(3..=FLIP_MAX).contains(&cout) || kl == 0 || kl >= 1 << 16 || w.len() < cout * kl || ws.len() < cout {
+        return false;
+    }
+    let Some(pair) = pair.get_mut(..2 * kl) else {
+        return false;
+    };
+    flip_u8(pair);
+    let (whole, rest) = (cout / 3, cout % 3);
+    for (first, tri) in [(0, whole), (cout - 3, usize::from(rest != 0))] {
+        if tri == 0 {
+            continue;
+        }
+        let mut args = DotsS8Args {
+            zero: [0; 6],
+            a: pair.as_ptr(),
+            w0: w.as_ptr().wrapping_add(first * kl),
+            kl,
+            out: d.as_mut_ptr().wrapping_add(first),
+            ws: ws.as_ptr().wrapping_add(first),
+            tri: tri as u32,
+        };
+        // SAFETY: group `j < tri` reads `kl` values at 0 and `kl` of `pair`, weight rows
+        // `first + 3j .. first + 3j + 3 <= cout` of `w` and `ws[first + 3j .. + 3]`, inside the
+        // slices by the lengths checked above; it writes `d[first + 3 j + {0, 1, 2}]` and
+        // `d[FLIP_MAX + first + 3 j + {0, 1, 2}]`, inside `d` for `first + 3 j + 3 <= cout <=
+        // FLIP_MAX`.
+        unsafe { muir_mve_dots_s8_1(&mut args) };
+    }
+    true
+}
+
+const _: () = assert!(FLIP_MAX * 4 <= 1020 - 8 && 2 * FLIP_MAX == 24 * MAX_PARTS);
+
+core::arch::global_asm!(
+    ".syntax unified",
+    ".thumb",
+    ".cpu cortex-m55",
+    ".section .text.muir_mve_dots_s8_1,\"ax\",%progbits",
+    ".global muir_mve_dots_s8_1",
+    ".type muir_mve_dots_s8_1,%function",
+    ".p2align 2",
+    ".thumb_func",
+    // r0 = &mut DotsS8Args (kept in r12). Sums (even registers for VMLADAVA): pixel a's three
+    // channels in r0, r2, r4, pixel b's in r6, r8, r10; weight rows in r1, r3, r5; activations a
+    // in r7, b in r9; LR the patch length, then the loop count; r11 and (after the loop) LR
+    // scratch. Per group of three channels: weight rows at `w0`, `+ kl`, `+ 2 kl` (the next
+    // group's `w0` at `+ 3 kl`), the loop over the whole patch, `ws[0..3]` added to both pixels'
+    // sums, the sums stored at `out` (a at +0, +4, +8; b at +288, +292, +296, i.e. FLIP_MAX
+    // values on), `out` and `ws` 12 bytes on.
+    "muir_mve_dots_s8_1:",
+    "    push {{r4-r11, lr}}",
+    "    mov r12, r0",
+    "1:",
+    "    ldr.w r7, [r12, #24]",
+    "    ldrd r1, lr, [r12, #28]",
+    "    add.w r9, r7, lr",
+    "    add.w r3, r1, lr",
+    "    add.w r5, r3, lr",
+    "    add.w r0, r5, lr",
+    "    str.w r0, [r12, #28]",
+    "    ldm.w r12, {{r0, r2, r4, r6, r8, r10}}",
+    // Whole groups of 64 terms unpredicated, four vectors an iteration (`LE`), then the last
+    // `kl % 64` by the tail-predicated loop (skipped by `WLSTP` when 0).
+    "    and r11, lr, #63",
+    "    lsrs.w lr, lr, #6",
+    "    beq 5f",
+    "    dls lr, lr",
+    "2:",
+    "    vldrb.u8 q0, [r7], #16",
+    "    vldrb.u8 q1, [r9], #16",
+    "    vldrb.u8 q2, [r1], #16",
+    "    vmladava.s8 r0, q0, q2",
+    "    vmladava.s8 r6, q1, q2",
+    "    vldrb.u8 q2, [r3], #16",
+    "    vmladava.s8 r2, q0, q2",
+    "    vmladava.s8 r8, q1, q2",
+    "    vldrb.u8 q2, [r5], #16",
+    "    vmladava.s8 r4, q0, q2",
+    "    vmladava.s8 r10, q1, q2",
+    "    vldrb.u8 q0, [r7], #16",
+    "    vldrb.u8 q1, [r9], #16",
+    "    vldrb.u8 q2, [r1], #16",
+    "    vmladava.s8 r0, q0, q2",
+    "    vmladava.s8 r6, q1, q2",
+    "    vldrb.u8 q2, [r3], #16",
+    "    vmladava.s8 r2, q0, q2",
+    "    vmladava.s8 r8, q1, q2",
+    "    vldrb.u8 q2, [r5], #16",
+    "    vmladava.s8 r4, q0, q2",
+    "    vmladava.s8 r10, q1, q2",
+    "    vldrb.u8 q0, [r7], #16",
+    "    vldrb.u8 q1, [r9], #16",
+    "    vldrb.u8 q2, [r1], #16",
+    "    vmladava.s8 r0, q0, q2",
+    "    vmladava.s8 r6, q1, q2",
+    "    vldrb.u8 q2, [r3], #16",
+    "    vmladava.s8 r2, q0, q2",
+    "    vmladava.s8 r8, q1, q2",
+    "    vldrb.u8 q2, [r5], #16",
+    "    vmladava.s8 r4, q0, q2",
+    "    vmladava.s8 r10, q1, q2",
+    "    vldrb.u8 q0, [r7], #16",
+    "    vldrb.u8 q1, [r9], #16",
+    "    vldrb.u8 q2, [r1], #16",
+    "    vmladava.s8 r0, q0, q2",
+    "    vmladava.s8 r6, q1, q2",
+    "    vldrb.u8 q2, [r3], #16",
+    "    vmladava.s8 r2, q0, q2",
+    "    vmladava.s8 r8, q1, q2",
+    "    vldrb.u8 q2, [r5], #16",
+    "    vmladava.s8 r4, q0, q2",
+    "    vmladava.s8 r10, q1, q2",
+    "    le lr, 2b",
+    "5:",
+    "    wlstp.8 lr, r11, 6f",
+    "7:",
+    "    vldrb.u8 q0, [r7], #16",
+    "    vldrb.u8 q1, [r9], #16",
+    "    vldrb.u8 q2, [r1], #16",
+    "    vmladava.s8 r0, q0, q2",
+    "    vmladava.s8 r6, q1, q2",
+    "    vldrb.u8 q2, [r3], #16",
+    "    vmladava.s8 r2, q0, q2",
+    "    vmladava.s8 r8, q1, q2",
+    "    vldrb.u8 q2, [r5], #16",
+    "    vmladava.s8 r4, q0, q2",
+    "    vmladava.s8 r10, q1, q2",
+    "    letp lr, 7b",
+    "6:",
+    "    ldr.w lr, [r12, #40]",
+    "    ldr r11, [lr], #4",
+    "    add.w r0, r0, r11",
+    "    add.w r6, r6, r11",
+    "    ldr r11, [lr], #4",
+    "    add.w r2, r2, r11",
+    "    add.w r8, r8, r11",
+    "    ldr r11, [lr], #4",
+    "    add.w r4, r4, r11",
+    "    add.w r10, r10, r11",
+    "    str.w lr, [r12, #40]",
+    "    ldr.w lr, [r12, #36]",
+    "    strd r0, r2, [lr]",
+    "    str.w r4, [lr, #8]",
+    "    strd r6, r8, [lr, #288]",
+    "    str.w r10, [lr, #296]",
+    "    add.w lr, lr, #12",
+    "    str.w lr, [r12, #36]",
+    "    ldr.w r11, [r12, #44]",
+    "    subs.w r11, r11, #1",
+    "    str.w r11, [r12, #44]",
+    "    bne 1b",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_mve_dots_s8_1, . - muir_mve_dots_s8_1",
+);
+
+unsafe extern "C" {
+    fn muir_mve_dots_s8_1(args: *mut DotsS8Args);
+}
+
 /// The per-layer constants of [`requant4`]: four 32-bit lanes each.
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(16))]
@@ -1132,6 +1652,31 @@ pub trait Narrow: Copy {
     /// # Safety
     /// See [`requant4_lut_wide`].
     unsafe fn requant4w_lut_n(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: &[i16; 1025], out: *mut Self);
+    /// [`requant4_pair`] for this output type (parts 32 bytes apart).
+    ///
+    /// # Safety
+    /// See [`requant4_pair`].
+    unsafe fn requant4x2_n(d: [*const i32; 2], mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: Option<&[i16; 1025]>, out: [*mut Self; 2]);
+    /// [`requant4_pair`] for this output type, parts 96 bytes apart.
+    ///
+    /// # Safety
+    /// See [`requant4_pair`].
+    unsafe fn requant4x2w_n(d: [*const i32; 2], mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: Option<&[i16; 1025]>, out: [*mut Self; 2]);
+    /// [`requant4_groups`]' loop for this output type (parts 32 bytes apart).
+    ///
+    /// # Safety
+    /// See [`requant4_groups`].
+    unsafe fn requant4g_n(g: *mut GroupState, k: &Requant4, table: Option<&[i16; 1025]>);
+    /// [`requant4_groups`]' loop for this output type, parts 96 bytes apart.
+    ///
+    /// # Safety
+    /// See [`requant4_groups`].
+    unsafe fn requant4gw_n(g: *mut GroupState, k: &Requant4, table: Option<&[i16; 1025]>);
+    /// [`requant4_groups`]' loop for this output type, one part, no table.
+    ///
+    /// # Safety
+    /// See [`requant4_groups`] (`np == 1`, no table).
+    unsafe fn requant4g1_n(g: *mut GroupState, k: &Requant4);
 }
 
 /// The requantisation both [`Narrow`] kernels share, as one `asm!` template piece: the bias
@@ -1238,21 +1783,456 @@ macro_rules! narrow_fns {
     };
 }
 
-/// The [`Narrow`] kernels of one output type: [`requant4`]'s and [`requant4_lut`]'s, parts 32
-/// bytes apart, and their twins for the twelve-channel block's table (parts 96 bytes apart,
-/// [`requant4_wide`]).
-macro_rules! narrow {
-    ($t:ty, $store:literal) => {
-        impl Narrow for $t {
-            narrow_fns!($store, requant4_n, requant4_lut_n, "32");
-            narrow_fns!($store, requant4w_n, requant4w_lut_n, "96");
+/// [`requant4_sums`] for two pixels at once: the multipliers and shifts of each part gathered
+/// once for both; pixel `a`'s sums in q6, `b`'s in q5 (both start from the gathered bias), its
+/// dot products read through `{da}` and `{db}`; q7 the multipliers' offsets, `{m4}` the shift
+/// bytes' base (`r1 + 4`), `{c32}` the constant 32; then both rounded by 8 bits and clamped to
+/// `[k + 16, k + 32]`. Temporaries q0-q4.
+macro_rules! requant4_sums_pair {
+    ($stride:literal) => {
+        concat!(
+            "vldrw.u32 q0, [{k}, #48]\n",
+            "vldrw.u32 q6, [{c32}, q0]\n",
+            "vmov q5, q6\n",
+            "vldrw.u32 q7, [{k}]\n",
+            "mov.w {c32}, #32\n",
+            "2:\n",
+            "vldrw.u32 q2, [r1, q7]\n",
+            "vldrb.u32 q3, [{m4}, q7]\n",
+            "vneg.s32 q3, q3\n",
+            "vadd.i32 q4, q3, {c32}\n",
+            "vldrw.u32 q0, [{da}], #", $stride, "\n",
+            "vmulh.s32 q1, q0, q2\n",
+            "vmul.i32 q0, q0, q2\n",
+            "vrshl.u32 q0, q0, q3\n",
+            "vqrshl.s32 q1, q1, q4\n",
+            "vqadd.s32 q1, q1, q0\n",
+            "vqadd.s32 q6, q6, q1\n",
+            "vldrw.u32 q0, [{db}], #", $stride, "\n",
+            "vmulh.s32 q1, q0, q2\n",
+            "vmul.i32 q0, q0, q2\n",
+            "vrshl.u32 q0, q0, q3\n",
+            "vqrshl.s32 q1, q1, q4\n",
+            "vqadd.s32 q1, q1, q0\n",
+            "vqadd.s32 q5, q5, q1\n",
+            "add r1, r1, #8\n",
+            "add {m4}, {m4}, #8\n",
+            "subs {n}, {n}, #1\n",
+            "bne 2b\n",
+            "vrshr.s32 q6, q6, #8\n",
+            "vrshr.s32 q5, q5, #8\n",
+            "vldrw.u32 q1, [{k}, #16]\n",
+            "vmax.s32 q6, q6, q1\n",
+            "vmax.s32 q5, q5, q1\n",
+            "vldrw.u32 q1, [{k}, #32]\n",
+            "vmin.s32 q6, q6, q1\n",
+            "vmin.s32 q5, q5, q1\n",
+        )
+    };
+}
+
+/// [`requant4_sums_pair`] for one part (no part loop; `{n}` unused).
+macro_rules! requant4_sums_pair1 {
+    () => {
+        concat!(
+            "vldrw.u32 q0, [{k}, #48]\n",
+            "vldrw.u32 q6, [{c32}, q0]\n",
+            "vmov q5, q6\n",
+            "vldrw.u32 q7, [{k}]\n",
+            "mov.w {c32}, #32\n",
+            "vldrw.u32 q2, [r1, q7]\n",
+            "vldrb.u32 q3, [{m4}, q7]\n",
+            "vneg.s32 q3, q3\n",
+            "vadd.i32 q4, q3, {c32}\n",
+            "vldrw.u32 q0, [{da}]\n",
+            "vmulh.s32 q1, q0, q2\n",
+            "vmul.i32 q0, q0, q2\n",
+            "vrshl.u32 q0, q0, q3\n",
+            "vqrshl.s32 q1, q1, q4\n",
+            "vqadd.s32 q1, q1, q0\n",
+            "vqadd.s32 q6, q6, q1\n",
+            "vldrw.u32 q0, [{db}]\n",
+            "vmulh.s32 q1, q0, q2\n",
+            "vmul.i32 q0, q0, q2\n",
+            "vrshl.u32 q0, q0, q3\n",
+            "vqrshl.s32 q1, q1, q4\n",
+            "vqadd.s32 q1, q1, q0\n",
+            "vqadd.s32 q5, q5, q1\n",
+            "vrshr.s32 q6, q6, #8\n",
+            "vrshr.s32 q5, q5, #8\n",
+            "vldrw.u32 q1, [{k}, #16]\n",
+            "vmax.s32 q6, q6, q1\n",
+            "vmax.s32 q5, q5, q1\n",
+            "vldrw.u32 q1, [{k}, #32]\n",
+            "vmin.s32 q6, q6, q1\n",
+            "vmin.s32 q5, q5, q1\n",
+        )
+    };
+}
+
+/// The table of [`requant4_lut`] on the clamped q-register `$q` (temporaries q0-q4, `{tab}` the
+/// table, `{tab1}` the table one entry on), then the clamp to `[k + 64, k + 80]`.
+macro_rules! lut_pair_piece {
+    ($q:literal) => {
+        concat!(
+            "vmov.i32 q1, #0x8000\n",
+            "vadd.i32 ", $q, ", ", $q, ", q1\n",
+            "vshr.u32 q2, ", $q, ", #6\n",
+            "vmov.i32 q1, #63\n",
+            "vand ", $q, ", ", $q, ", q1\n",
+            "vldrh.s32 q3, [{tab}, q2, uxtw #1]\n",
+            "vldrh.s32 q4, [{tab1}, q2, uxtw #1]\n",
+            "vsub.i32 q4, q4, q3\n",
+            "vmul.i32 q4, q4, ", $q, "\n",
+            "vrshr.s32 q4, q4, #6\n",
+            "vadd.i32 ", $q, ", q3, q4\n",
+        )
+    };
+}
+
+/// The two-pixel kernels of one output type ([`requant4_pair`]): `$store` the narrowing store
+/// (low base registers r0 and r2 here).
+macro_rules! narrow_pair_fn {
+    ($store:literal, $name:ident, $stride:literal) => {
+        #[inline(always)]
+        unsafe fn $name(d: [*const i32; 2], mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: Option<&[i16; 1025]>, out: [*mut Self; 2]) {
+            // SAFETY: the caller's bounds (`requant4_pair`); registers as listed.
+            unsafe {
+                match table {
+                    None => asm!(
+                        requant4_sums_pair!($stride),
+                        concat!($store, " q6, [r0]"),
+                        concat!($store, " q5, [r2]"),
+                        k = in(reg) k as *const Requant4,
+                        c32 = inout(reg) bias => _,
+                        da = inout(reg) d[0] => _,
+                        db = inout(reg) d[1] => _,
+                        n = inout(reg) np => _,
+                        m4 = inout(reg) mult.wrapping_add(4) => _,
+                        inout("r1") mult => _,
+                        in("r0") out[0],
+                        in("r2") out[1],
+                        out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+                        out("d8") _, out("d9") _, out("d10") _, out("d11") _, out("d12") _, out("d13") _, out("d14") _, out("d15") _,
+                        options(nostack),
+                    ),
+                    // The table's clamp before it is `-32768..=32767` (`Requant4` of
+                    // `requant4_lut`): entries `i`, `i + 1` for `i <= 1023`.
+                    Some(t) => asm!(
+                        requant4_sums_pair!($stride),
+                        "add.w {tab1}, {tab}, #2",
+                        lut_pair_piece!("q6"),
+                        lut_pair_piece!("q5"),
+                        "vldrw.u32 q1, [{k}, #64]",
+                        "vmax.s32 q6, q6, q1",
+                        "vmax.s32 q5, q5, q1",
+                        "vldrw.u32 q1, [{k}, #80]",
+                        "vmin.s32 q6, q6, q1",
+                        "vmin.s32 q5, q5, q1",
+                        concat!($store, " q6, [r0]"),
+                        concat!($store, " q5, [r2]"),
+                        k = in(reg) k as *const Requant4,
+                        c32 = inout(reg) bias => _,
+                        da = inout(reg) d[0] => _,
+                        db = inout(reg) d[1] => _,
+                        n = inout(reg) np => _,
+                        m4 = inout(reg) mult.wrapping_add(4) => _,
+                        tab = in(reg) t.as_ptr(),
+                        tab1 = out(reg) _,
+                        inout("r1") mult => _,
+                        in("r0") out[0],
+                        in("r2") out[1],
+                        out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+                        out("d8") _, out("d9") _, out("d10") _, out("d11") _, out("d12") _, out("d13") _, out("d14") _, out("d15") _,
+                        options(nostack),
+                    ),
+                }
+            }
         }
     };
 }
 
-narrow!(u8, "vstrb.32");
-narrow!(i8, "vstrb.32");
-narrow!(i16, "vstrh.32");
+/// The state of [`requant4_groups`]' loop over groups of four channels, advanced in place (built
+/// by [`requant4_groups`] only).
+#[repr(C)]
+pub struct GroupState {
+    /// Pixel `a`'s and `b`'s dot products of the group (part 0).
+    da: *const i32,
+    db: *const i32,
+    /// The group's multipliers and biases.
+    mult: *const u8,
+    bias: *const u8,
+    /// Pixel `a`'s and `b`'s four outputs of the group.
+    oa: usize,
+    ob: usize,
+    /// Groups left; the parts; bit `g` set when group `g` saturated; the current group's bit.
+    left: u32,
+    np: u32,
+    mask: u32,
+    bit: u32,
+}
+
+/// The per-group loop of [`requant4_groups`] around [`requant4_sums_pair`]: `$size` is the output
+/// bytes of four values, `$lut` the table piece (empty without a table). State in `{g}`
+/// ([`GroupState`]), `{da}`/`{db}`/`{c32}` reloaded per group.
+macro_rules! groups_loop {
+    ($store:literal, $size:literal, $stride:literal, $lut:expr) => {
+        concat!(
+            "1:\n",
+            "ldrd {da}, {db}, [{g}]\n",
+            "ldrd r1, {c32}, [{g}, #8]\n",
+            "add.w {m4}, r1, #4\n",
+            "ldr.w {n}, [{g}, #28]\n",
+            requant4_sums_pair!($stride),
+            $lut,
+            "ldrd r0, r2, [{g}, #16]\n",
+            $store, " q6, [r0]\n",
+            $store, " q5, [r2]\n",
+            "adds r0, r0, #", $size, "\n",
+            "adds r2, r2, #", $size, "\n",
+            "strd r0, r2, [{g}, #16]\n",
+            "ldrd {da}, {db}, [{g}]\n",
+            "adds {da}, {da}, #16\n",
+            "adds {db}, {db}, #16\n",
+            "strd {da}, {db}, [{g}]\n",
+            "ldrd r1, {c32}, [{g}, #8]\n",
+            "ldr.w {n}, [{g}, #28]\n",
+            "add.w r1, r1, {n}, lsl #5\n",
+            "adds {c32}, {c32}, #32\n",
+            "strd r1, {c32}, [{g}, #8]\n",
+            "vmrs {n}, fpscr\n",
+            "tst.w {n}, #0x8000000\n",
+            "beq 3f\n",
+            "bic {n}, {n}, #0x8000000\n",
+            "vmsr fpscr, {n}\n",
+            "ldrd {n}, {da}, [{g}, #32]\n",
+            "orrs {n}, {n}, {da}\n",
+            "str.w {n}, [{g}, #32]\n",
+            "3:\n",
+            "ldr.w {n}, [{g}, #36]\n",
+            "lsls {n}, {n}, #1\n",
+            "str.w {n}, [{g}, #36]\n",
+            "ldr.w {n}, [{g}, #24]\n",
+            "subs {n}, {n}, #1\n",
+            "str.w {n}, [{g}, #24]\n",
+            "bne 1b\n",
+        )
+    };
+}
+
+/// [`groups_loop`] without a table, two registers spare: the parts in `{np}` and the groups
+/// left in `{left}` instead of the state's fields (three loads and a store fewer per group).
+macro_rules! groups_loop_reg {
+    ($store:literal, $size:literal, $stride:literal) => {
+        concat!(
+            "1:\n",
+            "ldrd {da}, {db}, [{g}]\n",
+            "ldrd r1, {c32}, [{g}, #8]\n",
+            "add.w {m4}, r1, #4\n",
+            "mov {n}, {np}\n",
+            requant4_sums_pair!($stride),
+            "ldrd r0, r2, [{g}, #16]\n",
+            $store, " q6, [r0]\n",
+            $store, " q5, [r2]\n",
+            "adds r0, r0, #", $size, "\n",
+            "adds r2, r2, #", $size, "\n",
+            "strd r0, r2, [{g}, #16]\n",
+            "ldrd {da}, {db}, [{g}]\n",
+            "adds {da}, {da}, #16\n",
+            "adds {db}, {db}, #16\n",
+            "strd {da}, {db}, [{g}]\n",
+            "ldrd r1, {c32}, [{g}, #8]\n",
+            "add.w r1, r1, {np}, lsl #5\n",
+            "adds {c32}, {c32}, #32\n",
+            "strd r1, {c32}, [{g}, #8]\n",
+            "vmrs {n}, fpscr\n",
+            "tst.w {n}, #0x8000000\n",
+            "beq 3f\n",
+            "bic {n}, {n}, #0x8000000\n",
+            "vmsr fpscr, {n}\n",
+            "ldrd {n}, {da}, [{g}, #32]\n",
+            "orrs {n}, {n}, {da}\n",
+            "str.w {n}, [{g}, #32]\n",
+            "3:\n",
+            "ldr.w {n}, [{g}, #36]\n",
+            "lsls {n}, {n}, #1\n",
+            "str.w {n}, [{g}, #36]\n",
+            "subs {left}, {left}, #1\n",
+            "bne 1b\n",
+        )
+    };
+}
+
+/// [`groups_loop_reg`] for one part: no part loop, the multipliers 32 bytes a group.
+macro_rules! groups_loop_reg1 {
+    ($store:literal, $size:literal) => {
+        concat!(
+            "1:\n",
+            "ldrd {da}, {db}, [{g}]\n",
+            "ldrd r1, {c32}, [{g}, #8]\n",
+            "add.w {m4}, r1, #4\n",
+            requant4_sums_pair1!(),
+            "ldrd r0, r2, [{g}, #16]\n",
+            $store, " q6, [r0]\n",
+            $store, " q5, [r2]\n",
+            "adds r0, r0, #", $size, "\n",
+            "adds r2, r2, #", $size, "\n",
+            "strd r0, r2, [{g}, #16]\n",
+            "ldrd {da}, {db}, [{g}]\n",
+            "adds {da}, {da}, #16\n",
+            "adds {db}, {db}, #16\n",
+            "strd {da}, {db}, [{g}]\n",
+            "ldrd r1, {c32}, [{g}, #8]\n",
+            "add.w r1, r1, #32\n",
+            "adds {c32}, {c32}, #32\n",
+            "strd r1, {c32}, [{g}, #8]\n",
+            "vmrs {n}, fpscr\n",
+            "tst.w {n}, #0x8000000\n",
+            "beq 3f\n",
+            "bic {n}, {n}, #0x8000000\n",
+            "vmsr fpscr, {n}\n",
+            "ldrd {n}, {da}, [{g}, #32]\n",
+            "orrs {n}, {n}, {da}\n",
+            "str.w {n}, [{g}, #32]\n",
+            "3:\n",
+            "ldr.w {n}, [{g}, #36]\n",
+            "lsls {n}, {n}, #1\n",
+            "str.w {n}, [{g}, #36]\n",
+            "subs {left}, {left}, #1\n",
+            "bne 1b\n",
+        )
+    };
+}
+
+/// The table piece of [`groups_loop`] (after the clamp to `[k + 16, k + 32]`): both pixels
+/// through the sigmoid or tanh table (`{da}` as the table one entry on), then the clamp to
+/// `[k + 64, k + 80]`.
+macro_rules! groups_lut {
+    () => {
+        concat!(
+            "add.w {da}, {tab}, #2\n",
+            lut_pair_piece_da!("q6"),
+            lut_pair_piece_da!("q5"),
+            "vldrw.u32 q1, [{k}, #64]\n",
+            "vmax.s32 q6, q6, q1\n",
+            "vmax.s32 q5, q5, q1\n",
+            "vldrw.u32 q1, [{k}, #80]\n",
+            "vmin.s32 q6, q6, q1\n",
+            "vmin.s32 q5, q5, q1\n",
+        )
+    };
+}
+
+/// [`lut_pair_piece`] with the table one entry on in `{da}`.
+macro_rules! lut_pair_piece_da {
+    ($q:literal) => {
+        concat!(
+            "vmov.i32 q1, #0x8000\n",
+            "vadd.i32 ", $q, ", ", $q, ", q1\n",
+            "vshr.u32 q2, ", $q, ", #6\n",
+            "vmov.i32 q1, #63\n",
+            "vand ", $q, ", ", $q, ", q1\n",
+            "vldrh.s32 q3, [{tab}, q2, uxtw #1]\n",
+            "vldrh.s32 q4, [{da}, q2, uxtw #1]\n",
+            "vsub.i32 q4, q4, q3\n",
+            "vmul.i32 q4, q4, ", $q, "\n",
+            "vrshr.s32 q4, q4, #6\n",
+            "vadd.i32 ", $q, ", q3, q4\n",
+        )
+    };
+}
+
+/// The group loops of one output type (parts `$stride` bytes apart), with and without a table.
+macro_rules! narrow_groups_fn {
+    ($store:literal, $size:literal, $name:ident, $stride:literal) => {
+        #[inline(always)]
+        unsafe fn $name(g: *mut GroupState, k: &Requant4, table: Option<&[i16; 1025]>) {
+            // SAFETY: the caller's bounds (`requant4_groups`); registers as listed.
+            unsafe {
+                match table {
+                    None => asm!(
+                        groups_loop_reg!($store, $size, $stride),
+                        g = in(reg) g,
+                        k = in(reg) k as *const Requant4,
+                        np = in(reg) (*g).np,
+                        left = inout(reg) (*g).left => _,
+                        c32 = out(reg) _,
+                        da = out(reg) _,
+                        db = out(reg) _,
+                        n = out(reg) _,
+                        m4 = out(reg) _,
+                        out("r0") _,
+                        out("r1") _,
+                        out("r2") _,
+                        out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+                        out("d8") _, out("d9") _, out("d10") _, out("d11") _, out("d12") _, out("d13") _, out("d14") _, out("d15") _,
+                        options(nostack),
+                    ),
+                    Some(t) => asm!(
+                        groups_loop!($store, $size, $stride, groups_lut!()),
+                        g = in(reg) g,
+                        k = in(reg) k as *const Requant4,
+                        tab = in(reg) t.as_ptr(),
+                        c32 = out(reg) _,
+                        da = out(reg) _,
+                        db = out(reg) _,
+                        n = out(reg) _,
+                        m4 = out(reg) _,
+                        out("r0") _,
+                        out("r1") _,
+                        out("r2") _,
+                        out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+                        out("d8") _, out("d9") _, out("d10") _, out("d11") _, out("d12") _, out("d13") _, out("d14") _, out("d15") _,
+                        options(nostack),
+                    ),
+                }
+            }
+        }
+    };
+}
+
+/// The [`Narrow`] kernels of one output type: [`requant4`]'s and [`requant4_lut`]'s, parts 32
+/// bytes apart, and their twins for the twelve-channel block's table (parts 96 bytes apart,
+/// [`requant4_wide`]).
+macro_rules! narrow {
+    ($t:ty, $store:literal, $size:literal) => {
+        impl Narrow for $t {
+            narrow_fns!($store, requant4_n, requant4_lut_n, "32");
+            narrow_fns!($store, requant4w_n, requant4w_lut_n, "96");
+            narrow_pair_fn!($store, requant4x2_n, "32");
+            narrow_pair_fn!($store, requant4x2w_n, "96");
+            narrow_groups_fn!($store, $size, requant4g_n, "32");
+            narrow_groups_fn!($store, $size, requant4gw_n, "96");
+            #[inline(always)]
+            unsafe fn requant4g1_n(g: *mut GroupState, k: &Requant4) {
+                // SAFETY: the caller's bounds (`requant4_groups`, one part); registers as listed.
+                unsafe {
+                    asm!(
+                        groups_loop_reg1!($store, $size),
+                        g = in(reg) g,
+                        k = in(reg) k as *const Requant4,
+                        left = inout(reg) (*g).left => _,
+                        c32 = out(reg) _,
+                        da = out(reg) _,
+                        db = out(reg) _,
+                        n = out(reg) _,
+                        m4 = out(reg) _,
+                        out("r0") _,
+                        out("r1") _,
+                        out("r2") _,
+                        out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
+                        out("d8") _, out("d9") _, out("d10") _, out("d11") _, out("d12") _, out("d13") _, out("d14") _, out("d15") _,
+                        options(nostack),
+                    )
+                }
+            }
+        }
+    };
+}
+
+narrow!(u8, "vstrb.32", "4");
+narrow!(i8, "vstrb.32", "4");
+narrow!(i16, "vstrh.32", "8");
 
 /// The convolution epilogue of four output channels `c .. c + 4` at one pixel, on 32-bit lanes:
 /// `out[i] = clamp(rshift_round(bias[c + i] + sum_p requantize_i32(d[8 p + i], mult(c + i, p)),
@@ -1315,6 +2295,53 @@ pub unsafe fn requant4_wide<O: Narrow>(d: *const i32, mult: *const u8, k: &Requa
 pub unsafe fn requant4_lut_wide<O: Narrow>(d: *const i32, mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: &[i16; 1025], out: *mut O) {
     // SAFETY: forwarded.
     unsafe { O::requant4w_lut_n(d, mult, k, np, bias, table, out) }
+}
+
+/// [`requant4`] (`table` `None`) or [`requant4_lut`] (`Some`) of two pixels at once: pixel `i`'s
+/// dot products at `d[i]` (four per part, parts 32 bytes apart, or 96 with `wide`), its four
+/// outputs at `out[i]`; the same multipliers and biases. Each part's multipliers and shifts are
+/// gathered once for both pixels. The same values as two calls, the same `FPSCR.QC` semantics.
+///
+/// # Safety
+/// As [`requant4`] (or [`requant4_lut`] with a table) for each pixel; `out[0]` and `out[1]` do
+/// not overlap.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+pub unsafe fn requant4_pair<O: Narrow>(d: [*const i32; 2], mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: Option<&[i16; 1025]>, wide: bool, out: [*mut O; 2]) {
+    // SAFETY: forwarded.
+    unsafe {
+        if wide {
+            O::requant4x2w_n(d, mult, k, np, bias, table, out)
+        } else {
+            O::requant4x2_n(d, mult, k, np, bias, table, out)
+        }
+    }
+}
+
+/// [`requant4_pair`] for `groups` consecutive groups of four channels in one call: group `g`'s
+/// dot products at `d[i] + 4 g` (pixel `i`; parts 32 or, with `wide`, 96 bytes apart), its
+/// multipliers at `mult + 32 np g`, biases at `bias + 32 g`, outputs at `out[i] + 4 g`. Returns
+/// the groups whose epilogue saturated (`FPSCR.QC` tested and cleared after each group: bit `g`);
+/// the outputs are [`requant4_pair`]'s.
+///
+/// # Safety
+/// As [`requant4_pair`] for every group (`d[i] + 4 g`, ..., each within its bounds); `1 <=
+/// groups <= 32`; the outputs of all groups of both pixels do not overlap.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+pub unsafe fn requant4_groups<O: Narrow>(d: [*const i32; 2], mult: *const u8, k: &Requant4, np: usize, bias: *const u8, table: Option<&[i16; 1025]>, wide: bool, out: [*mut O; 2], groups: usize) -> u32 {
+    let mut g = GroupState { da: d[0], db: d[1], mult, bias, oa: out[0] as usize, ob: out[1] as usize, left: groups as u32, np: np as u32, mask: 0, bit: 1 };
+    // SAFETY: forwarded; `g` lives across the call.
+    unsafe {
+        if np == 1 && table.is_none() {
+            O::requant4g1_n(&mut g, k)
+        } else if wide {
+            O::requant4gw_n(&mut g, k, table)
+        } else {
+            O::requant4g_n(&mut g, k, table)
+        }
+    }
+    g.mask
 }
 
 /// Whether a saturating vector instruction saturated since the flag was last cleared
