@@ -1941,6 +1941,34 @@ fn check_residual(r: &mut Rng) -> usize {
     cases
 }
 
+/// `mve::zero` (the patches' padding columns) on u8 and i16 slices of 0 to 40 and 63-65, 127-129
+/// values at every start offset 0-3 in a buffer of random bytes: every value of the slice 0, the
+/// values before and after it untouched.
+#[cfg(feature = "mve")]
+fn check_zero(r: &mut Rng) -> usize {
+    let mut cases = 0;
+    let mut b8 = [0u8; 140];
+    let mut b16 = [0i16; 140];
+    for n in (0..=40usize).chain([63, 64, 65, 127, 128, 129]) {
+        for at in 0..4usize {
+            for (x, y) in b8.iter_mut().zip(b16.iter_mut()) {
+                (*x, *y) = ((r.next() >> 56) as u8 | 1, (r.next() >> 48) as i16 | 1);
+            }
+            let (k8, k16) = (b8, b16);
+            muir::kernels::mve::zero(&mut b8[at..at + n]);
+            muir::kernels::mve::zero(&mut b16[at..at + n]);
+            for i in 0..140 {
+                let inside = (at..at + n).contains(&i);
+                if b8[i] != if inside { 0 } else { k8[i] } || b16[i] != if inside { 0 } else { k16[i] } {
+                    fail("mve zero", n * 10 + at, &[i as i64, b8[i] as i64, b16[i] as i64], &[]);
+                }
+            }
+            cases += 1;
+        }
+    }
+    cases
+}
+
 /// `mve::max_abs_i32` against the scalar maximum of `unsigned_abs`: lengths around the vector
 /// width, random, small, `i32::MIN`/`MAX` values, the largest value at each position, a
 /// sentinel `i32::MIN` after the last element (which must not be read).
@@ -2503,6 +2531,7 @@ fn main() -> ! {
         cases += check_q15(&mut *i16s.a, &mut *i16s.b, &mut r);
         cases += check_residual(&mut r);
         cases += check_max_abs(&mut r);
+        cases += check_zero(&mut r);
         cases += check_dots_flipped(&mut *u8s.pair, &mut r);
         cases += check_requant_pair(&mut r);
         cases += check_requant_groups(&mut r);

@@ -309,10 +309,16 @@ fn gather_part<T: Elem>(k: usize, stride: usize, rows: &PartRows<'_, T>, ch: usi
                 for (kx, dc) in d.chunks_exact_mut(ch).enumerate() {
                     match column(Some(r), (x0 + kx) as isize - pad as isize, w_in, ch) {
                         Some(s) => dc.iter_mut().zip(s).for_each(|(d, s)| *d = *s),
+                        #[cfg(all(target_arch = "arm", feature = "mve"))]
+                        None => super::mve::zero(dc),
+                        #[cfg(not(all(target_arch = "arm", feature = "mve")))]
                         None => dc.fill(T::default()),
                     }
                 }
             }
+            #[cfg(all(target_arch = "arm", feature = "mve"))]
+            None => super::mve::zero(d),
+            #[cfg(not(all(target_arch = "arm", feature = "mve")))]
             None => d.fill(T::default()),
         }
     }
