@@ -921,6 +921,24 @@ pub fn conv_row_i16_w16(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
     conv_row_w16(p, inputs, w_in, out, single, rest, |ox, _, slot| gather2(p, inputs, w_in, ox, slot))
 }
 
+/// Fewest pixel pairs per widening for which [`conv_row_i16_w16`] runs before
+/// [`conv_row_i16_nat`] (with fewer, the in-place path first where it applies).
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+const W16_NAT_PAIRS: usize = 3;
+
+/// The i16 rows' own path on the DSP build: [`conv_row_i16_w16`] where the scratch holds at
+/// least [`W16_NAT_PAIRS`] pairs of patches, else [`conv_row_i16_nat`] first; false, having
+/// computed nothing, where neither applies.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+pub fn conv_row_i16_wide(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: usize, out: &mut OutRow<'_>, scratch: &mut [u8]) -> bool {
+    let kl = p.patch_len();
+    let pairs = scratch.len().saturating_sub(2 * kl + 4 * w16_words(p) + 8) / (4 * kl).max(1);
+    if pairs < W16_NAT_PAIRS && conv_row_i16_nat(p, inputs, w_in, out, scratch) {
+        return true;
+    }
+    conv_row_i16_w16(p, inputs, w_in, out, scratch) || conv_row_i16_nat(p, inputs, w_in, out, scratch)
+}
+
 /// [`conv_row_i16_w16`] with the gathered pairs of patches in `spare` (arena bytes idle while
 /// the layer runs: the ConvGRU 1/16 gates, whose pairs do not fit the engine's patch scratch,
 /// take the 1/8 pass's line buffers) and the patch for the odd channel and pixel and the widened
