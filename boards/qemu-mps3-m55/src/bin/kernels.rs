@@ -140,6 +140,12 @@ fn check_w16(buf: &Buffers<i16>, ww: &mut [u32; MAX_N], n: usize) -> usize {
             Some(got) => fail("i16 dot2x2_w16_i32", n, &got.map(i64::from), &want),
             None => fail("i16 dot2x2_w16_i32 (no result)", n, &[], &want),
         }
+        // The same pair as the only one of `dot2x2_w16_i32_n` (several pairs: `check_conv`'s
+        // one-part layers through `run_conv`).
+        let mut got = [[0x5A5A_5A5Ai32; 4]; 2];
+        if !dsp::dot2x2_w16_i32_n(ww, &buf.pair[..2 * n], q, &mut got[..1]) || got[0].map(i64::from) != want || got[1] != [0x5A5A_5A5A; 4] {
+            fail("i16 dot2x2_w16_i32_n", n, &got[0].map(i64::from), &want);
+        }
     }
     match dsp::dot2x2_w16(ww, w0, w1, &buf.pair[..2 * n], n) {
         Some(got) if got == want => 1,
@@ -1139,6 +1145,26 @@ fn check_requant_dsp(r: &mut Rng) -> usize {
                 process::exit(1);
             }
             cases += 1;
+            // The one-part epilogue folded into one multiply-add (`dsp::Folded`): the short
+            // path's `(requantize + bias + 2^7) >> 8`, where it is made (shifts 24 to 62, the
+            // folded constant within 2^62), for biases of either sign up to 2^40.
+            let bias = match i % 4 {
+                0 => 0,
+                1 => ((r.next() >> 40) as i64) - (1 << 23),
+                2 => ((r.next() >> 24) as i64) - (1 << 39),
+                _ => [-(1i64 << 40) + 1, -129, -128, 127, (1 << 40) - 1][(r.next() % 5) as usize],
+            };
+            if let Some(f) = dsp::Folded::new(mult, bias) {
+                let (got, want) = (f.apply(acc) as i64, (want + bias + 128) >> 8);
+                if got != want {
+                    println!("MUIR-KERNELS FAILED dsp::Folded({acc}, m={m}, shift={shift}, bias={bias}): {got}, short path {want}");
+                    process::exit(1);
+                }
+                cases += 1;
+            } else if (24..=40).contains(&shift) && bias.abs() < 1 << 20 {
+                println!("MUIR-KERNELS FAILED dsp::Folded not made for shift={shift}, bias={bias}");
+                process::exit(1);
+            }
         }
     }
     cases

@@ -817,11 +817,11 @@ fn conv_row_w16_in<T: Elem>(
                 wo += n / 4 * 4;
             }
             let ww = &*ww;
-            let slots = slots.chunks_exact((2 * kl).max(1)).take(n);
             if let [_] = p.parts {
-                w16_one_part(p, kl, ww, w0, w1, m, b, slots, out, ox, 2 * cp);
+                w16_one_part(p, kl, ww, w0, w1, m, b, slots.get(..2 * kl * n).unwrap_or_default(), n, out, ox, 2 * cp);
                 continue;
             }
+            let slots = slots.chunks_exact((2 * kl).max(1)).take(n);
             for (i, slot) in slots.enumerate() {
                 let x = ox + 2 * i;
                 block2x2_by(p, m, b, out, x * p.cout, (x + 1) * p.cout, 2 * cp, |o, n, wo| {
@@ -844,11 +844,15 @@ fn conv_row_w16_in<T: Elem>(
 
 /// [`conv_row_w16_in`]'s channel pair `c`, `c + 1` for a one-part layer: [`block2x2_by`]'s
 /// integers with the pair's multipliers, biases and short-epilogue test decoded once for all the
-/// gathered pairs of pixels (`slots`, the first at pixel `ox`) instead of once per pair.
+/// `n` gathered pairs of pixels (`slots`, `2 kl` values each, the first at pixel `ox`) instead of
+/// once per pair. A patch of whole groups in one i32 chunk: the sums of all the pairs by one
+/// assembly call ([`super::dsp::dot2x2_w16_i32_n`]), then, where both channels' requantisation
+/// and bias fold into one multiply-add ([`super::dsp::Folded`]), an epilogue without per-value
+/// dispatch ([`folded_pairs`]).
 #[allow(clippy::too_many_arguments)]
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
 #[inline(always)]
-fn w16_one_part<'s>(
+fn w16_one_part(
     p: &ConvParams<'_>,
     kl: usize,
     ww: &[u32],
@@ -856,7 +860,8 @@ fn w16_one_part<'s>(
     w1: &[i8],
     m: &[u8],
     b: &[u8],
-    slots: impl Iterator<Item = &'s [i16]>,
+    slots: &[i16],
+    n: usize,
     out: &mut OutRow<'_>,
     ox: usize,
     c: usize,
@@ -870,7 +875,27 @@ fn w16_one_part<'s>(
     let post = p.post;
     // A patch of whole groups in one i32 chunk: the sums as i32, straight into the short path.
     let one_chunk = short && kl.is_multiple_of(4) && kl / 4 <= super::dsp::I16_ASM_GROUPS;
-    for (i, slot) in slots.enumerate() {
+    if one_chunk {
+        let mut sums = [[0i32; 4]; W16_MAX_PAIRS];
+        if let Some(sums) = sums.get_mut(..n)
+            && super::dsp::dot2x2_w16_i32_n(ww, slots, kl / 4, sums)
+        {
+            let sums = &*sums;
+            if let (Some(f0), Some(f1)) = (super::dsp::Folded::new(m0, b0), super::dsp::Folded::new(m1, b1)) {
+                folded_pairs(post, f0, f1, sums, out, ox * p.cout + c, p.cout);
+                return;
+            }
+            for (i, &[a0, a1, a2, a3]) in sums.iter().enumerate() {
+                let (at_a, at_b) = ((ox + 2 * i) * p.cout + c, (ox + 2 * i + 1) * p.cout + c);
+                out.set(at_a, finish_short(post, b0, r0.apply(a0)));
+                out.set(at_a + 1, finish_short(post, b1, r1.apply(a1)));
+                out.set(at_b, finish_short(post, b0, r0.apply(a2)));
+                out.set(at_b + 1, finish_short(post, b1, r1.apply(a3)));
+            }
+            return;
+        }
+    }
+    for (i, slot) in slots.chunks_exact((2 * kl).max(1)).take(n).enumerate() {
         let (at_a, at_b) = ((ox + 2 * i) * p.cout + c, (ox + 2 * i + 1) * p.cout + c);
         if one_chunk && let Some([a0, a1, a2, a3]) = super::dsp::dot2x2_w16_i32(ww, slot, kl / 4) {
             out.set(at_a, finish_short(post, b0, r0.apply(a0)));
@@ -900,6 +925,48 @@ fn w16_one_part<'s>(
                 out.set(at_b + 1, finish_with(post, b1, 0i64.saturating_add(requantize(d[3], c1))));
             }
         }
+    }
+}
+
+/// The stores of [`w16_one_part`]'s folded epilogue: `sums[i]` are pair `i`'s `[w0 . a, w1 .
+/// a, w0 . b, w1 . b]`, pixel a of pair `i` at `at + 2 i step` of `out`, pixel b `step` later;
+/// each value `f.apply(sum)` activated and saturated as [`finish_short`] and [`OutRow::set`]
+/// do, the activation and the storage type chosen once for all of them (monomorphised loops).
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(always)]
+fn folded_pairs(post: PostOp, f0: super::dsp::Folded, f1: super::dsp::Folded, sums: &[[i32; 4]], out: &mut OutRow<'_>, at: usize, step: usize) {
+    use crate::arith::{sat_i8, sat_i16, sat_u8};
+    match out {
+        OutRow::I16(o) => folded_post(post, f0, f1, sums, o, at, step, sat_i16),
+        OutRow::U8(o) => folded_post(post, f0, f1, sums, o, at, step, sat_u8),
+        OutRow::I8(o) => folded_post(post, f0, f1, sums, o, at, step, sat_i8),
+    }
+}
+
+/// [`folded_pairs`] for one storage type (`sat`: [`OutRow::set`]'s saturation).
+#[allow(clippy::too_many_arguments)]
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(always)]
+fn folded_post<T>(post: PostOp, f0: super::dsp::Folded, f1: super::dsp::Folded, sums: &[[i32; 4]], o: &mut [T], at: usize, step: usize, sat: fn(i64) -> T) {
+    use crate::arith::sat_i16;
+    match post {
+        PostOp::None => folded_run(f0, f1, sums, o, at, step, |v| sat(v as i64)),
+        PostOp::Relu => folded_run(f0, f1, sums, o, at, step, |v| sat(v.max(0) as i64)),
+        PostOp::Sigmoid => folded_run(f0, f1, sums, o, at, step, |v| sat(lut::sigmoid_q12(sat_i16(v as i64)) as i64)),
+        PostOp::Tanh => folded_run(f0, f1, sums, o, at, step, |v| sat(lut::tanh_q12(sat_i16(v as i64)) as i64)),
+    }
+}
+
+/// [`folded_post`]'s loop for one activation `g`.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(always)]
+fn folded_run<T>(f0: super::dsp::Folded, f1: super::dsp::Folded, sums: &[[i32; 4]], o: &mut [T], mut at: usize, step: usize, g: impl Fn(i32) -> T) {
+    for &[a0, a1, a2, a3] in sums {
+        set_at(o, at, g(f0.apply(a0)));
+        set_at(o, at + 1, g(f1.apply(a1)));
+        set_at(o, at + step, g(f0.apply(a2)));
+        set_at(o, at + step + 1, g(f1.apply(a3)));
+        at += 2 * step;
     }
 }
 

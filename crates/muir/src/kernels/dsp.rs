@@ -250,6 +250,52 @@ impl Requant {
     }
 }
 
+/// A one-part convolution's short epilogue before the activation, folded: for a multiplier of
+/// shift `s` and a bias `bias`, `floor((floor((acc m + 2^(s-1)) / 2^s) + bias + 2^7) / 2^8)`
+/// (the short path's [`requantize_i32`], the bias and `EXTRA_BITS` = 8 bits' rounding, as
+/// `conv::finish_short` computes it for one part) is `floor((acc m + C) / 2^(s+8))` with `C =
+/// 2^(s-1) + (bias + 2^7) 2^s` (nested floors of divisions by powers of two, the inner one
+/// plus an integer): one `SMLAL` onto `C` and one arithmetic shift of the high word by `s - 24`
+/// (at most 31). Made only for `24 <= s <= 62` and `|C| <= 2^62`: then `|acc m + C| < 2^63` for
+/// any i32 `acc` (`|acc m| <= 2^62`) and the result fits i32.
+#[derive(Clone, Copy, Debug)]
+pub struct Folded {
+    m: i32,
+    lo: u32,
+    hi: u32,
+    k: u32,
+}
+
+impl Folded {
+    /// `m` and `bias` folded, or `None` outside the range above.
+    #[inline(always)]
+    pub fn new(m: crate::arith::Multiplier, bias: i64) -> Option<Self> {
+        let s = m.shift as u32;
+        if !(24..=62).contains(&s) {
+            return None;
+        }
+        let c = (1i128 << (s - 1)) + ((bias as i128 + 128) << s);
+        if c.unsigned_abs() > 1u128 << 62 {
+            return None;
+        }
+        let c = c as i64;
+        Some(Folded { m: m.m, lo: c as u32, hi: (c >> 32) as u32, k: (s - 24).min(31) })
+    }
+
+    /// The folded value of `acc`: `SMLAL` onto `C`, the high word shifted.
+    #[inline(always)]
+    pub fn apply(&self, acc: i32) -> i32 {
+        let (mut lo, mut hi) = (self.lo, self.hi);
+        // SAFETY: register-only; SMLAL touches no flags.
+        unsafe {
+            asm!("smlal {lo}, {hi}, {a}, {b}", lo = inout(reg) lo, hi = inout(reg) hi, a = in(reg) acc, b = in(reg) self.m,
+                options(pure, nomem, nostack, preserves_flags))
+        };
+        let _ = lo;
+        (hi as i32) >> self.k
+    }
+}
+
 /// An activation type whose four values at `i` widen into the two 16-bit pairs `SMLAD` takes:
 /// values 0 and 2, then values 1 and 3 (the order `SXTB16` gives the weights).
 pub trait Quad: Copy + Into<i32> {
@@ -533,6 +579,63 @@ core::arch::global_asm!(
     "    add sp, #8",
     "    pop {{r4-r11, pc}}",
     ".size muir_dsp_dot2x2_w16, . - muir_dsp_dot2x2_w16",
+    "",
+    // `dot2x2_w16_i32_n`: `dot2x2_w16_i32` for several pairs of patches one after another (the
+    // gathered pairs of a one-part layer): r0 = x (the first pair; each pair is `8 groups`
+    // values, so the body leaves r0 at the next one), r1 = the widened weights, r2 = groups (1
+    // to `chunk`), r3 = pairs (>= 1), [sp] = out (four i32 per pair). The body is written here
+    // again (its end must lie within `ADR`'s reach of the entry's computation, which follows it):
+    // per pair the four zero words by one LDM, the weights and the body's entry by one LDRD,
+    // the four sums by one STM (8 instructions a pair, against some 30 for a call of
+    // `dot2x2_w16_i32` and its Rust set-up). Stack: [sp] four zero words, [sp, #16] ww,
+    // [sp, #20] the body's entry, [sp, #24] pairs left, [sp, #28] out.
+    ".section .text.muir_dsp_dot2x2_w16_n,\"ax\",%progbits",
+    ".type muir_dsp_dot2x2_w16_n_body,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_dot2x2_w16_n_body:",
+    ".rept {chunk}",
+    "    ldm.w r0!, {{r6-r9}}",
+    "    ldm.w r1!, {{r10-r12, lr}}",
+    "    smlad r2, r10, r6, r2",
+    "    smlad r2, r11, r7, r2",
+    "    smlad r3, r12, r6, r3",
+    "    smlad r3, lr, r7, r3",
+    "    smlad r4, r10, r8, r4",
+    "    smlad r4, r11, r9, r4",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    ".endr",
+    "9:",
+    "    ldrd r12, lr, [sp, #24]",
+    "    stm lr!, {{r2-r5}}",
+    "    subs r12, #1",
+    "    strd r12, lr, [sp, #24]",
+    "    bne 1f",
+    "    add sp, #32",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_dsp_dot2x2_w16_n_body, . - muir_dsp_dot2x2_w16_n_body",
+    ".global muir_dsp_dot2x2_w16_n",
+    ".type muir_dsp_dot2x2_w16_n,%function",
+    ".thumb_func",
+    "muir_dsp_dot2x2_w16_n:",
+    "    push {{r4-r11, lr}}",
+    "    sub sp, #32",
+    "    ldr r12, [sp, #68]",          // out
+    "    adr lr, 9b + 1",
+    "    add r2, r2, r2, lsl #2",      // 40 bytes a group: the entry is 9b - 8 * (5 groups)
+    "    sub lr, lr, r2, lsl #3",
+    "    strd r1, lr, [sp, #16]",
+    "    strd r3, r12, [sp, #24]",
+    "    movs r4, #0",
+    "    movs r5, #0",
+    "    strd r4, r5, [sp]",
+    "    strd r4, r5, [sp, #8]",
+    "1:",
+    "    ldm sp, {{r2-r5}}",
+    "    ldrd r1, lr, [sp, #16]",
+    "    bx lr",
+    ".size muir_dsp_dot2x2_w16_n, . - muir_dsp_dot2x2_w16_n",
     "",
     // `widen_weights`' loop: r0 = w0, r1 = w1 (int8 rows, any alignment), r2 = groups (>= 1),
     // r3 = out (word-aligned): per group LDR, LDR, 4 SXTB16, one STM. The body is written 8
@@ -919,6 +1022,7 @@ unsafe extern "C" {
     fn muir_dsp_dot2x2_u8(x: *const u8, w0: *const u8, w1: *const u8, groups: usize, out: *mut [i32; 4]);
     fn muir_dsp_dot2x2_w16(x: *const i16, w: *const u32, groups: usize, out: *mut [i64; 4]);
     fn muir_dsp_dot2x2_w16_i32(x: *const i16, w: *const u32, groups: usize, out: *mut [i32; 4]);
+    fn muir_dsp_dot2x2_w16_n(x: *const i16, w: *const u32, groups: usize, pairs: usize, out: *mut [i32; 4]);
     fn muir_dsp_widen_w16(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
     fn muir_dsp_widen_nat(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
     fn muir_dsp_paired_sums(ep: *const u32, pairs: usize, v: *const i16, cv: usize, acc: *mut i64, chpairs: usize);
@@ -1158,6 +1262,26 @@ pub fn dot2x2_w16_i32(ww: &[u32], x: &[i16], q: usize) -> Option<[i32; 4]> {
     // writes `out`.
     unsafe { muir_dsp_dot2x2_w16_i32(xq.as_ptr(), wq.as_ptr(), q, &mut out) };
     Some(out)
+}
+
+/// [`dot2x2_w16_i32`] of `out.len()` pairs of patches one after another in `x` (`8 q` values
+/// each, the gathered pairs of a one-part layer), by one assembly call: `out[i]` the four sums
+/// of pair `i`. False, having written nothing, where a slice is shorter, `q` is outside `1 ..=
+/// I16_ASM_GROUPS`, `out` is empty or `x` is not word-aligned.
+#[inline(always)]
+pub fn dot2x2_w16_i32_n(ww: &[u32], x: &[i16], q: usize, out: &mut [[i32; 4]]) -> bool {
+    let n = out.len();
+    let (Some(wq), Some(xq)) = (ww.get(..4 * q), x.get(..8 * q * n)) else {
+        return false;
+    };
+    if q == 0 || q > I16_ASM_GROUPS || n == 0 || !(xq.as_ptr() as usize).is_multiple_of(4) {
+        return false;
+    }
+    // SAFETY: per pair the loop reads `4 q` words from `wq` and the pair's `8 q` values from the
+    // word-aligned `xq` (`8 q n` values in all; LDM, `wq` is a `u32` slice, so aligned too),
+    // `1 <= q <= I16_ASM_GROUPS` (one chunk), and writes `out[i]` for each of the `n >= 1` pairs.
+    unsafe { muir_dsp_dot2x2_w16_n(xq.as_ptr(), wq.as_ptr(), q, n, out.as_mut_ptr()) };
+    true
 }
 
 /// `Elem::put_groups` for i16 (the pair layout's swap): each group of four as two words
