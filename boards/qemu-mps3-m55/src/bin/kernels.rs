@@ -1378,9 +1378,9 @@ fn check_nat(buf: &mut Buffers<i16>, ww: &mut [u32; MAX_N], n: usize, r: &mut Rn
         let (w0, w1) = (&buf.w0[..4 * q], &buf.w1[..4 * q]);
         let bstep = 2 * (ob - oa);
         let table = [
-            NatEntry { row: buf.pair[oa..].as_ptr(), w: 0, step: 0, groups: q, bstep, part: 0 },
-            NatEntry { row: buf.pair[ob..].as_ptr(), w: 0, step: 0, groups: q, bstep: 0, part: 1 },
-            NatEntry { row: buf.pair[oa + 4 * q..].as_ptr(), w: 0, step: 0, groups: m | NatEntry::PLAIN, bstep, part: 2 },
+            NatEntry::new(buf.pair[oa..].as_ptr(), 0, 0, q, bstep, 0),
+            NatEntry::new(buf.pair[ob..].as_ptr(), 0, 0, q, 0, 1),
+            NatEntry::new(buf.pair[oa + 4 * q..].as_ptr(), 0, 0, m | NatEntry::PLAIN, bstep, 2),
         ];
         let start: [[i64; 4]; 3] = core::array::from_fn(|_| core::array::from_fn(|_| ((r.next() >> 20) as i64) - (1 << 43)));
         let (ta, tb) = (&buf.a[4 * q..len], &buf.b[4 * q..len]);

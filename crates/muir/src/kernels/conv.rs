@@ -1073,7 +1073,10 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
         return false;
     };
     let pad = k / 2;
-    let mut t = NatTable::new();
+    // The table's entries cleared in this frame (built by value, 2 KB of them were cleared in a
+    // second copy and copied over).
+    let mut entries = [super::dsp::NatEntry::EMPTY; 4 * NAT_ENTRIES];
+    let mut t = NatTable { e: &mut entries, ne: 0, whole: true };
     // The inside blocks' table at the table's front, built once per row (its entries), and the
     // single pixels' tables (column and entries) after it, or at the front until the inside
     // one is built (which then overwrites them): each built once per row where they fit (one
@@ -1232,24 +1235,19 @@ const NAT_ENTRIES: usize = 3 * crate::model::graph::MAX_PARTS;
 /// channel pairs (`3 NAT_ENTRIES` left the six-part gate layers rebuilding them: 28 M
 /// instructions more at 160x120; `6 NAT_ENTRIES` counts as `4`).
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
-struct NatTable {
-    e: [super::dsp::NatEntry; 4 * NAT_ENTRIES],
+struct NatTable<'a> {
+    e: &'a mut [super::dsp::NatEntry; 4 * NAT_ENTRIES],
     ne: usize,
     /// Whether every entry fitted (else the row stops).
     whole: bool,
 }
 
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
-impl NatTable {
-    fn new() -> Self {
-        let e = super::dsp::NatEntry { row: core::ptr::null(), w: 0, step: 0, groups: 0, bstep: 0, part: 0 };
-        NatTable { e: [e; 4 * NAT_ENTRIES], ne: 0, whole: true }
-    }
-
+impl NatTable<'_> {
     #[inline(always)]
     fn push(&mut self, e: super::dsp::NatEntry) {
         match self.e.get_mut(self.ne) {
-            Some(d) if e.part < crate::model::graph::MAX_PARTS => {
+            Some(d) if e.part() < crate::model::graph::MAX_PARTS => {
                 *d = e;
                 self.ne += 1;
             }
@@ -1269,7 +1267,7 @@ impl NatTable {
         // values inside the row (the caller's bounds, as for the groups).
         match row.get(at..) {
             Some(r) if n < 8 && w + n <= kl => {
-                let e = super::dsp::NatEntry { row: r.as_ptr(), w, step: 2 * step, groups: n | super::dsp::NatEntry::PLAIN, bstep: 2 * bd, part };
+                let e = super::dsp::NatEntry::new(r.as_ptr(), w, 2 * step, n | super::dsp::NatEntry::PLAIN, 2 * bd, part);
                 self.push(e);
             }
             _ => self.whole = false,
@@ -1314,7 +1312,7 @@ impl NatTable {
                 let at = wo + 4 * ky * gr + 4 * g0;
                 match row.get(base + 4 * g0 - s..) {
                     Some(first) if at + 4 * (g1 - g0) <= words => {
-                        let e = super::dsp::NatEntry { row: first.as_ptr(), w: 4 * at, step: 2 * step, groups: g1 - g0, bstep: 2 * bd, part };
+                        let e = super::dsp::NatEntry::new(first.as_ptr(), 4 * at, 2 * step, g1 - g0, 2 * bd, part);
                         self.push(e);
                     }
                     _ => self.whole = false,

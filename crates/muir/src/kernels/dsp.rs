@@ -674,7 +674,7 @@ core::arch::global_asm!(
     ".size muir_dsp_widen_w16, . - muir_dsp_widen_w16",
     "",
     // `nat_block`: one block of two pixels over every kernel row of every part, from a table
-    // of entries (row, w, step, groups, bstep, part: `NatEntry`), the activations read in place
+    // of entries (row, w, step, groups, bstep, sums, skip: `NatEntry`), the activations read in place
     // from the input rows in natural order (so the weights are widened in natural order too,
     // `widen_weights_nat`). r0 = table, r1 = entries (>= 1), r2 = col, r3 = the parts' four i64
     // sums each (added to); [sp, #76] kl, [sp, #80] w0, [sp, #84] ww after the pushes. Per
@@ -685,9 +685,12 @@ core::arch::global_asm!(
     // (no end pointer, no loop test): per group one LDM of the channel pair's four widened
     // weight words, then pixel a's two words, four SMLAD, pixel b's, four SMLAD: 11
     // instructions per 16 MACs where both pixels are word-aligned (LDRD), 13 otherwise (LDR
-    // pairs); one pixel (bstep 0): 6 (7).
-    // Stack: [sp] table cursor, [sp, #4] entries left, [sp, #8] col, [sp, #12] the sums,
-    // [sp, #16] this entry's sums, [sp, #24] four zero words.
+    // pairs); one pixel (bstep 0): 6 (7). Per entry around the loop: 35 instructions on the
+    // aligned path (the table's cursor in r12 from one entry to the next and its end on the
+    // stack, the entry's sums pointer in r3, free during the bodies, the aligned body's entry
+    // from the table's `skip`, the zero words at [sp] for one LDM).
+    // Stack: [sp] four zero words, [sp, #16] table cursor, [sp, #20] table end, [sp, #24] col,
+    // [sp, #28] the sums.
     ".section .text.muir_dsp_nat_block,\"ax\",%progbits",
     ".global muir_dsp_nat_block",
     ".type muir_dsp_nat_block,%function",
@@ -696,39 +699,39 @@ core::arch::global_asm!(
     "muir_dsp_nat_block:",
     "    push {{r4-r11, lr}}",
     "    sub sp, #40",
-    "    stm sp, {{r0-r3}}",
-    "    movs r4, #0",                // four zero words at [sp, #24]: an entry's sums start
+    "    rsb r1, r1, r1, lsl #3",     // 28 bytes an entry: the table's end
+    "    add r1, r0, r1, lsl #2",
+    "    strd r0, r1, [sp, #16]",
+    "    strd r2, r3, [sp, #24]",
+    "    movs r4, #0",                // four zero words at [sp]: an entry's sums start
     "    movs r5, #0",                // from them (one LDM instead of four MOVS)
-    "    strd r4, r5, [sp, #24]",
-    "    strd r4, r5, [sp, #32]",
+    "    strd r4, r5, [sp]",
+    "    strd r4, r5, [sp, #8]",
+    "    mov r12, r0",
     "5:",
-    "    ldr r12, [sp]",
-    "    ldm r12!, {{r0-r4, lr}}",    // row, ww, step, groups, bstep, part
-    "    str r12, [sp]",
-    "    ldr r12, [sp, #12]",
-    "    add lr, r12, lr, lsl #5",
-    "    str lr, [sp, #16]",
-    "    ldr r5, [sp, #8]",
-    "    mla r0, r5, r2, r0",         // pixel a: row + col step
+    "    ldm r12!, {{r0-r5, lr}}",    // row, ww, step, groups, bstep, sums, skip
+    "    str r12, [sp, #16]",
+    "    ldr r12, [sp, #24]",
+    "    mla r0, r12, r2, r0",        // pixel a: row + col step
     "    add r2, r0, r4",             // pixel b: bstep later
+    "    ldr r12, [sp, #28]",
+    "    add r5, r5, r12",            // the part's sums (to r3 once `groups` is used)
     "    cmp r3, #0",                 // a plain entry (bit 31 set): 50
     "    blt.w 50f",
     "    ldr r12, [sp, #84]",         // the widened weights: r1 is the run's byte offset
     "    add r1, r1, r12",
     "    cmp r4, #0",                 // one pixel (a block of one pixel taken twice): 40
     "    beq.w 40f",
-    "    add r12, sp, #24",
-    "    ldm r12, {{r4-r7}}",
     "    tst r0, #3",
     "    bne.w 20f",
     "    tst r2, #3",
     "    bne.w 24f",
-    // Both pixels word-aligned: enter the body `groups` copies (44 bytes each) before its end.
+    // Both pixels word-aligned: enter the body `groups` copies (44 bytes each) before its end,
+    // `skip` bytes after its start.
     "    adr r12, 11f + 1",
-    "    rsb r8, r3, #{chunk}",
-    "    add r9, r8, r8, lsl #1",
-    "    add r9, r9, r8, lsl #3",
-    "    add r12, r12, r9, lsl #2",
+    "    add r12, r12, lr",
+    "    mov r3, r5",
+    "    ldm sp, {{r4-r7}}",
     "    bx r12",
     ".p2align 2",
     "11:",
@@ -746,22 +749,20 @@ core::arch::global_asm!(
     "    smlad r7, r11, lr, r7",
     ".endr",
     "30:",
-    // the part's four i64 sums (word-aligned) by one LDM and one STM: the pointers r0-r3 are
-    // reloaded by the next entry, r8-r11 held this entry's weights.
-    "    ldr r12, [sp, #16]",
-    "    ldm r12, {{r0-r3, r8-r11}}",
+    // the part's four i64 sums (word-aligned, at r3) by one LDM and one STM: the pointers
+    // r0-r2 are reloaded by the next entry, r8-r11 held this entry's weights.
+    "    ldm r3, {{r0-r2, r8-r12}}",
     "    adds r0, r0, r4",
     "    adc r1, r1, r4, asr #31",
     "    adds r2, r2, r5",
-    "    adc r3, r3, r5, asr #31",
-    "    adds r8, r8, r6",
-    "    adc r9, r9, r6, asr #31",
-    "    adds r10, r10, r7",
-    "    adc r11, r11, r7, asr #31",
-    "    stm r12, {{r0-r3, r8-r11}}",
-    "    ldr r3, [sp, #4]",
-    "    subs r3, #1",
-    "    str r3, [sp, #4]",
+    "    adc r8, r8, r5, asr #31",
+    "    adds r9, r9, r6",
+    "    adc r10, r10, r6, asr #31",
+    "    adds r11, r11, r7",
+    "    adc r12, r12, r7, asr #31",
+    "    stm r3, {{r0-r2, r8-r12}}",
+    "    ldrd r12, lr, [sp, #16]",    // the cursor, the table's end
+    "    cmp r12, lr",
     "    bne.w 5b",
     "    add sp, #40",
     "    pop {{r4-r11, pc}}",
@@ -775,6 +776,8 @@ core::arch::global_asm!(
     "    lsl r9, r8, #3",
     "    add r9, r9, r8, lsl #2",
     "    add r12, r12, r9, lsl #2",
+    "    mov r3, r5",
+    "    ldm sp, {{r4-r7}}",
     "    bx r12",
     ".p2align 2",
     "25:",
@@ -799,6 +802,8 @@ core::arch::global_asm!(
     "    lsl r9, r8, #3",
     "    add r9, r9, r8, lsl #2",
     "    add r12, r12, r9, lsl #2",
+    "    mov r3, r5",
+    "    ldm sp, {{r4-r7}}",
     "    bx r12",
     ".p2align 2",
     "27:",
@@ -825,6 +830,8 @@ core::arch::global_asm!(
     "    add r9, r8, r8, lsl #2",
     "    add r9, r9, r8, lsl #3",
     "    add r12, r12, r9, lsl #2",
+    "    mov r3, r5",
+    "    ldm sp, {{r4-r7}}",
     "    bx r12",
     ".p2align 2",
     "21:",
@@ -846,14 +853,14 @@ core::arch::global_asm!(
     "    b.w 30b",
     // One pixel: its two sums (24 bytes a copy, 28 unaligned), copied to pixel b's.
     "40:",
-    "    movs r4, #0",
-    "    movs r5, #0",
     "    tst r0, #3",
     "    bne.w 45f",
     "    adr r12, 41f + 1",
     "    rsb r8, r3, #{chunk}",
     "    add r9, r8, r8, lsl #1",
     "    add r12, r12, r9, lsl #3",
+    "    mov r3, r5",
+    "    ldm sp, {{r4-r7}}",
     "    bx r12",
     ".p2align 2",
     "41:",
@@ -874,6 +881,8 @@ core::arch::global_asm!(
     "    rsb r8, r3, #{chunk}",
     "    rsb r9, r8, r8, lsl #3",
     "    add r12, r12, r9, lsl #2",
+    "    mov r3, r5",
+    "    ldm sp, {{r4-r7}}",
     "    bx r12",
     ".p2align 2",
     "46:",
@@ -891,11 +900,11 @@ core::arch::global_asm!(
     // int8 weights of w0 at w0 ([sp, #80], the sixth argument) plus r1, of w1 `kl` bytes later
     // ([sp, #76], the fifth argument).
     "50:",
-    "    bic r3, r3, #0x80000000",
+    "    bic lr, r3, #0x80000000",
+    "    mov r3, r5",
     "    ldr r12, [sp, #80]",         // w0's int8 weights: r1 is the byte offset
     "    add r1, r1, r12",
-    "    add r12, sp, #24",
-    "    ldm r12, {{r4-r7}}",
+    "    ldm sp, {{r4-r7}}",
     "    ldr r12, [sp, #76]",
     "51:",
     "    ldrsh r8, [r0], #2",
@@ -906,7 +915,7 @@ core::arch::global_asm!(
     "    mla r5, r10, r8, r5",
     "    mla r6, r11, r9, r6",
     "    mla r7, r10, r9, r7",
-    "    subs r3, #1",
+    "    subs lr, #1",
     "    bne 51b",
     "    b.w 30b",
     ".size muir_dsp_nat_block, . - muir_dsp_nat_block",
@@ -1319,10 +1328,12 @@ pub fn widen_weights_nat(w0: &[i8], w1: &[i8], q: usize, out: &mut [u32]) {
 
 /// One run of one kernel row of one part for [`nat_block`]: pixel a's values at `row + col
 /// step` bytes, pixel b's `bstep` bytes later, `groups` whole groups of four against the widened
-/// weights `w` bytes into `nat_block`'s `ww`, added to `sums[part]`. A plain entry
+/// weights `w` bytes into `nat_block`'s `ww`, added to the part's sums. A plain entry
 /// ([`NatEntry::PLAIN`] set in `groups`): the low bits count values (1 to 7), w0's int8 weights
 /// `w` bytes into `nat_block`'s `w0`, w1's `kl` bytes later. (Offsets, not addresses: a table
-/// serves every channel pair of a row.)
+/// serves every channel pair of a row.) Made by [`NatEntry::new`], which also works out what
+/// the assembly would compute per entry: the part's sums as a byte offset and where the
+/// aligned two-pixel loop is entered.
 #[repr(C)]
 #[derive(Clone, Copy, Debug)]
 pub struct NatEntry {
@@ -1336,16 +1347,35 @@ pub struct NatEntry {
     pub groups: usize,
     /// Bytes from pixel a's values to pixel b's.
     pub bstep: usize,
-    /// Index into the sums.
-    pub part: usize,
+    /// Byte offset of the part's sums (`32 part`).
+    sums: usize,
+    /// Bytes of the aligned two-pixel loop's copies skipped (`44 (I16_ASM_GROUPS - groups)`;
+    /// 0 for a plain entry).
+    skip: usize,
 }
 
 impl NatEntry {
     /// The flag of a plain entry in `groups`.
     pub const PLAIN: usize = 1 << 31;
+
+    /// An unused entry (all bits zero: a table of them is cleared in place).
+    pub const EMPTY: NatEntry = NatEntry { row: core::ptr::null(), w: 0, step: 0, groups: 0, bstep: 0, sums: 0, skip: 0 };
+
+    /// The entry of the run (fields as above) into the sums of part `part`.
+    #[inline(always)]
+    pub const fn new(row: *const i16, w: usize, step: usize, groups: usize, bstep: usize, part: usize) -> Self {
+        let skip = if groups & Self::PLAIN == 0 { 44 * I16_ASM_GROUPS.saturating_sub(groups) } else { 0 };
+        NatEntry { row, w, step, groups, bstep, sums: 32 * part, skip }
+    }
+
+    /// The part whose sums the entry adds to.
+    #[inline(always)]
+    pub fn part(&self) -> usize {
+        self.sums / 32
+    }
 }
 
-/// `sums[e.part] += [w0 . a, w1 . a, w0 . b, w1 . b]` over every entry `e` of `table` (a block
+/// `sums[e.part()] += [w0 . a, w1 . a, w0 . b, w1 . b]` over every entry `e` of `table` (a block
 /// of two pixels, or one pixel as both, at column `col`), the activations read in place: `ww`
 /// the channel pair's widened weights, `w0` its int8 weights, w1's `kl` bytes later.
 ///
@@ -1355,7 +1385,7 @@ impl NatEntry {
 /// groups` bytes (`2 n` for a plain entry of `n` values; each halfword-aligned); a groups entry:
 /// `ww` is valid for reads of `4 (w / 16 + groups)` words, `w` a multiple of 16, `1 <= groups <=
 /// I16_ASM_GROUPS`; a plain entry: `w0` valid for reads of `kl + w + n` bytes, `1 <= n <= 7`;
-/// and `part < sums.len()`.
+/// and `part() < sums.len()`.
 #[inline(always)]
 pub unsafe fn nat_block(table: &[NatEntry], col: usize, sums: &mut [[i64; 4]], kl: usize, w0: &[i8], ww: &[u32]) {
     if !table.is_empty() {
