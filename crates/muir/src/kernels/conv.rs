@@ -895,6 +895,29 @@ fn w16_one_part(
             return;
         }
     }
+    // Longer patches (several chunks, or values past the whole groups): the i64 sums of every
+    // pair first; where all of them fit i32, the folded epilogue as above (else, or with a short
+    // table, the per-pair path below computes the channel pair again).
+    if short
+        && !one_chunk
+        && let (Some(f0), Some(f1)) = (super::dsp::Folded::new(m0, b0), super::dsp::Folded::new(m1, b1))
+    {
+        let mut sums = [[0i32; 4]; W16_MAX_PAIRS];
+        let mut fits = n <= W16_MAX_PAIRS;
+        for (slot, s) in slots.chunks_exact((2 * kl).max(1)).take(n).zip(sums.iter_mut()) {
+            match super::dsp::dot2x2_w16(ww, w0, w1, slot, kl).map(|d| d.map(i32::try_from)) {
+                Some([Ok(a0), Ok(a1), Ok(a2), Ok(a3)]) => *s = [a0, a1, a2, a3],
+                _ => {
+                    fits = false;
+                    break;
+                }
+            }
+        }
+        if fits {
+            folded_pairs(post, f0, f1, sums.get(..n).unwrap_or_default(), out, ox * p.cout + c, p.cout);
+            return;
+        }
+    }
     for (i, slot) in slots.chunks_exact((2 * kl).max(1)).take(n).enumerate() {
         let (at_a, at_b) = ((ox + 2 * i) * p.cout + c, (ox + 2 * i + 1) * p.cout + c);
         if one_chunk && let Some([a0, a1, a2, a3]) = super::dsp::dot2x2_w16_i32(ww, slot, kl / 4) {
