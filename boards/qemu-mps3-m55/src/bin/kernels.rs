@@ -1170,6 +1170,56 @@ fn check_requant_dsp(r: &mut Rng) -> usize {
     cases
 }
 
+/// The DSP build's group copies of the gathers (`dsp::put_groups_i16`, the i16 pair layout's
+/// swap; `dsp::widen_u8_groups`, u8 pairs widened to it): 1 to 9 groups, word-aligned buffers
+/// (the assembly loops) and not (the compiled ones), both patches of a pair, against the
+/// layouts written out value by value; nothing outside the groups written.
+#[cfg(not(feature = "mve"))]
+fn check_groups(r: &mut Rng) -> usize {
+    use muir::kernels::dsp;
+    #[repr(C, align(8))]
+    struct A<T>([T; 96]);
+    let mut s16 = A([0i16; 96]);
+    let mut s8 = A([0u8; 96]);
+    for v in s16.0.iter_mut() {
+        *v = (r.next() >> 48) as i16;
+    }
+    for v in s8.0.iter_mut() {
+        *v = (r.next() >> 56) as u8;
+    }
+    let mut cases = 0;
+    for q in 1..=9usize {
+        for (so, dof) in [(0, 0), (1, 0), (0, 1), (2, 2)] {
+            for second in [false, true] {
+                let mut d = A([0x5A5Ai16; 96]);
+                dsp::put_groups_i16(&mut d.0[dof..dof + 8 * q], &s16.0[so..so + 4 * q], second);
+                let off = if second { 4 } else { 0 };
+                for (i, &got) in d.0.iter().enumerate() {
+                    let j = i.wrapping_sub(dof);
+                    let want = if i >= dof && j < 8 * q && (j % 8) / 4 == off / 4 { s16.0[so + 4 * (j / 8) + [0, 2, 1, 3][j % 4]] } else { 0x5A5A };
+                    if got != want {
+                        println!("MUIR-KERNELS FAILED dsp::put_groups_i16 q={q} offsets {so}/{dof} second={second} at {i}: {got}, want {want}");
+                        process::exit(1);
+                    }
+                }
+                cases += 1;
+            }
+            let mut d = A([0x5A5Ai16; 96]);
+            dsp::widen_u8_groups(&mut d.0[dof..dof + 4 * q], &s8.0[so..so + 4 * q]);
+            for (i, &got) in d.0.iter().enumerate() {
+                let j = i.wrapping_sub(dof);
+                let want = if i >= dof && j < 4 * q { s8.0[so + 4 * (j / 4) + [0, 2, 1, 3][j % 4]] as i16 } else { 0x5A5A };
+                if got != want {
+                    println!("MUIR-KERNELS FAILED dsp::widen_u8_groups q={q} offsets {so}/{dof} at {i}: {got}, want {want}");
+                    process::exit(1);
+                }
+            }
+            cases += 1;
+        }
+    }
+    cases
+}
+
 /// Whole convolutions row by row through the engine's entry (`engine::encoder::run_conv`: with
 /// Helium the vector epilogue of `conv`, on the DSP build the u8 rows widened once to the i16
 /// loop) against the plain twin `conv_plain`: random layers of 1 to 3 parts (channel counts with
@@ -1891,6 +1941,7 @@ fn main() -> ! {
     #[cfg(not(feature = "mve"))]
     {
         cases += check_requant_dsp(&mut r);
+        cases += check_groups(&mut r);
         cases += check_aggregate_dsp(i16s.a, &mut r);
         cases += check_corr4(&mut r);
     }

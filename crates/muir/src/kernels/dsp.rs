@@ -637,6 +637,84 @@ core::arch::global_asm!(
     "    bx lr",
     ".size muir_dsp_dot2x2_w16_n, . - muir_dsp_dot2x2_w16_n",
     "",
+    // `widen_u8_groups` on word-aligned buffers: r0 = d (i16), r1 = s (u8), r2 = groups (>= 1):
+    // per two groups one LDRD, four UXTB16 and one STM (3 instructions a group, the loop's
+    // SUBS/BNE once per four groups) against 7 for the compiled loop.
+    ".section .text.muir_dsp_widen_u8,\"ax\",%progbits",
+    ".global muir_dsp_widen_u8",
+    ".type muir_dsp_widen_u8,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_widen_u8:",
+    "    push {{r4-r9}}",
+    "    lsrs r3, r2, #2",
+    "    beq 2f",
+    "1:",
+    "    ldrd r4, r5, [r1], #8",
+    "    uxtb16 r6, r4",
+    "    uxtb16 r7, r4, ror #8",
+    "    uxtb16 r8, r5",
+    "    uxtb16 r9, r5, ror #8",
+    "    stm r0!, {{r6-r9}}",
+    "    ldrd r4, r5, [r1], #8",
+    "    uxtb16 r6, r4",
+    "    uxtb16 r7, r4, ror #8",
+    "    uxtb16 r8, r5",
+    "    uxtb16 r9, r5, ror #8",
+    "    stm r0!, {{r6-r9}}",
+    "    subs r3, #1",
+    "    bne 1b",
+    "2:",
+    "    ands r2, r2, #3",
+    "    beq 4f",
+    "3:",
+    "    ldr r4, [r1], #4",
+    "    uxtb16 r6, r4",
+    "    uxtb16 r7, r4, ror #8",
+    "    stm r0!, {{r6-r7}}",
+    "    subs r2, #1",
+    "    bne 3b",
+    "4:",
+    "    pop {{r4-r9}}",
+    "    bx lr",
+    ".size muir_dsp_widen_u8, . - muir_dsp_widen_u8",
+    "",
+    // `put_groups_i16` on word-aligned buffers: r0 = d (the first group's four values of this
+    // patch; groups 16 bytes apart), r1 = s (i16 values), r2 = groups (>= 1): per group one LDRD,
+    // PKHBT, PKHTB and one STRD (4 instructions a group, the loop's SUBS/BNE once per two
+    // groups) against 8 for the compiled loop.
+    ".section .text.muir_dsp_put_groups_i16,\"ax\",%progbits",
+    ".global muir_dsp_put_groups_i16",
+    ".type muir_dsp_put_groups_i16,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_put_groups_i16:",
+    "    push {{r4-r7}}",
+    "    lsrs r3, r2, #1",
+    "    beq 2f",
+    "1:",
+    "    ldrd r4, r5, [r1], #8",      // (x0, x1), (x2, x3)
+    "    pkhbt r6, r4, r5, lsl #16",  // (x0, x2)
+    "    pkhtb r7, r5, r4, asr #16",  // (x1, x3)
+    "    strd r6, r7, [r0], #16",
+    "    ldrd r4, r5, [r1], #8",
+    "    pkhbt r6, r4, r5, lsl #16",
+    "    pkhtb r7, r5, r4, asr #16",
+    "    strd r6, r7, [r0], #16",
+    "    subs r3, #1",
+    "    bne 1b",
+    "2:",
+    "    tst r2, #1",
+    "    beq 3f",
+    "    ldrd r4, r5, [r1]",
+    "    pkhbt r6, r4, r5, lsl #16",
+    "    pkhtb r7, r5, r4, asr #16",
+    "    strd r6, r7, [r0]",
+    "3:",
+    "    pop {{r4-r7}}",
+    "    bx lr",
+    ".size muir_dsp_put_groups_i16, . - muir_dsp_put_groups_i16",
+    "",
     // `widen_weights`' loop: r0 = w0, r1 = w1 (int8 rows, any alignment), r2 = groups (>= 1),
     // r3 = out (word-aligned): per group LDR, LDR, 4 SXTB16, one STM. The body is written 8
     // times (28 bytes each) and entered `-groups mod 8` copies after its start (Duff's device):
@@ -1033,6 +1111,8 @@ unsafe extern "C" {
     fn muir_dsp_dot2x2_w16_i32(x: *const i16, w: *const u32, groups: usize, out: *mut [i32; 4]);
     fn muir_dsp_dot2x2_w16_n(x: *const i16, w: *const u32, groups: usize, pairs: usize, out: *mut [i32; 4]);
     fn muir_dsp_widen_w16(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
+    fn muir_dsp_widen_u8(d: *mut i16, s: *const u8, groups: usize);
+    fn muir_dsp_put_groups_i16(d: *mut i16, s: *const i16, groups: usize);
     fn muir_dsp_widen_nat(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
     fn muir_dsp_paired_sums(ep: *const u32, pairs: usize, v: *const i16, cv: usize, acc: *mut i64, chpairs: usize);
     fn muir_dsp_nat_block(table: *const NatEntry, n: usize, col: usize, sums: *mut [i64; 4], kl: usize, w0: *const i8, ww: *const u32);
@@ -1295,10 +1375,26 @@ pub fn dot2x2_w16_i32_n(ww: &[u32], x: &[i16], q: usize, out: &mut [[i32; 4]]) -
 
 /// `Elem::put_groups` for i16 (the pair layout's swap): each group of four as two words
 /// (`(x0, x1)`, `(x2, x3)`, unaligned loads) repacked by `PKHBT`/`PKHTB` into `(x0, x2)`, `(x1,
-/// x3)`: 2 loads, 2 packs and 2 stores per group instead of 4 halfword loads and 4 stores.
+/// x3)`: 2 loads, 2 packs and 2 stores per group instead of 4 halfword loads and 4 stores. On
+/// word-aligned buffers (the engine's) by `muir_dsp_put_groups_i16`: `LDRD`, the packs, `STRD`
+/// (4 instructions a group against 8 compiled).
 #[inline(always)]
 pub fn put_groups_i16(d: &mut [i16], s: &[i16], second: bool) {
     let off = if second { 4 } else { 0 };
+    // Whole groups on word-aligned buffers (the engine's: rows and patches of channel counts
+    // that are multiples of four): by `muir_dsp_put_groups_i16`.
+    let q = (d.len() / 8).min(s.len() / 4);
+    if q > 0
+        && let Some(dd) = d.get_mut(off..8 * q)
+        && (dd.as_ptr() as usize).is_multiple_of(4)
+        && (s.as_ptr() as usize).is_multiple_of(4)
+    {
+        // SAFETY: `q` groups: the loop reads `4 q` values of `s` and writes values `16 g ..
+        // 16 g + 4` bytes (`8 g + off .. 8 g + off + 4` values) of `d` for `g < q`, all inside
+        // `dd` (`8 q - off` values from `off`), both word-aligned (LDRD/STRD).
+        unsafe { muir_dsp_put_groups_i16(dd.as_mut_ptr(), s.as_ptr(), q) };
+        return;
+    }
     for (g, q) in d.chunks_exact_mut(8).zip(s.chunks_exact(4)) {
         if let Some(g) = g.get_mut(off..off + 4) {
             let (x01, x23) = (pair(q, 0), pair(q, 2));
@@ -1399,8 +1495,17 @@ pub unsafe fn nat_block(table: &[NatEntry], col: usize, sums: &mut [[i64; 4]], k
 /// (values 0, 2, 1, 3 of each group: `UXTB16` of the group's word, then of the word rotated by
 /// 8): one load, two widenings and two stores per group instead of four of each (the gathered
 /// u8 pairs of `conv::conv_row_u8_wide`). Stops at the shorter of `s / 4` and `d / 4` groups.
+/// On word-aligned buffers (the engine's) by `muir_dsp_widen_u8` (3 instructions a group
+/// against 7 compiled).
 #[inline(always)]
 pub fn widen_u8_groups(d: &mut [i16], s: &[u8]) {
+    let q = (d.len() / 4).min(s.len() / 4);
+    if q > 0 && (d.as_ptr() as usize).is_multiple_of(4) && (s.as_ptr() as usize).is_multiple_of(4) {
+        // SAFETY: the loop reads `4 q` bytes of `s` and writes `4 q` values of `d` (both at
+        // least that long, word-aligned: LDRD, STM).
+        unsafe { muir_dsp_widen_u8(d.as_mut_ptr(), s.as_ptr(), q) };
+        return;
+    }
     for (g, q) in d.chunks_exact_mut(4).zip(s.chunks_exact(4)) {
         let v = word(q, 0);
         let (lo, hi) = (uxtb16(v), uxtb16_ror8(v));
