@@ -801,6 +801,8 @@ fn conv_row_w16_in<T: Elem>(
     // The one-part layers' i32 sums of the gathered pairs, one channel pair at a time (cleared
     // once per row: cleared per channel pair, the 512 bytes cost 4.3 M instructions at 160x120).
     let mut sums = [[0i32; 4]; W16_MAX_PAIRS];
+    // The several-part layers' sums of `w16_parts` (likewise).
+    let (mut acc, mut psums) = ([[0i64; 4]; W16_PARTS_PAIRS], [[0i32; 4]; W16_PARTS_PAIRS]);
     let mut ox = 0;
     while ox + 2 <= w_out {
         let n = ((w_out - ox) / 2).min(np);
@@ -824,6 +826,9 @@ fn conv_row_w16_in<T: Elem>(
                 w16_one_part(p, kl, ww, w0, w1, m, b, slots.get(..2 * kl * n).unwrap_or_default(), n, &mut sums, out, ox, 2 * cp);
                 continue;
             }
+            if w16_parts(p, kl, ww, w0, w1, m, b, slots.get(..2 * kl * n).unwrap_or_default(), n, (&mut acc, &mut psums), out, ox, 2 * cp) {
+                continue;
+            }
             let slots = slots.chunks_exact((2 * kl).max(1)).take(n);
             for (i, slot) in slots.enumerate() {
                 let x = ox + 2 * i;
@@ -842,6 +847,91 @@ fn conv_row_w16_in<T: Elem>(
         x += 2;
     }
     single_pixels(p, inputs, w_in, out, temp, x);
+    true
+}
+
+/// Most pixel pairs of one pass of [`w16_parts`] (its sums wait on the stack).
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+const W16_PARTS_PAIRS: usize = 16;
+
+/// [`conv_row_w16_in`]'s channel pair `c`, `c + 1` for a layer of several parts whose every
+/// part takes the short epilogue: part by part, the sums of all the gathered pairs (`slots`,
+/// `2 kl` values each, the first at pixel `ox`), for a part of whole groups in one i32 chunk (at
+/// most 508 values, a multiple of four) by one assembly call
+/// ([`super::dsp::dot2x2_w16_i32_ns`]), else by [`super::dsp::dot2x2_w16`] per pair (each sum
+/// must fit i32), requantised with the part's multipliers decoded once and added to each pair's
+/// sums, then [`block2x2_by`]'s short-path stores. False for any other layer or where a sum
+/// does not fit (the caller then computes every pair of the channel pair again).
+#[allow(clippy::too_many_arguments)]
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(never)]
+fn w16_parts(
+    p: &ConvParams<'_>,
+    kl: usize,
+    ww: &[u32],
+    w0: &[i8],
+    w1: &[i8],
+    m: &[u8],
+    b: &[u8],
+    slots: &[i16],
+    n: usize,
+    (acc, sums): (&mut [[i64; 4]; W16_PARTS_PAIRS], &mut [[i32; 4]; W16_PARTS_PAIRS]),
+    out: &mut OutRow<'_>,
+    ox: usize,
+    c: usize,
+) -> bool {
+    let np = p.parts.len();
+    let ((m0s, m1s), (bb0, bb1)) = (halves(m), halves(b));
+    let (b0, b1) = (bias_at(bb0), bias_at(bb1));
+    if b0.unsigned_abs() >= SHORT_MAX_BIAS || b1.unsigned_abs() >= SHORT_MAX_BIAS || m0s.len() < 8 * np || m1s.len() < 8 * np {
+        return false;
+    }
+    let mut reqs = [(super::dsp::Requant::ZERO, super::dsp::Requant::ZERO); crate::model::graph::MAX_PARTS];
+    for (((r, a), b), &ch) in reqs.iter_mut().zip(m0s.chunks_exact(8)).zip(m1s.chunks_exact(8)).zip(p.parts) {
+        let (a, b) = (mult_raw(a), mult_raw(b));
+        if !(short_ok(a) && short_ok(b) && ch > 0) {
+            return false;
+        }
+        *r = (super::dsp::Requant::new(a), super::dsp::Requant::new(b));
+    }
+    let post = p.post;
+    let mut first = 0;
+    while first < n {
+        let cnt = (n - first).min(W16_PARTS_PAIRS);
+        let Some(x) = slots.get(2 * kl * first..) else {
+            return false; // never: `slots` holds `n` pairs
+        };
+        let (mut o, mut wo) = (0, 0);
+        for (part, (&ch, (r0, r1))) in p.parts.iter().zip(&reqs).enumerate() {
+            let nv = ch * p.k * p.k;
+            let (Some(s), Some(xo), Some(wq), Some(a0), Some(a1)) = (sums.get_mut(..cnt), x.get(2 * o..), ww.get(wo..), w0.get(o..), w1.get(o..)) else {
+                return false;
+            };
+            if !(nv.is_multiple_of(4) && nv / 4 <= super::dsp::I16_ASM_GROUPS && super::dsp::dot2x2_w16_i32_ns(wq, xo, nv / 4, 2 * kl, s)) {
+                for (d, slot) in s.iter_mut().zip(xo.chunks(2 * kl)) {
+                    match super::dsp::dot2x2_w16(wq, a0, a1, slot, nv).map(|d| d.map(i32::try_from)) {
+                        Some([Ok(e0), Ok(e1), Ok(e2), Ok(e3)]) => *d = [e0, e1, e2, e3],
+                        _ => return false,
+                    }
+                }
+            }
+            for (a, &[d0, d1, d2, d3]) in acc.iter_mut().zip(s.iter()) {
+                let v = [r0.apply(d0), r1.apply(d1), r0.apply(d2), r1.apply(d3)];
+                // The first part sets the pass's sums, the others add to them.
+                *a = if part == 0 { v } else { [a[0] + v[0], a[1] + v[1], a[2] + v[2], a[3] + v[3]] };
+            }
+            o += nv;
+            wo += nv / 4 * 4;
+        }
+        for (i, a) in acc.iter().take(cnt).enumerate() {
+            let (at_a, at_b) = ((ox + 2 * (first + i)) * p.cout + c, (ox + 2 * (first + i) + 1) * p.cout + c);
+            out.set(at_a, finish_short(post, b0, a[0]));
+            out.set(at_a + 1, finish_short(post, b1, a[1]));
+            out.set(at_b, finish_short(post, b0, a[2]));
+            out.set(at_b + 1, finish_short(post, b1, a[3]));
+        }
+        first += cnt;
+    }
     true
 }
 

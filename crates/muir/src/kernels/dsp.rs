@@ -637,6 +637,61 @@ core::arch::global_asm!(
     "    bx lr",
     ".size muir_dsp_dot2x2_w16_n, . - muir_dsp_dot2x2_w16_n",
     "",
+    // `dot2x2_w16_i32_ns`: `muir_dsp_dot2x2_w16_n` with the pairs `gap` bytes apart beyond
+    // their `16 groups` (one part of several-part patches: the part's block at the same offset
+    // of every pair's slot): r0 = x, r1 = ww, r2 = groups (1 to `chunk`), r3 = pairs (>= 1),
+    // [sp] = out (four i32 per pair), [sp, #4] = gap; stack as there, [sp, #32] the gap.
+    ".section .text.muir_dsp_dot2x2_w16_ns,\"ax\",%progbits",
+    ".type muir_dsp_dot2x2_w16_ns_body,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_dot2x2_w16_ns_body:",
+    ".rept {chunk}",
+    "    ldm.w r0!, {{r6-r9}}",
+    "    ldm.w r1!, {{r10-r12, lr}}",
+    "    smlad r2, r10, r6, r2",
+    "    smlad r2, r11, r7, r2",
+    "    smlad r3, r12, r6, r3",
+    "    smlad r3, lr, r7, r3",
+    "    smlad r4, r10, r8, r4",
+    "    smlad r4, r11, r9, r4",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    ".endr",
+    "9:",
+    "    ldrd r12, lr, [sp, #24]",
+    "    stm lr!, {{r2-r5}}",
+    "    ldr r6, [sp, #32]",
+    "    add r0, r0, r6",
+    "    subs r12, #1",
+    "    strd r12, lr, [sp, #24]",
+    "    bne 1f",
+    "    add sp, #40",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_dsp_dot2x2_w16_ns_body, . - muir_dsp_dot2x2_w16_ns_body",
+    ".global muir_dsp_dot2x2_w16_ns",
+    ".type muir_dsp_dot2x2_w16_ns,%function",
+    ".thumb_func",
+    "muir_dsp_dot2x2_w16_ns:",
+    "    push {{r4-r11, lr}}",
+    "    sub sp, #40",
+    "    ldrd r12, r4, [sp, #76]",    // out, gap
+    "    str r4, [sp, #32]",
+    "    adr lr, 9b + 1",
+    "    add r2, r2, r2, lsl #2",
+    "    sub lr, lr, r2, lsl #3",
+    "    strd r1, lr, [sp, #16]",
+    "    strd r3, r12, [sp, #24]",
+    "    movs r4, #0",
+    "    movs r5, #0",
+    "    strd r4, r5, [sp]",
+    "    strd r4, r5, [sp, #8]",
+    "1:",
+    "    ldm sp, {{r2-r5}}",
+    "    ldrd r1, lr, [sp, #16]",
+    "    bx lr",
+    ".size muir_dsp_dot2x2_w16_ns, . - muir_dsp_dot2x2_w16_ns",
+    "",
     // `widen_u8_groups` on word-aligned buffers: r0 = d (i16), r1 = s (u8), r2 = groups (>= 1):
     // per two groups one LDRD, four UXTB16 and one STM (3 instructions a group, the loop's
     // SUBS/BNE once per four groups) against 7 for the compiled loop.
@@ -1110,6 +1165,7 @@ unsafe extern "C" {
     fn muir_dsp_dot2x2_w16(x: *const i16, w: *const u32, groups: usize, out: *mut [i64; 4]);
     fn muir_dsp_dot2x2_w16_i32(x: *const i16, w: *const u32, groups: usize, out: *mut [i32; 4]);
     fn muir_dsp_dot2x2_w16_n(x: *const i16, w: *const u32, groups: usize, pairs: usize, out: *mut [i32; 4]);
+    fn muir_dsp_dot2x2_w16_ns(x: *const i16, w: *const u32, groups: usize, pairs: usize, out: *mut [i32; 4], gap: usize);
     fn muir_dsp_widen_w16(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
     fn muir_dsp_widen_u8(d: *mut i16, s: *const u8, groups: usize);
     fn muir_dsp_put_groups_i16(d: *mut i16, s: *const i16, groups: usize);
@@ -1370,6 +1426,30 @@ pub fn dot2x2_w16_i32_n(ww: &[u32], x: &[i16], q: usize, out: &mut [[i32; 4]]) -
     // word-aligned `xq` (`8 q n` values in all; LDM, `wq` is a `u32` slice, so aligned too),
     // `1 <= q <= I16_ASM_GROUPS` (one chunk), and writes `out[i]` for each of the `n >= 1` pairs.
     unsafe { muir_dsp_dot2x2_w16_n(xq.as_ptr(), wq.as_ptr(), q, n, out.as_mut_ptr()) };
+    true
+}
+
+/// [`dot2x2_w16_i32_n`] with pair `i`'s `8 q` values at `x[i stride ..]` (`stride >= 8 q`, even:
+/// one part of the gathered pairs of a several-part layer, `stride` the pair's `2 kl`). False,
+/// having written nothing, where a slice is shorter, `q` is outside `1 ..= I16_ASM_GROUPS`,
+/// `out` is empty, the stride is odd or short, or `x` is not word-aligned.
+#[inline(always)]
+pub fn dot2x2_w16_i32_ns(ww: &[u32], x: &[i16], q: usize, stride: usize, out: &mut [[i32; 4]]) -> bool {
+    let n = out.len();
+    if q == 0 || q > I16_ASM_GROUPS || n == 0 || stride < 8 * q || !stride.is_multiple_of(2) {
+        return false;
+    }
+    let (Some(wq), Some(xq)) = (ww.get(..4 * q), x.get(..(n - 1) * stride + 8 * q)) else {
+        return false;
+    };
+    if !(xq.as_ptr() as usize).is_multiple_of(4) {
+        return false;
+    }
+    // SAFETY: per pair `i < n` the loop reads `4 q` words of `wq` and `8 q` values of the
+    // word-aligned `xq` from `i stride` (inside its `(n - 1) stride + 8 q`; an even stride keeps
+    // every pair word-aligned), `1 <= q <= I16_ASM_GROUPS`, and writes `out[i]`; the gap it adds
+    // after each pair is `2 (stride - 8 q)` bytes.
+    unsafe { muir_dsp_dot2x2_w16_ns(xq.as_ptr(), wq.as_ptr(), q, n, out.as_mut_ptr(), 2 * (stride - 8 * q)) };
     true
 }
 
