@@ -923,13 +923,7 @@ fn w16_parts(
             o += nv;
             wo += nv / 4 * 4;
         }
-        for (i, a) in acc.iter().take(cnt).enumerate() {
-            let (at_a, at_b) = ((ox + 2 * (first + i)) * p.cout + c, (ox + 2 * (first + i) + 1) * p.cout + c);
-            out.set(at_a, finish_short(post, b0, a[0]));
-            out.set(at_a + 1, finish_short(post, b1, a[1]));
-            out.set(at_b, finish_short(post, b0, a[2]));
-            out.set(at_b + 1, finish_short(post, b1, a[3]));
-        }
+        short_pairs(post, b0, b1, acc.get(..cnt).unwrap_or_default(), out, (ox + 2 * first) * p.cout + c, p.cout);
         first += cnt;
     }
     true
@@ -1081,6 +1075,51 @@ fn folded_run<T>(f0: super::dsp::Folded, f1: super::dsp::Folded, sums: &[[i32; 4
         set_at(o, at + 1, g(f1.apply(a1)));
         set_at(o, at + step, g(f0.apply(a2)));
         set_at(o, at + step + 1, g(f1.apply(a3)));
+        at += 2 * step;
+    }
+}
+
+/// [`finish_short`]'s stores of pairs of pixels: `sums[i]` are pair `i`'s `[c0 . a, c1 . a, c0 .
+/// b, c1 . b]` sums of the parts' short contributions, pixel a of pair `i` at `at + 2 i step`
+/// of `out`, pixel b `step` later; `b0`, `b1` the channels' biases. The activation and the
+/// storage type chosen once for all of them (monomorphised loops, as [`folded_pairs`]).
+#[allow(clippy::too_many_arguments)]
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(never)]
+fn short_pairs(post: PostOp, b0: i64, b1: i64, sums: &[[i64; 4]], out: &mut OutRow<'_>, at: usize, step: usize) {
+    use crate::arith::{sat_i8, sat_i16, sat_u8};
+    match out {
+        OutRow::I16(o) => short_post(post, b0, b1, sums, o, at, step, sat_i16),
+        OutRow::U8(o) => short_post(post, b0, b1, sums, o, at, step, sat_u8),
+        OutRow::I8(o) => short_post(post, b0, b1, sums, o, at, step, sat_i8),
+    }
+}
+
+/// [`short_pairs`] for one storage type (`sat`: [`OutRow::set`]'s saturation).
+#[allow(clippy::too_many_arguments)]
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(always)]
+fn short_post<T>(post: PostOp, b0: i64, b1: i64, sums: &[[i64; 4]], o: &mut [T], at: usize, step: usize, sat: fn(i64) -> T) {
+    use crate::arith::sat_i16;
+    match post {
+        PostOp::None => short_run(b0, b1, sums, o, at, step, sat),
+        PostOp::Relu => short_run(b0, b1, sums, o, at, step, |v| sat(v.max(0))),
+        PostOp::Sigmoid => short_run(b0, b1, sums, o, at, step, |v| sat(lut::sigmoid_q12(sat_i16(v)) as i64)),
+        PostOp::Tanh => short_run(b0, b1, sums, o, at, step, |v| sat(lut::tanh_q12(sat_i16(v)) as i64)),
+    }
+}
+
+/// [`short_post`]'s loop for one activation `g`: `g((sum + bias + 2^7) >> 8)`, as
+/// [`finish_short`] (no sum can overflow on the short path).
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(always)]
+fn short_run<T>(b0: i64, b1: i64, sums: &[[i64; 4]], o: &mut [T], mut at: usize, step: usize, g: impl Fn(i64) -> T) {
+    let (c0, c1) = (b0 + (1 << (EXTRA_BITS - 1)), b1 + (1 << (EXTRA_BITS - 1)));
+    for &[s0, s1, s2, s3] in sums {
+        set_at(o, at, g((s0 + c0) >> EXTRA_BITS));
+        set_at(o, at + 1, g((s1 + c1) >> EXTRA_BITS));
+        set_at(o, at + step, g((s2 + c0) >> EXTRA_BITS));
+        set_at(o, at + step + 1, g((s3 + c1) >> EXTRA_BITS));
         at += 2 * step;
     }
 }
@@ -1290,11 +1329,8 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
                     }
                 }
                 if fits {
-                    let (at_a, at_b) = (xa * p.cout + 2 * cp, xb * p.cout + 2 * cp);
-                    out.set(at_a, finish_short(p.post, b0, acc[0]));
-                    out.set(at_a + 1, finish_short(p.post, b1, acc[1]));
-                    out.set(at_b, finish_short(p.post, b0, acc[2]));
-                    out.set(at_b + 1, finish_short(p.post, b1, acc[3]));
+                    // (A single pixel, `xb == xa`: its two sums twice, the same values.)
+                    short_pairs(p.post, b0, b1, &[acc], out, xa * p.cout + 2 * cp, (xb - xa) * p.cout);
                     continue;
                 }
             }
