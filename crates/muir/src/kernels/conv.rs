@@ -963,24 +963,23 @@ fn w16_one_part(
     let post = p.post;
     // A patch of whole groups in one i32 chunk: the sums as i32, straight into the short path.
     let one_chunk = short && kl.is_multiple_of(4) && kl / 4 <= super::dsp::I16_ASM_GROUPS;
-    if one_chunk {
-        if let Some(sums) = sums.get_mut(..n)
-            && super::dsp::dot2x2_w16_i32_n(ww, slots, kl / 4, sums)
-        {
-            let sums = &*sums;
-            if let (Some(f0), Some(f1)) = (super::dsp::Folded::new(m0, b0), super::dsp::Folded::new(m1, b1)) {
-                folded_pairs(post, f0, f1, sums, out, ox * p.cout + c, p.cout);
-                return;
-            }
-            for (i, &[a0, a1, a2, a3]) in sums.iter().enumerate() {
-                let (at_a, at_b) = ((ox + 2 * i) * p.cout + c, (ox + 2 * i + 1) * p.cout + c);
-                out.set(at_a, finish_short(post, b0, r0.apply(a0)));
-                out.set(at_a + 1, finish_short(post, b1, r1.apply(a1)));
-                out.set(at_b, finish_short(post, b0, r0.apply(a2)));
-                out.set(at_b + 1, finish_short(post, b1, r1.apply(a3)));
-            }
+    if one_chunk
+        && let Some(sums) = sums.get_mut(..n)
+        && super::dsp::dot2x2_w16_i32_n(ww, slots, kl / 4, sums)
+    {
+        let sums = &*sums;
+        if let (Some(f0), Some(f1)) = (super::dsp::Folded::new(m0, b0), super::dsp::Folded::new(m1, b1)) {
+            folded_pairs(post, f0, f1, sums, out, ox * p.cout + c, p.cout);
             return;
         }
+        for (i, &[a0, a1, a2, a3]) in sums.iter().enumerate() {
+            let (at_a, at_b) = ((ox + 2 * i) * p.cout + c, (ox + 2 * i + 1) * p.cout + c);
+            out.set(at_a, finish_short(post, b0, r0.apply(a0)));
+            out.set(at_a + 1, finish_short(post, b1, r1.apply(a1)));
+            out.set(at_b, finish_short(post, b0, r0.apply(a2)));
+            out.set(at_b + 1, finish_short(post, b1, r1.apply(a3)));
+        }
+        return;
     }
     // Longer patches (several chunks, or values past the whole groups): the i64 sums of every
     // pair first; where all of them fit i32, the folded epilogue as above (else, or with a short
