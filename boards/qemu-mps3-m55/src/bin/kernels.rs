@@ -147,6 +147,16 @@ fn check_w16(buf: &Buffers<i16>, ww: &mut [u32; MAX_N], n: usize) -> usize {
             fail("i16 dot2x2_w16_i32_n", n, &got[0].map(i64::from), &want);
         }
     }
+    // Whole groups in chunks of up to 127 (`dot2x2_w16_i32_chunks`, the 576-value layers and
+    // parts): the plain sums where it gives them; a refusal wherever a sum leaves i32.
+    if n % 4 == 0 && q >= 1 {
+        let (mut got, mut tmp) = ([[0i32; 4]; 1], [[0i32; 4]; 1]);
+        let ok = dsp::dot2x2_w16_i32_chunks(ww, &buf.pair[..2 * n], q, 2 * n, &mut got, &mut tmp);
+        let fits = want.iter().all(|w| i32::try_from(*w).is_ok());
+        if (ok && got[0].map(i64::from) != want) || (!fits && ok) || (q <= 127 && fits && !ok) {
+            fail("i16 dot2x2_w16_i32_chunks", n, &got[0].map(i64::from), &want);
+        }
+    }
     match dsp::dot2x2_w16(ww, w0, w1, &buf.pair[..2 * n], n) {
         Some(got) if got == want => 1,
         Some(got) => fail("i16 dot2x2_w16", n, &got, &want),

@@ -801,6 +801,8 @@ fn conv_row_w16_in<T: Elem>(
     // The one-part layers' i32 sums of the gathered pairs, one channel pair at a time (cleared
     // once per row: cleared per channel pair, the 512 bytes cost 4.3 M instructions at 160x120).
     let mut sums = [[0i32; 4]; W16_MAX_PAIRS];
+    // The sums of a patch's or part's later chunks (`dsp::dot2x2_w16_i32_chunks`), likewise.
+    let mut tmp = [[0i32; 4]; W16_MAX_PAIRS];
     // The several-part layers' sums of `w16_parts` (likewise).
     let (mut acc, mut psums) = ([[0i64; 4]; W16_PARTS_PAIRS], [[0i32; 4]; W16_PARTS_PAIRS]);
     let mut ox = 0;
@@ -823,10 +825,10 @@ fn conv_row_w16_in<T: Elem>(
             }
             let ww = &*ww;
             if let [_] = p.parts {
-                w16_one_part(p, kl, ww, w0, w1, m, b, slots.get(..2 * kl * n).unwrap_or_default(), n, &mut sums, out, ox, 2 * cp);
+                w16_one_part(p, kl, ww, w0, w1, m, b, slots.get(..2 * kl * n).unwrap_or_default(), n, (&mut sums, &mut tmp), out, ox, 2 * cp);
                 continue;
             }
-            if w16_parts(p, kl, ww, w0, w1, m, b, slots.get(..2 * kl * n).unwrap_or_default(), n, (&mut acc, &mut psums), out, ox, 2 * cp) {
+            if w16_parts(p, kl, ww, w0, w1, m, b, slots.get(..2 * kl * n).unwrap_or_default(), n, (&mut acc, &mut psums, &mut tmp), out, ox, 2 * cp) {
                 continue;
             }
             let slots = slots.chunks_exact((2 * kl).max(1)).take(n);
@@ -849,6 +851,11 @@ fn conv_row_w16_in<T: Elem>(
     single_pixels(p, inputs, w_in, out, temp, x);
     true
 }
+
+/// [`w16_parts`]'s arrays (lent by [`conv_row_w16_in`], cleared once per row): the pass's
+/// sums, a part's i32 sums, its later chunks' sums.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+type PartsScratch<'a> = (&'a mut [[i64; 4]; W16_PARTS_PAIRS], &'a mut [[i32; 4]; W16_PARTS_PAIRS], &'a mut [[i32; 4]; W16_MAX_PAIRS]);
 
 /// Most pixel pairs of one pass of [`w16_parts`] (its sums wait on the stack).
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
@@ -875,7 +882,7 @@ fn w16_parts(
     b: &[u8],
     slots: &[i16],
     n: usize,
-    (acc, sums): (&mut [[i64; 4]; W16_PARTS_PAIRS], &mut [[i32; 4]; W16_PARTS_PAIRS]),
+    (acc, sums, tmp): PartsScratch<'_>,
     out: &mut OutRow<'_>,
     ox: usize,
     c: usize,
@@ -907,7 +914,7 @@ fn w16_parts(
             let (Some(s), Some(xo), Some(wq), Some(a0), Some(a1)) = (sums.get_mut(..cnt), x.get(2 * o..), ww.get(wo..), w0.get(o..), w1.get(o..)) else {
                 return false;
             };
-            if !(nv.is_multiple_of(4) && nv / 4 <= super::dsp::I16_ASM_GROUPS && super::dsp::dot2x2_w16_i32_ns(wq, xo, nv / 4, 2 * kl, s)) {
+            if !(nv.is_multiple_of(4) && super::dsp::dot2x2_w16_i32_chunks(wq, xo, nv / 4, 2 * kl, s, tmp)) {
                 for (d, slot) in s.iter_mut().zip(xo.chunks(2 * kl)) {
                     match super::dsp::dot2x2_w16(wq, a0, a1, slot, nv).map(|d| d.map(i32::try_from)) {
                         Some([Ok(e0), Ok(e1), Ok(e2), Ok(e3)]) => *d = [e0, e1, e2, e3],
@@ -949,7 +956,7 @@ fn w16_one_part(
     b: &[u8],
     slots: &[i16],
     n: usize,
-    sums: &mut [[i32; 4]; W16_MAX_PAIRS],
+    (sums, tmp): (&mut [[i32; 4]; W16_MAX_PAIRS], &mut [[i32; 4]; W16_MAX_PAIRS]),
     out: &mut OutRow<'_>,
     ox: usize,
     c: usize,
@@ -989,7 +996,9 @@ fn w16_one_part(
         && let (Some(f0), Some(f1)) = (super::dsp::Folded::new(m0, b0), super::dsp::Folded::new(m1, b1))
     {
         let mut fits = n <= W16_MAX_PAIRS;
-        for (slot, s) in slots.chunks_exact((2 * kl).max(1)).take(n).zip(sums.iter_mut()) {
+        // Whole groups: each chunk of all the pairs by one call.
+        let batched = kl.is_multiple_of(4) && sums.get_mut(..n).is_some_and(|s| super::dsp::dot2x2_w16_i32_chunks(ww, slots, kl / 4, 2 * kl, s, tmp));
+        for (slot, s) in slots.chunks_exact((2 * kl).max(1)).take(if batched { 0 } else { n }).zip(sums.iter_mut()) {
             match super::dsp::dot2x2_w16(ww, w0, w1, slot, kl).map(|d| d.map(i32::try_from)) {
                 Some([Ok(a0), Ok(a1), Ok(a2), Ok(a3)]) => *s = [a0, a1, a2, a3],
                 _ => {

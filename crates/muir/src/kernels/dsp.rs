@@ -1453,6 +1453,45 @@ pub fn dot2x2_w16_i32_ns(ww: &[u32], x: &[i16], q: usize, stride: usize, out: &m
     true
 }
 
+/// The i32 sums `out[i]` of `out.len()` pairs of one part of `q` whole groups (`x`: the part's
+/// block of the first pair, each next pair's `stride` values later; `ww`: the part's widened
+/// weights), a chunk of at most `I16_ASM_GROUPS` groups of every pair by one
+/// [`dot2x2_w16_i32_ns`] call, the later chunks (in `tmp`) added with overflow
+/// checks. False where a call refuses or a sum leaves i32 (then the short path does not apply:
+/// the callers go the per-pair way).
+#[inline(never)]
+pub fn dot2x2_w16_i32_chunks(ww: &[u32], x: &[i16], q: usize, stride: usize, out: &mut [[i32; 4]], tmp: &mut [[i32; 4]]) -> bool {
+    let Some(tmp) = tmp.get_mut(..out.len()) else {
+        return false;
+    };
+    let mut g = 0;
+    while g < q {
+        let c = (q - g).min(I16_ASM_GROUPS);
+        let (Some(wq), Some(xq)) = (ww.get(4 * g..), x.get(8 * g..)) else {
+            return false;
+        };
+        if g == 0 {
+            if !dot2x2_w16_i32_ns(wq, xq, c, stride, out) {
+                return false;
+            }
+        } else {
+            if !dot2x2_w16_i32_ns(wq, xq, c, stride, tmp) {
+                return false;
+            }
+            for (o, t) in out.iter_mut().zip(tmp.iter()) {
+                for (a, b) in o.iter_mut().zip(t) {
+                    match a.checked_add(*b) {
+                        Some(v) => *a = v,
+                        None => return false,
+                    }
+                }
+            }
+        }
+        g += c;
+    }
+    q > 0
+}
+
 /// `Elem::put_groups` for i16 (the pair layout's swap): each group of four as two words
 /// (`(x0, x1)`, `(x2, x3)`, unaligned loads) repacked by `PKHBT`/`PKHTB` into `(x0, x2)`, `(x1,
 /// x3)`: 2 loads, 2 packs and 2 stores per group instead of 4 halfword loads and 4 stores. On
