@@ -140,6 +140,22 @@ fn check_w16(buf: &Buffers<i16>, ww: &mut [u32; MAX_N], n: usize) -> usize {
             Some(got) => fail("i16 dot2x2_w16_i32", n, &got.map(i64::from), &want),
             None => fail("i16 dot2x2_w16_i32 (no result)", n, &[], &want),
         }
+        // The same pair as the only one of `dot2x2_w16_i32_n` (several pairs: `check_conv`'s
+        // one-part layers through `run_conv`).
+        let mut got = [[0x5A5A_5A5Ai32; 4]; 2];
+        if !dsp::dot2x2_w16_i32_n(ww, &buf.pair[..2 * n], q, &mut got[..1]) || got[0].map(i64::from) != want || got[1] != [0x5A5A_5A5A; 4] {
+            fail("i16 dot2x2_w16_i32_n", n, &got[0].map(i64::from), &want);
+        }
+    }
+    // Whole groups in chunks of up to 127 (`dot2x2_w16_i32_chunks`, the 576-value layers and
+    // parts): the plain sums where it gives them; a refusal wherever a sum leaves i32.
+    if n % 4 == 0 && q >= 1 {
+        let (mut got, mut tmp) = ([[0i32; 4]; 1], [[0i32; 4]; 1]);
+        let ok = dsp::dot2x2_w16_i32_chunks(ww, &buf.pair[..2 * n], q, 2 * n, &mut got, &mut tmp);
+        let fits = want.iter().all(|w| i32::try_from(*w).is_ok());
+        if (ok && got[0].map(i64::from) != want) || (!fits && ok) || (q <= 127 && fits && !ok) {
+            fail("i16 dot2x2_w16_i32_chunks", n, &got[0].map(i64::from), &want);
+        }
     }
     match dsp::dot2x2_w16(ww, w0, w1, &buf.pair[..2 * n], n) {
         Some(got) if got == want => 1,
@@ -1331,6 +1347,76 @@ fn check_requant_dsp(r: &mut Rng) -> usize {
                 process::exit(1);
             }
             cases += 1;
+            // The one-part epilogue folded into one multiply-add (`dsp::Folded`): the short
+            // path's `(requantize + bias + 2^7) >> 8`, where it is made (shifts 24 to 62, the
+            // folded constant within 2^62), for biases of either sign up to 2^40.
+            let bias = match i % 4 {
+                0 => 0,
+                1 => ((r.next() >> 40) as i64) - (1 << 23),
+                2 => ((r.next() >> 24) as i64) - (1 << 39),
+                _ => [-(1i64 << 40) + 1, -129, -128, 127, (1 << 40) - 1][(r.next() % 5) as usize],
+            };
+            if let Some(f) = dsp::Folded::new(mult, bias) {
+                let (got, want) = (f.apply(acc) as i64, (want + bias + 128) >> 8);
+                if got != want {
+                    println!("MUIR-KERNELS FAILED dsp::Folded({acc}, m={m}, shift={shift}, bias={bias}): {got}, short path {want}");
+                    process::exit(1);
+                }
+                cases += 1;
+            } else if (24..=40).contains(&shift) && bias.abs() < 1 << 20 {
+                println!("MUIR-KERNELS FAILED dsp::Folded not made for shift={shift}, bias={bias}");
+                process::exit(1);
+            }
+        }
+    }
+    cases
+}
+
+/// The DSP build's group copies of the gathers (`dsp::put_groups_i16`, the i16 pair layout's
+/// swap; `dsp::widen_u8_groups`, u8 pairs widened to it): 1 to 9 groups, word-aligned buffers
+/// (the assembly loops) and not (the compiled ones), both patches of a pair, against the
+/// layouts written out value by value; nothing outside the groups written.
+#[cfg(not(feature = "mve"))]
+fn check_groups(r: &mut Rng) -> usize {
+    use muir::kernels::dsp;
+    #[repr(C, align(8))]
+    struct A<T>([T; 96]);
+    let mut s16 = A([0i16; 96]);
+    let mut s8 = A([0u8; 96]);
+    for v in s16.0.iter_mut() {
+        *v = (r.next() >> 48) as i16;
+    }
+    for v in s8.0.iter_mut() {
+        *v = (r.next() >> 56) as u8;
+    }
+    let mut cases = 0;
+    for q in 1..=9usize {
+        for (so, dof) in [(0, 0), (1, 0), (0, 1), (2, 2)] {
+            for second in [false, true] {
+                let mut d = A([0x5A5Ai16; 96]);
+                dsp::put_groups_i16(&mut d.0[dof..dof + 8 * q], &s16.0[so..so + 4 * q], second);
+                let off = if second { 4 } else { 0 };
+                for (i, &got) in d.0.iter().enumerate() {
+                    let j = i.wrapping_sub(dof);
+                    let want = if i >= dof && j < 8 * q && (j % 8) / 4 == off / 4 { s16.0[so + 4 * (j / 8) + [0, 2, 1, 3][j % 4]] } else { 0x5A5A };
+                    if got != want {
+                        println!("MUIR-KERNELS FAILED dsp::put_groups_i16 q={q} offsets {so}/{dof} second={second} at {i}: {got}, want {want}");
+                        process::exit(1);
+                    }
+                }
+                cases += 1;
+            }
+            let mut d = A([0x5A5Ai16; 96]);
+            dsp::widen_u8_groups(&mut d.0[dof..dof + 4 * q], &s8.0[so..so + 4 * q]);
+            for (i, &got) in d.0.iter().enumerate() {
+                let j = i.wrapping_sub(dof);
+                let want = if i >= dof && j < 4 * q { s8.0[so + 4 * (j / 4) + [0, 2, 1, 3][j % 4]] as i16 } else { 0x5A5A };
+                if got != want {
+                    println!("MUIR-KERNELS FAILED dsp::widen_u8_groups q={q} offsets {so}/{dof} at {i}: {got}, want {want}");
+                    process::exit(1);
+                }
+            }
+            cases += 1;
         }
     }
     cases
@@ -1544,9 +1630,9 @@ fn check_nat(buf: &mut Buffers<i16>, ww: &mut [u32; MAX_N], n: usize, r: &mut Rn
         let (w0, w1) = (&buf.w0[..4 * q], &buf.w1[..4 * q]);
         let bstep = 2 * (ob - oa);
         let table = [
-            NatEntry { row: buf.pair[oa..].as_ptr(), w: 0, step: 0, groups: q, bstep, part: 0 },
-            NatEntry { row: buf.pair[ob..].as_ptr(), w: 0, step: 0, groups: q, bstep: 0, part: 1 },
-            NatEntry { row: buf.pair[oa + 4 * q..].as_ptr(), w: 0, step: 0, groups: m | NatEntry::PLAIN, bstep, part: 2 },
+            NatEntry::new(buf.pair[oa..].as_ptr(), 0, 0, q, bstep, 0),
+            NatEntry::new(buf.pair[ob..].as_ptr(), 0, 0, q, 0, 1),
+            NatEntry::new(buf.pair[oa + 4 * q..].as_ptr(), 0, 0, m | NatEntry::PLAIN, bstep, 2),
         ];
         let start: [[i64; 4]; 3] = core::array::from_fn(|_| core::array::from_fn(|_| ((r.next() >> 20) as i64) - (1 << 43)));
         let (ta, tb) = (&buf.a[4 * q..len], &buf.b[4 * q..len]);
@@ -2541,6 +2627,7 @@ fn main() -> ! {
     #[cfg(not(feature = "mve"))]
     {
         cases += check_requant_dsp(&mut r);
+        cases += check_groups(&mut r);
         cases += check_aggregate_dsp(i16s.a, &mut r);
         cases += check_corr4(&mut r);
         cases += check_logit_dsp(i16s.a, i16s.b, &mut r);

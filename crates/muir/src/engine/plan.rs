@@ -153,6 +153,18 @@ pub const fn max_patch(cfg: &Config) -> usize {
     m
 }
 
+/// Bytes of the patch scratch: two i16 patches of the largest layer (`4 max_patch`), or, where
+/// larger, what the DSP build's widened-weight path (`kernels::conv::conv_row_w16`) needs to
+/// widen a channel pair's weights once for a whole 1/8-grid row of the 3x3 layers over `c =
+/// max(d3, hidden, context)` channels (the context heads, the motion encoder's output, the flow
+/// and mask heads): the widened weights (`4 P` bytes, `P = 9 c` values), one i16 patch (`2 P`)
+/// and the row's pixel pairs (`4 P` each). Grows with the width: +1,152 B at 64x48, +14,976 B at
+/// 160x120 for muir-slim.
+pub const fn patch_bytes(cfg: &Config, g: &Grid) -> usize {
+    let p = 9 * max(cfg.backbone_dims[2], max(cfg.hidden_dim, cfg.context_dim));
+    max(4 * max_patch(cfg), 6 * p + 4 * p * g.w8.div_ceil(2))
+}
+
 impl Plan {
     /// The plan for `cfg` and an input of `width x height`.
     pub const fn new(cfg: &Config, width: usize, height: usize) -> Plan {
@@ -173,7 +185,7 @@ impl Plan {
         let qk = if cfg.mga { cfg.mga_qk_dim } else { 0 };
         let pixel = PixelBufs {
             // two i16 patches: convolutions run on pairs of output pixels (kernels::conv)
-            patch: b.take(4 * max_patch(cfg)),
+            patch: b.take(patch_bytes(cfg, &g)),
             window: b.take(4 * window_len(cfg.corr_levels, cfg.corr_radius)),
             prefix: b.take(8 * (window_len(cfg.corr_levels, cfg.corr_radius) + 1)),
             peaks_row: b.take(4 * g.w8),

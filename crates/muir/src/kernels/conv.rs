@@ -840,6 +840,13 @@ fn conv_row_w16_in<T: Elem>(
         return false;
     }
     let slots: &mut [i16] = bytemuck::cast_slice_mut(head_mut(slots, np * kl));
+    // The one-part layers' i32 sums of the gathered pairs, one channel pair at a time (cleared
+    // once per row: cleared per channel pair, the 512 bytes cost 4.3 M instructions at 160x120).
+    let mut sums = [[0i32; 4]; W16_MAX_PAIRS];
+    // The sums of a patch's or part's later chunks (`dsp::dot2x2_w16_i32_chunks`), likewise.
+    let mut tmp = [[0i32; 4]; W16_MAX_PAIRS];
+    // The several-part layers' sums of `w16_parts` (likewise).
+    let (mut acc, mut psums) = ([[0i64; 4]; W16_PARTS_PAIRS], [[0i32; 4]; W16_PARTS_PAIRS]);
     let mut ox = 0;
     while ox + 2 <= w_out {
         let n = ((w_out - ox) / 2).min(np);
@@ -859,11 +866,14 @@ fn conv_row_w16_in<T: Elem>(
                 wo += n / 4 * 4;
             }
             let ww = &*ww;
-            let slots = slots.chunks_exact((2 * kl).max(1)).take(n);
             if let [_] = p.parts {
-                w16_one_part(p, kl, ww, w0, w1, m, b, slots, out, ox, 2 * cp);
+                w16_one_part(p, kl, ww, w0, w1, m, b, slots.get(..2 * kl * n).unwrap_or_default(), n, (&mut sums, &mut tmp), out, ox, 2 * cp);
                 continue;
             }
+            if w16_parts(p, kl, ww, w0, w1, m, b, slots.get(..2 * kl * n).unwrap_or_default(), n, (&mut acc, &mut psums, &mut tmp), out, ox, 2 * cp) {
+                continue;
+            }
+            let slots = slots.chunks_exact((2 * kl).max(1)).take(n);
             for (i, slot) in slots.enumerate() {
                 let x = ox + 2 * i;
                 block2x2_by(p, m, b, out, x * p.cout, (x + 1) * p.cout, 2 * cp, |o, n, wo| {
@@ -884,13 +894,27 @@ fn conv_row_w16_in<T: Elem>(
     true
 }
 
-/// [`conv_row_w16_in`]'s channel pair `c`, `c + 1` for a one-part layer: [`block2x2_by`]'s
-/// integers with the pair's multipliers, biases and short-epilogue test decoded once for all the
-/// gathered pairs of pixels (`slots`, the first at pixel `ox`) instead of once per pair.
+/// [`w16_parts`]'s arrays (lent by [`conv_row_w16_in`], cleared once per row): the pass's
+/// sums, a part's i32 sums, its later chunks' sums.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+type PartsScratch<'a> = (&'a mut [[i64; 4]; W16_PARTS_PAIRS], &'a mut [[i32; 4]; W16_PARTS_PAIRS], &'a mut [[i32; 4]; W16_MAX_PAIRS]);
+
+/// Most pixel pairs of one pass of [`w16_parts`] (its sums wait on the stack).
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+const W16_PARTS_PAIRS: usize = 16;
+
+/// [`conv_row_w16_in`]'s channel pair `c`, `c + 1` for a layer of several parts whose every
+/// part takes the short epilogue: part by part, the sums of all the gathered pairs (`slots`,
+/// `2 kl` values each, the first at pixel `ox`), for a part of whole groups in one i32 chunk (at
+/// most 508 values, a multiple of four) by one assembly call
+/// ([`super::dsp::dot2x2_w16_i32_ns`]), else by [`super::dsp::dot2x2_w16`] per pair (each sum
+/// must fit i32), requantised with the part's multipliers decoded once and added to each pair's
+/// sums, then [`block2x2_by`]'s short-path stores. False for any other layer or where a sum
+/// does not fit (the caller then computes every pair of the channel pair again).
 #[allow(clippy::too_many_arguments)]
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
-#[inline(always)]
-fn w16_one_part<'s>(
+#[inline(never)]
+fn w16_parts(
     p: &ConvParams<'_>,
     kl: usize,
     ww: &[u32],
@@ -898,7 +922,83 @@ fn w16_one_part<'s>(
     w1: &[i8],
     m: &[u8],
     b: &[u8],
-    slots: impl Iterator<Item = &'s [i16]>,
+    slots: &[i16],
+    n: usize,
+    (acc, sums, tmp): PartsScratch<'_>,
+    out: &mut OutRow<'_>,
+    ox: usize,
+    c: usize,
+) -> bool {
+    let np = p.parts.len();
+    let ((m0s, m1s), (bb0, bb1)) = (halves(m), halves(b));
+    let (b0, b1) = (bias_at(bb0), bias_at(bb1));
+    if b0.unsigned_abs() >= SHORT_MAX_BIAS || b1.unsigned_abs() >= SHORT_MAX_BIAS || m0s.len() < 8 * np || m1s.len() < 8 * np {
+        return false;
+    }
+    let mut reqs = [(super::dsp::Requant::ZERO, super::dsp::Requant::ZERO); crate::model::graph::MAX_PARTS];
+    for (((r, a), b), &ch) in reqs.iter_mut().zip(m0s.chunks_exact(8)).zip(m1s.chunks_exact(8)).zip(p.parts) {
+        let (a, b) = (mult_raw(a), mult_raw(b));
+        if !(short_ok(a) && short_ok(b) && ch > 0) {
+            return false;
+        }
+        *r = (super::dsp::Requant::new(a), super::dsp::Requant::new(b));
+    }
+    let post = p.post;
+    let mut first = 0;
+    while first < n {
+        let cnt = (n - first).min(W16_PARTS_PAIRS);
+        let Some(x) = slots.get(2 * kl * first..) else {
+            return false; // never: `slots` holds `n` pairs
+        };
+        let (mut o, mut wo) = (0, 0);
+        for (part, (&ch, (r0, r1))) in p.parts.iter().zip(&reqs).enumerate() {
+            let nv = ch * p.k * p.k;
+            let (Some(s), Some(xo), Some(wq), Some(a0), Some(a1)) = (sums.get_mut(..cnt), x.get(2 * o..), ww.get(wo..), w0.get(o..), w1.get(o..)) else {
+                return false;
+            };
+            if !(nv.is_multiple_of(4) && super::dsp::dot2x2_w16_i32_chunks(wq, xo, nv / 4, 2 * kl, s, tmp)) {
+                for (d, slot) in s.iter_mut().zip(xo.chunks(2 * kl)) {
+                    match super::dsp::dot2x2_w16(wq, a0, a1, slot, nv).map(|d| d.map(i32::try_from)) {
+                        Some([Ok(e0), Ok(e1), Ok(e2), Ok(e3)]) => *d = [e0, e1, e2, e3],
+                        _ => return false,
+                    }
+                }
+            }
+            for (a, &[d0, d1, d2, d3]) in acc.iter_mut().zip(s.iter()) {
+                let v = [r0.apply(d0), r1.apply(d1), r0.apply(d2), r1.apply(d3)];
+                // The first part sets the pass's sums, the others add to them.
+                *a = if part == 0 { v } else { [a[0] + v[0], a[1] + v[1], a[2] + v[2], a[3] + v[3]] };
+            }
+            o += nv;
+            wo += nv / 4 * 4;
+        }
+        short_pairs(post, b0, b1, acc.get(..cnt).unwrap_or_default(), out, (ox + 2 * first) * p.cout + c, p.cout);
+        first += cnt;
+    }
+    true
+}
+
+/// [`conv_row_w16_in`]'s channel pair `c`, `c + 1` for a one-part layer: [`block2x2_by`]'s
+/// integers with the pair's multipliers, biases and short-epilogue test decoded once for all the
+/// `n` gathered pairs of pixels (`slots`, `2 kl` values each, the first at pixel `ox`) instead of
+/// once per pair. A patch of whole groups in one i32 chunk: the sums of all the pairs by one
+/// assembly call ([`super::dsp::dot2x2_w16_i32_n`]), then, where both channels' requantisation
+/// and bias fold into one multiply-add ([`super::dsp::Folded`]), an epilogue without per-value
+/// dispatch ([`folded_pairs`]).
+#[allow(clippy::too_many_arguments)]
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(always)]
+fn w16_one_part(
+    p: &ConvParams<'_>,
+    kl: usize,
+    ww: &[u32],
+    w0: &[i8],
+    w1: &[i8],
+    m: &[u8],
+    b: &[u8],
+    slots: &[i16],
+    n: usize,
+    (sums, tmp): (&mut [[i32; 4]; W16_MAX_PAIRS], &mut [[i32; 4]; W16_MAX_PAIRS]),
     out: &mut OutRow<'_>,
     ox: usize,
     c: usize,
@@ -912,7 +1012,49 @@ fn w16_one_part<'s>(
     let post = p.post;
     // A patch of whole groups in one i32 chunk: the sums as i32, straight into the short path.
     let one_chunk = short && kl.is_multiple_of(4) && kl / 4 <= super::dsp::I16_ASM_GROUPS;
-    for (i, slot) in slots.enumerate() {
+    if one_chunk
+        && let Some(sums) = sums.get_mut(..n)
+        && super::dsp::dot2x2_w16_i32_n(ww, slots, kl / 4, sums)
+    {
+        let sums = &*sums;
+        if let (Some(f0), Some(f1)) = (super::dsp::Folded::new(m0, b0), super::dsp::Folded::new(m1, b1)) {
+            folded_pairs(post, f0, f1, sums, out, ox * p.cout + c, p.cout);
+            return;
+        }
+        for (i, &[a0, a1, a2, a3]) in sums.iter().enumerate() {
+            let (at_a, at_b) = ((ox + 2 * i) * p.cout + c, (ox + 2 * i + 1) * p.cout + c);
+            out.set(at_a, finish_short(post, b0, r0.apply(a0)));
+            out.set(at_a + 1, finish_short(post, b1, r1.apply(a1)));
+            out.set(at_b, finish_short(post, b0, r0.apply(a2)));
+            out.set(at_b + 1, finish_short(post, b1, r1.apply(a3)));
+        }
+        return;
+    }
+    // Longer patches (several chunks, or values past the whole groups): the i64 sums of every
+    // pair first; where all of them fit i32, the folded epilogue as above (else, or with a short
+    // table, the per-pair path below computes the channel pair again).
+    if short
+        && !one_chunk
+        && let (Some(f0), Some(f1)) = (super::dsp::Folded::new(m0, b0), super::dsp::Folded::new(m1, b1))
+    {
+        let mut fits = n <= W16_MAX_PAIRS;
+        // Whole groups: each chunk of all the pairs by one call.
+        let batched = kl.is_multiple_of(4) && sums.get_mut(..n).is_some_and(|s| super::dsp::dot2x2_w16_i32_chunks(ww, slots, kl / 4, 2 * kl, s, tmp));
+        for (slot, s) in slots.chunks_exact((2 * kl).max(1)).take(if batched { 0 } else { n }).zip(sums.iter_mut()) {
+            match super::dsp::dot2x2_w16(ww, w0, w1, slot, kl).map(|d| d.map(i32::try_from)) {
+                Some([Ok(a0), Ok(a1), Ok(a2), Ok(a3)]) => *s = [a0, a1, a2, a3],
+                _ => {
+                    fits = false;
+                    break;
+                }
+            }
+        }
+        if fits {
+            folded_pairs(post, f0, f1, sums.get(..n).unwrap_or_default(), out, ox * p.cout + c, p.cout);
+            return;
+        }
+    }
+    for (i, slot) in slots.chunks_exact((2 * kl).max(1)).take(n).enumerate() {
         let (at_a, at_b) = ((ox + 2 * i) * p.cout + c, (ox + 2 * i + 1) * p.cout + c);
         if one_chunk && let Some([a0, a1, a2, a3]) = super::dsp::dot2x2_w16_i32(ww, slot, kl / 4) {
             out.set(at_a, finish_short(post, b0, r0.apply(a0)));
@@ -945,6 +1087,93 @@ fn w16_one_part<'s>(
     }
 }
 
+/// The stores of [`w16_one_part`]'s folded epilogue: `sums[i]` are pair `i`'s `[w0 . a, w1 .
+/// a, w0 . b, w1 . b]`, pixel a of pair `i` at `at + 2 i step` of `out`, pixel b `step` later;
+/// each value `f.apply(sum)` activated and saturated as [`finish_short`] and [`OutRow::set`]
+/// do, the activation and the storage type chosen once for all of them (monomorphised loops).
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(always)]
+fn folded_pairs(post: PostOp, f0: super::dsp::Folded, f1: super::dsp::Folded, sums: &[[i32; 4]], out: &mut OutRow<'_>, at: usize, step: usize) {
+    use crate::arith::{sat_i8, sat_i16, sat_u8};
+    match out {
+        OutRow::I16(o) => folded_post(post, f0, f1, sums, o, at, step, sat_i16),
+        OutRow::U8(o) => folded_post(post, f0, f1, sums, o, at, step, sat_u8),
+        OutRow::I8(o) => folded_post(post, f0, f1, sums, o, at, step, sat_i8),
+    }
+}
+
+/// [`folded_pairs`] for one storage type (`sat`: [`OutRow::set`]'s saturation).
+#[allow(clippy::too_many_arguments)]
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(always)]
+fn folded_post<T>(post: PostOp, f0: super::dsp::Folded, f1: super::dsp::Folded, sums: &[[i32; 4]], o: &mut [T], at: usize, step: usize, sat: fn(i64) -> T) {
+    use crate::arith::sat_i16;
+    match post {
+        PostOp::None => folded_run(f0, f1, sums, o, at, step, |v| sat(v as i64)),
+        PostOp::Relu => folded_run(f0, f1, sums, o, at, step, |v| sat(v.max(0) as i64)),
+        PostOp::Sigmoid => folded_run(f0, f1, sums, o, at, step, |v| sat(lut::sigmoid_q12(sat_i16(v as i64)) as i64)),
+        PostOp::Tanh => folded_run(f0, f1, sums, o, at, step, |v| sat(lut::tanh_q12(sat_i16(v as i64)) as i64)),
+    }
+}
+
+/// [`folded_post`]'s loop for one activation `g`.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(always)]
+fn folded_run<T>(f0: super::dsp::Folded, f1: super::dsp::Folded, sums: &[[i32; 4]], o: &mut [T], mut at: usize, step: usize, g: impl Fn(i32) -> T) {
+    for &[a0, a1, a2, a3] in sums {
+        set_at(o, at, g(f0.apply(a0)));
+        set_at(o, at + 1, g(f1.apply(a1)));
+        set_at(o, at + step, g(f0.apply(a2)));
+        set_at(o, at + step + 1, g(f1.apply(a3)));
+        at += 2 * step;
+    }
+}
+
+/// [`finish_short`]'s stores of pairs of pixels: `sums[i]` are pair `i`'s `[c0 . a, c1 . a, c0 .
+/// b, c1 . b]` sums of the parts' short contributions, pixel a of pair `i` at `at + 2 i step`
+/// of `out`, pixel b `step` later; `b0`, `b1` the channels' biases. The activation and the
+/// storage type chosen once for all of them (monomorphised loops, as [`folded_pairs`]).
+#[allow(clippy::too_many_arguments)]
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(never)]
+fn short_pairs(post: PostOp, b0: i64, b1: i64, sums: &[[i64; 4]], out: &mut OutRow<'_>, at: usize, step: usize) {
+    use crate::arith::{sat_i8, sat_i16, sat_u8};
+    match out {
+        OutRow::I16(o) => short_post(post, b0, b1, sums, o, at, step, sat_i16),
+        OutRow::U8(o) => short_post(post, b0, b1, sums, o, at, step, sat_u8),
+        OutRow::I8(o) => short_post(post, b0, b1, sums, o, at, step, sat_i8),
+    }
+}
+
+/// [`short_pairs`] for one storage type (`sat`: [`OutRow::set`]'s saturation).
+#[allow(clippy::too_many_arguments)]
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(always)]
+fn short_post<T>(post: PostOp, b0: i64, b1: i64, sums: &[[i64; 4]], o: &mut [T], at: usize, step: usize, sat: fn(i64) -> T) {
+    use crate::arith::sat_i16;
+    match post {
+        PostOp::None => short_run(b0, b1, sums, o, at, step, sat),
+        PostOp::Relu => short_run(b0, b1, sums, o, at, step, |v| sat(v.max(0))),
+        PostOp::Sigmoid => short_run(b0, b1, sums, o, at, step, |v| sat(lut::sigmoid_q12(sat_i16(v)) as i64)),
+        PostOp::Tanh => short_run(b0, b1, sums, o, at, step, |v| sat(lut::tanh_q12(sat_i16(v)) as i64)),
+    }
+}
+
+/// [`short_post`]'s loop for one activation `g`: `g((sum + bias + 2^7) >> 8)`, as
+/// [`finish_short`] (no sum can overflow on the short path).
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(always)]
+fn short_run<T>(b0: i64, b1: i64, sums: &[[i64; 4]], o: &mut [T], mut at: usize, step: usize, g: impl Fn(i64) -> T) {
+    let (c0, c1) = (b0 + (1 << (EXTRA_BITS - 1)), b1 + (1 << (EXTRA_BITS - 1)));
+    for &[s0, s1, s2, s3] in sums {
+        set_at(o, at, g((s0 + c0) >> EXTRA_BITS));
+        set_at(o, at + 1, g((s1 + c1) >> EXTRA_BITS));
+        set_at(o, at + step, g((s2 + c0) >> EXTRA_BITS));
+        set_at(o, at + step + 1, g((s3 + c1) >> EXTRA_BITS));
+        at += 2 * step;
+    }
+}
+
 /// [`conv_row`] for i16 activations on the DSP build by [`conv_row_w16`] (the gathered pairs
 /// straight into its slots), where the engine's byte `scratch` holds the widened weights, a
 /// patch for the odd channel and pixel, and at least [`W16_MIN_PAIRS`] pairs of patches (the
@@ -961,6 +1190,24 @@ pub fn conv_row_i16_w16(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
         return false;
     };
     conv_row_w16(p, inputs, w_in, out, single, rest, |ox, _, slot| gather2(p, inputs, w_in, ox, slot))
+}
+
+/// Fewest pixel pairs per widening for which [`conv_row_i16_w16`] runs before
+/// [`conv_row_i16_nat`] (with fewer, the in-place path first where it applies).
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+const W16_NAT_PAIRS: usize = 3;
+
+/// The i16 rows' own path on the DSP build: [`conv_row_i16_w16`] where the scratch holds at
+/// least [`W16_NAT_PAIRS`] pairs of patches, else [`conv_row_i16_nat`] first; false, having
+/// computed nothing, where neither applies.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+pub fn conv_row_i16_wide(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: usize, out: &mut OutRow<'_>, scratch: &mut [u8]) -> bool {
+    let kl = p.patch_len();
+    let pairs = scratch.len().saturating_sub(2 * kl + 4 * w16_words(p) + 8) / (4 * kl).max(1);
+    if pairs < W16_NAT_PAIRS && conv_row_i16_nat(p, inputs, w_in, out, scratch) {
+        return true;
+    }
+    conv_row_i16_w16(p, inputs, w_in, out, scratch) || conv_row_i16_nat(p, inputs, w_in, out, scratch)
 }
 
 /// [`conv_row_i16_w16`] with the gathered pairs of patches in `spare` (arena bytes idle while
@@ -1030,7 +1277,10 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
         return false;
     };
     let pad = k / 2;
-    let mut t = NatTable::new();
+    // The table's entries cleared in this frame (built by value, 2 KB of them were cleared in a
+    // second copy and copied over).
+    let mut entries = [super::dsp::NatEntry::EMPTY; 4 * NAT_ENTRIES];
+    let mut t = NatTable { e: &mut entries, ne: 0, whole: true };
     // The inside blocks' table at the table's front, built once per row (its entries), and the
     // single pixels' tables (column and entries) after it, or at the front until the inside
     // one is built (which then overwrites them): each built once per row where they fit (one
@@ -1129,11 +1379,8 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
                     }
                 }
                 if fits {
-                    let (at_a, at_b) = (xa * p.cout + 2 * cp, xb * p.cout + 2 * cp);
-                    out.set(at_a, finish_short(p.post, b0, acc[0]));
-                    out.set(at_a + 1, finish_short(p.post, b1, acc[1]));
-                    out.set(at_b, finish_short(p.post, b0, acc[2]));
-                    out.set(at_b + 1, finish_short(p.post, b1, acc[3]));
+                    // (A single pixel, `xb == xa`: its two sums twice, the same values.)
+                    short_pairs(p.post, b0, b1, &[acc], out, xa * p.cout + 2 * cp, (xb - xa) * p.cout);
                     continue;
                 }
             }
@@ -1189,24 +1436,19 @@ const NAT_ENTRIES: usize = 3 * crate::model::graph::MAX_PARTS;
 /// channel pairs (`3 NAT_ENTRIES` left the six-part gate layers rebuilding them: 28 M
 /// instructions more at 160x120; `6 NAT_ENTRIES` counts as `4`).
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
-struct NatTable {
-    e: [super::dsp::NatEntry; 4 * NAT_ENTRIES],
+struct NatTable<'a> {
+    e: &'a mut [super::dsp::NatEntry; 4 * NAT_ENTRIES],
     ne: usize,
     /// Whether every entry fitted (else the row stops).
     whole: bool,
 }
 
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
-impl NatTable {
-    fn new() -> Self {
-        let e = super::dsp::NatEntry { row: core::ptr::null(), w: 0, step: 0, groups: 0, bstep: 0, part: 0 };
-        NatTable { e: [e; 4 * NAT_ENTRIES], ne: 0, whole: true }
-    }
-
+impl NatTable<'_> {
     #[inline(always)]
     fn push(&mut self, e: super::dsp::NatEntry) {
         match self.e.get_mut(self.ne) {
-            Some(d) if e.part < crate::model::graph::MAX_PARTS => {
+            Some(d) if e.part() < crate::model::graph::MAX_PARTS => {
                 *d = e;
                 self.ne += 1;
             }
@@ -1226,7 +1468,7 @@ impl NatTable {
         // values inside the row (the caller's bounds, as for the groups).
         match row.get(at..) {
             Some(r) if n < 8 && w + n <= kl => {
-                let e = super::dsp::NatEntry { row: r.as_ptr(), w, step: 2 * step, groups: n | super::dsp::NatEntry::PLAIN, bstep: 2 * bd, part };
+                let e = super::dsp::NatEntry::new(r.as_ptr(), w, 2 * step, n | super::dsp::NatEntry::PLAIN, 2 * bd, part);
                 self.push(e);
             }
             _ => self.whole = false,
@@ -1271,7 +1513,7 @@ impl NatTable {
                 let at = wo + 4 * ky * gr + 4 * g0;
                 match row.get(base + 4 * g0 - s..) {
                     Some(first) if at + 4 * (g1 - g0) <= words => {
-                        let e = super::dsp::NatEntry { row: first.as_ptr(), w: 4 * at, step: 2 * step, groups: g1 - g0, bstep: 2 * bd, part };
+                        let e = super::dsp::NatEntry::new(first.as_ptr(), 4 * at, 2 * step, g1 - g0, 2 * bd, part);
                         self.push(e);
                     }
                     _ => self.whole = false,

@@ -650,6 +650,52 @@ impl Requant {
     }
 }
 
+/// A one-part convolution's short epilogue before the activation, folded: for a multiplier of
+/// shift `s` and a bias `bias`, `floor((floor((acc m + 2^(s-1)) / 2^s) + bias + 2^7) / 2^8)`
+/// (the short path's [`requantize_i32`], the bias and `EXTRA_BITS` = 8 bits' rounding, as
+/// `conv::finish_short` computes it for one part) is `floor((acc m + C) / 2^(s+8))` with `C =
+/// 2^(s-1) + (bias + 2^7) 2^s` (nested floors of divisions by powers of two, the inner one
+/// plus an integer): one `SMLAL` onto `C` and one arithmetic shift of the high word by `s - 24`
+/// (at most 31). Made only for `24 <= s <= 62` and `|C| <= 2^62`: then `|acc m + C| < 2^63` for
+/// any i32 `acc` (`|acc m| <= 2^62`) and the result fits i32.
+#[derive(Clone, Copy, Debug)]
+pub struct Folded {
+    m: i32,
+    lo: u32,
+    hi: u32,
+    k: u32,
+}
+
+impl Folded {
+    /// `m` and `bias` folded, or `None` outside the range above.
+    #[inline(always)]
+    pub fn new(m: crate::arith::Multiplier, bias: i64) -> Option<Self> {
+        let s = m.shift as u32;
+        if !(24..=62).contains(&s) {
+            return None;
+        }
+        let c = (1i128 << (s - 1)) + ((bias as i128 + 128) << s);
+        if c.unsigned_abs() > 1u128 << 62 {
+            return None;
+        }
+        let c = c as i64;
+        Some(Folded { m: m.m, lo: c as u32, hi: (c >> 32) as u32, k: (s - 24).min(31) })
+    }
+
+    /// The folded value of `acc`: `SMLAL` onto `C`, the high word shifted.
+    #[inline(always)]
+    pub fn apply(&self, acc: i32) -> i32 {
+        let (mut lo, mut hi) = (self.lo, self.hi);
+        // SAFETY: register-only; SMLAL touches no flags.
+        unsafe {
+            asm!("smlal {lo}, {hi}, {a}, {b}", lo = inout(reg) lo, hi = inout(reg) hi, a = in(reg) acc, b = in(reg) self.m,
+                options(pure, nomem, nostack, preserves_flags))
+        };
+        let _ = lo;
+        (hi as i32) >> self.k
+    }
+}
+
 /// An activation type whose four values at `i` widen into the two 16-bit pairs `SMLAD` takes:
 /// values 0 and 2, then values 1 and 3 (the order `SXTB16` gives the weights).
 pub trait Quad: Copy + Into<i32> {
@@ -934,6 +980,196 @@ core::arch::global_asm!(
     "    pop {{r4-r11, pc}}",
     ".size muir_dsp_dot2x2_w16, . - muir_dsp_dot2x2_w16",
     "",
+    // `dot2x2_w16_i32_n`: `dot2x2_w16_i32` for several pairs of patches one after another (the
+    // gathered pairs of a one-part layer): r0 = x (the first pair; each pair is `8 groups`
+    // values, so the body leaves r0 at the next one), r1 = the widened weights, r2 = groups (1
+    // to `chunk`), r3 = pairs (>= 1), [sp] = out (four i32 per pair). The body is written here
+    // again (its end must lie within `ADR`'s reach of the entry's computation, which follows it):
+    // per pair the four zero words by one LDM, the weights and the body's entry by one LDRD,
+    // the four sums by one STM (8 instructions a pair, against some 30 for a call of
+    // `dot2x2_w16_i32` and its Rust set-up). Stack: [sp] four zero words, [sp, #16] ww,
+    // [sp, #20] the body's entry, [sp, #24] pairs left, [sp, #28] out.
+    ".section .text.muir_dsp_dot2x2_w16_n,\"ax\",%progbits",
+    ".type muir_dsp_dot2x2_w16_n_body,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_dot2x2_w16_n_body:",
+    ".rept {chunk}",
+    "    ldm.w r0!, {{r6-r9}}",
+    "    ldm.w r1!, {{r10-r12, lr}}",
+    "    smlad r2, r10, r6, r2",
+    "    smlad r2, r11, r7, r2",
+    "    smlad r3, r12, r6, r3",
+    "    smlad r3, lr, r7, r3",
+    "    smlad r4, r10, r8, r4",
+    "    smlad r4, r11, r9, r4",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    ".endr",
+    "9:",
+    "    ldrd r12, lr, [sp, #24]",
+    "    stm lr!, {{r2-r5}}",
+    "    subs r12, #1",
+    "    strd r12, lr, [sp, #24]",
+    "    bne 1f",
+    "    add sp, #32",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_dsp_dot2x2_w16_n_body, . - muir_dsp_dot2x2_w16_n_body",
+    ".global muir_dsp_dot2x2_w16_n",
+    ".type muir_dsp_dot2x2_w16_n,%function",
+    ".thumb_func",
+    "muir_dsp_dot2x2_w16_n:",
+    "    push {{r4-r11, lr}}",
+    "    sub sp, #32",
+    "    ldr r12, [sp, #68]",          // out
+    "    adr lr, 9b + 1",
+    "    add r2, r2, r2, lsl #2",      // 40 bytes a group: the entry is 9b - 8 * (5 groups)
+    "    sub lr, lr, r2, lsl #3",
+    "    strd r1, lr, [sp, #16]",
+    "    strd r3, r12, [sp, #24]",
+    "    movs r4, #0",
+    "    movs r5, #0",
+    "    strd r4, r5, [sp]",
+    "    strd r4, r5, [sp, #8]",
+    "1:",
+    "    ldm sp, {{r2-r5}}",
+    "    ldrd r1, lr, [sp, #16]",
+    "    bx lr",
+    ".size muir_dsp_dot2x2_w16_n, . - muir_dsp_dot2x2_w16_n",
+    "",
+    // `dot2x2_w16_i32_ns`: `muir_dsp_dot2x2_w16_n` with the pairs `gap` bytes apart beyond
+    // their `16 groups` (one part of several-part patches: the part's block at the same offset
+    // of every pair's slot): r0 = x, r1 = ww, r2 = groups (1 to `chunk`), r3 = pairs (>= 1),
+    // [sp] = out (four i32 per pair), [sp, #4] = gap; stack as there, [sp, #32] the gap.
+    ".section .text.muir_dsp_dot2x2_w16_ns,\"ax\",%progbits",
+    ".type muir_dsp_dot2x2_w16_ns_body,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_dot2x2_w16_ns_body:",
+    ".rept {chunk}",
+    "    ldm.w r0!, {{r6-r9}}",
+    "    ldm.w r1!, {{r10-r12, lr}}",
+    "    smlad r2, r10, r6, r2",
+    "    smlad r2, r11, r7, r2",
+    "    smlad r3, r12, r6, r3",
+    "    smlad r3, lr, r7, r3",
+    "    smlad r4, r10, r8, r4",
+    "    smlad r4, r11, r9, r4",
+    "    smlad r5, r12, r8, r5",
+    "    smlad r5, lr, r9, r5",
+    ".endr",
+    "9:",
+    "    ldrd r12, lr, [sp, #24]",
+    "    stm lr!, {{r2-r5}}",
+    "    ldr r6, [sp, #32]",
+    "    add r0, r0, r6",
+    "    subs r12, #1",
+    "    strd r12, lr, [sp, #24]",
+    "    bne 1f",
+    "    add sp, #40",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_dsp_dot2x2_w16_ns_body, . - muir_dsp_dot2x2_w16_ns_body",
+    ".global muir_dsp_dot2x2_w16_ns",
+    ".type muir_dsp_dot2x2_w16_ns,%function",
+    ".thumb_func",
+    "muir_dsp_dot2x2_w16_ns:",
+    "    push {{r4-r11, lr}}",
+    "    sub sp, #40",
+    "    ldrd r12, r4, [sp, #76]",    // out, gap
+    "    str r4, [sp, #32]",
+    "    adr lr, 9b + 1",
+    "    add r2, r2, r2, lsl #2",
+    "    sub lr, lr, r2, lsl #3",
+    "    strd r1, lr, [sp, #16]",
+    "    strd r3, r12, [sp, #24]",
+    "    movs r4, #0",
+    "    movs r5, #0",
+    "    strd r4, r5, [sp]",
+    "    strd r4, r5, [sp, #8]",
+    "1:",
+    "    ldm sp, {{r2-r5}}",
+    "    ldrd r1, lr, [sp, #16]",
+    "    bx lr",
+    ".size muir_dsp_dot2x2_w16_ns, . - muir_dsp_dot2x2_w16_ns",
+    "",
+    // `widen_u8_groups` on word-aligned buffers: r0 = d (i16), r1 = s (u8), r2 = groups (>= 1):
+    // per two groups one LDRD, four UXTB16 and one STM (3 instructions a group, the loop's
+    // SUBS/BNE once per four groups) against 7 for the compiled loop.
+    ".section .text.muir_dsp_widen_u8,\"ax\",%progbits",
+    ".global muir_dsp_widen_u8",
+    ".type muir_dsp_widen_u8,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_widen_u8:",
+    "    push {{r4-r9}}",
+    "    lsrs r3, r2, #2",
+    "    beq 2f",
+    "1:",
+    "    ldrd r4, r5, [r1], #8",
+    "    uxtb16 r6, r4",
+    "    uxtb16 r7, r4, ror #8",
+    "    uxtb16 r8, r5",
+    "    uxtb16 r9, r5, ror #8",
+    "    stm r0!, {{r6-r9}}",
+    "    ldrd r4, r5, [r1], #8",
+    "    uxtb16 r6, r4",
+    "    uxtb16 r7, r4, ror #8",
+    "    uxtb16 r8, r5",
+    "    uxtb16 r9, r5, ror #8",
+    "    stm r0!, {{r6-r9}}",
+    "    subs r3, #1",
+    "    bne 1b",
+    "2:",
+    "    ands r2, r2, #3",
+    "    beq 4f",
+    "3:",
+    "    ldr r4, [r1], #4",
+    "    uxtb16 r6, r4",
+    "    uxtb16 r7, r4, ror #8",
+    "    stm r0!, {{r6-r7}}",
+    "    subs r2, #1",
+    "    bne 3b",
+    "4:",
+    "    pop {{r4-r9}}",
+    "    bx lr",
+    ".size muir_dsp_widen_u8, . - muir_dsp_widen_u8",
+    "",
+    // `put_groups_i16` on word-aligned buffers: r0 = d (the first group's four values of this
+    // patch; groups 16 bytes apart), r1 = s (i16 values), r2 = groups (>= 1): per group one LDRD,
+    // PKHBT, PKHTB and one STRD (4 instructions a group, the loop's SUBS/BNE once per two
+    // groups) against 8 for the compiled loop.
+    ".section .text.muir_dsp_put_groups_i16,\"ax\",%progbits",
+    ".global muir_dsp_put_groups_i16",
+    ".type muir_dsp_put_groups_i16,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_put_groups_i16:",
+    "    push {{r4-r7}}",
+    "    lsrs r3, r2, #1",
+    "    beq 2f",
+    "1:",
+    "    ldrd r4, r5, [r1], #8",      // (x0, x1), (x2, x3)
+    "    pkhbt r6, r4, r5, lsl #16",  // (x0, x2)
+    "    pkhtb r7, r5, r4, asr #16",  // (x1, x3)
+    "    strd r6, r7, [r0], #16",
+    "    ldrd r4, r5, [r1], #8",
+    "    pkhbt r6, r4, r5, lsl #16",
+    "    pkhtb r7, r5, r4, asr #16",
+    "    strd r6, r7, [r0], #16",
+    "    subs r3, #1",
+    "    bne 1b",
+    "2:",
+    "    tst r2, #1",
+    "    beq 3f",
+    "    ldrd r4, r5, [r1]",
+    "    pkhbt r6, r4, r5, lsl #16",
+    "    pkhtb r7, r5, r4, asr #16",
+    "    strd r6, r7, [r0]",
+    "3:",
+    "    pop {{r4-r7}}",
+    "    bx lr",
+    ".size muir_dsp_put_groups_i16, . - muir_dsp_put_groups_i16",
+    "",
     // `widen_weights`' loop: r0 = w0, r1 = w1 (int8 rows, any alignment), r2 = groups (>= 1),
     // r3 = out (word-aligned): per group LDR, LDR, 4 SXTB16, one STM. The body is written 8
     // times (28 bytes each) and entered `-groups mod 8` copies after its start (Duff's device):
@@ -971,7 +1207,7 @@ core::arch::global_asm!(
     ".size muir_dsp_widen_w16, . - muir_dsp_widen_w16",
     "",
     // `nat_block`: one block of two pixels over every kernel row of every part, from a table
-    // of entries (row, w, step, groups, bstep, part: `NatEntry`), the activations read in place
+    // of entries (row, w, step, groups, bstep, sums, skip: `NatEntry`), the activations read in place
     // from the input rows in natural order (so the weights are widened in natural order too,
     // `widen_weights_nat`). r0 = table, r1 = entries (>= 1), r2 = col, r3 = the parts' four i64
     // sums each (added to); [sp, #76] kl, [sp, #80] w0, [sp, #84] ww after the pushes. Per
@@ -982,9 +1218,12 @@ core::arch::global_asm!(
     // (no end pointer, no loop test): per group one LDM of the channel pair's four widened
     // weight words, then pixel a's two words, four SMLAD, pixel b's, four SMLAD: 11
     // instructions per 16 MACs where both pixels are word-aligned (LDRD), 13 otherwise (LDR
-    // pairs); one pixel (bstep 0): 6 (7).
-    // Stack: [sp] table cursor, [sp, #4] entries left, [sp, #8] col, [sp, #12] the sums,
-    // [sp, #16] this entry's sums, [sp, #24] four zero words.
+    // pairs); one pixel (bstep 0): 6 (7). Per entry around the loop: 35 instructions on the
+    // aligned path (the table's cursor in r12 from one entry to the next and its end on the
+    // stack, the entry's sums pointer in r3, free during the bodies, the aligned body's entry
+    // from the table's `skip`, the zero words at [sp] for one LDM).
+    // Stack: [sp] four zero words, [sp, #16] table cursor, [sp, #20] table end, [sp, #24] col,
+    // [sp, #28] the sums.
     ".section .text.muir_dsp_nat_block,\"ax\",%progbits",
     ".global muir_dsp_nat_block",
     ".type muir_dsp_nat_block,%function",
@@ -993,39 +1232,39 @@ core::arch::global_asm!(
     "muir_dsp_nat_block:",
     "    push {{r4-r11, lr}}",
     "    sub sp, #40",
-    "    stm sp, {{r0-r3}}",
-    "    movs r4, #0",                // four zero words at [sp, #24]: an entry's sums start
+    "    rsb r1, r1, r1, lsl #3",     // 28 bytes an entry: the table's end
+    "    add r1, r0, r1, lsl #2",
+    "    strd r0, r1, [sp, #16]",
+    "    strd r2, r3, [sp, #24]",
+    "    movs r4, #0",                // four zero words at [sp]: an entry's sums start
     "    movs r5, #0",                // from them (one LDM instead of four MOVS)
-    "    strd r4, r5, [sp, #24]",
-    "    strd r4, r5, [sp, #32]",
+    "    strd r4, r5, [sp]",
+    "    strd r4, r5, [sp, #8]",
+    "    mov r12, r0",
     "5:",
-    "    ldr r12, [sp]",
-    "    ldm r12!, {{r0-r4, lr}}",    // row, ww, step, groups, bstep, part
-    "    str r12, [sp]",
-    "    ldr r12, [sp, #12]",
-    "    add lr, r12, lr, lsl #5",
-    "    str lr, [sp, #16]",
-    "    ldr r5, [sp, #8]",
-    "    mla r0, r5, r2, r0",         // pixel a: row + col step
+    "    ldm r12!, {{r0-r5, lr}}",    // row, ww, step, groups, bstep, sums, skip
+    "    str r12, [sp, #16]",
+    "    ldr r12, [sp, #24]",
+    "    mla r0, r12, r2, r0",        // pixel a: row + col step
     "    add r2, r0, r4",             // pixel b: bstep later
+    "    ldr r12, [sp, #28]",
+    "    add r5, r5, r12",            // the part's sums (to r3 once `groups` is used)
     "    cmp r3, #0",                 // a plain entry (bit 31 set): 50
     "    blt.w 50f",
     "    ldr r12, [sp, #84]",         // the widened weights: r1 is the run's byte offset
     "    add r1, r1, r12",
     "    cmp r4, #0",                 // one pixel (a block of one pixel taken twice): 40
     "    beq.w 40f",
-    "    add r12, sp, #24",
-    "    ldm r12, {{r4-r7}}",
     "    tst r0, #3",
     "    bne.w 20f",
     "    tst r2, #3",
     "    bne.w 24f",
-    // Both pixels word-aligned: enter the body `groups` copies (44 bytes each) before its end.
+    // Both pixels word-aligned: enter the body `groups` copies (44 bytes each) before its end,
+    // `skip` bytes after its start.
     "    adr r12, 11f + 1",
-    "    rsb r8, r3, #{chunk}",
-    "    add r9, r8, r8, lsl #1",
-    "    add r9, r9, r8, lsl #3",
-    "    add r12, r12, r9, lsl #2",
+    "    add r12, r12, lr",
+    "    mov r3, r5",
+    "    ldm sp, {{r4-r7}}",
     "    bx r12",
     ".p2align 2",
     "11:",
@@ -1043,22 +1282,20 @@ core::arch::global_asm!(
     "    smlad r7, r11, lr, r7",
     ".endr",
     "30:",
-    // the part's four i64 sums (word-aligned) by one LDM and one STM: the pointers r0-r3 are
-    // reloaded by the next entry, r8-r11 held this entry's weights.
-    "    ldr r12, [sp, #16]",
-    "    ldm r12, {{r0-r3, r8-r11}}",
+    // the part's four i64 sums (word-aligned, at r3) by one LDM and one STM: the pointers
+    // r0-r2 are reloaded by the next entry, r8-r11 held this entry's weights.
+    "    ldm r3, {{r0-r2, r8-r12}}",
     "    adds r0, r0, r4",
     "    adc r1, r1, r4, asr #31",
     "    adds r2, r2, r5",
-    "    adc r3, r3, r5, asr #31",
-    "    adds r8, r8, r6",
-    "    adc r9, r9, r6, asr #31",
-    "    adds r10, r10, r7",
-    "    adc r11, r11, r7, asr #31",
-    "    stm r12, {{r0-r3, r8-r11}}",
-    "    ldr r3, [sp, #4]",
-    "    subs r3, #1",
-    "    str r3, [sp, #4]",
+    "    adc r8, r8, r5, asr #31",
+    "    adds r9, r9, r6",
+    "    adc r10, r10, r6, asr #31",
+    "    adds r11, r11, r7",
+    "    adc r12, r12, r7, asr #31",
+    "    stm r3, {{r0-r2, r8-r12}}",
+    "    ldrd r12, lr, [sp, #16]",    // the cursor, the table's end
+    "    cmp r12, lr",
     "    bne.w 5b",
     "    add sp, #40",
     "    pop {{r4-r11, pc}}",
@@ -1072,6 +1309,8 @@ core::arch::global_asm!(
     "    lsl r9, r8, #3",
     "    add r9, r9, r8, lsl #2",
     "    add r12, r12, r9, lsl #2",
+    "    mov r3, r5",
+    "    ldm sp, {{r4-r7}}",
     "    bx r12",
     ".p2align 2",
     "25:",
@@ -1096,6 +1335,8 @@ core::arch::global_asm!(
     "    lsl r9, r8, #3",
     "    add r9, r9, r8, lsl #2",
     "    add r12, r12, r9, lsl #2",
+    "    mov r3, r5",
+    "    ldm sp, {{r4-r7}}",
     "    bx r12",
     ".p2align 2",
     "27:",
@@ -1122,6 +1363,8 @@ core::arch::global_asm!(
     "    add r9, r8, r8, lsl #2",
     "    add r9, r9, r8, lsl #3",
     "    add r12, r12, r9, lsl #2",
+    "    mov r3, r5",
+    "    ldm sp, {{r4-r7}}",
     "    bx r12",
     ".p2align 2",
     "21:",
@@ -1143,14 +1386,14 @@ core::arch::global_asm!(
     "    b.w 30b",
     // One pixel: its two sums (24 bytes a copy, 28 unaligned), copied to pixel b's.
     "40:",
-    "    movs r4, #0",
-    "    movs r5, #0",
     "    tst r0, #3",
     "    bne.w 45f",
     "    adr r12, 41f + 1",
     "    rsb r8, r3, #{chunk}",
     "    add r9, r8, r8, lsl #1",
     "    add r12, r12, r9, lsl #3",
+    "    mov r3, r5",
+    "    ldm sp, {{r4-r7}}",
     "    bx r12",
     ".p2align 2",
     "41:",
@@ -1171,6 +1414,8 @@ core::arch::global_asm!(
     "    rsb r8, r3, #{chunk}",
     "    rsb r9, r8, r8, lsl #3",
     "    add r12, r12, r9, lsl #2",
+    "    mov r3, r5",
+    "    ldm sp, {{r4-r7}}",
     "    bx r12",
     ".p2align 2",
     "46:",
@@ -1188,11 +1433,11 @@ core::arch::global_asm!(
     // int8 weights of w0 at w0 ([sp, #80], the sixth argument) plus r1, of w1 `kl` bytes later
     // ([sp, #76], the fifth argument).
     "50:",
-    "    bic r3, r3, #0x80000000",
+    "    bic lr, r3, #0x80000000",
+    "    mov r3, r5",
     "    ldr r12, [sp, #80]",         // w0's int8 weights: r1 is the byte offset
     "    add r1, r1, r12",
-    "    add r12, sp, #24",
-    "    ldm r12, {{r4-r7}}",
+    "    ldm sp, {{r4-r7}}",
     "    ldr r12, [sp, #76]",
     "51:",
     "    ldrsh r8, [r0], #2",
@@ -1203,7 +1448,7 @@ core::arch::global_asm!(
     "    mla r5, r10, r8, r5",
     "    mla r6, r11, r9, r6",
     "    mla r7, r10, r9, r7",
-    "    subs r3, #1",
+    "    subs lr, #1",
     "    bne 51b",
     "    b.w 30b",
     ".size muir_dsp_nat_block, . - muir_dsp_nat_block",
@@ -1319,7 +1564,11 @@ unsafe extern "C" {
     fn muir_dsp_dot2x2_u8(x: *const u8, w0: *const u8, w1: *const u8, groups: usize, out: *mut [i32; 4]);
     fn muir_dsp_dot2x2_w16(x: *const i16, w: *const u32, groups: usize, out: *mut [i64; 4]);
     fn muir_dsp_dot2x2_w16_i32(x: *const i16, w: *const u32, groups: usize, out: *mut [i32; 4]);
+    fn muir_dsp_dot2x2_w16_n(x: *const i16, w: *const u32, groups: usize, pairs: usize, out: *mut [i32; 4]);
+    fn muir_dsp_dot2x2_w16_ns(x: *const i16, w: *const u32, groups: usize, pairs: usize, out: *mut [i32; 4], gap: usize);
     fn muir_dsp_widen_w16(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
+    fn muir_dsp_widen_u8(d: *mut i16, s: *const u8, groups: usize);
+    fn muir_dsp_put_groups_i16(d: *mut i16, s: *const i16, groups: usize);
     fn muir_dsp_widen_nat(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
     fn muir_dsp_paired_sums(ep: *const u32, pairs: usize, v: *const i16, cv: usize, acc: *mut i64, chpairs: usize);
     fn muir_dsp_nat_block(table: *const NatEntry, n: usize, col: usize, sums: *mut [i64; 4], kl: usize, w0: *const i8, ww: *const u32);
@@ -1560,12 +1809,111 @@ pub fn dot2x2_w16_i32(ww: &[u32], x: &[i16], q: usize) -> Option<[i32; 4]> {
     Some(out)
 }
 
+/// [`dot2x2_w16_i32`] of `out.len()` pairs of patches one after another in `x` (`8 q` values
+/// each, the gathered pairs of a one-part layer), by one assembly call: `out[i]` the four sums
+/// of pair `i`. False, having written nothing, where a slice is shorter, `q` is outside `1 ..=
+/// I16_ASM_GROUPS`, `out` is empty or `x` is not word-aligned.
+#[inline(always)]
+pub fn dot2x2_w16_i32_n(ww: &[u32], x: &[i16], q: usize, out: &mut [[i32; 4]]) -> bool {
+    let n = out.len();
+    let (Some(wq), Some(xq)) = (ww.get(..4 * q), x.get(..8 * q * n)) else {
+        return false;
+    };
+    if q == 0 || q > I16_ASM_GROUPS || n == 0 || !(xq.as_ptr() as usize).is_multiple_of(4) {
+        return false;
+    }
+    // SAFETY: per pair the loop reads `4 q` words from `wq` and the pair's `8 q` values from the
+    // word-aligned `xq` (`8 q n` values in all; LDM, `wq` is a `u32` slice, so aligned too),
+    // `1 <= q <= I16_ASM_GROUPS` (one chunk), and writes `out[i]` for each of the `n >= 1` pairs.
+    unsafe { muir_dsp_dot2x2_w16_n(xq.as_ptr(), wq.as_ptr(), q, n, out.as_mut_ptr()) };
+    true
+}
+
+/// [`dot2x2_w16_i32_n`] with pair `i`'s `8 q` values at `x[i stride ..]` (`stride >= 8 q`, even:
+/// one part of the gathered pairs of a several-part layer, `stride` the pair's `2 kl`). False,
+/// having written nothing, where a slice is shorter, `q` is outside `1 ..= I16_ASM_GROUPS`,
+/// `out` is empty, the stride is odd or short, or `x` is not word-aligned.
+#[inline(always)]
+pub fn dot2x2_w16_i32_ns(ww: &[u32], x: &[i16], q: usize, stride: usize, out: &mut [[i32; 4]]) -> bool {
+    let n = out.len();
+    if q == 0 || q > I16_ASM_GROUPS || n == 0 || stride < 8 * q || !stride.is_multiple_of(2) {
+        return false;
+    }
+    let (Some(wq), Some(xq)) = (ww.get(..4 * q), x.get(..(n - 1) * stride + 8 * q)) else {
+        return false;
+    };
+    if !(xq.as_ptr() as usize).is_multiple_of(4) {
+        return false;
+    }
+    // SAFETY: per pair `i < n` the loop reads `4 q` words of `wq` and `8 q` values of the
+    // word-aligned `xq` from `i stride` (inside its `(n - 1) stride + 8 q`; an even stride keeps
+    // every pair word-aligned), `1 <= q <= I16_ASM_GROUPS`, and writes `out[i]`; the gap it adds
+    // after each pair is `2 (stride - 8 q)` bytes.
+    unsafe { muir_dsp_dot2x2_w16_ns(xq.as_ptr(), wq.as_ptr(), q, n, out.as_mut_ptr(), 2 * (stride - 8 * q)) };
+    true
+}
+
+/// The i32 sums `out[i]` of `out.len()` pairs of one part of `q` whole groups (`x`: the part's
+/// block of the first pair, each next pair's `stride` values later; `ww`: the part's widened
+/// weights), a chunk of at most `I16_ASM_GROUPS` groups of every pair by one
+/// [`dot2x2_w16_i32_ns`] call, the later chunks (in `tmp`) added with overflow
+/// checks. False where a call refuses or a sum leaves i32 (then the short path does not apply:
+/// the callers go the per-pair way).
+#[inline(never)]
+pub fn dot2x2_w16_i32_chunks(ww: &[u32], x: &[i16], q: usize, stride: usize, out: &mut [[i32; 4]], tmp: &mut [[i32; 4]]) -> bool {
+    let Some(tmp) = tmp.get_mut(..out.len()) else {
+        return false;
+    };
+    let mut g = 0;
+    while g < q {
+        let c = (q - g).min(I16_ASM_GROUPS);
+        let (Some(wq), Some(xq)) = (ww.get(4 * g..), x.get(8 * g..)) else {
+            return false;
+        };
+        if g == 0 {
+            if !dot2x2_w16_i32_ns(wq, xq, c, stride, out) {
+                return false;
+            }
+        } else {
+            if !dot2x2_w16_i32_ns(wq, xq, c, stride, tmp) {
+                return false;
+            }
+            for (o, t) in out.iter_mut().zip(tmp.iter()) {
+                for (a, b) in o.iter_mut().zip(t) {
+                    match a.checked_add(*b) {
+                        Some(v) => *a = v,
+                        None => return false,
+                    }
+                }
+            }
+        }
+        g += c;
+    }
+    q > 0
+}
+
 /// `Elem::put_groups` for i16 (the pair layout's swap): each group of four as two words
 /// (`(x0, x1)`, `(x2, x3)`, unaligned loads) repacked by `PKHBT`/`PKHTB` into `(x0, x2)`, `(x1,
-/// x3)`: 2 loads, 2 packs and 2 stores per group instead of 4 halfword loads and 4 stores.
+/// x3)`: 2 loads, 2 packs and 2 stores per group instead of 4 halfword loads and 4 stores. On
+/// word-aligned buffers (the engine's) by `muir_dsp_put_groups_i16`: `LDRD`, the packs, `STRD`
+/// (4 instructions a group against 8 compiled).
 #[inline(always)]
 pub fn put_groups_i16(d: &mut [i16], s: &[i16], second: bool) {
     let off = if second { 4 } else { 0 };
+    // Whole groups on word-aligned buffers (the engine's: rows and patches of channel counts
+    // that are multiples of four): by `muir_dsp_put_groups_i16`.
+    let q = (d.len() / 8).min(s.len() / 4);
+    if q > 0
+        && let Some(dd) = d.get_mut(off..8 * q)
+        && (dd.as_ptr() as usize).is_multiple_of(4)
+        && (s.as_ptr() as usize).is_multiple_of(4)
+    {
+        // SAFETY: `q` groups: the loop reads `4 q` values of `s` and writes values `16 g ..
+        // 16 g + 4` bytes (`8 g + off .. 8 g + off + 4` values) of `d` for `g < q`, all inside
+        // `dd` (`8 q - off` values from `off`), both word-aligned (LDRD/STRD).
+        unsafe { muir_dsp_put_groups_i16(dd.as_mut_ptr(), s.as_ptr(), q) };
+        return;
+    }
     for (g, q) in d.chunks_exact_mut(8).zip(s.chunks_exact(4)) {
         if let Some(g) = g.get_mut(off..off + 4) {
             let (x01, x23) = (pair(q, 0), pair(q, 2));
@@ -1595,10 +1943,12 @@ pub fn widen_weights_nat(w0: &[i8], w1: &[i8], q: usize, out: &mut [u32]) {
 
 /// One run of one kernel row of one part for [`nat_block`]: pixel a's values at `row + col
 /// step` bytes, pixel b's `bstep` bytes later, `groups` whole groups of four against the widened
-/// weights `w` bytes into `nat_block`'s `ww`, added to `sums[part]`. A plain entry
+/// weights `w` bytes into `nat_block`'s `ww`, added to the part's sums. A plain entry
 /// ([`NatEntry::PLAIN`] set in `groups`): the low bits count values (1 to 7), w0's int8 weights
 /// `w` bytes into `nat_block`'s `w0`, w1's `kl` bytes later. (Offsets, not addresses: a table
-/// serves every channel pair of a row.)
+/// serves every channel pair of a row.) Made by [`NatEntry::new`], which also works out what
+/// the assembly would compute per entry: the part's sums as a byte offset and where the
+/// aligned two-pixel loop is entered.
 #[repr(C)]
 #[derive(Clone, Copy, Debug)]
 pub struct NatEntry {
@@ -1612,16 +1962,35 @@ pub struct NatEntry {
     pub groups: usize,
     /// Bytes from pixel a's values to pixel b's.
     pub bstep: usize,
-    /// Index into the sums.
-    pub part: usize,
+    /// Byte offset of the part's sums (`32 part`).
+    sums: usize,
+    /// Bytes of the aligned two-pixel loop's copies skipped (`44 (I16_ASM_GROUPS - groups)`;
+    /// 0 for a plain entry).
+    skip: usize,
 }
 
 impl NatEntry {
     /// The flag of a plain entry in `groups`.
     pub const PLAIN: usize = 1 << 31;
+
+    /// An unused entry (all bits zero: a table of them is cleared in place).
+    pub const EMPTY: NatEntry = NatEntry { row: core::ptr::null(), w: 0, step: 0, groups: 0, bstep: 0, sums: 0, skip: 0 };
+
+    /// The entry of the run (fields as above) into the sums of part `part`.
+    #[inline(always)]
+    pub const fn new(row: *const i16, w: usize, step: usize, groups: usize, bstep: usize, part: usize) -> Self {
+        let skip = if groups & Self::PLAIN == 0 { 44 * I16_ASM_GROUPS.saturating_sub(groups) } else { 0 };
+        NatEntry { row, w, step, groups, bstep, sums: 32 * part, skip }
+    }
+
+    /// The part whose sums the entry adds to.
+    #[inline(always)]
+    pub fn part(&self) -> usize {
+        self.sums / 32
+    }
 }
 
-/// `sums[e.part] += [w0 . a, w1 . a, w0 . b, w1 . b]` over every entry `e` of `table` (a block
+/// `sums[e.part()] += [w0 . a, w1 . a, w0 . b, w1 . b]` over every entry `e` of `table` (a block
 /// of two pixels, or one pixel as both, at column `col`), the activations read in place: `ww`
 /// the channel pair's widened weights, `w0` its int8 weights, w1's `kl` bytes later.
 ///
@@ -1631,7 +2000,7 @@ impl NatEntry {
 /// groups` bytes (`2 n` for a plain entry of `n` values; each halfword-aligned); a groups entry:
 /// `ww` is valid for reads of `4 (w / 16 + groups)` words, `w` a multiple of 16, `1 <= groups <=
 /// I16_ASM_GROUPS`; a plain entry: `w0` valid for reads of `kl + w + n` bytes, `1 <= n <= 7`;
-/// and `part < sums.len()`.
+/// and `part() < sums.len()`.
 #[inline(always)]
 pub unsafe fn nat_block(table: &[NatEntry], col: usize, sums: &mut [[i64; 4]], kl: usize, w0: &[i8], ww: &[u32]) {
     if !table.is_empty() {
@@ -1645,8 +2014,17 @@ pub unsafe fn nat_block(table: &[NatEntry], col: usize, sums: &mut [[i64; 4]], k
 /// (values 0, 2, 1, 3 of each group: `UXTB16` of the group's word, then of the word rotated by
 /// 8): one load, two widenings and two stores per group instead of four of each (the gathered
 /// u8 pairs of `conv::conv_row_u8_wide`). Stops at the shorter of `s / 4` and `d / 4` groups.
+/// On word-aligned buffers (the engine's) by `muir_dsp_widen_u8` (3 instructions a group
+/// against 7 compiled).
 #[inline(always)]
 pub fn widen_u8_groups(d: &mut [i16], s: &[u8]) {
+    let q = (d.len() / 4).min(s.len() / 4);
+    if q > 0 && (d.as_ptr() as usize).is_multiple_of(4) && (s.as_ptr() as usize).is_multiple_of(4) {
+        // SAFETY: the loop reads `4 q` bytes of `s` and writes `4 q` values of `d` (both at
+        // least that long, word-aligned: LDRD, STM).
+        unsafe { muir_dsp_widen_u8(d.as_mut_ptr(), s.as_ptr(), q) };
+        return;
+    }
     for (g, q) in d.chunks_exact_mut(4).zip(s.chunks_exact(4)) {
         let v = word(q, 0);
         let (lo, hi) = (uxtb16(v), uxtb16_ror8(v));

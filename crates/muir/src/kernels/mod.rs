@@ -318,7 +318,7 @@ impl Elem for i16 {
     #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
     #[inline(always)]
     fn conv_row_wide(p: &conv::ConvParams<'_>, inputs: &[conv::PartRows<'_, i16>], w_in: usize, out: &mut OutRow<'_>, scratch: &mut [u8]) -> bool {
-        conv::conv_row_i16_w16(p, inputs, w_in, out, scratch) || conv::conv_row_i16_nat(p, inputs, w_in, out, scratch)
+        conv::conv_row_i16_wide(p, inputs, w_in, out, scratch)
     }
     const BITS: u8 = 16;
     const PAIR_SWAP: bool = true;
