@@ -2027,7 +2027,8 @@ fn check_residual(r: &mut Rng) -> usize {
     cases
 }
 
-/// `mve::zero` (the patches' padding columns) on u8 and i16 slices of 0 to 40 and 63-65, 127-129
+/// `mve::zero` (the patches' padding columns) and `mve::fill_ones` (the path steps' windows) on u8
+/// and i16 slices of 0 to 40 and 63-65, 127-129
 /// values at every start offset 0-3 in a buffer of random bytes: every value of the slice 0, the
 /// values before and after it untouched.
 #[cfg(feature = "mve")]
@@ -2043,6 +2044,16 @@ fn check_zero(r: &mut Rng) -> usize {
             let (k8, k16) = (b8, b16);
             muir::kernels::mve::zero(&mut b8[at..at + n]);
             muir::kernels::mve::zero(&mut b16[at..at + n]);
+            // `fill_ones` over the same span of a copy: u16::MAX inside, the rest untouched.
+            let mut ones = k16.map(|v| core::mem::MaybeUninit::new(v as u16));
+            muir::kernels::mve::fill_ones(&mut ones[at..at + n]);
+            for (i, v) in ones.iter().enumerate() {
+                // SAFETY: every value was initialised (`MaybeUninit::new`, then `fill_ones`).
+                let v = unsafe { v.assume_init() };
+                if v != if (at..at + n).contains(&i) { u16::MAX } else { k16[i] as u16 } {
+                    fail("mve fill_ones", n * 10 + at, &[i as i64, v as i64], &[]);
+                }
+            }
             for i in 0..140 {
                 let inside = (at..at + n).contains(&i);
                 if b8[i] != if inside { 0 } else { k8[i] } || b16[i] != if inside { 0 } else { k16[i] } {

@@ -175,31 +175,62 @@ pub const fn div_round(n: i64, d: i64) -> i64 {
 /// Other divisors take `div_round` itself. The same value for every input.
 #[inline]
 pub const fn div_round_sat_i16(n: i64, d: i64) -> i16 {
-    if d <= 0 || d > i32::MAX as i64 {
-        return sat_i16(div_round(n, d));
+    DivRoundSat16::new(d).apply(n)
+}
+
+/// [`div_round_sat_i16`] by one divisor for many numerators (a query's channels): the divisor's
+/// normalisation and saturation bound computed once.
+#[derive(Clone, Copy, Debug)]
+pub struct DivRoundSat16 {
+    d: i64,
+    /// `0 < d < 2^31`: the fast path applies.
+    fast: bool,
+    /// `32768 d`, the shift normalising `d` to bit 31, and the normalised divisor's top 16 bits.
+    bound: u64,
+    z: u32,
+    top: u32,
+}
+
+impl DivRoundSat16 {
+    /// The constants of divisor `d`.
+    #[inline]
+    pub const fn new(d: i64) -> Self {
+        let fast = d > 0 && d <= i32::MAX as i64;
+        if !fast {
+            return DivRoundSat16 { d, fast, bound: 0, z: 0, top: 1 };
+        }
+        let z = (d as u32).leading_zeros();
+        DivRoundSat16 { d, fast, bound: 32768 * d as u64, z, top: ((d as u32) << z) >> 16 }
     }
-    let (n_abs, du) = (n.unsigned_abs(), d as u64);
-    // `n_abs <= 2^63`, `d / 2 < 2^30`: no overflow.
-    let s = n_abs + du / 2;
-    if s >= 32768 * du {
-        // |quotient| >= 32768: `i16::MAX` (positive), `i16::MIN` (negative: -32768 exactly or
-        // saturated).
-        return if n < 0 { i16::MIN } else { i16::MAX };
+
+    /// `sat_i16(div_round(n, d))`.
+    #[inline]
+    pub const fn apply(&self, n: i64) -> i16 {
+        let d = self.d;
+        if !self.fast {
+            return sat_i16(div_round(n, d));
+        }
+        // `n_abs <= 2^63`, `d / 2 < 2^30`: no overflow.
+        let s = n.unsigned_abs() + d as u64 / 2;
+        if s >= self.bound {
+            // |quotient| >= 32768: `i16::MAX` (positive), `i16::MIN` (negative: -32768 exactly
+            // or saturated).
+            return if n < 0 { i16::MIN } else { i16::MAX };
+        }
+        // `s < 2^15 d`: shifted by `z`, `s < 2^47`; the estimate from the top bits, then the
+        // remainder's correction.
+        let mut q = (((s << self.z) >> 16) as u32 / self.top) as i64;
+        let mut r = s as i64 - q * d;
+        while r < 0 {
+            q -= 1;
+            r += d;
+        }
+        while r >= d {
+            q += 1;
+            r -= d;
+        }
+        (if n < 0 { -q } else { q }) as i16
     }
-    // `s < 2^15 d`: shifted by `z`, `s < 2^47` and `d` has its top bit at 31.
-    let z = (d as u32).leading_zeros();
-    let (sn, dn) = (s << z, (d as u32) << z);
-    let mut q = ((sn >> 16) as u32 / (dn >> 16)) as i64;
-    let mut r = s as i64 - q * d;
-    while r < 0 {
-        q -= 1;
-        r += d;
-    }
-    while r >= d {
-        q += 1;
-        r -= d;
-    }
-    (if n < 0 { -q } else { q }) as i16
 }
 
 /// A real multiplier `m * 2^-shift` with `m` in `[2^30, 2^31)`.

@@ -146,8 +146,9 @@ pub fn aggregate_query(q: &[i16], keys: &[i16], values: &[i16], cv: usize, stats
     if !done {
         aggregate_blocked(q, keys, values, cv, stats.0, m, acc);
     }
+    let div = crate::arith::DivRoundSat16::new(stats.1);
     for (o, a) in out.iter_mut().zip(acc.iter()) {
-        *o = aggregated(*a, shift, stats.1);
+        *o = div.apply(shift_round(*a, shift as i32));
     }
 }
 
@@ -173,8 +174,9 @@ pub fn aggregate_query_cm(q: &[i16], keys: &[i16], values: &[i16], n: usize, cv:
             }
         }
     }
+    let div = crate::arith::DivRoundSat16::new(stats.1);
     for (o, a) in out.iter_mut().zip(acc.iter()) {
-        *o = aggregated(*a, shift, stats.1);
+        *o = div.apply(shift_round(*a, shift as i32));
     }
 }
 

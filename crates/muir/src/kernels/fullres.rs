@@ -527,7 +527,11 @@ pub fn path_step(prev: &[u16], pband: Band, cost: &[u16], band: Band, p2: u32, o
                 // (no term: it never beats `m + p2`) elsewhere.
                 let n = out.len().min(cost.len());
                 let shift = band.first as isize - pband.first as isize;
-                let mut win = [u16::MAX; SLOTS + 2];
+                // (filled by one vector loop: `[u16::MAX; N]` became a `memset` call)
+                let mut win = [core::mem::MaybeUninit::<u16>::uninit(); SLOTS + 2];
+                super::mve::fill_ones(&mut win);
+                // SAFETY: `fill_ones` initialised every value.
+                let mut win: [u16; SLOTS + 2] = unsafe { core::mem::transmute(win) };
                 let lo = (1 - shift).max(0);
                 let hi = (n as isize + 2).min(prev.len() as isize + 1 - shift);
                 if lo < hi {

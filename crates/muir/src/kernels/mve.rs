@@ -485,6 +485,32 @@ pub fn copy<T: Copy>(dst: &mut [T], src: &[T]) {
     }
 }
 
+/// `dst` set to all-one bits (`u16::MAX`; every value initialised), sixteen bytes a store,
+/// tail-predicated (the path steps' windows, `fullres::path_step`: `[u16::MAX; N]` became a
+/// `memset` call of about 40 instructions).
+#[inline]
+pub fn fill_ones(dst: &mut [core::mem::MaybeUninit<u16>]) {
+    let bytes = core::mem::size_of_val(dst);
+    if bytes == 0 {
+        return;
+    }
+    // SAFETY: `bytes` bytes of `dst` (tail-predicated: disabled lanes are not stored).
+    unsafe {
+        asm!(
+            "vmov.i8 q0, #0xff",
+            "dlstp.8 lr, {n}",
+            "2:",
+            "vstrb.8 q0, [{d}], #16",
+            "letp lr, 2b",
+            n = in(reg) bytes,
+            d = inout(reg) dst.as_mut_ptr() => _,
+            out("lr") _,
+            out("d0") _, out("d1") _,
+            options(nostack),
+        );
+    }
+}
+
 /// `dst` set to all-zero bytes (the value 0 of the kernels' element types), sixteen bytes a
 /// store, tail-predicated: `fill(0)` of a few dozen bytes became a byte-wise `__aeabi_memclr` call
 /// of about 170 instructions (the patches' padding columns, `conv::gather_part`).
