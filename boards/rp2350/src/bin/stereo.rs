@@ -40,8 +40,8 @@ const XTAL_FREQ_HZ: u32 = 12_000_000;
 
 /// Frame width: the largest muir-slim frame (sides multiples of 16) whose arena, frames, output
 /// maps and stack budget fit the 520 KiB SRAM (`muir plan --config muir-slim --size 176x128`:
-/// arena 349,456 bytes, + 135,168 of frames and maps + 24 KiB stack = 509,200 of 532,480;
-/// 192x128 needs 551,928; 160x144 fits with 2 % more pixels but a near-square frame).
+/// arena 366,736 bytes, + 135,168 of frames and maps + 24 KiB stack = 526,480 of 532,480;
+/// 192x128 needs 571,512; 160x144 fits with 2 % more pixels but a near-square frame).
 pub const W: usize = 176;
 /// Frame height.
 pub const H: usize = 128;

@@ -37,9 +37,10 @@ use stm32h7xx_hal::{pac, prelude::*, xspi::Qspi};
 // Frame size and memory budget
 // ---------------------------------------------------------------------------------------------
 
-/// Frame width: the largest muir-slim frame (sides multiples of 16) whose arena fits the AXI SRAM
-/// (`muir plan --config muir-slim --size 224x160`: 520,296 bytes of 524,288; 240x160 needs 556,416).
-pub const W: usize = 224;
+/// Frame width: a muir-slim frame (sides multiples of 16, about 4:3) whose arena fits the AXI SRAM
+/// (`muir plan --config muir-slim --size 208x160`: 506,064 bytes of 524,288; 224x160 needs 544,488
+/// since the patch scratch holds a whole 1/8 row of pixel pairs, 224x144 fits with 504,728).
+pub const W: usize = 208;
 /// Frame height.
 pub const H: usize = 160;
 

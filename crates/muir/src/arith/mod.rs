@@ -219,7 +219,8 @@ impl DivRoundSat16 {
         }
         // `s < 2^15 d`: shifted by `z`, `s < 2^47`; the estimate from the top bits, then the
         // remainder's correction.
-        let mut q = (((s << self.z) >> 16) as u32 / self.top) as i64;
+        let top = if self.top == 0 { 1 } else { self.top };
+        let mut q = (((s << self.z) >> 16) as u32 / top) as i64;
         let mut r = s as i64 - q * d;
         while r < 0 {
             q -= 1;

@@ -957,7 +957,7 @@ fn w16_parts(
                 return false;
             };
             if !(nv.is_multiple_of(4) && super::dsp::dot2x2_w16_i32_chunks(wq, xo, nv / 4, 2 * kl, s, tmp)) {
-                for (d, slot) in s.iter_mut().zip(xo.chunks(2 * kl)) {
+                for (d, slot) in s.iter_mut().zip(xo.chunks((2 * kl).max(1))) {
                     match super::dsp::dot2x2_w16(wq, a0, a1, slot, nv).map(|d| d.map(i32::try_from)) {
                         Some([Ok(e0), Ok(e1), Ok(e2), Ok(e3)]) => *d = [e0, e1, e2, e3],
                         _ => return false,

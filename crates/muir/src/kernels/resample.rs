@@ -73,7 +73,7 @@ pub fn interp_cols(src: &[i16], h: usize, w: usize, c: usize, h_out: usize, w_ou
             // rx) e + rx f)` is the same integer as their weighted sum, below `dx dy 2^15 <= 2^30`
             // in magnitude, so i32 products and the 32-bit rounded division (`div_round`'s).
             let (wa, wb, we, wf) = ((dy - ry) * (dx - rx), (dy - ry) * rx, ry * (dx - rx), ry * rx);
-            let (wa, wb, we, wf, d) = (wa as i32, wb as i32, we as i32, wf as i32, (dx * dy) as u32);
+            let (wa, wb, we, wf, d) = (wa as i32, wb as i32, we as i32, wf as i32, ((dx * dy) as u32).max(1));
             let at32 = |p: &[i16], ch: usize| p.get(ch).map_or(0, |v| *v as i32);
             for (ch, o) in out.get_mut(at_out..at_out + c).unwrap_or_default().iter_mut().enumerate() {
                 let num = wa * at32(a, ch) + wb * at32(b, ch) + we * at32(e, ch) + wf * at32(f, ch);
