@@ -344,6 +344,25 @@ fn check_logit_dsp(q: &mut [i16; MAX_N], k: &mut [i16; MAX_N], r: &mut Rng) -> u
     cases
 }
 
+/// The softmax weights of one value-sum case of kind `kind` (0..5) for a block of `nb <= 130`
+/// keys, and the fill of its values: random weights, zeros and 32767, one 32768 (exp(0)) in the
+/// middle, one every 29 keys (`check_aggregate_dsp`, `check_aggregate_cm`).
+#[cfg(not(feature = "mve"))]
+fn agg_weights(r: &mut Rng, kind: usize, nb: usize) -> ([i32; 130], Fill) {
+    let mut e = [0i32; 130];
+    for (j, w) in e.iter_mut().enumerate().take(nb) {
+        *w = match kind {
+            0 => (r.next() % 32768) as i32,
+            1 if j % 3 == 0 => 0,
+            1 | 2 => 32767,
+            3 if j == nb / 2 => 32768,
+            4 if j % 29 == 0 => 32768,
+            _ => (r.next() % 32769) as i32,
+        };
+    }
+    (e, [Fill::Random, Fill::Max, Fill::Min, Fill::Random, Fill::Max][kind])
+}
+
 /// The DSP build's MGA value sums (`dsp::aggregate`: two keys and two channels per `SMLALD`,
 /// weights of 32768 by a per-key pass, the plain loop for a block with more than four of them or
 /// over 128 keys) against a plain loop: blocks of 1 to 34 keys and around 64 and 128 (the
@@ -356,18 +375,7 @@ fn check_aggregate_dsp(v: &mut [i16; MAX_N], r: &mut Rng) -> usize {
     for cv in [1usize, 2, 3, 5, 44, 64, 128] {
         for nb in (1..=34usize).chain([63, 64, 65, 127, 128, 129, 130]).filter(|nb| nb * cv <= MAX_N) {
             for kind in 0..5 {
-                let mut e = [0i32; 130];
-                for (j, w) in e.iter_mut().enumerate().take(nb) {
-                    *w = match kind {
-                        0 => (r.next() % 32768) as i32,
-                        1 if j % 3 == 0 => 0,
-                        1 | 2 => 32767,
-                        3 if j == nb / 2 => 32768,
-                        4 if j % 29 == 0 => 32768,
-                        _ => (r.next() % 32769) as i32,
-                    };
-                }
-                let fill = [Fill::Random, Fill::Max, Fill::Min, Fill::Random, Fill::Max][kind];
+                let (e, fill) = agg_weights(r, kind, nb);
                 for x in v.iter_mut().take(nb * cv) {
                     *x = i16::sample(r, fill);
                 }
@@ -449,18 +457,7 @@ fn check_aggregate_cm(v: &mut [i16; MAX_N], r: &mut Rng) -> usize {
                     continue;
                 }
                 for kind in 0..5 {
-                    let mut e = [0i32; 130];
-                    for (j, w) in e.iter_mut().enumerate().take(nb) {
-                        *w = match kind {
-                            0 => (r.next() % 32768) as i32,
-                            1 if j % 3 == 0 => 0,
-                            1 | 2 => 32767,
-                            3 if j == nb / 2 => 32768,
-                            4 if j % 29 == 0 => 32768,
-                            _ => (r.next() % 32769) as i32,
-                        };
-                    }
-                    let fill = [Fill::Random, Fill::Max, Fill::Min, Fill::Random, Fill::Max][kind];
+                    let (e, fill) = agg_weights(r, kind, nb);
                     for x in v.iter_mut().take(n * cv) {
                         *x = i16::sample(r, fill);
                     }
