@@ -1769,45 +1769,6 @@ macro_rules! requant4_sums_pair {
     };
 }
 
-/// [`requant4_sums_pair`] for one part (no part loop; `{n}` unused).
-macro_rules! requant4_sums_pair1 {
-    () => {
-        concat!(
-            "vldrw.u32 q0, [{k}, #48]\n",
-            "vldrw.u32 q6, [{c32}, q0]\n",
-            "vmov q5, q6\n",
-            "vldrw.u32 q7, [{k}]\n",
-            "mov.w {c32}, #32\n",
-            "vldrw.u32 q2, [r1, q7]\n",
-            "vldrb.u32 q3, [{m4}, q7]\n",
-            "vneg.s32 q3, q3\n",
-            "vadd.i32 q4, q3, {c32}\n",
-            "vldrw.u32 q0, [{da}]\n",
-            "vmulh.s32 q1, q0, q2\n",
-            "vmul.i32 q0, q0, q2\n",
-            "vrshl.u32 q0, q0, q3\n",
-            "vqrshl.s32 q1, q1, q4\n",
-            "vqadd.s32 q1, q1, q0\n",
-            "vqadd.s32 q6, q6, q1\n",
-            "vldrw.u32 q0, [{db}]\n",
-            "vmulh.s32 q1, q0, q2\n",
-            "vmul.i32 q0, q0, q2\n",
-            "vrshl.u32 q0, q0, q3\n",
-            "vqrshl.s32 q1, q1, q4\n",
-            "vqadd.s32 q1, q1, q0\n",
-            "vqadd.s32 q5, q5, q1\n",
-            "vrshr.s32 q6, q6, #8\n",
-            "vrshr.s32 q5, q5, #8\n",
-            "vldrw.u32 q1, [{k}, #16]\n",
-            "vmax.s32 q6, q6, q1\n",
-            "vmax.s32 q5, q5, q1\n",
-            "vldrw.u32 q1, [{k}, #32]\n",
-            "vmin.s32 q6, q6, q1\n",
-            "vmin.s32 q5, q5, q1\n",
-        )
-    };
-}
-
 /// The table of [`requant4_lut`] on the clamped q-register `$q` (temporaries q0-q4, `{tab}` the
 /// table, `{tab1}` the table one entry on), then the clamp to `[k + 64, k + 80]`.
 macro_rules! lut_pair_piece {
@@ -2001,41 +1962,50 @@ macro_rules! groups_loop_reg {
     };
 }
 
-/// [`groups_loop_reg`] for one part: no part loop, the multipliers 32 bytes a group.
+/// [`groups_loop_reg`] for one part: no part loop, the multipliers 32 bytes a group, every
+/// pointer in a register (the caller reads nothing back) and no saturation test: with one part a
+/// saturation cannot change the outputs (`conv_helium`'s `channels`), so the mask stays 0 and
+/// `FPSCR.QC` may be left set. The multipliers' offsets (`q7`) are loaded once; `{n}` holds 32.
 macro_rules! groups_loop_reg1 {
     ($store:literal, $size:literal) => {
         concat!(
+            "vldrw.u32 q7, [{k}]\n",
+            "mov.w {n}, #32\n",
             "1:\n",
-            "ldrd {da}, {db}, [{g}]\n",
-            "ldrd r1, {c32}, [{g}, #8]\n",
+            "vldrw.u32 q0, [{k}, #48]\n",
+            "vldrw.u32 q6, [{c32}, q0]\n",
+            "vmov q5, q6\n",
             "add.w {m4}, r1, #4\n",
-            requant4_sums_pair1!(),
-            "ldrd r0, r2, [{g}, #16]\n",
-            $store, " q6, [r0]\n",
-            $store, " q5, [r2]\n",
-            "adds r0, r0, #", $size, "\n",
-            "adds r2, r2, #", $size, "\n",
-            "strd r0, r2, [{g}, #16]\n",
-            "ldrd {da}, {db}, [{g}]\n",
-            "adds {da}, {da}, #16\n",
-            "adds {db}, {db}, #16\n",
-            "strd {da}, {db}, [{g}]\n",
-            "ldrd r1, {c32}, [{g}, #8]\n",
-            "add.w r1, r1, #32\n",
+            "vldrw.u32 q2, [r1, q7]\n",
+            "vldrb.u32 q3, [{m4}, q7]\n",
+            "vneg.s32 q3, q3\n",
+            "vadd.i32 q4, q3, {n}\n",
+            "vldrw.u32 q0, [{da}], #16\n",
+            "vmulh.s32 q1, q0, q2\n",
+            "vmul.i32 q0, q0, q2\n",
+            "vrshl.u32 q0, q0, q3\n",
+            "vqrshl.s32 q1, q1, q4\n",
+            "vqadd.s32 q1, q1, q0\n",
+            "vqadd.s32 q6, q6, q1\n",
+            "vldrw.u32 q0, [{db}], #16\n",
+            "vmulh.s32 q1, q0, q2\n",
+            "vmul.i32 q0, q0, q2\n",
+            "vrshl.u32 q0, q0, q3\n",
+            "vqrshl.s32 q1, q1, q4\n",
+            "vqadd.s32 q1, q1, q0\n",
+            "vqadd.s32 q5, q5, q1\n",
+            "vrshr.s32 q6, q6, #8\n",
+            "vrshr.s32 q5, q5, #8\n",
+            "vldrw.u32 q1, [{k}, #16]\n",
+            "vmax.s32 q6, q6, q1\n",
+            "vmax.s32 q5, q5, q1\n",
+            "vldrw.u32 q1, [{k}, #32]\n",
+            "vmin.s32 q6, q6, q1\n",
+            "vmin.s32 q5, q5, q1\n",
+            $store, " q6, [r0], #", $size, "\n",
+            $store, " q5, [r2], #", $size, "\n",
+            "adds r1, r1, #32\n",
             "adds {c32}, {c32}, #32\n",
-            "strd r1, {c32}, [{g}, #8]\n",
-            "vmrs {n}, fpscr\n",
-            "tst.w {n}, #0x8000000\n",
-            "beq 3f\n",
-            "bic {n}, {n}, #0x8000000\n",
-            "vmsr fpscr, {n}\n",
-            "ldrd {n}, {da}, [{g}, #32]\n",
-            "orrs {n}, {n}, {da}\n",
-            "str.w {n}, [{g}, #32]\n",
-            "3:\n",
-            "ldr.w {n}, [{g}, #36]\n",
-            "lsls {n}, {n}, #1\n",
-            "str.w {n}, [{g}, #36]\n",
             "subs {left}, {left}, #1\n",
             "bne 1b\n",
         )
@@ -2143,21 +2113,22 @@ macro_rules! narrow {
             narrow_groups_fn!($store, $size, requant4gw_n, "96");
             #[inline(always)]
             unsafe fn requant4g1_n(g: *mut GroupState, k: &Requant4) {
-                // SAFETY: the caller's bounds (`requant4_groups`, one part); registers as listed.
+                // SAFETY: the caller's bounds (`requant4_groups`, one part); registers as listed;
+                // `g` is read before the loop and not written (its mask stays 0).
                 unsafe {
+                    let g = &*g;
                     asm!(
                         groups_loop_reg1!($store, $size),
-                        g = in(reg) g,
                         k = in(reg) k as *const Requant4,
-                        left = inout(reg) (*g).left => _,
-                        c32 = out(reg) _,
-                        da = out(reg) _,
-                        db = out(reg) _,
+                        left = inout(reg) g.left => _,
+                        c32 = inout(reg) g.bias => _,
+                        da = inout(reg) g.da => _,
+                        db = inout(reg) g.db => _,
                         n = out(reg) _,
                         m4 = out(reg) _,
-                        out("r0") _,
-                        out("r1") _,
-                        out("r2") _,
+                        inout("r0") g.oa => _,
+                        inout("r1") g.mult => _,
+                        inout("r2") g.ob => _,
                         out("d0") _, out("d1") _, out("d2") _, out("d3") _, out("d4") _, out("d5") _, out("d6") _, out("d7") _,
                         out("d8") _, out("d9") _, out("d10") _, out("d11") _, out("d12") _, out("d13") _, out("d14") _, out("d15") _,
                         options(nostack),
@@ -2260,7 +2231,8 @@ pub unsafe fn requant4_pair<O: Narrow>(d: [*const i32; 2], mult: *const u8, k: &
 /// dot products at `d[i] + 4 g` (pixel `i`; parts 32 or, with `wide`, 96 bytes apart), its
 /// multipliers at `mult + 32 np g`, biases at `bias + 32 g`, outputs at `out[i] + 4 g`. Returns
 /// the groups whose epilogue saturated (`FPSCR.QC` tested and cleared after each group: bit `g`);
-/// the outputs are [`requant4_pair`]'s.
+/// the outputs are [`requant4_pair`]'s. With one part and no table nothing is tested (a one-part
+/// saturation cannot change the outputs): the mask is 0 and `FPSCR.QC` may be left set.
 ///
 /// # Safety
 /// As [`requant4_pair`] for every group (`d[i] + 4 g`, ..., each within its bounds); `1 <=
