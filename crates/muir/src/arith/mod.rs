@@ -323,6 +323,18 @@ pub const fn requantize_i32(acc: i32, mult: Multiplier) -> i64 {
     p.wrapping_add(1i64 << (s.wrapping_sub(1) & 63)) >> (s & 63)
 }
 
+/// [`requantize_i32`] for `1 <= mult.shift <= 62`, as `floor((floor(acc m / 2^(s-1)) + 1) / 2)`:
+/// the same integer `floor((acc m + 2^(s-1)) / 2^s)` (nested floors of divisions by powers of two,
+/// the inner one plus an integer), with one 64-bit shift and no rounding constant. For the scalar
+/// fallbacks of vector epilogues (`conv_helium`'s recomputed lanes), where the shift varies per
+/// multiplier; where `requantize_i32` builds `2^(s-1)` and branches on `s >= 33`. The shift is
+/// masked, so one outside the range gives an unspecified value, never a panic.
+#[inline(always)]
+pub const fn requantize_i32_halved(acc: i32, mult: Multiplier) -> i64 {
+    let t = (mult.shift as u32).wrapping_sub(1) & 63;
+    (((acc as i64 * mult.m as i64) >> t) + 1) >> 1
+}
+
 /// [`requantize`] for any operands, in 128-bit.
 #[inline(never)]
 pub const fn requantize_wide(acc: i64, mult: Multiplier) -> i64 {
@@ -457,6 +469,35 @@ mod tests {
     }
 
     use super::*;
+
+    /// `requantize_i32_halved` against `requantize_i32` for every shift in `1..=62`, extreme and
+    /// random accumulators and multipliers (both signs, products at the rounding boundaries).
+    #[test]
+    fn requantize_i32_halved_matches() {
+        let mut r = crate::kernels::testutil::Rng(0x4a1f_0001);
+        for shift in 1u8..=62 {
+            let mut accs = vec![0i32, 1, -1, 2, -2, i32::MAX, i32::MIN, i32::MIN + 1, 1 << 20, -(1 << 20)];
+            accs.extend((0..200).map(|_| ((r.next() >> 32) as i32) >> (r.next() % 31)));
+            let mut ms = vec![0i32, 1, -1, i32::MAX, i32::MIN, 3, -3];
+            ms.extend((0..20).map(|_| ((r.next() >> 32) as i32) >> (r.next() % 31)));
+            for &m in &ms {
+                for &acc in &accs {
+                    let mult = Multiplier { m, shift };
+                    assert_eq!(requantize_i32_halved(acc, mult), requantize_i32(acc, mult), "acc={acc} m={m} shift={shift}");
+                }
+            }
+            // Products at and next to the rounding half: `acc m = k 2^s + 2^(s-1) + e`.
+            if shift <= 30 {
+                for e in -2i64..=2 {
+                    let target = (5i64 << shift) + (1i64 << (shift - 1)) + e;
+                    for (acc, m) in [(target as i32, 1i32), (-(target as i32), 1), (1, target as i32), (-1, target as i32)] {
+                        let mult = Multiplier { m, shift };
+                        assert_eq!(requantize_i32_halved(acc, mult), requantize_i32(acc, mult), "acc={acc} m={m} shift={shift}");
+                    }
+                }
+            }
+        }
+    }
 
     #[test]
     fn rounding_rules() {
