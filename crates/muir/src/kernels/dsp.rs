@@ -656,7 +656,7 @@ impl Requant {
 /// `conv::finish_short` computes it for one part) is `floor((acc m + C) / 2^(s+8))` with `C =
 /// 2^(s-1) + (bias + 2^7) 2^s` (nested floors of divisions by powers of two, the inner one
 /// plus an integer): one `SMLAL` onto `C` and one arithmetic shift of the high word by `s - 24`
-/// (at most 31). Made only for `24 <= s <= 62` and `|C| <= 2^62`: then `|acc m + C| < 2^63` for
+/// (at most 31). Made only for `24 <= s <= 61` and `|bias + 2^7| <= 2^(61 - s)` (so `|C| <= 2^62`): then `|acc m + C| < 2^63` for
 /// any i32 `acc` (`|acc m| <= 2^62`) and the result fits i32.
 #[derive(Clone, Copy, Debug)]
 pub struct Folded {
@@ -671,14 +671,18 @@ impl Folded {
     #[inline(always)]
     pub fn new(m: crate::arith::Multiplier, bias: i64) -> Option<Self> {
         let s = m.shift as u32;
-        if !(24..=62).contains(&s) {
+        if !(24..=61).contains(&s) {
             return None;
         }
-        let c = (1i128 << (s - 1)) + ((bias as i128 + 128) << s);
-        if c.unsigned_abs() > 1u128 << 62 {
+        // In i64 (the i128 shifts took some 60 instructions a call): `|bias + 2^7| <= 2^(61 -
+        // s)` keeps `|(bias + 2^7) 2^s| <= 2^61` and, with `2^(s-1) <= 2^61`, `|C| <= 2^62`;
+        // it refuses a few constants within 2^62 that the i128 test made (a bias near 2^(62 -
+        // s)), which then take the unfolded path (same integers).
+        let t = bias.checked_add(128)?;
+        if t.unsigned_abs() > 1u64 << (61 - s) {
             return None;
         }
-        let c = c as i64;
+        let c = (1i64 << ((s - 1) & 63)) + (t << (s & 63));
         Some(Folded { m: m.m, lo: c as u32, hi: (c >> 32) as u32, k: (s - 24).min(31) })
     }
 
