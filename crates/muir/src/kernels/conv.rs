@@ -1185,6 +1185,23 @@ fn short_post<T>(post: PostOp, b0: i64, b1: i64, sums: &[[i64; 4]], o: &mut [T],
 #[inline(always)]
 fn short_run<T>(b0: i64, b1: i64, sums: &[[i64; 4]], o: &mut [T], mut at: usize, step: usize, g: impl Fn(i64) -> T) {
     let (c0, c1) = (b0 + (1 << (EXTRA_BITS - 1)), b1 + (1 << (EXTRA_BITS - 1)));
+    // As `folded_run`: the outputs' bounds tested once, then stores through a raw pointer.
+    let last = (2 * sums.len()).saturating_sub(1) * step + at + 1;
+    if !sums.is_empty() && last < o.len() {
+        // SAFETY: pair `i`'s outputs are `at + 2 i step + {0, 1}` and `step` after them, the
+        // last of them `at + 1 + (2 n - 1) step < o.len()` (tested above).
+        unsafe {
+            let mut p = o.as_mut_ptr().add(at);
+            for &[s0, s1, s2, s3] in sums {
+                *p = g((s0 + c0) >> EXTRA_BITS);
+                *p.add(1) = g((s1 + c1) >> EXTRA_BITS);
+                *p.add(step) = g((s2 + c0) >> EXTRA_BITS);
+                *p.add(step + 1) = g((s3 + c1) >> EXTRA_BITS);
+                p = p.wrapping_add(2 * step);
+            }
+        }
+        return;
+    }
     for &[s0, s1, s2, s3] in sums {
         set_at(o, at, g((s0 + c0) >> EXTRA_BITS));
         set_at(o, at + 1, g((s1 + c1) >> EXTRA_BITS));
