@@ -1369,6 +1369,59 @@ fn check_requant_dsp(r: &mut Rng) -> usize {
     cases
 }
 
+/// The short epilogue's sum over the parts of a block (`dsp::requant_parts`, the assembly loop
+/// of `conv_row_i16_nat`) against the specification: per value, the sum over parts of
+/// `arith::requantize` of the part's sum with its channel's multiplier, and false exactly where
+/// some part's sum is not an i32. 1 to 6 parts, shifts 8 to 62 (the short path's), extreme and
+/// random multipliers and sums, sums just outside i32 in a random part.
+#[cfg(not(feature = "mve"))]
+fn check_requant_parts(r: &mut Rng) -> usize {
+    use muir::arith::{Multiplier, requantize};
+    use muir::kernels::dsp;
+    let edges = [i32::MIN, i32::MIN + 1, -65536, -1, 0, 1, 65535, i32::MAX - 1, i32::MAX];
+    let mut cases = 0;
+    for i in 0..3000usize {
+        let np = 1 + i % 6;
+        let pick = |r: &mut Rng, j: usize| match j % 3 {
+            0 => edges[(r.next() % edges.len() as u64) as usize],
+            1 => ((r.next() >> 32) as i32) >> (r.next() % 31),
+            _ => (r.next() >> 32) as i32,
+        };
+        let mut sums = [[0i64; 4]; 6];
+        let mut mults = [[Multiplier { m: 0, shift: 8 }; 2]; 6];
+        let mut reqs = [[dsp::NatReq::ZERO; 2]; 6];
+        for p in 0..np {
+            for c in 0..4 {
+                sums[p][c] = pick(r, i / 7 + c) as i64;
+            }
+            for c in 0..2 {
+                let shift = if i % 5 == 0 { [8u8, 31, 32, 33, 62][(r.next() % 5) as usize] } else { 8 + (r.next() % 55) as u8 };
+                mults[p][c] = Multiplier { m: pick(r, i / 3 + c), shift };
+                reqs[p][c] = dsp::NatReq::new(mults[p][c]);
+            }
+        }
+        let outside = i % 11 == 3;
+        if outside {
+            let (p, c) = ((r.next() % np as u64) as usize, (r.next() % 4) as usize);
+            sums[p][c] = [i32::MAX as i64 + 1, i32::MIN as i64 - 1, 1 << 40, -(1 << 33)][(r.next() % 4) as usize];
+        }
+        let mut want = [0i64; 4];
+        for p in 0..np {
+            for c in 0..4 {
+                want[c] += requantize(sums[p][c], mults[p][c & 1]);
+            }
+        }
+        let mut got = [0i64; 4];
+        let fits = dsp::requant_parts(&sums[..np], &reqs[..np], &mut got);
+        if fits == outside || (fits && got != want) {
+            println!("MUIR-KERNELS FAILED dsp::requant_parts case {i} ({np} parts): {got:?} fits={fits}, requantize {want:?}");
+            process::exit(1);
+        }
+        cases += 1;
+    }
+    cases
+}
+
 /// The DSP build's group copies of the gathers (`dsp::put_groups_i16`, the i16 pair layout's
 /// swap; `dsp::widen_u8_groups`, u8 pairs widened to it): 1 to 9 groups, word-aligned buffers
 /// (the assembly loops) and not (the compiled ones), both patches of a pair, against the
@@ -2635,6 +2688,7 @@ fn main() -> ! {
     #[cfg(not(feature = "mve"))]
     {
         cases += check_requant_dsp(&mut r);
+        cases += check_requant_parts(&mut r);
         cases += check_groups(&mut r);
         cases += check_aggregate_dsp(i16s.a, &mut r);
         cases += check_corr4(&mut r);

@@ -1344,13 +1344,14 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
         let np = p.parts.len();
         let ((m0s, m1s), (bb0, bb1)) = (halves(m), halves(b));
         let (b0, b1) = (bias_at(bb0), bias_at(bb1));
-        let mut reqs = [(super::dsp::Requant::ZERO, super::dsp::Requant::ZERO); crate::model::graph::MAX_PARTS];
+        let mut reqs = [[super::dsp::NatReq::ZERO; 2]; crate::model::graph::MAX_PARTS];
         let mut short = b0.unsigned_abs() < SHORT_MAX_BIAS && b1.unsigned_abs() < SHORT_MAX_BIAS && m0s.len() >= 8 * np && m1s.len() >= 8 * np;
         for ((r, a), b) in reqs.iter_mut().zip(m0s.chunks_exact(8)).zip(m1s.chunks_exact(8)).take(np) {
             let (a, b) = (mult_raw(a), mult_raw(b));
             short &= short_ok(a) && short_ok(b);
-            *r = (super::dsp::Requant::new(a), super::dsp::Requant::new(b));
+            *r = [super::dsp::NatReq::new(a), super::dsp::NatReq::new(b)];
         }
+        let reqs = reqs.get(..np).unwrap_or_default();
         // Pixels whose windows lie inside the input in pairs (one table for all of them,
         // relative to the column), the others (the `k / 2` at each end of the row, an odd one
         // left over) one at a time, as a block with both pixels the same (their own table:
@@ -1402,20 +1403,9 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
             // Every part's sums in i32: the short path's integers with the decoded epilogue;
             // else `block2x2_by` from the start, as before.
             if short {
+                // Every part's sums requantised and added by one assembly loop (`dsp::requant_parts`).
                 let mut acc = [0i64; 4];
-                let mut fits = true;
-                for (d, (r0, r1)) in sums.iter().zip(&reqs).take(np) {
-                    if let [Ok(a0), Ok(a1), Ok(a2), Ok(a3)] = d.map(i32::try_from) {
-                        acc[0] += r0.apply(a0);
-                        acc[1] += r1.apply(a1);
-                        acc[2] += r0.apply(a2);
-                        acc[3] += r1.apply(a3);
-                    } else {
-                        fits = false;
-                        break;
-                    }
-                }
-                if fits {
+                if super::dsp::requant_parts(&sums, reqs, &mut acc) {
                     // (A single pixel, `xb == xa`: its two sums twice, the same values.)
                     short_pairs(p.post, b0, b1, &[acc], out, xa * p.cout + 2 * cp, (xb - xa) * p.cout);
                     continue;

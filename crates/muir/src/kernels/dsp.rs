@@ -1445,6 +1445,68 @@ core::arch::global_asm!(
     "    b.w 30b",
     ".size muir_dsp_nat_block, . - muir_dsp_nat_block",
     "",
+    // `requant_parts`: r0 = the parts' four i64 sums each (`[i64; 4]`, 32 bytes a part), r1 =
+    // their multipliers decoded (`NatReq`, two a part: channel 0 then 1, 32 bytes a part), r2 =
+    // parts (>= 1), r3 = out (four i64). Per output value c (0..3: channel c & 1), over the
+    // parts: the sum tested to be an i32 (else 0 is returned, nothing more written), `SMLAL`
+    // onto the rounding half, the 64-bit arithmetic shift by s (t = s - 32 >= 0: the high word
+    // shifted by t; else both words), added to r5:r6. 14 instructions a part and value for s >=
+    // 32, 19 below (the compiled loop took about 27 with its spills).
+    ".section .text.muir_dsp_requant_parts,\"ax\",%progbits",
+    ".global muir_dsp_requant_parts",
+    ".type muir_dsp_requant_parts,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_requant_parts:",
+    "    push {{r4-r11, lr}}",
+    "    movs r4, #0",                 // c
+    "1:",
+    "    add.w r8, r0, r4, lsl #3",    // the sums of value c
+    "    and r9, r4, #1",
+    "    add.w r9, r1, r9, lsl #4",    // channel c & 1's multipliers
+    "    mov r10, r2",
+    "    movs r5, #0",
+    "    movs r6, #0",
+    "2:",
+    "    ldrd r11, r12, [r8], #32",    // the part's sum
+    "    cmp.w r12, r11, asr #31",
+    "    bne 9f",                      // not an i32
+    "    ldrd lr, r7, [r9, #8]",       // the rounding half (lo, hi)
+    "    ldr.w r12, [r9, #4]",         // m
+    "    smlal lr, r7, r11, r12",
+    "    ldr.w r12, [r9], #32",        // t = s - 32
+    "    cmp.w r12, #0",
+    "    blt 3f",
+    "    asr.w lr, r7, r12",           // s >= 32: the high word shifted, an i32
+    "    adds r5, r5, lr",
+    "    adc.w r6, r6, lr, asr #31",
+    "    subs r10, #1",
+    "    bne 2b",
+    "    b 4f",
+    "3:",
+    "    add.w r11, r12, #32",         // s (8 to 31)
+    "    lsr.w lr, lr, r11",
+    "    rsb.w r12, r12, #0",          // 32 - s
+    "    lsl.w r12, r7, r12",
+    "    orr.w lr, lr, r12",
+    "    asr.w r7, r7, r11",
+    "    adds r5, r5, lr",
+    "    adc.w r6, r6, r7",
+    "    subs r10, #1",
+    "    bne 2b",
+    "4:",
+    "    add.w r11, r3, r4, lsl #3",
+    "    strd r5, r6, [r11]",
+    "    adds r4, #1",
+    "    cmp r4, #4",
+    "    bne 1b",
+    "    movs r0, #1",
+    "    pop {{r4-r11, pc}}",
+    "9:",
+    "    movs r0, #0",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_dsp_requant_parts, . - muir_dsp_requant_parts",
+    "",
     // `widen_weights_nat`'s loop: r0 = w0, r1 = w1 (int8 rows, any alignment), r2 = groups (>= 1),
     // r3 = out (word-aligned): per group LDR, LDR, 4 SXTB16 and 4 PKHBT/PKHTB into natural order
     // ((w0, w1), (w2, w3) per channel), one STM; written 8 times (44 bytes each) and entered as
@@ -1564,6 +1626,46 @@ unsafe extern "C" {
     fn muir_dsp_widen_nat(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
     fn muir_dsp_paired_sums(ep: *const u32, pairs: usize, v: *const i16, cv: usize, acc: *mut i64, chpairs: usize);
     fn muir_dsp_nat_block(table: *const NatEntry, n: usize, col: usize, sums: *mut [i64; 4], kl: usize, w0: *const i8, ww: *const u32);
+    fn muir_dsp_requant_parts(sums: *const [i64; 4], reqs: *const [NatReq; 2], parts: usize, out: *mut [i64; 4]) -> u32;
+}
+
+/// One (channel, part) multiplier decoded for [`requant_parts`]: `t = s - 32`, `m`, the
+/// rounding half's (low, high) words as [`Requant`]'s.
+#[repr(C)]
+#[derive(Clone, Copy, Debug)]
+pub struct NatReq {
+    t: i32,
+    m: i32,
+    lo: u32,
+    hi: u32,
+}
+
+impl NatReq {
+    /// A multiplier of 0 (as [`Requant::ZERO`]).
+    pub const ZERO: NatReq = NatReq { t: 8 - 32, m: 0, lo: 1 << 7, hi: 0 };
+
+    /// `m` decoded (meaningful for `8 <= m.shift <= 62`, as [`requantize_i32`]).
+    #[inline(always)]
+    pub fn new(m: crate::arith::Multiplier) -> Self {
+        let r = Requant::new(m);
+        NatReq { t: r.s as i32 - 32, m: r.m, lo: r.lo, hi: r.hi }
+    }
+}
+
+/// The short epilogue's sum over the parts of a block of two pixels: `out[c] = sum over parts
+/// p of requantize_i32(sums[p][c], reqs[p][c & 1])` ([`requantize_i32`]: `floor((acc m +
+/// 2^(s-1)) / 2^s)`), true; false where a part's sum is not an i32 (`out` then unspecified).
+/// Multipliers with shifts `8..=62` (the short path's); the parts are the shorter of `sums`
+/// and `reqs`. By `muir_dsp_requant_parts` (14 to 19 instructions a part and value).
+#[inline(always)]
+pub fn requant_parts(sums: &[[i64; 4]], reqs: &[[NatReq; 2]], out: &mut [i64; 4]) -> bool {
+    let n = sums.len().min(reqs.len());
+    *out = [0; 4];
+    if n == 0 {
+        return true;
+    }
+    // SAFETY: `n` parts of both arrays are read, `out`'s four values written.
+    unsafe { muir_dsp_requant_parts(sums.as_ptr(), reqs.as_ptr(), n, out) != 0 }
 }
 
 impl Quad for u8 {
