@@ -1373,7 +1373,8 @@ fn check_requant_dsp(r: &mut Rng) -> usize {
 /// of `conv_row_i16_nat`) against the specification: per value, the sum over parts of
 /// `arith::requantize` of the part's sum with its channel's multiplier, and false exactly where
 /// some part's sum is not an i32. 1 to 6 parts, shifts 8 to 62 (the short path's), extreme and
-/// random multipliers and sums, sums just outside i32 in a random part.
+/// random multipliers and sums, sums just outside i32 in a random part. Also one part's
+/// contributions added for 1 to 20 pairs (`dsp::requant_add`, `w16_parts`).
 #[cfg(not(feature = "mve"))]
 fn check_requant_parts(r: &mut Rng) -> usize {
     use muir::arith::{Multiplier, requantize};
@@ -1415,6 +1416,31 @@ fn check_requant_parts(r: &mut Rng) -> usize {
         let fits = dsp::requant_parts(&sums[..np], &reqs[..np], &mut got);
         if fits == outside || (fits && got != want) {
             println!("MUIR-KERNELS FAILED dsp::requant_parts case {i} ({np} parts): {got:?} fits={fits}, requantize {want:?}");
+            process::exit(1);
+        }
+        cases += 1;
+        // One part for 1 to 20 pairs (`dsp::requant_add`, `w16_parts`): added to random i64
+        // sums; the entry after the last pair untouched.
+        let n = 1 + i % 20;
+        let mut pairs = [[0i32; 4]; 21];
+        let mut acc = [[0i64; 4]; 21];
+        for (d, a) in pairs.iter_mut().zip(acc.iter_mut()) {
+            for c in 0..4 {
+                d[c] = pick(r, i / 7 + c);
+                a[c] = (r.next() as i64) >> (8 + r.next() % 40);
+            }
+        }
+        let mut want = acc;
+        for (d, a) in pairs.iter().zip(want.iter_mut()).take(n) {
+            for c in 0..4 {
+                a[c] += requantize(d[c] as i64, mults[0][c & 1]);
+            }
+        }
+        dsp::requant_add(&pairs[..n], &reqs[0], &mut acc[..n]);
+        let mut after = acc;
+        dsp::requant_add(&pairs[..0], &reqs[0], &mut after[..n]);
+        if acc != want || after != acc {
+            println!("MUIR-KERNELS FAILED dsp::requant_add case {i} ({n} pairs, shifts {}, {})", mults[0][0].shift, mults[0][1].shift);
             process::exit(1);
         }
         cases += 1;

@@ -935,13 +935,13 @@ fn w16_parts(
     if b0.unsigned_abs() >= SHORT_MAX_BIAS || b1.unsigned_abs() >= SHORT_MAX_BIAS || m0s.len() < 8 * np || m1s.len() < 8 * np {
         return false;
     }
-    let mut reqs = [(super::dsp::Requant::ZERO, super::dsp::Requant::ZERO); crate::model::graph::MAX_PARTS];
+    let mut reqs = [[super::dsp::NatReq::ZERO; 2]; crate::model::graph::MAX_PARTS];
     for (((r, a), b), &ch) in reqs.iter_mut().zip(m0s.chunks_exact(8)).zip(m1s.chunks_exact(8)).zip(p.parts) {
         let (a, b) = (mult_raw(a), mult_raw(b));
         if !(short_ok(a) && short_ok(b) && ch > 0) {
             return false;
         }
-        *r = (super::dsp::Requant::new(a), super::dsp::Requant::new(b));
+        *r = [super::dsp::NatReq::new(a), super::dsp::NatReq::new(b)];
     }
     let post = p.post;
     let mut first = 0;
@@ -951,7 +951,11 @@ fn w16_parts(
             return false; // never: `slots` holds `n` pairs
         };
         let (mut o, mut wo) = (0, 0);
-        for (part, (&ch, (r0, r1))) in p.parts.iter().zip(&reqs).enumerate() {
+        let Some(a) = acc.get_mut(..cnt) else {
+            return false; // never: `cnt <= W16_PARTS_PAIRS`
+        };
+        a.fill([0; 4]);
+        for (&ch, req) in p.parts.iter().zip(&reqs) {
             let nv = ch * p.k * p.k;
             let (Some(s), Some(xo), Some(wq), Some(a0), Some(a1)) = (sums.get_mut(..cnt), x.get(2 * o..), ww.get(wo..), w0.get(o..), w1.get(o..)) else {
                 return false;
@@ -964,11 +968,8 @@ fn w16_parts(
                     }
                 }
             }
-            for (a, &[d0, d1, d2, d3]) in acc.iter_mut().zip(s.iter()) {
-                let v = [r0.apply(d0), r1.apply(d1), r0.apply(d2), r1.apply(d3)];
-                // The first part sets the pass's sums, the others add to them.
-                *a = if part == 0 { v } else { [a[0] + v[0], a[1] + v[1], a[2] + v[2], a[3] + v[3]] };
-            }
+            // The part's contributions added to the pass's sums (`dsp::requant_add`).
+            super::dsp::requant_add(s, req, a);
             o += nv;
             wo += nv / 4 * 4;
         }

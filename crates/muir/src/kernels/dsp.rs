@@ -1507,6 +1507,69 @@ core::arch::global_asm!(
     "    pop {{r4-r11, pc}}",
     ".size muir_dsp_requant_parts, . - muir_dsp_requant_parts",
     "",
+    // `requant_add`: r0 = the pairs' four i32 sums each (16 bytes a pair), r1 = pairs (>= 1),
+    // r2 = the part's two multipliers decoded (`NatReq`, channel 0 then 1), r3 = the pairs'
+    // four i64 sums (32 bytes a pair, added to). Value by value (c = 0..3, channel c & 1, its
+    // multiplier in r4-r7 for all the pairs, the loop chosen by its shift): `SMLAL` onto the
+    // rounding half, the 64-bit shift by s, added: 11 instructions a value for s >= 32, 14
+    // below. r0 and r3 walk the pairs and are wound back to the next value.
+    ".macro rq_col off",
+    "    ldrd r7, r4, [r2, #\\off]",    // t = s - 32, m
+    "    ldrd r5, r6, [r2, #\\off + 8]", // the rounding half (lo, hi)
+    "    mov r12, r1",
+    "    cmp.w r7, #0",
+    "    blt 2f",
+    "1:",
+    "    ldr.w r8, [r0], #16",
+    "    mov r10, r5",
+    "    mov r11, r6",
+    "    smlal r10, r11, r8, r4",
+    "    asr.w r10, r11, r7",          // s >= 32: the high word shifted, an i32
+    "    ldrd r8, r9, [r3]",
+    "    adds r8, r8, r10",
+    "    adc.w r9, r9, r10, asr #31",
+    "    strd r8, r9, [r3], #32",
+    "    subs r12, #1",
+    "    bne 1b",
+    "    b 3f",
+    "2:",
+    "    add.w r7, r7, #32",           // s (8 to 31)
+    "    rsb.w lr, r7, #32",           // 32 - s
+    "4:",
+    "    ldr.w r8, [r0], #16",
+    "    mov r10, r5",
+    "    mov r11, r6",
+    "    smlal r10, r11, r8, r4",
+    "    lsr.w r10, r10, r7",
+    "    lsl.w r8, r11, lr",
+    "    orr.w r10, r10, r8",
+    "    asr.w r11, r11, r7",
+    "    ldrd r8, r9, [r3]",
+    "    adds r8, r8, r10",
+    "    adc.w r9, r9, r11",
+    "    strd r8, r9, [r3], #32",
+    "    subs r12, #1",
+    "    bne 4b",
+    "3:",
+    "    sub.w r0, r0, r1, lsl #4",
+    "    add.w r0, r0, #4",
+    "    sub.w r3, r3, r1, lsl #5",
+    "    add.w r3, r3, #8",
+    ".endm",
+    ".section .text.muir_dsp_requant_add,\"ax\",%progbits",
+    ".global muir_dsp_requant_add",
+    ".type muir_dsp_requant_add,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_requant_add:",
+    "    push {{r4-r11, lr}}",
+    "    rq_col 0",
+    "    rq_col 16",
+    "    rq_col 0",
+    "    rq_col 16",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_dsp_requant_add, . - muir_dsp_requant_add",
+    "",
     // `widen_weights_nat`'s loop: r0 = w0, r1 = w1 (int8 rows, any alignment), r2 = groups (>= 1),
     // r3 = out (word-aligned): per group LDR, LDR, 4 SXTB16 and 4 PKHBT/PKHTB into natural order
     // ((w0, w1), (w2, w3) per channel), one STM; written 8 times (44 bytes each) and entered as
@@ -1627,6 +1690,7 @@ unsafe extern "C" {
     fn muir_dsp_paired_sums(ep: *const u32, pairs: usize, v: *const i16, cv: usize, acc: *mut i64, chpairs: usize);
     fn muir_dsp_nat_block(table: *const NatEntry, n: usize, col: usize, sums: *mut [i64; 4], kl: usize, w0: *const i8, ww: *const u32);
     fn muir_dsp_requant_parts(sums: *const [i64; 4], reqs: *const [NatReq; 2], parts: usize, out: *mut [i64; 4]) -> u32;
+    fn muir_dsp_requant_add(sums: *const [i32; 4], pairs: usize, req: *const [NatReq; 2], acc: *mut [i64; 4]);
 }
 
 /// One (channel, part) multiplier decoded for [`requant_parts`]: `t = s - 32`, `m`, the
@@ -1666,6 +1730,18 @@ pub fn requant_parts(sums: &[[i64; 4]], reqs: &[[NatReq; 2]], out: &mut [i64; 4]
     }
     // SAFETY: `n` parts of both arrays are read, `out`'s four values written.
     unsafe { muir_dsp_requant_parts(sums.as_ptr(), reqs.as_ptr(), n, out) != 0 }
+}
+
+/// One part's short contributions added for several pairs of pixels: `acc[i][c] +=
+/// requantize_i32(sums[i][c], req[c & 1])` for the shorter of `sums` and `acc` (shifts
+/// `8..=62`, as [`requant_parts`]). By `muir_dsp_requant_add` (11 to 14 instructions a value).
+#[inline(always)]
+pub fn requant_add(sums: &[[i32; 4]], req: &[NatReq; 2], acc: &mut [[i64; 4]]) {
+    let n = sums.len().min(acc.len());
+    if n > 0 {
+        // SAFETY: `n` pairs of `sums` read, of `acc` read and written; `req`'s two entries read.
+        unsafe { muir_dsp_requant_add(sums.as_ptr(), n, req, acc.as_mut_ptr()) };
+    }
 }
 
 impl Quad for u8 {
