@@ -397,6 +397,17 @@ fn gather2<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize,
         let Some(dst) = pair.get_mut(2 * base..2 * (base + n)) else {
             return;
         };
+        // Armv7E-M: a part whose channels are not whole groups (the motion encoder's flow and
+        // mask inputs) gathered in patch order into a small buffer first (runs and columns
+        // copied whole), then its whole groups by `put_groups` and the tail value by value
+        // (value by value throughout, with `pair_index` each, took some 20 instructions a
+        // value).
+        #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+        if !ch.is_multiple_of(4) && ch + 3 <= GATHER_TMP {
+            gather2_tmp(p, part, ch, w_in, ox, dst);
+            base += n;
+            continue;
+        }
         for (second, x) in [(false, ox), (true, ox + 1)] {
             let mut j = 0;
             for ky in 0..k {
@@ -453,6 +464,67 @@ fn gather2<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize,
             }
         }
         base += n;
+    }
+}
+
+/// Values of [`gather2_tmp`]'s buffer: up to 3 carried over and one run of a kernel row (3
+/// columns of 128 channels) or one column.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+const GATHER_TMP: usize = 4 + 3 * 128;
+
+/// [`gather2`]'s two patches of one part of `ch` channels (`n = k k ch` values, `dst` its `2 n`
+/// values of the pair layout), `ch <= GATHER_TMP - 3`: each patch in patch order through a
+/// word-aligned buffer, a window inside the row as one run where it fits, else column by
+/// column (zeros outside the input); after each run or column the buffer's whole groups go
+/// to the next groups of `dst` by [`Elem::put_groups`] and the 0 to 3 values left move to its
+/// front; the last `n % 4` values by [`super::pair_index`], as [`gather2`] places them.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(never)]
+fn gather2_tmp<T: Elem>(p: &ConvParams<'_>, part: &PartRows<'_, T>, ch: usize, w_in: usize, ox: usize, dst: &mut [T]) {
+    #[repr(C, align(4))]
+    struct Buf<T>([T; GATHER_TMP]);
+    let k = p.k;
+    let n = k * k * ch;
+    let pad = (k / 2) as isize;
+    let mut tmp = Buf([T::default(); GATHER_TMP]);
+    let tmp = &mut tmp.0;
+    for (second, x) in [(false, ox), (true, ox + 1)] {
+        // Values held in `tmp` and groups written to `dst`.
+        let (mut held, mut g) = (0usize, 0usize);
+        let mut flush = |tmp: &mut [T; GATHER_TMP], held: &mut usize| {
+            let q = *held / 4;
+            T::put_groups(dst.get_mut(8 * g..8 * (g + q)).unwrap_or_default(), tmp.get(..4 * q).unwrap_or_default(), second);
+            g += q;
+            tmp.copy_within(4 * q..*held, 0);
+            *held -= 4 * q;
+        };
+        for ky in 0..k {
+            let row = part.row(ky);
+            if let Some(r) = row
+                && let Some(x0) = (x * p.stride).checked_sub(k / 2)
+                && x0 + k <= w_in
+                && let (Some(s), Some(d)) = (r.get(x0 * ch..(x0 + k) * ch), tmp.get_mut(held..held + k * ch))
+            {
+                d.iter_mut().zip(s).for_each(|(d, s)| *d = *s);
+                held += k * ch;
+                flush(tmp, &mut held);
+                continue;
+            }
+            for kx in 0..k {
+                let ix = (x * p.stride + kx) as isize - pad;
+                let d = tmp.get_mut(held..held + ch).unwrap_or_default();
+                match column(row, ix, w_in, ch) {
+                    Some(s) => d.iter_mut().zip(s).for_each(|(d, s)| *d = *s),
+                    None => d.fill(T::default()),
+                }
+                held += ch;
+                flush(tmp, &mut held);
+            }
+        }
+        let whole = n / 4 * 4;
+        for (i, &v) in tmp.iter().take(held).enumerate() {
+            set_at(dst, pair_index(n, whole + i, second, T::PAIR_SWAP), v);
+        }
     }
 }
 
