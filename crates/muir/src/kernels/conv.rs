@@ -495,8 +495,13 @@ fn gather2_tmp<T: Elem>(p: &ConvParams<'_>, part: &PartRows<'_, T>, ch: usize, w
             let q = *held / 4;
             T::put_groups(dst.get_mut(8 * g..8 * (g + q)).unwrap_or_default(), tmp.get(..4 * q).unwrap_or_default(), second);
             g += q;
-            tmp.copy_within(4 * q..*held, 0);
+            // The 0 to 3 values left to the front (`copy_within` called `memmove`).
             *held -= 4 * q;
+            for i in 0..*held {
+                if let (Some(&v), true) = (tmp.get(4 * q + i), i < 3) {
+                    set_at(tmp, i, v);
+                }
+            }
         };
         for ky in 0..k {
             let row = part.row(ky);
