@@ -1217,6 +1217,16 @@ fn folded_run<T>(f0: super::dsp::Folded, f1: super::dsp::Folded, sums: &[[i32; 4
         // them `at + 1 + (2 n - 1) step < o.len()` (tested above).
         unsafe {
             let mut p = o.as_mut_ptr().add(at + c);
+            if f.high_only() {
+                // Shifts of 33 and more: one `SMMLA` a value (`Folded::apply_high`).
+                for &[a0, a1, a2, a3] in sums {
+                    let (a, b) = if c == 0 { (a0, a2) } else { (a1, a3) };
+                    *p = g(f.apply_high(a));
+                    *p.add(step) = g(f.apply_high(b));
+                    p = p.wrapping_add(2 * step);
+                }
+                continue;
+            }
             for &[a0, a1, a2, a3] in sums {
                 let (a, b) = if c == 0 { (a0, a2) } else { (a1, a3) };
                 *p = g(f.apply(a));

@@ -686,6 +686,27 @@ impl Folded {
         Some(Folded { m: m.m, lo: c as u32, hi: (c >> 32) as u32, k: (s - 24).min(31) })
     }
 
+    /// Whether `C`'s low word is 0 (`s >= 33`): then [`Folded::apply_high`] gives
+    /// [`Folded::apply`]'s value.
+    #[inline(always)]
+    pub fn high_only(&self) -> bool {
+        self.lo == 0
+    }
+
+    /// [`Folded::apply`] where [`Folded::high_only`]: `floor((acc m + C) / 2^32)` is
+    /// `floor(acc m / 2^32) + C / 2^32`, one `SMMLA` (no copy of `C`'s two words for a 64-bit
+    /// accumulator), then the shift. Another value where `C`'s low word is not 0.
+    #[inline(always)]
+    pub fn apply_high(&self, acc: i32) -> i32 {
+        let d: i32;
+        // SAFETY: register-only; SMMLA touches no flags.
+        unsafe {
+            asm!("smmla {d}, {a}, {b}, {c}", d = lateout(reg) d, a = in(reg) acc, b = in(reg) self.m, c = in(reg) self.hi,
+                options(pure, nomem, nostack, preserves_flags))
+        };
+        d >> self.k
+    }
+
     /// The folded value of `acc`: `SMLAL` onto `C`, the high word shifted.
     #[inline(always)]
     pub fn apply(&self, acc: i32) -> i32 {
