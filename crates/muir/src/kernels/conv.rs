@@ -1411,6 +1411,7 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
     // one is built (which then overwrites them): each built once per row where they fit (one
     // that does not drops the others, then the inside one).
     let mut inside: Option<usize> = None;
+    let mut keep = [[0i64; 4]; NAT_KEEP];
     let mut lone = [(0, 0, 0); 3];
     let mut nl = 0;
     for (cp, ((w, m), b)) in channel_pairs(p, kl, 0).enumerate() {
@@ -1445,6 +1446,10 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
         // left over) one at a time, as a block with both pixels the same (their own table:
         // an end pixel's runs are shorter). Tables serve every channel pair, and the channel
         // pairs walk the row in alternate directions: each starts with the last one's table.
+        // The short pairs' sums kept by pair index (`(xa - pad) / 2`) and stored by one
+        // `short_pairs` call after the row (a call per block took some 45 instructions around
+        // its four stores); `kept` marks them (a pair on the long path is not kept).
+        let mut kept = 0u32;
         for (xa, xb) in nat_blocks(pad, w_in, w_out, cp % 2 == 1) {
             let pair = xb != xa;
             let found = lone.get(..nl).unwrap_or_default().iter().find(|l| l.0 == xa).copied();
@@ -1494,6 +1499,12 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
                 // Every part's sums requantised and added by one assembly loop (`dsp::requant_parts`).
                 let mut acc = [0i64; 4];
                 if super::dsp::requant_parts(&sums, reqs, &mut acc) {
+                    let i = xa.wrapping_sub(pad) / 2; // (pairs: xa >= pad)
+                    if pair && let Some(k) = keep.get_mut(i) {
+                        *k = acc;
+                        kept |= 1 << i;
+                        continue;
+                    }
                     // (A single pixel, `xb == xa`: its two sums twice, the same values.)
                     short_pairs(p.post, b0, b1, &[acc], out, xa * p.cout + 2 * cp, (xb - xa) * p.cout);
                     continue;
@@ -1506,9 +1517,23 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
                 s
             });
         }
+        // The kept pairs: all of them by one call, else one by one.
+        let np2 = (kept.count_ones() as usize).min(NAT_KEEP);
+        if kept == (1u32 << np2) - 1 {
+            short_pairs(p.post, b0, b1, keep.get(..np2).unwrap_or_default(), out, pad * p.cout + 2 * cp, p.cout);
+        } else {
+            for (i, acc) in keep.iter().enumerate().filter(|&(i, _)| kept & (1 << i) != 0) {
+                short_pairs(p.post, b0, b1, core::slice::from_ref(acc), out, (pad + 2 * i) * p.cout + 2 * cp, p.cout);
+            }
+        }
     }
     true
 }
+
+/// Pairs of pixels per row whose short sums [`conv_row_i16_nat`] keeps for one store call (the
+/// 1/8 grid's 20 columns at 160x120 are 9 pairs; further pairs are stored block by block).
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+const NAT_KEEP: usize = 16;
 
 /// The blocks of [`conv_row_i16_nat`]'s row, left to right or (`reverse`) right to left: `(xa,
 /// xa + 1)` for two pixels whose windows lie inside the input (pixels `pad ..` paired from the
