@@ -682,8 +682,15 @@ impl Folded {
         if t.unsigned_abs() > 1u64 << (61 - s) {
             return None;
         }
+        let k = (s - 24).min(31);
+        if s >= 33 {
+            // `C`'s low word is 0; the high word `2^(s-33) + t 2^(s-32)` in 32 bits (`|t| <=
+            // 2^28`; two 64-bit shifts by a variable amount cost some 20 instructions).
+            let hi = (1i32 << ((s - 33) & 31)).wrapping_add((t as i32) << ((s - 32) & 31));
+            return Some(Folded { m: m.m, lo: 0, hi: hi as u32, k });
+        }
         let c = (1i64 << ((s - 1) & 63)) + (t << (s & 63));
-        Some(Folded { m: m.m, lo: c as u32, hi: (c >> 32) as u32, k: (s - 24).min(31) })
+        Some(Folded { m: m.m, lo: c as u32, hi: (c >> 32) as u32, k })
     }
 
     /// Whether `C`'s low word is 0 (`s >= 33`): then [`Folded::apply_high`] gives
