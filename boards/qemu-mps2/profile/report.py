@@ -34,10 +34,11 @@ PRIMITIVES = ("kernels::dsp::", "kernels::mve::", "kernels..Elem", "kernels::Ele
 def family_of(frames):
     # The 2x2 (two pixels x two channels) dot products, the widening of their weights
     # (`muir_dsp_widen_w16`, `muir_dsp_widen_nat`), the in-place block loop (`muir_dsp_nat_block`),
-    # the gathers' group copies (`muir_dsp_put_groups_i16`, `muir_dsp_widen_u8`) and the Helium
+    # the gathers' group copies (`muir_dsp_put_groups_i16`, `muir_dsp_widen_u8`), the short
+    # epilogues' requantisation loops (`muir_dsp_requant_parts`, `muir_dsp_requant_add`) and the Helium
     # block products (`muir_mve_dots_i16`, `muir_mve_dots3_i16`, ...) exist only for the
     # convolutions.
-    if any("dot2x2" in f or "widen_w16" in f or "widen_nat" in f or "nat_block" in f or "muir_dsp_put_groups" in f or "muir_dsp_widen_u8" in f or "muir_mve_dots" in f for f in frames):
+    if any("dot2x2" in f or "widen_w16" in f or "widen_nat" in f or "nat_block" in f or "muir_dsp_put_groups" in f or "muir_dsp_widen_u8" in f or "muir_dsp_requant_" in f or "muir_mve_dots" in f for f in frames):
         return "convolutions"
     # The MGA value sums' paired loop (`dsp::aggregate`'s, not inlined) exists only for attention.
     if any("dsp::paired_sums" in f for f in frames):

@@ -1360,11 +1360,119 @@ fn check_requant_dsp(r: &mut Rng) -> usize {
                     process::exit(1);
                 }
                 cases += 1;
+                // Shifts of 33 and more: the one-`SMMLA` form (`Folded::apply_high`).
+                if f.high_only() != (shift >= 33) || (f.high_only() && f.apply_high(acc) as i64 != want) {
+                    println!("MUIR-KERNELS FAILED dsp::Folded::apply_high({acc}, m={m}, shift={shift}, bias={bias}): short path {want}");
+                    process::exit(1);
+                }
             } else if (24..=40).contains(&shift) && bias.abs() < 1 << 20 {
                 println!("MUIR-KERNELS FAILED dsp::Folded not made for shift={shift}, bias={bias}");
                 process::exit(1);
             }
         }
+    }
+    cases
+}
+
+/// `dsp::Folded::apply_high` (one `SMMLA`) against `Folded::apply` (`SMLAL` onto the folded
+/// constant) for shifts 33 to 46 (the blobs' largest), random sums, multipliers and biases:
+/// 40,000 cases, so that the few where the product's low word carries into the kept bits
+/// (about one in 2^(s - 24)) come up.
+#[cfg(not(feature = "mve"))]
+fn check_folded_high(r: &mut Rng) -> usize {
+    use muir::arith::Multiplier;
+    use muir::kernels::dsp;
+    let mut cases = 0;
+    for i in 0..40_000u32 {
+        let shift = 33 + (i % 14) as u8;
+        let (acc, m) = ((r.next() >> 32) as i32, (r.next() >> 32) as i32);
+        let bias = ((r.next() >> 40) as i64) - (1 << 23);
+        if let Some(f) = dsp::Folded::new(Multiplier { m, shift }, bias) {
+            if !f.high_only() || f.apply_high(acc) != f.apply(acc) {
+                println!("MUIR-KERNELS FAILED dsp::Folded::apply_high({acc}, m={m}, shift={shift}, bias={bias}): {}, apply {}", f.apply_high(acc), f.apply(acc));
+                process::exit(1);
+            }
+            cases += 1;
+        }
+    }
+    cases
+}
+
+/// The short epilogue's sum over the parts of a block (`dsp::requant_parts`, the assembly loop
+/// of `conv_row_i16_nat`) against the specification: per value, the sum over parts of
+/// `arith::requantize` of the part's sum with its channel's multiplier, and false exactly where
+/// some part's sum is not an i32. 1 to 6 parts, shifts 8 to 62 (the short path's), extreme and
+/// random multipliers and sums, sums just outside i32 in a random part. Also one part's
+/// contributions added for 1 to 20 pairs (`dsp::requant_add`, `w16_parts`).
+#[cfg(not(feature = "mve"))]
+fn check_requant_parts(r: &mut Rng) -> usize {
+    use muir::arith::{Multiplier, requantize};
+    use muir::kernels::dsp;
+    let edges = [i32::MIN, i32::MIN + 1, -65536, -1, 0, 1, 65535, i32::MAX - 1, i32::MAX];
+    let mut cases = 0;
+    for i in 0..3000usize {
+        let np = 1 + i % 6;
+        let pick = |r: &mut Rng, j: usize| match j % 3 {
+            0 => edges[(r.next() % edges.len() as u64) as usize],
+            1 => ((r.next() >> 32) as i32) >> (r.next() % 31),
+            _ => (r.next() >> 32) as i32,
+        };
+        let mut sums = [[0i64; 4]; 6];
+        let mut mults = [[Multiplier { m: 0, shift: 8 }; 2]; 6];
+        let mut reqs = [[dsp::NatReq::ZERO; 2]; 6];
+        for p in 0..np {
+            for c in 0..4 {
+                sums[p][c] = pick(r, i / 7 + c) as i64;
+            }
+            for c in 0..2 {
+                let shift = if i % 5 == 0 { [8u8, 31, 32, 33, 62][(r.next() % 5) as usize] } else { 8 + (r.next() % 55) as u8 };
+                mults[p][c] = Multiplier { m: pick(r, i / 3 + c), shift };
+                reqs[p][c] = dsp::NatReq::new(mults[p][c]);
+            }
+        }
+        let outside = i % 11 == 3;
+        if outside {
+            let (p, c) = ((r.next() % np as u64) as usize, (r.next() % 4) as usize);
+            sums[p][c] = [i32::MAX as i64 + 1, i32::MIN as i64 - 1, 1 << 40, -(1 << 33)][(r.next() % 4) as usize];
+        }
+        let mut want = [0i64; 4];
+        for p in 0..np {
+            for c in 0..4 {
+                want[c] += requantize(sums[p][c], mults[p][c & 1]);
+            }
+        }
+        let mut got = [0i64; 4];
+        let fits = dsp::requant_parts(&sums[..np], &reqs[..np], &mut got);
+        if fits == outside || (fits && got != want) {
+            println!("MUIR-KERNELS FAILED dsp::requant_parts case {i} ({np} parts): {got:?} fits={fits}, requantize {want:?}");
+            process::exit(1);
+        }
+        cases += 1;
+        // One part for 1 to 20 pairs (`dsp::requant_add`, `w16_parts`): added to random i64
+        // sums; the entry after the last pair untouched.
+        let n = 1 + i % 20;
+        let mut pairs = [[0i32; 4]; 21];
+        let mut acc = [[0i64; 4]; 21];
+        for (d, a) in pairs.iter_mut().zip(acc.iter_mut()) {
+            for c in 0..4 {
+                d[c] = pick(r, i / 7 + c);
+                a[c] = (r.next() as i64) >> (8 + r.next() % 40);
+            }
+        }
+        let mut want = acc;
+        for (d, a) in pairs.iter().zip(want.iter_mut()).take(n) {
+            for c in 0..4 {
+                a[c] += requantize(d[c] as i64, mults[0][c & 1]);
+            }
+        }
+        dsp::requant_add(&pairs[..n], &reqs[0], &mut acc[..n]);
+        let mut after = acc;
+        dsp::requant_add(&pairs[..0], &reqs[0], &mut after[..n]);
+        if acc != want || after != acc {
+            println!("MUIR-KERNELS FAILED dsp::requant_add case {i} ({n} pairs, shifts {}, {})", mults[0][0].shift, mults[0][1].shift);
+            process::exit(1);
+        }
+        cases += 1;
     }
     cases
 }
@@ -2639,6 +2747,8 @@ fn main() -> ! {
     #[cfg(not(feature = "mve"))]
     {
         cases += check_requant_dsp(&mut r);
+        cases += check_requant_parts(&mut r);
+        cases += check_folded_high(&mut r);
         cases += check_groups(&mut r);
         cases += check_aggregate_dsp(i16s.a, &mut r);
         cases += check_corr4(&mut r);

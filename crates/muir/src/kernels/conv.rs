@@ -397,6 +397,17 @@ fn gather2<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize,
         let Some(dst) = pair.get_mut(2 * base..2 * (base + n)) else {
             return;
         };
+        // Armv7E-M: a part whose channels are not whole groups (the motion encoder's flow and
+        // mask inputs) gathered in patch order into a small buffer first (runs and columns
+        // copied whole), then its whole groups by `put_groups` and the tail value by value
+        // (value by value throughout, with `pair_index` each, took some 20 instructions a
+        // value).
+        #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+        if !ch.is_multiple_of(4) && ch + 3 <= GATHER_TMP {
+            gather2_tmp(p, part, ch, w_in, ox, dst);
+            base += n;
+            continue;
+        }
         for (second, x) in [(false, ox), (true, ox + 1)] {
             let mut j = 0;
             for ky in 0..k {
@@ -453,6 +464,72 @@ fn gather2<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize,
             }
         }
         base += n;
+    }
+}
+
+/// Values of [`gather2_tmp`]'s buffer: up to 3 carried over and one run of a kernel row (3
+/// columns of 128 channels) or one column.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+const GATHER_TMP: usize = 4 + 3 * 128;
+
+/// [`gather2`]'s two patches of one part of `ch` channels (`n = k k ch` values, `dst` its `2 n`
+/// values of the pair layout), `ch <= GATHER_TMP - 3`: each patch in patch order through a
+/// word-aligned buffer, a window inside the row as one run where it fits, else column by
+/// column (zeros outside the input); after each run or column the buffer's whole groups go
+/// to the next groups of `dst` by [`Elem::put_groups`] and the 0 to 3 values left move to its
+/// front; the last `n % 4` values by [`super::pair_index`], as [`gather2`] places them.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(never)]
+fn gather2_tmp<T: Elem>(p: &ConvParams<'_>, part: &PartRows<'_, T>, ch: usize, w_in: usize, ox: usize, dst: &mut [T]) {
+    #[repr(C, align(4))]
+    struct Buf<T>([T; GATHER_TMP]);
+    let k = p.k;
+    let n = k * k * ch;
+    let pad = (k / 2) as isize;
+    let mut tmp = Buf([T::default(); GATHER_TMP]);
+    let tmp = &mut tmp.0;
+    for (second, x) in [(false, ox), (true, ox + 1)] {
+        // Values held in `tmp` and groups written to `dst`.
+        let (mut held, mut g) = (0usize, 0usize);
+        let mut flush = |tmp: &mut [T; GATHER_TMP], held: &mut usize| {
+            let q = *held / 4;
+            T::put_groups(dst.get_mut(8 * g..8 * (g + q)).unwrap_or_default(), tmp.get(..4 * q).unwrap_or_default(), second);
+            g += q;
+            // The 0 to 3 values left to the front (`copy_within` called `memmove`).
+            *held -= 4 * q;
+            for i in 0..*held {
+                if let (Some(&v), true) = (tmp.get(4 * q + i), i < 3) {
+                    set_at(tmp, i, v);
+                }
+            }
+        };
+        for ky in 0..k {
+            let row = part.row(ky);
+            if let Some(r) = row
+                && let Some(x0) = (x * p.stride).checked_sub(k / 2)
+                && x0 + k <= w_in
+                && let (Some(s), Some(d)) = (r.get(x0 * ch..(x0 + k) * ch), tmp.get_mut(held..held + k * ch))
+            {
+                d.iter_mut().zip(s).for_each(|(d, s)| *d = *s);
+                held += k * ch;
+                flush(tmp, &mut held);
+                continue;
+            }
+            for kx in 0..k {
+                let ix = (x * p.stride + kx) as isize - pad;
+                let d = tmp.get_mut(held..held + ch).unwrap_or_default();
+                match column(row, ix, w_in, ch) {
+                    Some(s) => d.iter_mut().zip(s).for_each(|(d, s)| *d = *s),
+                    None => d.fill(T::default()),
+                }
+                held += ch;
+                flush(tmp, &mut held);
+            }
+        }
+        let whole = n / 4 * 4;
+        for (i, &v) in tmp.iter().take(held).enumerate() {
+            set_at(dst, pair_index(n, whole + i, second, T::PAIR_SWAP), v);
+        }
     }
 }
 
@@ -935,13 +1012,13 @@ fn w16_parts(
     if b0.unsigned_abs() >= SHORT_MAX_BIAS || b1.unsigned_abs() >= SHORT_MAX_BIAS || m0s.len() < 8 * np || m1s.len() < 8 * np {
         return false;
     }
-    let mut reqs = [(super::dsp::Requant::ZERO, super::dsp::Requant::ZERO); crate::model::graph::MAX_PARTS];
+    let mut reqs = [[super::dsp::NatReq::ZERO; 2]; crate::model::graph::MAX_PARTS];
     for (((r, a), b), &ch) in reqs.iter_mut().zip(m0s.chunks_exact(8)).zip(m1s.chunks_exact(8)).zip(p.parts) {
         let (a, b) = (mult_raw(a), mult_raw(b));
         if !(short_ok(a) && short_ok(b) && ch > 0) {
             return false;
         }
-        *r = (super::dsp::Requant::new(a), super::dsp::Requant::new(b));
+        *r = [super::dsp::NatReq::new(a), super::dsp::NatReq::new(b)];
     }
     let post = p.post;
     let mut first = 0;
@@ -951,7 +1028,11 @@ fn w16_parts(
             return false; // never: `slots` holds `n` pairs
         };
         let (mut o, mut wo) = (0, 0);
-        for (part, (&ch, (r0, r1))) in p.parts.iter().zip(&reqs).enumerate() {
+        let Some(a) = acc.get_mut(..cnt) else {
+            return false; // never: `cnt <= W16_PARTS_PAIRS`
+        };
+        a.fill([0; 4]);
+        for (&ch, req) in p.parts.iter().zip(&reqs) {
             let nv = ch * p.k * p.k;
             let (Some(s), Some(xo), Some(wq), Some(a0), Some(a1)) = (sums.get_mut(..cnt), x.get(2 * o..), ww.get(wo..), w0.get(o..), w1.get(o..)) else {
                 return false;
@@ -964,11 +1045,8 @@ fn w16_parts(
                     }
                 }
             }
-            for (a, &[d0, d1, d2, d3]) in acc.iter_mut().zip(s.iter()) {
-                let v = [r0.apply(d0), r1.apply(d1), r0.apply(d2), r1.apply(d3)];
-                // The first part sets the pass's sums, the others add to them.
-                *a = if part == 0 { v } else { [a[0] + v[0], a[1] + v[1], a[2] + v[2], a[3] + v[3]] };
-            }
+            // The part's contributions added to the pass's sums (`dsp::requant_add`).
+            super::dsp::requant_add(s, req, a);
             o += nv;
             wo += nv / 4 * 4;
         }
@@ -1007,9 +1085,9 @@ fn w16_one_part(
     let (m0, m1, b0, b1) = (mult_raw(m0), mult_raw(m1), bias_at(b0), bias_at(b1));
     let small = b0.unsigned_abs() < SHORT_MAX_BIAS && b1.unsigned_abs() < SHORT_MAX_BIAS;
     let short = small && short_ok(m0) && short_ok(m1);
-    let (c0, c1) = (clamp_shift(m0), clamp_shift(m1));
-    let (r0, r1) = (super::dsp::Requant::new(m0), super::dsp::Requant::new(m1));
     let post = p.post;
+    // (The unfolded paths' decoded multipliers are made where they are needed: made here for
+    // every channel pair they cost some 4.5 M instructions at 160x120.)
     // A patch of whole groups in one i32 chunk: the sums as i32, straight into the short path.
     let one_chunk = short && kl.is_multiple_of(4) && kl / 4 <= super::dsp::I16_ASM_GROUPS;
     if one_chunk
@@ -1021,6 +1099,7 @@ fn w16_one_part(
             folded_pairs(post, f0, f1, sums, out, ox * p.cout + c, p.cout);
             return;
         }
+        let (r0, r1) = (super::dsp::Requant::new(m0), super::dsp::Requant::new(m1));
         for (i, &[a0, a1, a2, a3]) in sums.iter().enumerate() {
             let (at_a, at_b) = ((ox + 2 * i) * p.cout + c, (ox + 2 * i + 1) * p.cout + c);
             out.set(at_a, finish_short(post, b0, r0.apply(a0)));
@@ -1054,6 +1133,8 @@ fn w16_one_part(
             return;
         }
     }
+    let (c0, c1) = (clamp_shift(m0), clamp_shift(m1));
+    let (r0, r1) = (super::dsp::Requant::new(m0), super::dsp::Requant::new(m1));
     for (i, slot) in slots.chunks_exact((2 * kl).max(1)).take(n).enumerate() {
         let (at_a, at_b) = ((ox + 2 * i) * p.cout + c, (ox + 2 * i + 1) * p.cout + c);
         if one_chunk && let Some([a0, a1, a2, a3]) = super::dsp::dot2x2_w16_i32(ww, slot, kl / 4) {
@@ -1119,13 +1200,43 @@ fn folded_post<T>(post: PostOp, f0: super::dsp::Folded, f1: super::dsp::Folded, 
 /// [`folded_post`]'s loop for one activation `g`.
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
 #[inline(always)]
-fn folded_run<T>(f0: super::dsp::Folded, f1: super::dsp::Folded, sums: &[[i32; 4]], o: &mut [T], mut at: usize, step: usize, g: impl Fn(i32) -> T) {
-    for &[a0, a1, a2, a3] in sums {
-        set_at(o, at, g(f0.apply(a0)));
-        set_at(o, at + 1, g(f1.apply(a1)));
-        set_at(o, at + step, g(f0.apply(a2)));
-        set_at(o, at + step + 1, g(f1.apply(a3)));
-        at += 2 * step;
+fn folded_run<T>(f0: super::dsp::Folded, f1: super::dsp::Folded, sums: &[[i32; 4]], o: &mut [T], at: usize, step: usize, g: impl Fn(i32) -> T) {
+    // Channel by channel through a raw pointer, the outputs' bounds tested once: one
+    // multiplier's constants in registers (per value a `set_at` with its bounds test and the
+    // other channel's constants spilled took some 15 instructions).
+    let last = (2 * sums.len()).saturating_sub(1) * step + at + 1;
+    if sums.is_empty() || last >= o.len() || step == 0 {
+        for (i, &[a0, a1, a2, a3]) in sums.iter().enumerate() {
+            let at = at + 2 * i * step;
+            set_at(o, at, g(f0.apply(a0)));
+            set_at(o, at + 1, g(f1.apply(a1)));
+            set_at(o, at + step, g(f0.apply(a2)));
+            set_at(o, at + step + 1, g(f1.apply(a3)));
+        }
+        return;
+    }
+    for (f, c) in [(f0, 0), (f1, 1)] {
+        // SAFETY: pair `i`'s outputs are `at + c + 2 i step` and `step` after it, the last of
+        // them `at + 1 + (2 n - 1) step < o.len()` (tested above).
+        unsafe {
+            let mut p = o.as_mut_ptr().add(at + c);
+            if f.high_only() {
+                // Shifts of 33 and more: one `SMMLA` a value (`Folded::apply_high`).
+                for &[a0, a1, a2, a3] in sums {
+                    let (a, b) = if c == 0 { (a0, a2) } else { (a1, a3) };
+                    *p = g(f.apply_high(a));
+                    *p.add(step) = g(f.apply_high(b));
+                    p = p.wrapping_add(2 * step);
+                }
+                continue;
+            }
+            for &[a0, a1, a2, a3] in sums {
+                let (a, b) = if c == 0 { (a0, a2) } else { (a1, a3) };
+                *p = g(f.apply(a));
+                *p.add(step) = g(f.apply(b));
+                p = p.wrapping_add(2 * step);
+            }
+        }
     }
 }
 
@@ -1165,6 +1276,23 @@ fn short_post<T>(post: PostOp, b0: i64, b1: i64, sums: &[[i64; 4]], o: &mut [T],
 #[inline(always)]
 fn short_run<T>(b0: i64, b1: i64, sums: &[[i64; 4]], o: &mut [T], mut at: usize, step: usize, g: impl Fn(i64) -> T) {
     let (c0, c1) = (b0 + (1 << (EXTRA_BITS - 1)), b1 + (1 << (EXTRA_BITS - 1)));
+    // As `folded_run`: the outputs' bounds tested once, then stores through a raw pointer.
+    let last = (2 * sums.len()).saturating_sub(1) * step + at + 1;
+    if !sums.is_empty() && last < o.len() {
+        // SAFETY: pair `i`'s outputs are `at + 2 i step + {0, 1}` and `step` after them, the
+        // last of them `at + 1 + (2 n - 1) step < o.len()` (tested above).
+        unsafe {
+            let mut p = o.as_mut_ptr().add(at);
+            for &[s0, s1, s2, s3] in sums {
+                *p = g((s0 + c0) >> EXTRA_BITS);
+                *p.add(1) = g((s1 + c1) >> EXTRA_BITS);
+                *p.add(step) = g((s2 + c0) >> EXTRA_BITS);
+                *p.add(step + 1) = g((s3 + c1) >> EXTRA_BITS);
+                p = p.wrapping_add(2 * step);
+            }
+        }
+        return;
+    }
     for &[s0, s1, s2, s3] in sums {
         set_at(o, at, g((s0 + c0) >> EXTRA_BITS));
         set_at(o, at + 1, g((s1 + c1) >> EXTRA_BITS));
@@ -1286,6 +1414,7 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
     // one is built (which then overwrites them): each built once per row where they fit (one
     // that does not drops the others, then the inside one).
     let mut inside: Option<usize> = None;
+    let mut keep = [[0i64; 4]; NAT_KEEP];
     let mut lone = [(0, 0, 0); 3];
     let mut nl = 0;
     for (cp, ((w, m), b)) in channel_pairs(p, kl, 0).enumerate() {
@@ -1307,18 +1436,23 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
         let np = p.parts.len();
         let ((m0s, m1s), (bb0, bb1)) = (halves(m), halves(b));
         let (b0, b1) = (bias_at(bb0), bias_at(bb1));
-        let mut reqs = [(super::dsp::Requant::ZERO, super::dsp::Requant::ZERO); crate::model::graph::MAX_PARTS];
+        let mut reqs = [[super::dsp::NatReq::ZERO; 2]; crate::model::graph::MAX_PARTS];
         let mut short = b0.unsigned_abs() < SHORT_MAX_BIAS && b1.unsigned_abs() < SHORT_MAX_BIAS && m0s.len() >= 8 * np && m1s.len() >= 8 * np;
         for ((r, a), b) in reqs.iter_mut().zip(m0s.chunks_exact(8)).zip(m1s.chunks_exact(8)).take(np) {
             let (a, b) = (mult_raw(a), mult_raw(b));
             short &= short_ok(a) && short_ok(b);
-            *r = (super::dsp::Requant::new(a), super::dsp::Requant::new(b));
+            *r = [super::dsp::NatReq::new(a), super::dsp::NatReq::new(b)];
         }
+        let reqs = reqs.get(..np).unwrap_or_default();
         // Pixels whose windows lie inside the input in pairs (one table for all of them,
         // relative to the column), the others (the `k / 2` at each end of the row, an odd one
         // left over) one at a time, as a block with both pixels the same (their own table:
         // an end pixel's runs are shorter). Tables serve every channel pair, and the channel
         // pairs walk the row in alternate directions: each starts with the last one's table.
+        // The short pairs' sums kept by pair index (`(xa - pad) / 2`) and stored by one
+        // `short_pairs` call after the row (a call per block took some 45 instructions around
+        // its four stores); `kept` marks them (a pair on the long path is not kept).
+        let mut kept = 0u32;
         for (xa, xb) in nat_blocks(pad, w_in, w_out, cp % 2 == 1) {
             let pair = xb != xa;
             let found = lone.get(..nl).unwrap_or_default().iter().find(|l| l.0 == xa).copied();
@@ -1365,20 +1499,15 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
             // Every part's sums in i32: the short path's integers with the decoded epilogue;
             // else `block2x2_by` from the start, as before.
             if short {
+                // Every part's sums requantised and added by one assembly loop (`dsp::requant_parts`).
                 let mut acc = [0i64; 4];
-                let mut fits = true;
-                for (d, (r0, r1)) in sums.iter().zip(&reqs).take(np) {
-                    if let [Ok(a0), Ok(a1), Ok(a2), Ok(a3)] = d.map(i32::try_from) {
-                        acc[0] += r0.apply(a0);
-                        acc[1] += r1.apply(a1);
-                        acc[2] += r0.apply(a2);
-                        acc[3] += r1.apply(a3);
-                    } else {
-                        fits = false;
-                        break;
+                if super::dsp::requant_parts(&sums, reqs, &mut acc) {
+                    let i = xa.wrapping_sub(pad) / 2; // (pairs: xa >= pad)
+                    if pair && let Some(k) = keep.get_mut(i) {
+                        *k = acc;
+                        kept |= 1 << i;
+                        continue;
                     }
-                }
-                if fits {
                     // (A single pixel, `xb == xa`: its two sums twice, the same values.)
                     short_pairs(p.post, b0, b1, &[acc], out, xa * p.cout + 2 * cp, (xb - xa) * p.cout);
                     continue;
@@ -1391,9 +1520,23 @@ pub fn conv_row_i16_nat(p: &ConvParams<'_>, inputs: &[PartRows<'_, i16>], w_in: 
                 s
             });
         }
+        // The kept pairs: all of them by one call, else one by one.
+        let np2 = (kept.count_ones() as usize).min(NAT_KEEP);
+        if kept == (1u32 << np2) - 1 {
+            short_pairs(p.post, b0, b1, keep.get(..np2).unwrap_or_default(), out, pad * p.cout + 2 * cp, p.cout);
+        } else {
+            for (i, acc) in keep.iter().enumerate().filter(|&(i, _)| kept & (1 << i) != 0) {
+                short_pairs(p.post, b0, b1, core::slice::from_ref(acc), out, (pad + 2 * i) * p.cout + 2 * cp, p.cout);
+            }
+        }
     }
     true
 }
+
+/// Pairs of pixels per row whose short sums [`conv_row_i16_nat`] keeps for one store call (the
+/// 1/8 grid's 20 columns at 160x120 are 9 pairs; further pairs are stored block by block).
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+const NAT_KEEP: usize = 16;
 
 /// The blocks of [`conv_row_i16_nat`]'s row, left to right or (`reverse`) right to left: `(xa,
 /// xa + 1)` for two pixels whose windows lie inside the input (pixels `pad ..` paired from the

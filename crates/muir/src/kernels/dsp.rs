@@ -656,7 +656,7 @@ impl Requant {
 /// `conv::finish_short` computes it for one part) is `floor((acc m + C) / 2^(s+8))` with `C =
 /// 2^(s-1) + (bias + 2^7) 2^s` (nested floors of divisions by powers of two, the inner one
 /// plus an integer): one `SMLAL` onto `C` and one arithmetic shift of the high word by `s - 24`
-/// (at most 31). Made only for `24 <= s <= 62` and `|C| <= 2^62`: then `|acc m + C| < 2^63` for
+/// (at most 31). Made only for `24 <= s <= 61` and `|bias + 2^7| <= 2^(61 - s)` (so `|C| <= 2^62`): then `|acc m + C| < 2^63` for
 /// any i32 `acc` (`|acc m| <= 2^62`) and the result fits i32.
 #[derive(Clone, Copy, Debug)]
 pub struct Folded {
@@ -671,15 +671,47 @@ impl Folded {
     #[inline(always)]
     pub fn new(m: crate::arith::Multiplier, bias: i64) -> Option<Self> {
         let s = m.shift as u32;
-        if !(24..=62).contains(&s) {
+        if !(24..=61).contains(&s) {
             return None;
         }
-        let c = (1i128 << (s - 1)) + ((bias as i128 + 128) << s);
-        if c.unsigned_abs() > 1u128 << 62 {
+        // In i64 (the i128 shifts took some 60 instructions a call): `|bias + 2^7| <= 2^(61 -
+        // s)` keeps `|(bias + 2^7) 2^s| <= 2^61` and, with `2^(s-1) <= 2^61`, `|C| <= 2^62`;
+        // it refuses a few constants within 2^62 that the i128 test made (a bias near 2^(62 -
+        // s)), which then take the unfolded path (same integers).
+        let t = bias.checked_add(128)?;
+        if t.unsigned_abs() > 1u64 << (61 - s) {
             return None;
         }
-        let c = c as i64;
-        Some(Folded { m: m.m, lo: c as u32, hi: (c >> 32) as u32, k: (s - 24).min(31) })
+        let k = (s - 24).min(31);
+        if s >= 33 {
+            // `C`'s low word is 0; the high word `2^(s-33) + t 2^(s-32)` in 32 bits (`|t| <=
+            // 2^28`; two 64-bit shifts by a variable amount cost some 20 instructions).
+            let hi = (1i32 << ((s - 33) & 31)).wrapping_add((t as i32) << ((s - 32) & 31));
+            return Some(Folded { m: m.m, lo: 0, hi: hi as u32, k });
+        }
+        let c = (1i64 << ((s - 1) & 63)) + (t << (s & 63));
+        Some(Folded { m: m.m, lo: c as u32, hi: (c >> 32) as u32, k })
+    }
+
+    /// Whether `C`'s low word is 0 (`s >= 33`): then [`Folded::apply_high`] gives
+    /// [`Folded::apply`]'s value.
+    #[inline(always)]
+    pub fn high_only(&self) -> bool {
+        self.lo == 0
+    }
+
+    /// [`Folded::apply`] where [`Folded::high_only`]: `floor((acc m + C) / 2^32)` is
+    /// `floor(acc m / 2^32) + C / 2^32`, one `SMMLA` (no copy of `C`'s two words for a 64-bit
+    /// accumulator), then the shift. Another value where `C`'s low word is not 0.
+    #[inline(always)]
+    pub fn apply_high(&self, acc: i32) -> i32 {
+        let d: i32;
+        // SAFETY: register-only; SMMLA touches no flags.
+        unsafe {
+            asm!("smmla {d}, {a}, {b}, {c}", d = lateout(reg) d, a = in(reg) acc, b = in(reg) self.m, c = in(reg) self.hi,
+                options(pure, nomem, nostack, preserves_flags))
+        };
+        d >> self.k
     }
 
     /// The folded value of `acc`: `SMLAL` onto `C`, the high word shifted.
@@ -1441,6 +1473,131 @@ core::arch::global_asm!(
     "    b.w 30b",
     ".size muir_dsp_nat_block, . - muir_dsp_nat_block",
     "",
+    // `requant_parts`: r0 = the parts' four i64 sums each (`[i64; 4]`, 32 bytes a part), r1 =
+    // their multipliers decoded (`NatReq`, two a part: channel 0 then 1, 32 bytes a part), r2 =
+    // parts (>= 1), r3 = out (four i64). Per output value c (0..3: channel c & 1), over the
+    // parts: the sum tested to be an i32 (else 0 is returned, nothing more written), `SMLAL`
+    // onto the rounding half, the 64-bit arithmetic shift by s (t = s - 32 >= 0: the high word
+    // shifted by t; else both words), added to r5:r6. 14 instructions a part and value for s >=
+    // 32, 19 below (the compiled loop took about 27 with its spills).
+    ".section .text.muir_dsp_requant_parts,\"ax\",%progbits",
+    ".global muir_dsp_requant_parts",
+    ".type muir_dsp_requant_parts,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_requant_parts:",
+    "    push {{r4-r11, lr}}",
+    "    movs r4, #0",                 // c
+    "1:",
+    "    add.w r8, r0, r4, lsl #3",    // the sums of value c
+    "    and r9, r4, #1",
+    "    add.w r9, r1, r9, lsl #4",    // channel c & 1's multipliers
+    "    mov r10, r2",
+    "    movs r5, #0",
+    "    movs r6, #0",
+    "2:",
+    "    ldrd r11, r12, [r8], #32",    // the part's sum
+    "    cmp.w r12, r11, asr #31",
+    "    bne 9f",                      // not an i32
+    "    ldrd lr, r7, [r9, #8]",       // the rounding half (lo, hi)
+    "    ldr.w r12, [r9, #4]",         // m
+    "    smlal lr, r7, r11, r12",
+    "    ldr.w r12, [r9], #32",        // t = s - 32
+    "    cmp.w r12, #0",
+    "    blt 3f",
+    "    asr.w lr, r7, r12",           // s >= 32: the high word shifted, an i32
+    "    adds r5, r5, lr",
+    "    adc.w r6, r6, lr, asr #31",
+    "    subs r10, #1",
+    "    bne 2b",
+    "    b 4f",
+    "3:",
+    "    add.w r11, r12, #32",         // s (8 to 31)
+    "    lsr.w lr, lr, r11",
+    "    rsb.w r12, r12, #0",          // 32 - s
+    "    lsl.w r12, r7, r12",
+    "    orr.w lr, lr, r12",
+    "    asr.w r7, r7, r11",
+    "    adds r5, r5, lr",
+    "    adc.w r6, r6, r7",
+    "    subs r10, #1",
+    "    bne 2b",
+    "4:",
+    "    add.w r11, r3, r4, lsl #3",
+    "    strd r5, r6, [r11]",
+    "    adds r4, #1",
+    "    cmp r4, #4",
+    "    bne 1b",
+    "    movs r0, #1",
+    "    pop {{r4-r11, pc}}",
+    "9:",
+    "    movs r0, #0",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_dsp_requant_parts, . - muir_dsp_requant_parts",
+    "",
+    // `requant_add`: r0 = the pairs' four i32 sums each (16 bytes a pair), r1 = pairs (>= 1),
+    // r2 = the part's two multipliers decoded (`NatReq`, channel 0 then 1), r3 = the pairs'
+    // four i64 sums (32 bytes a pair, added to). Value by value (c = 0..3, channel c & 1, its
+    // multiplier in r4-r7 for all the pairs, the loop chosen by its shift): `SMLAL` onto the
+    // rounding half, the 64-bit shift by s, added: 11 instructions a value for s >= 32, 14
+    // below. r0 and r3 walk the pairs and are wound back to the next value.
+    ".macro rq_col off",
+    "    ldrd r7, r4, [r2, #\\off]",    // t = s - 32, m
+    "    ldrd r5, r6, [r2, #\\off + 8]", // the rounding half (lo, hi)
+    "    mov r12, r1",
+    "    cmp.w r7, #0",
+    "    blt 2f",
+    "1:",
+    "    ldr.w r8, [r0], #16",
+    "    mov r10, r5",
+    "    mov r11, r6",
+    "    smlal r10, r11, r8, r4",
+    "    asr.w r10, r11, r7",          // s >= 32: the high word shifted, an i32
+    "    ldrd r8, r9, [r3]",
+    "    adds r8, r8, r10",
+    "    adc.w r9, r9, r10, asr #31",
+    "    strd r8, r9, [r3], #32",
+    "    subs r12, #1",
+    "    bne 1b",
+    "    b 3f",
+    "2:",
+    "    add.w r7, r7, #32",           // s (8 to 31)
+    "    rsb.w lr, r7, #32",           // 32 - s
+    "4:",
+    "    ldr.w r8, [r0], #16",
+    "    mov r10, r5",
+    "    mov r11, r6",
+    "    smlal r10, r11, r8, r4",
+    "    lsr.w r10, r10, r7",
+    "    lsl.w r8, r11, lr",
+    "    orr.w r10, r10, r8",
+    "    asr.w r11, r11, r7",
+    "    ldrd r8, r9, [r3]",
+    "    adds r8, r8, r10",
+    "    adc.w r9, r9, r11",
+    "    strd r8, r9, [r3], #32",
+    "    subs r12, #1",
+    "    bne 4b",
+    "3:",
+    "    sub.w r0, r0, r1, lsl #4",
+    "    add.w r0, r0, #4",
+    "    sub.w r3, r3, r1, lsl #5",
+    "    add.w r3, r3, #8",
+    ".endm",
+    ".section .text.muir_dsp_requant_add,\"ax\",%progbits",
+    ".global muir_dsp_requant_add",
+    ".type muir_dsp_requant_add,%function",
+    ".p2align 2",
+    ".thumb_func",
+    "muir_dsp_requant_add:",
+    "    push {{r4-r11, lr}}",
+    "    rq_col 0",
+    "    rq_col 16",
+    "    rq_col 0",
+    "    rq_col 16",
+    "    pop {{r4-r11, pc}}",
+    ".size muir_dsp_requant_add, . - muir_dsp_requant_add",
+    "",
     // `widen_weights_nat`'s loop: r0 = w0, r1 = w1 (int8 rows, any alignment), r2 = groups (>= 1),
     // r3 = out (word-aligned): per group LDR, LDR, 4 SXTB16 and 4 PKHBT/PKHTB into natural order
     // ((w0, w1), (w2, w3) per channel), one STM; written 8 times (44 bytes each) and entered as
@@ -1560,6 +1717,59 @@ unsafe extern "C" {
     fn muir_dsp_widen_nat(w0: *const i8, w1: *const i8, groups: usize, out: *mut u32);
     fn muir_dsp_paired_sums(ep: *const u32, pairs: usize, v: *const i16, cv: usize, acc: *mut i64, chpairs: usize);
     fn muir_dsp_nat_block(table: *const NatEntry, n: usize, col: usize, sums: *mut [i64; 4], kl: usize, w0: *const i8, ww: *const u32);
+    fn muir_dsp_requant_parts(sums: *const [i64; 4], reqs: *const [NatReq; 2], parts: usize, out: *mut [i64; 4]) -> u32;
+    fn muir_dsp_requant_add(sums: *const [i32; 4], pairs: usize, req: *const [NatReq; 2], acc: *mut [i64; 4]);
+}
+
+/// One (channel, part) multiplier decoded for [`requant_parts`]: `t = s - 32`, `m`, the
+/// rounding half's (low, high) words as [`Requant`]'s.
+#[repr(C)]
+#[derive(Clone, Copy, Debug)]
+pub struct NatReq {
+    t: i32,
+    m: i32,
+    lo: u32,
+    hi: u32,
+}
+
+impl NatReq {
+    /// A multiplier of 0 (as [`Requant::ZERO`]).
+    pub const ZERO: NatReq = NatReq { t: 8 - 32, m: 0, lo: 1 << 7, hi: 0 };
+
+    /// `m` decoded (meaningful for `8 <= m.shift <= 62`, as [`requantize_i32`]).
+    #[inline(always)]
+    pub fn new(m: crate::arith::Multiplier) -> Self {
+        let r = Requant::new(m);
+        NatReq { t: r.s as i32 - 32, m: r.m, lo: r.lo, hi: r.hi }
+    }
+}
+
+/// The short epilogue's sum over the parts of a block of two pixels: `out[c] = sum over parts
+/// p of requantize_i32(sums[p][c], reqs[p][c & 1])` ([`requantize_i32`]: `floor((acc m +
+/// 2^(s-1)) / 2^s)`), true; false where a part's sum is not an i32 (`out` then unspecified).
+/// Multipliers with shifts `8..=62` (the short path's); the parts are the shorter of `sums`
+/// and `reqs`. By `muir_dsp_requant_parts` (14 to 19 instructions a part and value).
+#[inline(always)]
+pub fn requant_parts(sums: &[[i64; 4]], reqs: &[[NatReq; 2]], out: &mut [i64; 4]) -> bool {
+    let n = sums.len().min(reqs.len());
+    *out = [0; 4];
+    if n == 0 {
+        return true;
+    }
+    // SAFETY: `n` parts of both arrays are read, `out`'s four values written.
+    unsafe { muir_dsp_requant_parts(sums.as_ptr(), reqs.as_ptr(), n, out) != 0 }
+}
+
+/// One part's short contributions added for several pairs of pixels: `acc[i][c] +=
+/// requantize_i32(sums[i][c], req[c & 1])` for the shorter of `sums` and `acc` (shifts
+/// `8..=62`, as [`requant_parts`]). By `muir_dsp_requant_add` (11 to 14 instructions a value).
+#[inline(always)]
+pub fn requant_add(sums: &[[i32; 4]], req: &[NatReq; 2], acc: &mut [[i64; 4]]) {
+    let n = sums.len().min(acc.len());
+    if n > 0 {
+        // SAFETY: `n` pairs of `sums` read, of `acc` read and written; `req`'s two entries read.
+        unsafe { muir_dsp_requant_add(sums.as_ptr(), n, req, acc.as_mut_ptr()) };
+    }
 }
 
 impl Quad for u8 {
