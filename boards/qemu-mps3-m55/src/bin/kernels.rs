@@ -289,6 +289,83 @@ fn check_corr4(r: &mut Rng) -> usize {
     cases
 }
 
+/// The DSP build's correlation on a right row widened once (`dsp::widen_i8_quads`,
+/// `dsp::dot_w8_4cols`: the assembly loop for 128 values, the compiled one for other multiples
+/// of 4) against plain sums: lengths 0 to 140 in steps of 4, random values, all -128, -128
+/// against 127; refusals (a length not a multiple of 4, short slices); and whole windows
+/// (`corr::window_wide` against `corr::window`) over rows of 1 to 9 columns of 128 values at
+/// offsets -6 ..= 9.
+#[cfg(not(feature = "mve"))]
+fn check_corr4w(r: &mut Rng) -> usize {
+    use muir::kernels::{corr, dsp};
+    let mut f1 = [0i8; 144];
+    let mut f2 = [0i8; 9 * 140];
+    let mut wide = [0u32; 9 * 70];
+    let mut cases = 0;
+    for c in (0..=140usize).step_by(4) {
+        for fill in 0..3 {
+            for (k, v) in f1.iter_mut().take(c).enumerate() {
+                *v = match fill {
+                    0 => (r.next() >> 56) as i8,
+                    1 => i8::MIN,
+                    _ if k % 3 == 0 => i8::MAX,
+                    _ => i8::MIN,
+                };
+            }
+            for v in f2.iter_mut().take(4 * c) {
+                *v = if fill == 0 { (r.next() >> 56) as i8 } else { i8::MIN };
+            }
+            let q = dsp::widen_i8_quads(&f2[..4 * c], &mut wide[..2 * c]);
+            let got = dsp::dot_w8_4cols(&f1[..c], &wide[..2 * c], c);
+            for j in 0..4 {
+                let want: i32 = f1[..c].iter().zip(&f2[j * c..(j + 1) * c]).map(|(a, b)| *a as i32 * *b as i32).sum();
+                if q != c || got.map(|g| g[j]) != Some(want) {
+                    println!("MUIR-KERNELS FAILED corr4w c={c} fill={fill} column {j}: quads {q}, kernel {got:?}, plain {want}");
+                    process::exit(1);
+                }
+                cases += 1;
+            }
+            if c == 0 {
+                continue;
+            }
+            // Refusals: a length not a multiple of 4, a short f1, short columns.
+            let refused = [
+                dsp::dot_w8_4cols(&f1[..c + 1], &wide[..2 * c + 2], c + 1),
+                dsp::dot_w8_4cols(&f1[..c - 1], &wide[..2 * c], c),
+                dsp::dot_w8_4cols(&f1[..c], &wide[..2 * c - 1], c),
+            ];
+            for (k, g) in refused.iter().enumerate() {
+                if g.is_some() {
+                    println!("MUIR-KERNELS FAILED corr4w c={c} refusal {k} computed {g:?}");
+                    process::exit(1);
+                }
+                cases += 1;
+            }
+        }
+    }
+    let c = 128;
+    for w in 1..=9usize {
+        for v in f1.iter_mut().take(c).chain(f2.iter_mut().take(w * c)) {
+            *v = (r.next() >> 56) as i8;
+        }
+        let f2 = &f2[..w * c];
+        dsp::widen_i8_quads(f2, &mut wide[..w * c / 2]);
+        for lo in -6i64..=9 {
+            for n in [1usize, 5, 12, 17] {
+                let (mut a, mut b) = ([7i32; 17], [9i32; 17]);
+                corr::window_wide(&f1[..c], f2, &wide[..w * c / 2], w, lo, &mut a[..n]);
+                corr::window(&f1[..c], f2, w, lo, &mut b[..n]);
+                if a[..n] != b[..n] || a[n..].iter().any(|v| *v != 7) {
+                    println!("MUIR-KERNELS FAILED corr4w window w={w} lo={lo} n={n}: {:?} against {:?}", &a[..n], &b[..n]);
+                    process::exit(1);
+                }
+                cases += 1;
+            }
+        }
+    }
+    cases
+}
+
 /// The DSP build's MGA logit (`dsp::dot_i16_i64`: `LDRD` and `SMLALD`, eight products a step,
 /// when both slices are word-aligned; else the plain loop) against the plain sum: the usual
 /// lengths, random and extreme values (`i16::MIN` squared at every product, the largest sums),
@@ -2638,6 +2715,7 @@ fn main() -> ! {
         cases += check_groups(&mut r);
         cases += check_aggregate_dsp(i16s.a, &mut r);
         cases += check_corr4(&mut r);
+        cases += check_corr4w(&mut r);
         cases += check_logit_dsp(i16s.a, i16s.b, &mut r);
         cases += check_aggregate_cm(i16s.a, &mut r);
         cases += check_min_dsp(&mut r);

@@ -147,6 +147,33 @@ pub fn window(f1: &[i8], f2: &[i8], w: usize, lo: i64, win: &mut [i32]) {
     }
 }
 
+/// [`window`] with the row `f2` also widened by `dsp::widen_i8_quads` into `wide` (`w c / 2`
+/// words; the engine widens each right feature row once for its pixels): four in-row columns at
+/// a time by `dsp::dot_w8_4cols` (15 instructions per 16 MACs against 23 for
+/// `dsp::dot_i8_4cols`), the rest as [`window`]. The same integers.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+pub fn window_wide(f1: &[i8], f2: &[i8], wide: &[u32], w: usize, lo: i64, win: &mut [i32]) {
+    let c = f1.len();
+    let h = c / 2;
+    let mut i = 0;
+    while i < win.len() {
+        let col = lo + i as i64;
+        let four = (col >= 0 && col as usize + 4 <= w).then(|| wide.get(col as usize * h..(col as usize + 4) * h)).flatten();
+        match (four.and_then(|cols| super::dsp::dot_w8_4cols(f1, cols, c)), win.get_mut(i..i + 4)) {
+            (Some(v), Some(dst)) => {
+                dst.copy_from_slice(&v);
+                i += 4;
+            }
+            _ => {
+                if let Some(v) = win.get_mut(i) {
+                    *v = corr_at(f1, f2, c, w, col);
+                }
+                i += 1;
+            }
+        }
+    }
+}
+
 /// [`lookup_pixel`] with the window's correlations from `window(lo, win)`: `win[i]` must be the
 /// correlation with column `lo + i` (0 outside the row's `w` columns).
 #[allow(clippy::too_many_arguments)]

@@ -2060,3 +2060,132 @@ pub fn dot_i8_4cols(f1: &[i8], f2: &[i8], c: usize) -> [i32; 4] {
     }
     acc
 }
+
+/// The correlation lookup's right feature row widened once per row (`kernels::corr::window_wide`):
+/// each whole quad `k` of `src` (values `4k .. 4k + 4`) becomes two words, `dst[2k] =
+/// SXTB16(quad)` (values 0 and 2) and `dst[2k + 1] = SXTB16(quad, ror 8)` (values 1 and 3), the
+/// order [`dot_w8_4cols`] reads. Returns the quads written (the shorter of `src.len() / 4` and
+/// `dst.len() / 2`).
+#[inline]
+pub fn widen_i8_quads(src: &[i8], dst: &mut [u32]) -> usize {
+    let b = bytes_of_i8(src);
+    let q = (b.len() / 4).min(dst.len() / 2);
+    for (k, d) in dst.chunks_exact_mut(2).take(q).enumerate() {
+        let v = word(b, 4 * k);
+        if let [e, o] = d {
+            (*e, *o) = (sxtb16(v), sxtb16_ror8(v));
+        }
+    }
+    q
+}
+
+/// [`dot_i8_4cols`] on a row widened by [`widen_i8_quads`]: `cols` holds four consecutive
+/// columns of `c / 2` words each (`c` a multiple of 4): `out[j] = sum f1[i] f2[j c + i]`. Each
+/// quad of `f1` is widened once for the four columns, each column's quad is one `LDRD` and two
+/// `SMLAD`: about 16 instructions per 16 MACs against 23 (the row's widening costs about 4 a quad,
+/// once per row for all the pixels whose windows read it). `None` where `c` is not a multiple of
+/// 4, over `2^15`, or either slice is short. The slim model's feature width (128) by an assembly
+/// loop (columns 256 bytes apart at immediate offsets, two quads a pass: 16 instructions per 16
+/// MACs; the compiled loop inlined into the lookup spilled: 26).
+#[inline]
+pub fn dot_w8_4cols(f1: &[i8], cols: &[u32], c: usize) -> Option<[i32; 4]> {
+    let a = bytes_of_i8(f1);
+    if !c.is_multiple_of(4) || c > 1 << 15 || a.len() < c || cols.len() < 2 * c {
+        return None;
+    }
+    // SAFETY: `c` a multiple of 4, `a` at least `c` bytes, `cols` at least `4 (c / 2)` words.
+    Some(unsafe {
+        match c {
+            128 => dot_w8_4cols_128(a.as_ptr(), cols.as_ptr()),
+            _ => dot_w8_4cols_at::<0>(a.as_ptr(), cols.as_ptr(), c, c / 2),
+        }
+    })
+}
+
+/// [`dot_w8_4cols`]' loop: column stride `H` words when not 0, else `h`.
+///
+/// # Safety
+/// `c` a multiple of 4, `a` valid for `c` bytes, `p` for `4 h` words (`h = H` when `H > 0`).
+#[inline(always)]
+unsafe fn dot_w8_4cols_at<const H: usize>(a: *const u8, p: *const u32, c: usize, h: usize) -> [i32; 4] {
+    let h = if H > 0 { H } else { h };
+    let (mut s0, mut s1, mut s2, mut s3) = (0i32, 0i32, 0i32, 0i32);
+    let mut i = 0;
+    while i + 4 <= c {
+        // SAFETY: `i + 4 <= c`: bytes `i .. i + 4` of `a`, words `j h + i / 2 ..= j h + i / 2 +
+        // 1` (`j < 4`) of `p`.
+        unsafe {
+            let q = core::ptr::read_unaligned(a.add(i) as *const u32);
+            let (qe, qo) = (sxtb16(q), sxtb16_ror8(q));
+            let w = p.add(i / 2);
+            s0 = smlad(*w.add(1), qo, smlad(*w, qe, s0));
+            s1 = smlad(*w.add(h + 1), qo, smlad(*w.add(h), qe, s1));
+            s2 = smlad(*w.add(2 * h + 1), qo, smlad(*w.add(2 * h), qe, s2));
+            s3 = smlad(*w.add(3 * h + 1), qo, smlad(*w.add(3 * h), qe, s3));
+        }
+        i += 4;
+    }
+    [s0, s1, s2, s3]
+}
+
+/// [`dot_w8_4cols`] for `c = 128`: per quad of `f1` one `LDR` and two `SXTB16`, per column one
+/// `LDRD` (post-indexed for the first) and two `SMLAD`; two quads a pass (32 quads).
+///
+/// # Safety
+/// `a` valid for 128 bytes, `p` for 256 words (four columns of 64).
+#[inline(always)]
+unsafe fn dot_w8_4cols_128(a: *const u8, p: *const u32) -> [i32; 4] {
+    let (mut s0, mut s1, mut s2, mut s3) = (0i32, 0i32, 0i32, 0i32);
+    // SAFETY: 16 passes of two quads: bytes `a .. a + 128`, words `p + j 64 .. p + j 64 + 64`
+    // (`j < 4`); SMLAD sets the Q flag only on overflow, which `c <= 2^15` excludes.
+    unsafe {
+        core::arch::asm!(
+            "2:",
+            "ldr {q}, [{a}], #4",
+            "ldrd {x}, {y}, [{p}], #8",
+            "sxtb16 {e}, {q}",
+            "sxtb16 {q}, {q}, ror #8",
+            "smlad {s0}, {x}, {e}, {s0}",
+            "smlad {s0}, {y}, {q}, {s0}",
+            "ldrd {x}, {y}, [{p}, #248]",
+            "smlad {s1}, {x}, {e}, {s1}",
+            "smlad {s1}, {y}, {q}, {s1}",
+            "ldrd {x}, {y}, [{p}, #504]",
+            "smlad {s2}, {x}, {e}, {s2}",
+            "smlad {s2}, {y}, {q}, {s2}",
+            "ldrd {x}, {y}, [{p}, #760]",
+            "smlad {s3}, {x}, {e}, {s3}",
+            "smlad {s3}, {y}, {q}, {s3}",
+            "ldr {q}, [{a}], #4",
+            "ldrd {x}, {y}, [{p}], #8",
+            "sxtb16 {e}, {q}",
+            "sxtb16 {q}, {q}, ror #8",
+            "smlad {s0}, {x}, {e}, {s0}",
+            "smlad {s0}, {y}, {q}, {s0}",
+            "ldrd {x}, {y}, [{p}, #248]",
+            "smlad {s1}, {x}, {e}, {s1}",
+            "smlad {s1}, {y}, {q}, {s1}",
+            "ldrd {x}, {y}, [{p}, #504]",
+            "smlad {s2}, {x}, {e}, {s2}",
+            "smlad {s2}, {y}, {q}, {s2}",
+            "ldrd {x}, {y}, [{p}, #760]",
+            "smlad {s3}, {x}, {e}, {s3}",
+            "smlad {s3}, {y}, {q}, {s3}",
+            "cmp {a}, {end}",
+            "bne 2b",
+            a = inout(reg) a => _,
+            p = inout(reg) p => _,
+            end = in(reg) a.wrapping_add(128),
+            s0 = inout(reg) s0,
+            s1 = inout(reg) s1,
+            s2 = inout(reg) s2,
+            s3 = inout(reg) s3,
+            q = out(reg) _,
+            e = out(reg) _,
+            x = out(reg) _,
+            y = out(reg) _,
+            options(nostack, readonly),
+        );
+    }
+    [s0, s1, s2, s3]
+}
