@@ -392,9 +392,12 @@ pub fn row_costs(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w:
         (Some(&first), Some(&len)) => Band { first, len },
         _ => Band::default(),
     };
-    // Column `q`'s sums: the union of the bands of pixels `q - 1 ..= q + 1`.
-    let column = |q: usize| {
-        let mut col = Column { lo: 0, n: 0, v: [0; COLUMN_SPAN] };
+    // Column `q`'s sums into `col`: the union of the bands of pixels `q - 1 ..= q + 1` (in place:
+    // a `Column` returned by value was cleared and copied, a library call each).
+    let [l0, l1, l2] = left;
+    let [r0, r1, r2] = right;
+    let column = |q: usize, col: &mut Column| {
+        col.n = 0;
         let (mut lo, mut hi) = (usize::MAX, 0);
         for x in q.saturating_sub(1)..(q + 2).min(w) {
             let b = band(x);
@@ -404,12 +407,42 @@ pub fn row_costs(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w:
             }
         }
         if lo >= hi || hi - lo > COLUMN_SPAN {
-            return col; // no candidates, or too wide: the pixels compute their own
+            return; // no candidates, or too wide: the pixels compute their own
         }
-        let [l0, l1, l2] = left;
-        let [r0, r1, r2] = right;
+        let n = hi - lo;
+        col.lo = lo;
+        // Whole rows (the engine's): the right codes of candidates `d <= q` are columns `q - d`,
+        // walked down by slices, those of `d > q` all column 0 (clamped): one sum.
+        if let (Some(&a0), Some(&a1), Some(&a2), Some(&z0), Some(&z1), Some(&z2)) = (l0.get(q), l1.get(q), l2.get(q), r0.first(), r1.first(), r2.first())
+            && let Some(v) = col.v.get_mut(..n)
+        {
+            let a = [a0, a1, a2];
+            let m = if lo <= q { n.min(q - lo + 1) } else { 0 };
+            let top = q.wrapping_sub(lo);
+            let rows = if m > 0 {
+                let first = top + 1 - m;
+                match (r0.get(first..=top), r1.get(first..=top), r2.get(first..=top)) {
+                    (Some(s0), Some(s1), Some(s2)) => Some((s0, s1, s2)),
+                    _ => None,
+                }
+            } else {
+                Some((&[][..], &[][..], &[][..]))
+            };
+            if let Some((s0, s1, s2)) = rows {
+                let (near, far) = v.split_at_mut(m.min(n));
+                for (((o, b0), b1), b2) in near.iter_mut().zip(s0.iter().rev()).zip(s1.iter().rev()).zip(s2.iter().rev()) {
+                    *o = hamming3(a, [*b0, *b1, *b2]) as u16;
+                }
+                if !far.is_empty() {
+                    let h = hamming3(a, [z0, z1, z2]) as u16;
+                    far.iter_mut().for_each(|o| *o = h);
+                }
+                col.n = n;
+                return;
+            }
+        }
         let a = [l0.get(q), l1.get(q), l2.get(q)];
-        for (k, v) in col.v.iter_mut().enumerate().take(hi - lo) {
+        for (k, v) in col.v.iter_mut().enumerate().take(n) {
             let qr = q.saturating_sub(lo + k);
             let b = [r0.get(qr), r1.get(qr), r2.get(qr)];
             // A code missing from a shorter row adds nothing (as in `cost_plain`).
@@ -420,21 +453,34 @@ pub fn row_costs(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w:
             let (p0, p1, p2) = (pair(0), pair(1), pair(2));
             *v = hamming3([p0.0, p1.0, p2.0], [p0.1, p1.1, p2.1]) as u16;
         }
-        (col.lo, col.n) = (lo, hi - lo);
-        col
+        col.n = n;
     };
     let mut ring = [Column { lo: 0, n: 0, v: [0; COLUMN_SPAN] }; 3];
     if let Some(c) = ring.get_mut(0) {
-        *c = column(0);
+        column(0, c);
     }
     for (x, out) in costs.chunks_exact_mut(SLOTS).enumerate().take(w) {
         if let (true, Some(c)) = (x + 1 < w, ring.get_mut((x + 1) % 3)) {
-            *c = column(x + 1);
+            column(x + 1, c);
         }
         let b = band(x);
         let cols = [x.saturating_sub(1), x, (x + 1).min(w - 1)];
         let [c0, c1, c2] = cols.map(|q| ring.get(q % 3));
         let out = head_mut(out, b.n());
+        // Every column holds the pixel's band (its union includes it) unless it was too wide:
+        // the three columns' runs added.
+        #[inline(always)]
+        fn run(c: Option<&Column>, first: i16, n: usize) -> Option<&[u16]> {
+            let d0 = first as usize;
+            c.filter(|c| first >= 0 && d0 >= c.lo && d0 + n <= c.lo + c.n).and_then(|c| c.v.get(d0 - c.lo..d0 - c.lo + n))
+        }
+        let n = out.len();
+        if let (Some(v0), Some(v1), Some(v2)) = (run(c0, b.first, n), run(c1, b.first, n), run(c2, b.first, n)) {
+            for (((o, a), b), c) in out.iter_mut().zip(v0).zip(v1).zip(v2) {
+                *o = *a + *b + *c;
+            }
+            continue;
+        }
         for (k, o) in out.iter_mut().enumerate() {
             let d = b.first as usize + k;
             let at = |c: Option<&Column>| c.filter(|c| d >= c.lo && d < c.lo + c.n).and_then(|c| c.v.get(d - c.lo)).map(|v| *v as u32);
