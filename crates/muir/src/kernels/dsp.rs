@@ -2189,3 +2189,31 @@ unsafe fn dot_w8_4cols_128(a: *const u8, p: *const u32) -> [i32; 4] {
     }
     [s0, s1, s2, s3]
 }
+
+/// 36 halfwords on a word boundary (the path steps' predecessor window, `fullres::path_step`).
+#[repr(C, align(4))]
+pub struct Win36(pub [u16; 36]);
+
+/// `w` filled with `u16::MAX` and returned as its values: nine `STRD` of one register, where
+/// `[u16::MAX; N]` became a `memset` call (about 50 instructions).
+#[inline(always)]
+pub fn ones_u16_36(w: &mut core::mem::MaybeUninit<Win36>) -> &mut [u16; 36] {
+    // SAFETY: nine STRD write the 72 bytes of `w` (word-aligned); then every value is set.
+    unsafe {
+        asm!(
+            "strd {o}, {o}, [{p}]",
+            "strd {o}, {o}, [{p}, #8]",
+            "strd {o}, {o}, [{p}, #16]",
+            "strd {o}, {o}, [{p}, #24]",
+            "strd {o}, {o}, [{p}, #32]",
+            "strd {o}, {o}, [{p}, #40]",
+            "strd {o}, {o}, [{p}, #48]",
+            "strd {o}, {o}, [{p}, #56]",
+            "strd {o}, {o}, [{p}, #64]",
+            p = in(reg) w.as_mut_ptr(),
+            o = in(reg) u32::MAX,
+            options(nostack, preserves_flags),
+        );
+        &mut w.assume_init_mut().0
+    }
+}

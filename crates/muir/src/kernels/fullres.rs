@@ -520,6 +520,8 @@ static PENALTY2: [u16; 256] = {
     t
 };
 const _: () = assert!(P2 < u16::MAX as u32);
+// The DSP path step's window (`dsp::ones_u16_36`) holds `SLOTS + 6` values.
+const _: () = assert!(SLOTS + 6 == 36);
 
 /// A pixel's candidates: disparities `first .. first + len` (px).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -602,7 +604,8 @@ pub fn path_step(prev: &[u16], pband: Band, cost: &[u16], band: Band, p2: u32, o
                 let n = out.len().min(cost.len());
                 let shift = band.first as isize - pband.first as isize;
                 // `win[i] = prev[i - 1 + shift]` where that exists, `u16::MAX` elsewhere.
-                let mut win = [u16::MAX; SLOTS + 4];
+                let mut ones = core::mem::MaybeUninit::uninit();
+                let win = super::dsp::ones_u16_36(&mut ones);
                 let lo = (1 - shift).max(0);
                 let hi = (n as isize + 2).min(prev.len() as isize + 1 - shift);
                 if lo < hi {
@@ -613,7 +616,7 @@ pub fn path_step(prev: &[u16], pband: Band, cost: &[u16], band: Band, p2: u32, o
                         super::dsp::copy_u16(dst, src);
                     }
                 }
-                path_update_dsp(&win, cost, m, mp2 as u16, out);
+                path_update_dsp(win, cost, m, mp2 as u16, out);
                 return;
             }
         }
@@ -634,7 +637,7 @@ pub fn path_step(prev: &[u16], pband: Band, cost: &[u16], band: Band, p2: u32, o
 /// (`win.len() >= k + 4`).
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
 #[inline(always)]
-fn path_update_dsp(win: &[u16; SLOTS + 4], cost: &[u16], m: u16, mp2: u16, out: &mut [u16]) {
+fn path_update_dsp(win: &[u16; SLOTS + 6], cost: &[u16], m: u16, mp2: u16, out: &mut [u16]) {
     let n = cost.len().min(out.len()).min(SLOTS + 2);
     let pair = |v: u16| v as u32 * 0x0001_0001;
     let (mm, mp2s, p1s) = (pair(m), pair(mp2), pair(P1 as u16));
@@ -710,18 +713,32 @@ pub fn path_step_portable(prev: &[u16], pband: Band, cost: &[u16], band: Band, p
 /// The decision ([`decide`]) on the sums of the five paths' costs `p` of a pixel of band `band`
 /// (as far as each slice reaches); on the x86-64 host the sums and their first least value by one
 /// vector.
+/// `sum` is scratch (its values past the band's are left as they were: the caller keeps one
+/// array for a whole image, where one per pixel was cleared by a library call each time).
 #[inline(always)]
-fn sum_decide(p: [&[u16]; 5], band: Band) -> Option<i16> {
-    let mut sum = [0u32; SLOTS];
+fn sum_decide(p: [&[u16]; 5], band: Band, sum: &mut [u32; SLOTS]) -> Option<i16> {
     #[cfg(all(target_arch = "x86_64", feature = "std"))]
-    if let Some(i) = avx512::path_sums(p, band.n(), &mut sum) {
-        return decide_at(head(&sum, band.n()), band, i);
+    if let Some(i) = avx512::path_sums(p, band.n(), sum) {
+        return decide_at(head(sum, band.n()), band, i);
     }
+    // The sums and their first least value in one pass (as [`decide`]: the first of the least).
     let [a, r, t0, t1, t2] = p;
-    for (((((s, a), r), t0), t1), t2) in sum.iter_mut().zip(a).zip(r).zip(t0).zip(t1).zip(t2).take(band.n()) {
-        *s = *a as u32 + *r as u32 + *t0 as u32 + *t1 as u32 + *t2 as u32;
+    let (mut i, mut least, mut n) = (0, u32::MAX, 0);
+    for (k, (((((s, a), r), t0), t1), t2)) in sum.iter_mut().zip(a).zip(r).zip(t0).zip(t1).zip(t2).take(band.n()).enumerate() {
+        let v = *a as u32 + *r as u32 + *t0 as u32 + *t1 as u32 + *t2 as u32;
+        *s = v;
+        if v < least {
+            (i, least) = (k, v);
+        }
+        n = k + 1;
     }
-    decide(&sum, band)
+    // (every sum is below `5 * 2^16`, so the first is below `least`'s start)
+    if n < band.n() {
+        // A path shorter than the band (never in [`refine_rows`]): zeros after it, as [`decide`].
+        sum.iter_mut().take(band.n()).skip(n).for_each(|s| *s = 0);
+        return decide(sum, band);
+    }
+    decide_at(head(sum, n), band, i)
 }
 
 /// The decision on summed path costs `s` (`band.len` values): the refined disparity (Q10.5), or
@@ -944,6 +961,7 @@ fn refine_rows(left: &ImageView<'_>, right: &ImageView<'_>, disparity: &mut [i16
         _ => Band::default(),
     };
     let grey_of = |g: &[u8], x: usize| g.get(x).copied().unwrap_or(0);
+    let mut sums = [0u32; SLOTS];
     for y in 0..h {
         let yi = y as isize;
         let s = slot(yi + r);
@@ -1003,7 +1021,7 @@ fn refine_rows(left: &ImageView<'_>, right: &ImageView<'_>, disparity: &mut [i16
                 path_step(&lr_prev, band_at(b_cur, x - 1), c, b, penalty2(grey_of(g_cur, x), grey_of(g_cur, x - 1)), &mut lr_cur);
             }
             let (rl_x, t0, t1, t2) = (chunk(rl, x, SLOTS), chunk(top_cur, x, SLOTS), chunk(top_cur, w + x, SLOTS), chunk(top_cur, 2 * w + x, SLOTS));
-            *dec = match sum_decide([&lr_cur, rl_x, t0, t1, t2], b) {
+            *dec = match sum_decide([&lr_cur, rl_x, t0, t1, t2], b, &mut sums) {
                 Some(d) => {
                     decided += 1;
                     d
