@@ -366,6 +366,56 @@ fn check_corr4w(r: &mut Rng) -> usize {
     cases
 }
 
+/// The DSP build's lookup (`corr::lookup_pixel`: the window by `dsp::dot_i8_4cols`, the
+/// post-pooling samples by `samples_i32` with `dsp::ssat16` where the numerators fit i32) against
+/// `corr::lookup_pixel_plain`: 4 levels of radius 4, rows of 1 to 24 columns of 128 values,
+/// random and extreme features (all -128: every correlation 2^21, the i64 path), flows across
+/// and past the row, multipliers of shifts 20 to 62 (the i32 path's two requantisations).
+#[cfg(not(feature = "mve"))]
+fn check_lookup_dsp(f1: &mut [i8; MAX_N], f2: &mut [i8; MAX_N], r: &mut Rng) -> usize {
+    use muir::arith::Multiplier;
+    use muir::kernels::corr::{self, LookupParams, LookupScratch};
+    const C: usize = 128;
+    let (levels, radius) = (4, 4);
+    let n = corr::window_len(levels, radius);
+    let mut win = [0i32; 96];
+    let mut pre = [0i64; 97];
+    let mut cases = 0;
+    for case in 0..600usize {
+        let w = 1 + case % 24;
+        if w * C > MAX_N {
+            continue;
+        }
+        let extreme = case % 7 == 3;
+        for v in f1.iter_mut().take(C).chain(f2.iter_mut().take(w * C)) {
+            *v = if extreme { i8::MIN } else { (r.next() >> 56) as i8 };
+        }
+        let mut mults = [Multiplier { m: 0, shift: 1 }; 4];
+        for m in mults.iter_mut() {
+            *m = Multiplier { m: (1 << 30) + (r.next() >> 34) as i32, shift: 20 + (r.next() % 43) as u8 };
+        }
+        if case % 5 == 0 {
+            mults[0].shift = 33;
+            mults[1].shift = 62;
+            mults[2].shift = 32;
+        }
+        let p = LookupParams { levels, radius, post_pool: true, mults: &mults };
+        for x in [0, w / 2, w - 1] {
+            let flow = -((r.next() % (64 * 256)) as i16) + if case % 3 == 0 { 2000 } else { 0 };
+            let (mut got, mut want) = ([0i16; 36], [0i16; 36]);
+            let mut s = LookupScratch { window: &mut win[..n], prefix: &mut pre[..n + 1] };
+            corr::lookup_pixel(&p, &f1[..C], &f2[..w * C], w, x, flow, &mut s, &mut got);
+            corr::lookup_pixel_plain(&p, &f1[..C], &f2[..w * C], w, x, flow, &mut want);
+            if got != want {
+                println!("MUIR-KERNELS FAILED lookup dsp case {case} w={w} x={x} flow={flow}: {got:?} against {want:?}");
+                process::exit(1);
+            }
+            cases += 1;
+        }
+    }
+    cases
+}
+
 /// The DSP build's MGA logit (`dsp::dot_i16_i64`: `LDRD` and `SMLALD`, eight products a step,
 /// when both slices are word-aligned; else the plain loop) against the plain sum: the usual
 /// lengths, random and extreme values (`i16::MIN` squared at every product, the largest sums),
@@ -2716,6 +2766,7 @@ fn main() -> ! {
         cases += check_aggregate_dsp(i16s.a, &mut r);
         cases += check_corr4(&mut r);
         cases += check_corr4w(&mut r);
+        cases += check_lookup_dsp(&mut *i8s.a, &mut *i8s.b, &mut r);
         cases += check_logit_dsp(i16s.a, i16s.b, &mut r);
         cases += check_aggregate_cm(i16s.a, &mut r);
         cases += check_min_dsp(&mut r);

@@ -243,6 +243,10 @@ pub fn lookup_with(p: &LookupParams<'_>, w: usize, x: usize, flow: i16, s: &mut 
                 if i32_ok && crate::kernels::mve::lookup_samples(pre, sl, a as i32, mult, out) {
                     continue;
                 }
+                #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+                if i32_ok && samples_i32(pre, sl, a as i32, mult, out) {
+                    continue;
+                }
                 let (x0, x1) = (pre.iter().step_by(sl), pre.get(sl..).unwrap_or_default().iter().step_by(sl));
                 let (y0, y1) = (pre.get(1..).unwrap_or_default().iter().step_by(sl), pre.get(1 + sl..).unwrap_or_default().iter().step_by(sl));
                 let samples = out.iter_mut().zip(x0).zip(x1).zip(y0).zip(y1);
@@ -278,6 +282,46 @@ pub fn lookup_with(p: &LookupParams<'_>, w: usize, x: usize, flow: i16, s: &mut 
             *o = sat_i16(requantize(num, mult));
         }
     }
+}
+
+/// The post-pooling samples of one level where their numerators fit i32 (`lookup_with`'s
+/// `i32_ok` case): sample `t` reads the prefix sums' low words at `t sl`, `t sl + 1`, `(t + 1) sl`
+/// and `(t + 1) sl + 1` (`pre`: at least `out.len() sl + 2` values), each shared with the next
+/// sample, out of line (inlined into the lookup the loop spilled its pointers: about 80
+/// instructions a sample, against about 14). The same integers as the compiled loop:
+/// `requantize_i32` and `sat_i16` (by `SSAT`). `false` (nothing written) for a stride of 0 or a
+/// short `pre`.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(never)]
+fn samples_i32(pre: &[i64], sl: usize, a: i32, mult: Multiplier, out: &mut [i16]) -> bool {
+    let k = out.len();
+    if sl == 0 || pre.len() < k * sl + 2 {
+        return false;
+    }
+    let lo = |i: usize| pre.get(i).map_or(0, |v| *v as i32);
+    let (mut x0, mut y0) = (lo(0), lo(1));
+    let s = mult.shift as u32;
+    let b = 256 - a;
+    if (33..=62).contains(&s) {
+        let (half, sh) = (1i32 << (s - 33), s - 32);
+        for (t, o) in out.iter_mut().enumerate() {
+            let i = (t + 1) * sl;
+            let (x1, y1) = (lo(i), lo(i + 1));
+            let num = b.wrapping_mul(x1.wrapping_sub(x0)).wrapping_add(a.wrapping_mul(y1.wrapping_sub(y0)));
+            let hi = ((num as i64 * mult.m as i64) >> 32) as i32;
+            *o = super::dsp::ssat16(hi.wrapping_add(half) >> sh);
+            (x0, y0) = (x1, y1);
+        }
+    } else {
+        for (t, o) in out.iter_mut().enumerate() {
+            let i = (t + 1) * sl;
+            let (x1, y1) = (lo(i), lo(i + 1));
+            let num = b.wrapping_mul(x1.wrapping_sub(x0)).wrapping_add(a.wrapping_mul(y1.wrapping_sub(y0)));
+            *o = sat_i16(requantize_i32(num, mult));
+            (x0, y0) = (x1, y1);
+        }
+    }
+    true
 }
 
 /// Plain twin of [`lookup_pixel`]: every sub-sample interpolated on its own, every correlation

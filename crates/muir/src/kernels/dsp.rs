@@ -2217,3 +2217,12 @@ pub fn ones_u16_36(w: &mut core::mem::MaybeUninit<Win36>) -> &mut [u16; 36] {
         &mut w.assume_init_mut().0
     }
 }
+
+/// `x` saturated to i16 (`SSAT #16`): the same value as `arith::sat_i16(x as i64)`.
+#[inline(always)]
+pub fn ssat16(x: i32) -> i16 {
+    let r: i32;
+    // SAFETY: one register-only instruction (it may set the Q flag, which nothing reads).
+    unsafe { asm!("ssat {r}, #16, {x}", r = lateout(reg) r, x = in(reg) x, options(pure, nomem, nostack)) };
+    r as i16
+}
