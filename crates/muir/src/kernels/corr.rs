@@ -298,7 +298,10 @@ fn samples_i32(pre: &[i64], sl: usize, a: i32, mult: Multiplier, out: &mut [i16]
     if sl == 0 || pre.len() < k * sl + 2 {
         return false;
     }
-    let lo = |i: usize| pre.get(i).map_or(0, |v| *v as i32);
+    // The low word of `pre[i]` (little-endian), unchecked: every `i` below is at most `k sl + 1`.
+    let base = pre.as_ptr().cast::<i32>();
+    // SAFETY: `i <= k sl + 1 < pre.len()` (checked above).
+    let lo = |i: usize| unsafe { *base.add(2 * i) };
     let (mut x0, mut y0) = (lo(0), lo(1));
     let s = mult.shift as u32;
     let b = 256 - a;

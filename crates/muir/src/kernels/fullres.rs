@@ -635,19 +635,23 @@ pub fn path_step(prev: &[u16], pband: Band, cost: &[u16], band: Band, p2: u32, o
 /// win[k + 2], mp2) + P1, mp2) - m` (`min16` by `USUB16` + `SEL`; with `mp2 + P1 <= 0xFFFF` no
 /// halfword overflows, `min(.., mp2) >= m`), for `k < min(cost.len(), out.len())`
 /// (`win.len() >= k + 4`).
+///
+/// Out of line, by unaligned word loads and stores after one length check (each window word read
+/// once: a pair's third word is the next pair's first); inlined into the refinement with checked
+/// slices the loop took about 30 instructions a pair.
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
-#[inline(always)]
+#[inline(never)]
 fn path_update_dsp(win: &[u16; SLOTS + 6], cost: &[u16], m: u16, mp2: u16, out: &mut [u16]) {
     let n = cost.len().min(out.len()).min(SLOTS + 2);
     let pair = |v: u16| v as u32 * 0x0001_0001;
     let (mm, mp2s, p1s) = (pair(m), pair(mp2), pair(P1 as u16));
-    let two = |s: &[u16], k: usize| match s.get(k..k + 2) {
-        Some(&[a, b]) => a as u32 | (b as u32) << 16,
-        _ => 0,
-    };
+    let (wp, cp, op) = (win.as_ptr(), cost.as_ptr(), out.as_mut_ptr());
+    // SAFETY: `win` has `SLOTS + 6 >= 2` values.
+    let mut a = unsafe { wp.cast::<u32>().read_unaligned() };
     let mut k = 0;
     while k + 2 <= n {
-        let (a, b, c, cs) = (two(win, k), two(win, k + 1), two(win, k + 2), two(cost, k));
+        // SAFETY: `k + 2 <= n`, so `k + 4 <= SLOTS + 4 < win.len()` and `k + 2 <= cost.len()`.
+        let (b, c, cs) = unsafe { (wp.add(k + 1).cast::<u32>().read_unaligned(), wp.add(k + 2).cast::<u32>().read_unaligned(), cp.add(k).cast::<u32>().read_unaligned()) };
         let r: u32;
         // SAFETY: register-only DSP instructions (the GE flags they set are not read after the
         // block).
@@ -669,9 +673,9 @@ fn path_update_dsp(win: &[u16; SLOTS + 6], cost: &[u16], m: u16, mp2: u16, out: 
                 options(pure, nomem, nostack),
             );
         }
-        if let Some([o0, o1]) = out.get_mut(k..k + 2).and_then(|o| <&mut [u16; 2]>::try_from(o).ok()) {
-            (*o0, *o1) = (r as u16, (r >> 16) as u16);
-        }
+        // SAFETY: `k + 2 <= n <= out.len()`.
+        unsafe { op.add(k).cast::<u32>().write_unaligned(r) };
+        a = c;
         k += 2;
     }
     if k < n {
