@@ -149,26 +149,31 @@ pub fn window(f1: &[i8], f2: &[i8], w: usize, lo: i64, win: &mut [i32]) {
 
 /// [`window`] with the row `f2` also widened by `dsp::widen_i8_quads` into `wide` (`w c / 2`
 /// words; the engine widens each right feature row once for its pixels): four in-row columns at
-/// a time by `dsp::dot_w8_4cols` (15 instructions per 16 MACs against 23 for
-/// `dsp::dot_i8_4cols`), the rest as [`window`]. The same integers.
+/// a time by `dsp::dot_w8_4cols` (16 instructions per 16 MACs against 23 for
+/// `dsp::dot_i8_4cols`), the rest one by one; the same integers. Only the columns inside the row
+/// are written (the others, 0 by [`window`]'s contract, are left as they are: [`lookup_with`]
+/// on this build reads none of them).
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
 pub fn window_wide(f1: &[i8], f2: &[i8], wide: &[u32], w: usize, lo: i64, win: &mut [i32]) {
     let c = f1.len();
     let h = c / 2;
-    let mut i = 0;
-    while i < win.len() {
-        let col = lo + i as i64;
-        let four = (col >= 0 && col as usize + 4 <= w).then(|| wide.get(col as usize * h..(col as usize + 4) * h)).flatten();
-        match (four.and_then(|cols| super::dsp::dot_w8_4cols(f1, cols, c)), win.get_mut(i..i + 4)) {
+    let n = win.len() as i64;
+    let (i, j) = ((-lo).clamp(0, n), (w as i64 - lo).clamp((-lo).clamp(0, n), n));
+    let (mut t, j) = (i as usize, j as usize);
+    while t < j {
+        // `lo + t` is in `0..w` here.
+        let col = (lo + t as i64) as usize;
+        let four = if t + 4 <= j { wide.get(col * h..(col + 4) * h).and_then(|cols| super::dsp::dot_w8_4cols(f1, cols, c)) } else { None };
+        match (four, win.get_mut(t..t + 4)) {
             (Some(v), Some(dst)) => {
                 dst.copy_from_slice(&v);
-                i += 4;
+                t += 4;
             }
             _ => {
-                if let Some(v) = win.get_mut(i) {
-                    *v = corr_at(f1, f2, c, w, col);
+                if let Some(v) = win.get_mut(t) {
+                    *v = corr_at(f1, f2, c, w, col as i64);
                 }
-                i += 1;
+                t += 1;
             }
         }
     }
@@ -201,7 +206,24 @@ pub fn lookup_with(p: &LookupParams<'_>, w: usize, x: usize, flow: i16, s: &mut 
                 *q = acc;
             }
         }
-        #[cfg(not(all(target_arch = "arm", feature = "mve")))]
+        // Armv7E-M: only the window's columns inside the row are summed (the others are 0 by
+        // the window's contract: the sums before them 0, after them the row's total; at 160x120
+        // most of a window's columns lie outside the 1/8 row). `window_wide` writes only those.
+        #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+        {
+            let i = (-lo).clamp(0, n as i64) as usize;
+            let j = (w as i64 - lo).clamp(i as i64, n as i64) as usize;
+            let (before, rest) = rest.split_at_mut(i.min(rest.len()));
+            before.iter_mut().for_each(|q| *q = 0);
+            let (inside, after) = rest.split_at_mut((j - i).min(rest.len()));
+            for (q, v) in inside.iter_mut().zip(win.iter().skip(i)) {
+                acc += *v as i64;
+                mag |= v.unsigned_abs();
+                *q = acc;
+            }
+            after.iter_mut().for_each(|q| *q = acc);
+        }
+        #[cfg(not(all(target_arch = "arm", any(feature = "mve", feature = "dsp"))))]
         for (q, v) in rest.iter_mut().zip(win.iter()) {
             acc += *v as i64;
             mag |= v.unsigned_abs();
