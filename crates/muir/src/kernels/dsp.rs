@@ -343,34 +343,40 @@ pub fn exp_weights(e: &mut [i32], m: i32, shift: u8) -> Option<(i32, i64)> {
     }
     let table = crate::arith::lut::exp_table();
     let (mut most, mut sum) = (0i32, 0i64);
-    let mut put = |v: &mut i32, x: i32| {
-        let u = (x.clamp(-32768, 0) + 32768) as u32;
-        let i = (u >> 5).min(1023) as usize;
-        let f = (u - 32 * i as u32) as i32;
-        let (a, b) = match table.get(i..i + 2) {
-            Some(&[a, b]) => (a as i32, b as i32),
-            _ => (0, 0),
+    // The sum in i32 per run of 2^15 keys (every weight is a table value, below 2^16: a run's sum
+    // stays below 2^31), added to `sum` after.
+    for e in e.chunks_mut(1 << 15) {
+        let mut part = 0i32;
+        let mut put = |v: &mut i32, x: i32| {
+            let u = (x.clamp(-32768, 0) + 32768) as u32;
+            let i = (u >> 5).min(1023) as usize;
+            let f = (u - 32 * i as u32) as i32;
+            let (a, b) = match table.get(i..i + 2) {
+                Some(&[a, b]) => (a as i32, b as i32),
+                _ => (0, 0),
+            };
+            // `b >= a` (the table rises), so the product is at most `32768 * 32`: no overflow.
+            let w = a + (((b - a) * f + 16) >> 5);
+            *v = w;
+            most = most.max(w);
+            part += w;
         };
-        // `b >= a` (the table rises), so the product is at most `32768 * 32`: no overflow.
-        let w = a + (((b - a) * f + 16) >> 5);
-        *v = w;
-        most = most.max(w);
-        sum += w as i64;
-    };
-    let s = shift as u32;
-    if s >= 33 {
-        let (half, k) = (1i32 << (s - 33), s - 32);
-        for v in e.iter_mut() {
-            let hi = ((*v as i64 * m as i64) >> 32) as i32;
-            put(v, hi.wrapping_add(half) >> k);
+        let s = shift as u32;
+        if s >= 33 {
+            let (half, k) = (1i32 << (s - 33), s - 32);
+            for v in e.iter_mut() {
+                let hi = ((*v as i64 * m as i64) >> 32) as i32;
+                put(v, hi.wrapping_add(half) >> k);
+            }
+        } else {
+            let half = 1i64 << (s - 1);
+            for v in e.iter_mut() {
+                let x = (*v as i64 * m as i64 + half) >> s;
+                // (`x` beyond i32 is beyond the clamp on the same side.)
+                put(v, x.clamp(-32768, 0) as i32);
+            }
         }
-    } else {
-        let half = 1i64 << (s - 1);
-        for v in e.iter_mut() {
-            let x = (*v as i64 * m as i64 + half) >> s;
-            // (`x` beyond i32 is beyond the clamp on the same side.)
-            put(v, x.clamp(-32768, 0) as i32);
-        }
+        sum += part as i64;
     }
     Some((most, sum))
 }
