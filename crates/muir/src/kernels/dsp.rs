@@ -331,17 +331,17 @@ pub fn logits2(q: &[i16], k: &[i16]) -> Option<(i64, i64)> {
 /// `exp_q11(clamp(requantize_i32(e[k], m), -32768, 0))` for shifts `1..=62` (others: nothing
 /// written, `None`); returns the largest weight and the sum. One loop per shift range with the
 /// requantisation's constants hoisted (`SMULL`, then for `s >= 33` the high word's rounding
-/// shift), the table read as `exp_q11`'s with the index `min(u >> 5, 1023)` and the fraction `u -
-/// 32 i` (32 at `u = 32768`: the last entry exactly): about 33 instructions a key in the
-/// 160x120 profile, where the per-key `attention::weight` (range checks, 64-bit rounding,
-/// `exp_q11`'s branch) took about 43.
+/// shift), the table read as `exp_q11`'s by one word of base and step at `u >> 5`
+/// (`lut::exp_steps`) with the fraction `u & 31`. In the 160x120 profile: about 33 instructions a
+/// key with two halfword loads, the index `min(u >> 5, 1023)` and the fraction `u - 32 i`; about
+/// 43 for the per-key `attention::weight` (range checks, 64-bit rounding, `exp_q11`'s branch).
 /// Exact: `requantize(d, m) = requantize_i32(d, m)` for an `i32` `d` and these shifts.
 #[inline(never)]
 pub fn exp_weights(e: &mut [i32], m: i32, shift: u8) -> Option<(i32, i64)> {
     if !(1..=62).contains(&shift) {
         return None;
     }
-    let table = crate::arith::lut::exp_table();
+    let table = crate::arith::lut::exp_steps();
     let (mut most, mut sum) = (0i32, 0i64);
     // The sum in i32 per run of 2^15 keys (every weight is a table value, below 2^16: a run's sum
     // stays below 2^31), added to `sum` after.
@@ -349,14 +349,12 @@ pub fn exp_weights(e: &mut [i32], m: i32, shift: u8) -> Option<(i32, i64)> {
         let mut part = 0i32;
         let mut put = |v: &mut i32, x: i32| {
             let u = (x.clamp(-32768, 0) + 32768) as u32;
-            let i = (u >> 5).min(1023) as usize;
-            let f = (u - 32 * i as u32) as i32;
-            let (a, b) = match table.get(i..i + 2) {
-                Some(&[a, b]) => (a as i32, b as i32),
-                _ => (0, 0),
-            };
-            // `b >= a` (the table rises), so the product is at most `32768 * 32`: no overflow.
-            let w = a + (((b - a) * f + 16) >> 5);
+            // Base and step of interval `u >> 5` in one word (`lut::exp_steps`: `u = 32768`
+            // reads the last entry with fraction 0, where `exp_q11`'s table takes entry 1023
+            // with fraction 32: the same value).
+            let t = table.get((u >> 5) as usize).copied().unwrap_or(0);
+            // The step is at most 32768 and the fraction below 32: no overflow.
+            let w = (t & 0xFFFF) as i32 + (((t >> 16) * (u & 31) + 16) >> 5) as i32;
             *v = w;
             most = most.max(w);
             part += w;
