@@ -79,6 +79,8 @@ pub fn exp_q11(x: i32) -> i32 {
 /// fraction 0.
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
 pub fn exp_steps() -> &'static [u32; 1025] {
+    // (a compile-time loop: every index is below 1025)
+    #[allow(clippy::indexing_slicing)]
     static STEPS: [u32; 1025] = {
         let mut t = [0u32; 1025];
         let mut i = 0;

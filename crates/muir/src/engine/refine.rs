@@ -114,7 +114,6 @@ fn full<'a>(t: &'a [i16], h: usize, row_len: usize, y: usize, k: usize) -> PartR
 
 /// Correlation row `y` at disparity state `flow` (Q8, channel 0 of `fc`).
 #[allow(clippy::too_many_arguments)]
-#[allow(clippy::too_many_arguments)]
 fn lookup_row(m: &QuantModel<'_>, f1: &[i8], f2: &[i8], flow: &[i16], fc: usize, g: &Grid, y: usize, win: &mut [i32], pre: &mut [i64], patch: &mut [u8], out: &mut [i16]) {
     let cfg = m.config();
     let mults = m.corr_mults();
