@@ -158,7 +158,9 @@ pub fn window_wide(f1: &[i8], f2: &[i8], wide: &[u32], w: usize, lo: i64, win: &
     let c = f1.len();
     let h = c / 2;
     let n = win.len() as i64;
-    let (i, j) = ((-lo).clamp(0, n), (w as i64 - lo).clamp((-lo).clamp(0, n), n));
+    // (`min` then `max`, not `clamp`: `clamp` checks its bounds' order by a panic)
+    let i = (-lo).clamp(0, n);
+    let j = (w as i64 - lo).min(n).max(i);
     let (mut t, j) = (i as usize, j as usize);
     while t < j {
         // `lo + t` is in `0..w` here.
@@ -212,7 +214,8 @@ pub fn lookup_with(p: &LookupParams<'_>, w: usize, x: usize, flow: i16, s: &mut 
         #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
         {
             let i = (-lo).clamp(0, n as i64) as usize;
-            let j = (w as i64 - lo).clamp(i as i64, n as i64) as usize;
+            // (`min` then `max`, not `clamp`: `clamp` checks its bounds' order by a panic)
+            let j = (w as i64 - lo).min(n as i64).max(i as i64) as usize;
             let (before, rest) = rest.split_at_mut(i.min(rest.len()));
             before.iter_mut().for_each(|q| *q = 0);
             let (inside, after) = rest.split_at_mut((j - i).min(rest.len()));
