@@ -77,7 +77,7 @@ pub fn exp_q11(x: i32) -> i32 {
 /// entry `i` is `EXP[i] | (EXP[i + 1] - EXP[i]) << 16` (the table rises; the last entry's step
 /// 0), so one load gives an interval's base and step and `u = 32768` reads entry 1024 with
 /// fraction 0.
-#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[cfg(all(target_arch = "arm", feature = "dsp"))]
 pub fn exp_steps() -> &'static [u32; 1025] {
     // (a compile-time loop: every index is below 1025)
     #[allow(clippy::indexing_slicing)]
