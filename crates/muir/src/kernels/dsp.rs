@@ -222,18 +222,30 @@ pub fn copy_u16(dst: &mut [u16], src: &[u16]) {
     let words = n / 2;
     if words > 0 {
         // SAFETY: `words` words read from `src` and written to `dst`, `2 words <= n` values of
-        // each; no stack; `subs` sets the flags (clobbered by default).
+        // each (an odd word first, then two a pass: 3 instructions a word against 4); no stack;
+        // `lsrs`, `cmp` and `subs` set the flags (clobbered by default).
         unsafe {
             asm!(
-                "2:",
+                "lsrs {n}, {n}, #1",
+                "bcc 3f",
                 "ldr {t}, [{s}], #4",
                 "str {t}, [{d}], #4",
+                "3:",
+                "cmp {n}, #0",
+                "beq 4f",
+                "2:",
+                "ldr {t}, [{s}], #4",
+                "ldr {u}, [{s}], #4",
+                "str {t}, [{d}], #4",
+                "str {u}, [{d}], #4",
                 "subs {n}, #1",
                 "bne 2b",
+                "4:",
                 s = inout(reg) src.as_ptr() => _,
                 d = inout(reg) dst.as_mut_ptr() => _,
                 n = inout(reg) words => _,
                 t = out(reg) _,
+                u = out(reg) _,
                 options(nostack),
             );
         }
