@@ -753,6 +753,13 @@ fn sum_decide(p: [&[u16]; 5], band: Band, sum: &mut [u32; SLOTS]) -> Option<i16>
     if let Some(i) = avx512::path_sums(p, band.n(), sum) {
         return decide_at(head(sum, band.n()), band, i);
     }
+    // Armv7E-M: two candidates a word (`UADD16`): every path cost is below `432 + P2`, so the
+    // five-way sum fits a halfword (the `const` assertion on `P2` above; `refine_rows` writes
+    // only such costs into the planes).
+    #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+    if let Some(i) = path_sums_dsp(p, band.n(), sum) {
+        return decide_at(head(sum, band.n()), band, i);
+    }
     // The sums and their first least value in one pass (as [`decide`]: the first of the least).
     let [a, r, t0, t1, t2] = p;
     let (mut i, mut least, mut n) = (0, u32::MAX, 0);
@@ -771,6 +778,60 @@ fn sum_decide(p: [&[u16]; 5], band: Band, sum: &mut [u32; SLOTS]) -> Option<i16>
         return decide(sum, band);
     }
     decide_at(head(sum, n), band, i)
+}
+
+/// [`sum_decide`]'s sums of the first `n` candidates into `sum` two a word (`UADD16` of the five
+/// paths' unaligned words) and the index of their first least value; `None` (nothing written)
+/// where a path is shorter than `n` or `n` is 0. The paths' values must be below `2^16 / 5`
+/// (path costs are below `432 + P2`).
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(always)]
+fn path_sums_dsp(p: [&[u16]; 5], n: usize, sum: &mut [u32; SLOTS]) -> Option<usize> {
+    let n = n.min(SLOTS);
+    if n == 0 || p.iter().any(|s| s.len() < n) {
+        return None;
+    }
+    let [a, r, t0, t1, t2] = p.map(|s| s.as_ptr());
+    let (mut i, mut least) = (0, u32::MAX);
+    let mut k = 0;
+    while k + 2 <= n {
+        // SAFETY: `k + 2 <= n` values of each path (checked above); unaligned words (Cortex-M7).
+        let w = unsafe { [a, r, t0, t1, t2].map(|s| s.add(k).cast::<u32>().read_unaligned()) };
+        let v: u32;
+        // SAFETY: register-only DSP instructions (the GE flags they set are not read after).
+        unsafe {
+            core::arch::asm!(
+                "uadd16 {v}, {a}, {b}",
+                "uadd16 {v}, {v}, {c}",
+                "uadd16 {v}, {v}, {d}",
+                "uadd16 {v}, {v}, {e}",
+                v = out(reg) v, a = in(reg) w[0], b = in(reg) w[1], c = in(reg) w[2], d = in(reg) w[3], e = in(reg) w[4],
+                options(pure, nomem, nostack),
+            );
+        }
+        let (v0, v1) = (v & 0xFFFF, v >> 16);
+        if let Some([s0, s1]) = sum.get_mut(k..k + 2).and_then(|s| <&mut [u32; 2]>::try_from(s).ok()) {
+            (*s0, *s1) = (v0, v1);
+        }
+        if v0 < least {
+            (i, least) = (k, v0);
+        }
+        if v1 < least {
+            (i, least) = (k + 1, v1);
+        }
+        k += 2;
+    }
+    if k < n {
+        // SAFETY: `k < n`.
+        let v = unsafe { [a, r, t0, t1, t2].map(|s| *s.add(k) as u32) }.iter().sum::<u32>();
+        if let Some(s) = sum.get_mut(k) {
+            *s = v;
+        }
+        if v < least {
+            i = k;
+        }
+    }
+    Some(i)
 }
 
 /// The decision on summed path costs `s` (`band.len` values): the refined disparity (Q10.5), or
