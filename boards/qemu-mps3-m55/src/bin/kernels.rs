@@ -419,6 +419,43 @@ fn check_lookup_dsp(f1: &mut [i8; MAX_N], f2: &mut [i8; MAX_N], r: &mut Rng) -> 
     cases
 }
 
+/// The DSP build's refinement decision (`fullres::sum_decide`: the five paths' sums two
+/// candidates a word, `path_sums_dsp`) against the sums value by value and `decide`: bands of 0
+/// to `SLOTS` candidates, path costs below `432 + P2` (random, all equal, the least at every
+/// position, ties), paths shorter than the band.
+#[cfg(not(feature = "mve"))]
+fn check_decide(r: &mut Rng) -> usize {
+    use muir::kernels::fullres::{self, Band, SLOTS};
+    let mut paths = [[0u16; SLOTS]; 5];
+    let mut cases = 0;
+    for case in 0..4000usize {
+        let len = (case % (SLOTS + 1)) as i16;
+        let band = Band { first: (r.next() % 64) as i16, len };
+        let kind = case % 5;
+        let least = (r.next() % SLOTS as u64) as usize;
+        for (p, path) in paths.iter_mut().enumerate() {
+            for (k, v) in path.iter_mut().enumerate() {
+                *v = match kind {
+                    0 => (r.next() % 2480) as u16,
+                    1 => 1000,
+                    2 => if k == least { 100 } else { 300 + (r.next() % 2000) as u16 },
+                    3 => if k == least || k == (least + 3) % SLOTS { 50 } else { 400 + ((k * 37 + p) % 700) as u16 },
+                    _ => (k as u16 * 97 + p as u16 * 13) % 2479,
+                };
+            }
+        }
+        let short = if case % 7 == 6 { 3 } else { SLOTS };
+        let p = [&paths[0][..], &paths[1][..short.max(len as usize).min(SLOTS)], &paths[2][..], &paths[3][..], &paths[4][..short]];
+        let (got, want) = fullres::sum_decide_twins(p, band);
+        if got != want {
+            println!("MUIR-KERNELS FAILED decide case {case} {band:?} kind {kind}: kernel {got:?}, plain {want:?}");
+            process::exit(1);
+        }
+        cases += 1;
+    }
+    cases
+}
+
 /// The DSP build's MGA logit (`dsp::dot_i16_i64`: `LDRD` and `SMLALD`, eight products a step,
 /// when both slices are word-aligned; else the plain loop) against the plain sum: the usual
 /// lengths, random and extreme values (`i16::MIN` squared at every product, the largest sums),
@@ -2770,6 +2807,7 @@ fn main() -> ! {
         cases += check_corr4(&mut r);
         cases += check_corr4w(&mut r);
         cases += check_lookup_dsp(&mut *i8s.a, &mut *i8s.b, &mut r);
+        cases += check_decide(&mut r);
         cases += check_logit_dsp(i16s.a, i16s.b, &mut r);
         cases += check_aggregate_cm(i16s.a, &mut r);
         cases += check_min_dsp(&mut r);

@@ -834,6 +834,21 @@ fn path_sums_dsp(p: [&[u16]; 5], n: usize, sum: &mut [u32; SLOTS]) -> Option<usi
     Some(i)
 }
 
+/// [`sum_decide`] as this build runs it, and its portable form (the five paths summed value by
+/// value, then [`decide`]): the on-target check of [`path_sums_dsp`] (`boards/qemu-mps3-m55`'s
+/// kernel binary).
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+pub fn sum_decide_twins(p: [&[u16]; 5], band: Band) -> (Option<i16>, Option<i16>) {
+    let mut sum = [0u32; SLOTS];
+    let got = sum_decide(p, band, &mut sum);
+    let mut plain = [0u32; SLOTS];
+    let [a, r, t0, t1, t2] = p;
+    for (((((s, a), r), t0), t1), t2) in plain.iter_mut().zip(a).zip(r).zip(t0).zip(t1).zip(t2).take(band.n()) {
+        *s = *a as u32 + *r as u32 + *t0 as u32 + *t1 as u32 + *t2 as u32;
+    }
+    (got, decide(&plain, band))
+}
+
 /// The decision on summed path costs `s` (`band.len` values): the refined disparity (Q10.5), or
 /// `None` where the network's value stays.
 #[inline(always)]
