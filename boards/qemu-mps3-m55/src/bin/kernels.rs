@@ -289,6 +289,173 @@ fn check_corr4(r: &mut Rng) -> usize {
     cases
 }
 
+/// The DSP build's correlation on a right row widened once (`dsp::widen_i8_quads`,
+/// `dsp::dot_w8_4cols`: the assembly loop for 128 values, the compiled one for other multiples
+/// of 4) against plain sums: lengths 0 to 140 in steps of 4, random values, all -128, -128
+/// against 127; refusals (a length not a multiple of 4, short slices); and whole windows
+/// (`corr::window_wide` against `corr::window` inside the row, nothing written outside it) over
+/// rows of 1 to 9 columns of 128 values at offsets -6 ..= 9.
+#[cfg(not(feature = "mve"))]
+fn check_corr4w(r: &mut Rng) -> usize {
+    use muir::kernels::{corr, dsp};
+    let mut f1 = [0i8; 144];
+    let mut f2 = [0i8; 9 * 140];
+    let mut wide = [0u32; 9 * 70];
+    let mut cases = 0;
+    for c in (0..=140usize).step_by(4) {
+        for fill in 0..3 {
+            for (k, v) in f1.iter_mut().take(c).enumerate() {
+                *v = match fill {
+                    0 => (r.next() >> 56) as i8,
+                    1 => i8::MIN,
+                    _ if k % 3 == 0 => i8::MAX,
+                    _ => i8::MIN,
+                };
+            }
+            for v in f2.iter_mut().take(4 * c) {
+                *v = if fill == 0 { (r.next() >> 56) as i8 } else { i8::MIN };
+            }
+            let q = dsp::widen_i8_quads(&f2[..4 * c], &mut wide[..2 * c]);
+            let got = dsp::dot_w8_4cols(&f1[..c], &wide[..2 * c], c);
+            for j in 0..4 {
+                let want: i32 = f1[..c].iter().zip(&f2[j * c..(j + 1) * c]).map(|(a, b)| *a as i32 * *b as i32).sum();
+                if q != c || got.map(|g| g[j]) != Some(want) {
+                    println!("MUIR-KERNELS FAILED corr4w c={c} fill={fill} column {j}: quads {q}, kernel {got:?}, plain {want}");
+                    process::exit(1);
+                }
+                cases += 1;
+            }
+            if c == 0 {
+                continue;
+            }
+            // Refusals: a length not a multiple of 4, a short f1, short columns.
+            let refused = [
+                dsp::dot_w8_4cols(&f1[..c + 1], &wide[..2 * c + 2], c + 1),
+                dsp::dot_w8_4cols(&f1[..c - 1], &wide[..2 * c], c),
+                dsp::dot_w8_4cols(&f1[..c], &wide[..2 * c - 1], c),
+            ];
+            for (k, g) in refused.iter().enumerate() {
+                if g.is_some() {
+                    println!("MUIR-KERNELS FAILED corr4w c={c} refusal {k} computed {g:?}");
+                    process::exit(1);
+                }
+                cases += 1;
+            }
+        }
+    }
+    let c = 128;
+    for w in 1..=9usize {
+        for v in f1.iter_mut().take(c).chain(f2.iter_mut().take(w * c)) {
+            *v = (r.next() >> 56) as i8;
+        }
+        let f2 = &f2[..w * c];
+        dsp::widen_i8_quads(f2, &mut wide[..w * c / 2]);
+        for lo in -6i64..=9 {
+            for n in [1usize, 5, 12, 17] {
+                let (mut a, mut b) = ([7i32; 17], [9i32; 17]);
+                corr::window_wide(&f1[..c], f2, &wide[..w * c / 2], w, lo, &mut a[..n]);
+                corr::window(&f1[..c], f2, w, lo, &mut b[..n]);
+                // (only the columns inside the row are written: the others keep their 7)
+                let inside = |t: usize| (0..w as i64).contains(&(lo + t as i64));
+                let differs = (0..17).any(|t| if t < n && inside(t) { a[t] != b[t] } else { a[t] != 7 });
+                if differs {
+                    println!("MUIR-KERNELS FAILED corr4w window w={w} lo={lo} n={n}: {:?} against {:?}", &a[..n], &b[..n]);
+                    process::exit(1);
+                }
+                cases += 1;
+            }
+        }
+    }
+    cases
+}
+
+/// The DSP build's lookup (`corr::lookup_pixel`: the window by `dsp::dot_i8_4cols`, the
+/// post-pooling samples by `samples_i32` with `dsp::ssat16` where the numerators fit i32) against
+/// `corr::lookup_pixel_plain`: 4 levels of radius 4, rows of 1 to 24 columns of 128 values,
+/// random and extreme features (all -128: every correlation 2^21, the i64 path), flows across
+/// and past the row, multipliers of shifts 20 to 62 (the i32 path's two requantisations).
+#[cfg(not(feature = "mve"))]
+fn check_lookup_dsp(f1: &mut [i8; MAX_N], f2: &mut [i8; MAX_N], r: &mut Rng) -> usize {
+    use muir::arith::Multiplier;
+    use muir::kernels::corr::{self, LookupParams, LookupScratch};
+    const C: usize = 128;
+    let (levels, radius) = (4, 4);
+    let n = corr::window_len(levels, radius);
+    let mut win = [0i32; 96];
+    let mut pre = [0i64; 97];
+    let mut cases = 0;
+    for case in 0..600usize {
+        let w = 1 + case % 24;
+        if w * C > MAX_N {
+            continue;
+        }
+        let extreme = case % 7 == 3;
+        for v in f1.iter_mut().take(C).chain(f2.iter_mut().take(w * C)) {
+            *v = if extreme { i8::MIN } else { (r.next() >> 56) as i8 };
+        }
+        let mut mults = [Multiplier { m: 0, shift: 1 }; 4];
+        for m in mults.iter_mut() {
+            *m = Multiplier { m: (1 << 30) + (r.next() >> 34) as i32, shift: 20 + (r.next() % 43) as u8 };
+        }
+        if case % 5 == 0 {
+            mults[0].shift = 33;
+            mults[1].shift = 62;
+            mults[2].shift = 32;
+        }
+        let p = LookupParams { levels, radius, post_pool: true, mults: &mults };
+        for x in [0, w / 2, w - 1] {
+            let flow = -((r.next() % (64 * 256)) as i16) + if case % 3 == 0 { 2000 } else { 0 };
+            let (mut got, mut want) = ([0i16; 36], [0i16; 36]);
+            let mut s = LookupScratch { window: &mut win[..n], prefix: &mut pre[..n + 1] };
+            corr::lookup_pixel(&p, &f1[..C], &f2[..w * C], w, x, flow, &mut s, &mut got);
+            corr::lookup_pixel_plain(&p, &f1[..C], &f2[..w * C], w, x, flow, &mut want);
+            if got != want {
+                println!("MUIR-KERNELS FAILED lookup dsp case {case} w={w} x={x} flow={flow}: {got:?} against {want:?}");
+                process::exit(1);
+            }
+            cases += 1;
+        }
+    }
+    cases
+}
+
+/// The DSP build's refinement decision (`fullres::sum_decide`: the five paths' sums two
+/// candidates a word, `path_sums_dsp`) against the sums value by value and `decide`: bands of 0
+/// to `SLOTS` candidates, path costs below `432 + P2` (random, all equal, the least at every
+/// position, ties), paths shorter than the band.
+#[cfg(not(feature = "mve"))]
+fn check_decide(r: &mut Rng) -> usize {
+    use muir::kernels::fullres::{self, Band, SLOTS};
+    let mut paths = [[0u16; SLOTS]; 5];
+    let mut cases = 0;
+    for case in 0..4000usize {
+        let len = (case % (SLOTS + 1)) as i16;
+        let band = Band { first: (r.next() % 64) as i16, len };
+        let kind = case % 5;
+        let least = (r.next() % SLOTS as u64) as usize;
+        for (p, path) in paths.iter_mut().enumerate() {
+            for (k, v) in path.iter_mut().enumerate() {
+                *v = match kind {
+                    0 => (r.next() % 2480) as u16,
+                    1 => 1000,
+                    2 => if k == least { 100 } else { 300 + (r.next() % 2000) as u16 },
+                    3 => if k == least || k == (least + 3) % SLOTS { 50 } else { 400 + ((k * 37 + p) % 700) as u16 },
+                    _ => (k as u16 * 97 + p as u16 * 13) % 2479,
+                };
+            }
+        }
+        let short = if case % 7 == 6 { 3 } else { SLOTS };
+        let p = [&paths[0][..], &paths[1][..short.max(len as usize).min(SLOTS)], &paths[2][..], &paths[3][..], &paths[4][..short]];
+        let (got, want) = fullres::sum_decide_twins(p, band);
+        if got != want {
+            println!("MUIR-KERNELS FAILED decide case {case} {band:?} kind {kind}: kernel {got:?}, plain {want:?}");
+            process::exit(1);
+        }
+        cases += 1;
+    }
+    cases
+}
+
 /// The DSP build's MGA logit (`dsp::dot_i16_i64`: `LDRD` and `SMLALD`, eight products a step,
 /// when both slices are word-aligned; else the plain loop) against the plain sum: the usual
 /// lengths, random and extreme values (`i16::MIN` squared at every product, the largest sums),
@@ -2752,6 +2919,9 @@ fn main() -> ! {
         cases += check_groups(&mut r);
         cases += check_aggregate_dsp(i16s.a, &mut r);
         cases += check_corr4(&mut r);
+        cases += check_corr4w(&mut r);
+        cases += check_lookup_dsp(&mut *i8s.a, &mut *i8s.b, &mut r);
+        cases += check_decide(&mut r);
         cases += check_logit_dsp(i16s.a, i16s.b, &mut r);
         cases += check_aggregate_cm(i16s.a, &mut r);
         cases += check_min_dsp(&mut r);

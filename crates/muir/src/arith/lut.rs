@@ -73,6 +73,28 @@ pub fn exp_q11(x: i32) -> i32 {
     interp(a, b, u & 31, 5)
 }
 
+/// [`exp_q11`]'s table as words for the Armv7E-M softmax weights (`kernels::dsp::exp_weights`):
+/// entry `i` is `EXP[i] | (EXP[i + 1] - EXP[i]) << 16` (the table rises; the last entry's step
+/// 0), so one load gives an interval's base and step and `u = 32768` reads entry 1024 with
+/// fraction 0.
+#[cfg(all(target_arch = "arm", feature = "dsp"))]
+pub fn exp_steps() -> &'static [u32; 1025] {
+    // (a compile-time loop: every index is below 1025)
+    #[allow(clippy::indexing_slicing)]
+    static STEPS: [u32; 1025] = {
+        let mut t = [0u32; 1025];
+        let mut i = 0;
+        while i < 1025 {
+            let a = EXP[i] as u32;
+            let b = if i < 1024 { EXP[i + 1] as u32 } else { a };
+            t[i] = a | (b - a) << 16;
+            i += 1;
+        }
+        t
+    };
+    &STEPS
+}
+
 /// The table of [`exp_q11`] (`exp(-16 + i / 64)` in Q0.15 for `i = 0 ..= 1024`), for vector
 /// kernels that read it by gather loads.
 #[inline]

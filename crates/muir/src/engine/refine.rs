@@ -114,12 +114,14 @@ fn full<'a>(t: &'a [i16], h: usize, row_len: usize, y: usize, k: usize) -> PartR
 
 /// Correlation row `y` at disparity state `flow` (Q8, channel 0 of `fc`).
 #[allow(clippy::too_many_arguments)]
-fn lookup_row(m: &QuantModel<'_>, f1: &[i8], f2: &[i8], flow: &[i16], fc: usize, g: &Grid, y: usize, win: &mut [i32], pre: &mut [i64], out: &mut [i16]) {
+fn lookup_row(m: &QuantModel<'_>, f1: &[i8], f2: &[i8], flow: &[i16], fc: usize, g: &Grid, y: usize, win: &mut [i32], pre: &mut [i64], patch: &mut [u8], out: &mut [i16]) {
     let cfg = m.config();
     let mults = m.corr_mults();
     let p = LookupParams { levels: cfg.corr_levels, radius: cfg.corr_radius, post_pool: cfg.post_pool, mults: &mults };
     let (w, fd, cc) = (g.w8, cfg.fmap_dim, cfg.corr_channels());
     let f2row = chunk(f2, y, w * fd);
+    #[cfg(not(all(target_arch = "arm", feature = "dsp", not(feature = "mve"))))]
+    let _ = patch;
     #[cfg(feature = "std")]
     {
         // Host: the row's pixels as tasks on the kernel pool, scratch per thread.
@@ -128,6 +130,30 @@ fn lookup_row(m: &QuantModel<'_>, f1: &[i8], f2: &[i8], flow: &[i16], fc: usize,
     }
     #[allow(unreachable_code)]
     let mut s = LookupScratch { window: win, prefix: pre };
+    // Armv7E-M: the right row widened once into the idle patch scratch (the convolutions'), its
+    // columns read by every pixel's window (`corr::window_wide`); where it does not fit, as below.
+    #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+    {
+        // SAFETY: any bit pattern is a valid u32.
+        let (_, words, _) = unsafe { patch.align_to_mut::<u32>() };
+        let need = w * fd / 2;
+        if fd.is_multiple_of(4)
+            && f2row.len() == w * fd
+            && let Some(wide) = words.get_mut(..need)
+            && crate::kernels::dsp::widen_i8_quads(f2row, wide) == need / 2
+        {
+            let wide = &*wide;
+            for x in 0..w {
+                let px = y * w + x;
+                let d = flow.get(px * fc).copied().unwrap_or(0);
+                let f1 = chunk(f1, px, fd);
+                crate::kernels::corr::lookup_with(&p, w, x, d, &mut s, chunk_mut(out, x, cc), |lo, win| {
+                    crate::kernels::corr::window_wide(f1, f2row, wide, w, lo, win)
+                });
+            }
+            return;
+        }
+    }
     for x in 0..w {
         let px = y * w + x;
         let d = flow.get(px * fc).copied().unwrap_or(0);
@@ -246,7 +272,7 @@ pub fn ufi(c: &mut Ctx<'_, '_, '_>, max_d8: usize) {
         ($s:expr, $rc:expr, $rf:expr, $rfeat:expr) => {{
             let s = $s;
             if ufi_stages::SCHEDULE.row(s, ufi_stages::LOOKUP, h8).is_some() {
-                lookup_row(m, c.frame.f1, c.frame.f2, flow_k, fc, &g, s, c.px.window, c.px.prefix, corr);
+                lookup_row(m, c.frame.f1, c.frame.f2, flow_k, fc, &g, s, c.px.window, c.px.prefix, c.px.patch, corr);
                 conv16(&pc, &[full(corr, 1, w * cc, 0, 1)], w, $rc.push(), c.px.patch);
                 conv16(&pf, &[full(flow_k, h8, fl_row, s, 3)], w, $rf.push(), c.px.patch);
             }
@@ -451,7 +477,7 @@ pub fn mud_pass(c: &mut Ctx<'_, '_, '_>) {
     let table = m.u_table();
     for s in 0..mud_stages::SCHEDULE.steps(h8) {
         if mud_stages::SCHEDULE.row(s, mud_stages::LOOKUP, h8).is_some() {
-            lookup_row(m, c.frame.f1, c.frame.f2, c.st.flow, fc, &g, s, c.px.window, c.px.prefix, rcorr.push());
+            lookup_row(m, c.frame.f1, c.frame.f2, c.st.flow, fc, &g, s, c.px.window, c.px.prefix, c.px.patch, rcorr.push());
         }
         if let Some(r) = mud_stages::SCHEDULE.row(s, mud_stages::HIDDEN1, h8) {
             conv16(&p1, &[full(c.frame.net08, h8, w * hd, r, 3), rows(&rcorr, r, 3), full(c.st.flow, h8, w * fc, r, 3)], w, r1.push(), c.px.patch);
@@ -488,7 +514,7 @@ pub fn mga_values(c: &mut Ctx<'_, '_, '_>) {
     let (pm, pv) = (conv(m, MgaMask), conv(m, MgaValue));
     for s in 0..mga_value_stages::SCHEDULE.steps(h8) {
         if mga_value_stages::SCHEDULE.row(s, mga_value_stages::LOOKUP, h8).is_some() {
-            lookup_row(m, c.frame.f1, c.frame.f2, c.st.flow, fc, &g, s, c.px.window, c.px.prefix, rcorr.push());
+            lookup_row(m, c.frame.f1, c.frame.f2, c.st.flow, fc, &g, s, c.px.window, c.px.prefix, c.px.patch, rcorr.push());
         }
         if let Some(r) = mga_value_stages::SCHEDULE.row(s, mga_value_stages::OUT, h8) {
             let parts = [
@@ -585,7 +611,7 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
     let row = w * hd;
     for s in 0..gru08_stages::SCHEDULE.steps(h8) {
         if gru08_stages::SCHEDULE.row(s, gru08_stages::LOOKUP, h8).is_some() {
-            lookup_row(m, c.frame.f1, c.frame.f2, c.st.flow, fc, &g, s, c.px.window, c.px.prefix, first_n_mut(corr, w * cc));
+            lookup_row(m, c.frame.f1, c.frame.f2, c.st.flow, fc, &g, s, c.px.window, c.px.prefix, c.px.patch, first_n_mut(corr, w * cc));
             // corr features: cat[C, C * m, m] with MUD (three parts), C alone without
             if cfg.mud {
                 let mrow = chunk(c.st.mask, s, w);

@@ -61,6 +61,24 @@ pub fn query_stats(q: &[i16], keys: &[i16], m: Multiplier) -> (i64, i64) {
     if c == 0 {
         return (0, 0); // no query channels: no logits
     }
+    // Armv7E-M: the largest logit two keys a call where the query length allows (`dsp::logits2`,
+    // as `block_weights`), the rest one by one.
+    #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+    let max = {
+        let (mut best, mut done) = (i64::MIN, 0);
+        for k in keys.chunks_exact(2 * c) {
+            let Some((a, b)) = super::dsp::logits2(q, k) else {
+                break;
+            };
+            best = best.max(a).max(b);
+            done += 2;
+        }
+        for k in keys.chunks_exact(c).skip(done) {
+            best = best.max(logit(q, k));
+        }
+        if keys.len() < c { 0 } else { best }
+    };
+    #[cfg(not(all(target_arch = "arm", feature = "dsp", not(feature = "mve"))))]
     let max = keys.chunks_exact(c).map(|k| logit(q, k)).max().unwrap_or(0);
     #[cfg(all(target_arch = "arm", any(feature = "mve", feature = "dsp")))]
     if (2..=62).contains(&m.shift) {

@@ -147,6 +147,40 @@ pub fn window(f1: &[i8], f2: &[i8], w: usize, lo: i64, win: &mut [i32]) {
     }
 }
 
+/// [`window`] with the row `f2` also widened by `dsp::widen_i8_quads` into `wide` (`w c / 2`
+/// words; the engine widens each right feature row once for its pixels): four in-row columns at
+/// a time by `dsp::dot_w8_4cols` (16 instructions per 16 MACs against 23 for
+/// `dsp::dot_i8_4cols`), the rest one by one; the same integers. Only the columns inside the row
+/// are written (the others, 0 by [`window`]'s contract, are left as they are: [`lookup_with`]
+/// on this build reads none of them).
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+pub fn window_wide(f1: &[i8], f2: &[i8], wide: &[u32], w: usize, lo: i64, win: &mut [i32]) {
+    let c = f1.len();
+    let h = c / 2;
+    let n = win.len() as i64;
+    // (`min` then `max`, not `clamp`: `clamp` checks its bounds' order by a panic)
+    let i = (-lo).clamp(0, n);
+    let j = (w as i64 - lo).min(n).max(i);
+    let (mut t, j) = (i as usize, j as usize);
+    while t < j {
+        // `lo + t` is in `0..w` here.
+        let col = (lo + t as i64) as usize;
+        let four = if t + 4 <= j { wide.get(col * h..(col + 4) * h).and_then(|cols| super::dsp::dot_w8_4cols(f1, cols, c)) } else { None };
+        match (four, win.get_mut(t..t + 4)) {
+            (Some(v), Some(dst)) => {
+                dst.copy_from_slice(&v);
+                t += 4;
+            }
+            _ => {
+                if let Some(v) = win.get_mut(t) {
+                    *v = corr_at(f1, f2, c, w, col as i64);
+                }
+                t += 1;
+            }
+        }
+    }
+}
+
 /// [`lookup_pixel`] with the window's correlations from `window(lo, win)`: `win[i]` must be the
 /// correlation with column `lo + i` (0 outside the row's `w` columns).
 #[allow(clippy::too_many_arguments)]
@@ -174,7 +208,25 @@ pub fn lookup_with(p: &LookupParams<'_>, w: usize, x: usize, flow: i16, s: &mut 
                 *q = acc;
             }
         }
-        #[cfg(not(all(target_arch = "arm", feature = "mve")))]
+        // Armv7E-M: only the window's columns inside the row are summed (the others are 0 by
+        // the window's contract: the sums before them 0, after them the row's total; at 160x120
+        // most of a window's columns lie outside the 1/8 row). `window_wide` writes only those.
+        #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+        {
+            let i = (-lo).clamp(0, n as i64) as usize;
+            // (`min` then `max`, not `clamp`: `clamp` checks its bounds' order by a panic)
+            let j = (w as i64 - lo).min(n as i64).max(i as i64) as usize;
+            let (before, rest) = rest.split_at_mut(i.min(rest.len()));
+            before.iter_mut().for_each(|q| *q = 0);
+            let (inside, after) = rest.split_at_mut((j - i).min(rest.len()));
+            for (q, v) in inside.iter_mut().zip(win.iter().skip(i)) {
+                acc += *v as i64;
+                mag |= v.unsigned_abs();
+                *q = acc;
+            }
+            after.iter_mut().for_each(|q| *q = acc);
+        }
+        #[cfg(not(all(target_arch = "arm", any(feature = "mve", feature = "dsp"))))]
         for (q, v) in rest.iter_mut().zip(win.iter()) {
             acc += *v as i64;
             mag |= v.unsigned_abs();
@@ -216,6 +268,10 @@ pub fn lookup_with(p: &LookupParams<'_>, w: usize, x: usize, flow: i16, s: &mut 
                 if i32_ok && crate::kernels::mve::lookup_samples(pre, sl, a as i32, mult, out) {
                     continue;
                 }
+                #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+                if i32_ok && samples_i32(pre, sl, a as i32, mult, out) {
+                    continue;
+                }
                 let (x0, x1) = (pre.iter().step_by(sl), pre.get(sl..).unwrap_or_default().iter().step_by(sl));
                 let (y0, y1) = (pre.get(1..).unwrap_or_default().iter().step_by(sl), pre.get(1 + sl..).unwrap_or_default().iter().step_by(sl));
                 let samples = out.iter_mut().zip(x0).zip(x1).zip(y0).zip(y1);
@@ -251,6 +307,49 @@ pub fn lookup_with(p: &LookupParams<'_>, w: usize, x: usize, flow: i16, s: &mut 
             *o = sat_i16(requantize(num, mult));
         }
     }
+}
+
+/// The post-pooling samples of one level where their numerators fit i32 (`lookup_with`'s
+/// `i32_ok` case): sample `t` reads the prefix sums' low words at `t sl`, `t sl + 1`, `(t + 1) sl`
+/// and `(t + 1) sl + 1` (`pre`: at least `out.len() sl + 2` values), each shared with the next
+/// sample, out of line (inlined into the lookup the loop spilled its pointers: about 80
+/// instructions a sample, against about 14). The same integers as the compiled loop:
+/// `requantize_i32` and `sat_i16` (by `SSAT`). `false` (nothing written) for a stride of 0 or a
+/// short `pre`.
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(never)]
+fn samples_i32(pre: &[i64], sl: usize, a: i32, mult: Multiplier, out: &mut [i16]) -> bool {
+    let k = out.len();
+    if sl == 0 || pre.len() < k * sl + 2 {
+        return false;
+    }
+    // The low word of `pre[i]` (little-endian), unchecked: every `i` below is at most `k sl + 1`.
+    let base = pre.as_ptr().cast::<i32>();
+    // SAFETY: `i <= k sl + 1 < pre.len()` (checked above).
+    let lo = |i: usize| unsafe { *base.add(2 * i) };
+    let (mut x0, mut y0) = (lo(0), lo(1));
+    let s = mult.shift as u32;
+    let b = 256 - a;
+    if (33..=62).contains(&s) {
+        let (half, sh) = (1i32 << (s - 33), s - 32);
+        for (t, o) in out.iter_mut().enumerate() {
+            let i = (t + 1) * sl;
+            let (x1, y1) = (lo(i), lo(i + 1));
+            let num = b.wrapping_mul(x1.wrapping_sub(x0)).wrapping_add(a.wrapping_mul(y1.wrapping_sub(y0)));
+            let hi = ((num as i64 * mult.m as i64) >> 32) as i32;
+            *o = super::dsp::ssat16(hi.wrapping_add(half) >> sh);
+            (x0, y0) = (x1, y1);
+        }
+    } else {
+        for (t, o) in out.iter_mut().enumerate() {
+            let i = (t + 1) * sl;
+            let (x1, y1) = (lo(i), lo(i + 1));
+            let num = b.wrapping_mul(x1.wrapping_sub(x0)).wrapping_add(a.wrapping_mul(y1.wrapping_sub(y0)));
+            *o = sat_i16(requantize_i32(num, mult));
+            (x0, y0) = (x1, y1);
+        }
+    }
+    true
 }
 
 /// Plain twin of [`lookup_pixel`]: every sub-sample interpolated on its own, every correlation

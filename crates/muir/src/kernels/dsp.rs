@@ -222,18 +222,30 @@ pub fn copy_u16(dst: &mut [u16], src: &[u16]) {
     let words = n / 2;
     if words > 0 {
         // SAFETY: `words` words read from `src` and written to `dst`, `2 words <= n` values of
-        // each; no stack; `subs` sets the flags (clobbered by default).
+        // each (an odd word first, then two a pass: 3 instructions a word against 4); no stack;
+        // `lsrs`, `cmp` and `subs` set the flags (clobbered by default).
         unsafe {
             asm!(
-                "2:",
+                "lsrs {n}, {n}, #1",
+                "bcc 3f",
                 "ldr {t}, [{s}], #4",
                 "str {t}, [{d}], #4",
+                "3:",
+                "cmp {n}, #0",
+                "beq 4f",
+                "2:",
+                "ldr {t}, [{s}], #4",
+                "ldr {u}, [{s}], #4",
+                "str {t}, [{d}], #4",
+                "str {u}, [{d}], #4",
                 "subs {n}, #1",
                 "bne 2b",
+                "4:",
                 s = inout(reg) src.as_ptr() => _,
                 d = inout(reg) dst.as_mut_ptr() => _,
                 n = inout(reg) words => _,
                 t = out(reg) _,
+                u = out(reg) _,
                 options(nostack),
             );
         }
@@ -252,13 +264,12 @@ pub fn copy_u16(dst: &mut [u16], src: &[u16]) {
 pub fn min_u16(s: &[u16]) -> Option<u16> {
     let &first = s.first()?;
     let mut m = first as u32 * 0x0001_0001;
-    let pair = |k: usize| match s.get(k..k + 2) {
-        Some(&[a, b]) => a as u32 | (b as u32) << 16,
-        _ => first as u32 * 0x0001_0001,
-    };
+    let p = s.as_ptr();
     let mut k = 0;
     while k + 4 <= s.len() {
-        let (a, b) = (pair(k), pair(k + 2));
+        // SAFETY: `k + 4 <= s.len()`: two unaligned words (Cortex-M4/M7 load them in one
+        // instruction; the checked pairs took a bounds test each).
+        let (a, b) = unsafe { (p.add(k).cast::<u32>().read_unaligned(), p.add(k + 2).cast::<u32>().read_unaligned()) };
         // SAFETY: register-only DSP instructions (the GE flags they set are not read after).
         unsafe {
             asm!(
@@ -331,46 +342,50 @@ pub fn logits2(q: &[i16], k: &[i16]) -> Option<(i64, i64)> {
 /// `exp_q11(clamp(requantize_i32(e[k], m), -32768, 0))` for shifts `1..=62` (others: nothing
 /// written, `None`); returns the largest weight and the sum. One loop per shift range with the
 /// requantisation's constants hoisted (`SMULL`, then for `s >= 33` the high word's rounding
-/// shift), the table read as `exp_q11`'s with the index `min(u >> 5, 1023)` and the fraction `u -
-/// 32 i` (32 at `u = 32768`: the last entry exactly): about 33 instructions a key in the
-/// 160x120 profile, where the per-key `attention::weight` (range checks, 64-bit rounding,
-/// `exp_q11`'s branch) took about 43.
+/// shift), the table read as `exp_q11`'s by one word of base and step at `u >> 5`
+/// (`lut::exp_steps`) with the fraction `u & 31`. In the 160x120 profile: about 33 instructions a
+/// key with two halfword loads, the index `min(u >> 5, 1023)` and the fraction `u - 32 i`; about
+/// 43 for the per-key `attention::weight` (range checks, 64-bit rounding, `exp_q11`'s branch).
 /// Exact: `requantize(d, m) = requantize_i32(d, m)` for an `i32` `d` and these shifts.
 #[inline(never)]
 pub fn exp_weights(e: &mut [i32], m: i32, shift: u8) -> Option<(i32, i64)> {
     if !(1..=62).contains(&shift) {
         return None;
     }
-    let table = crate::arith::lut::exp_table();
+    let table = crate::arith::lut::exp_steps();
     let (mut most, mut sum) = (0i32, 0i64);
-    let mut put = |v: &mut i32, x: i32| {
-        let u = (x.clamp(-32768, 0) + 32768) as u32;
-        let i = (u >> 5).min(1023) as usize;
-        let f = (u - 32 * i as u32) as i32;
-        let (a, b) = match table.get(i..i + 2) {
-            Some(&[a, b]) => (a as i32, b as i32),
-            _ => (0, 0),
+    // The sum in i32 per run of 2^15 keys (every weight is a table value, below 2^16: a run's sum
+    // stays below 2^31), added to `sum` after.
+    for e in e.chunks_mut(1 << 15) {
+        let mut part = 0i32;
+        let mut put = |v: &mut i32, x: i32| {
+            let u = (x.clamp(-32768, 0) + 32768) as u32;
+            // Base and step of interval `u >> 5` in one word (`lut::exp_steps`: `u = 32768`
+            // reads the last entry with fraction 0, where `exp_q11`'s table takes entry 1023
+            // with fraction 32: the same value).
+            let t = table.get((u >> 5) as usize).copied().unwrap_or(0);
+            // The step is at most 32768 and the fraction below 32: no overflow.
+            let w = (t & 0xFFFF) as i32 + (((t >> 16) * (u & 31) + 16) >> 5) as i32;
+            *v = w;
+            most = most.max(w);
+            part += w;
         };
-        // `b >= a` (the table rises), so the product is at most `32768 * 32`: no overflow.
-        let w = a + (((b - a) * f + 16) >> 5);
-        *v = w;
-        most = most.max(w);
-        sum += w as i64;
-    };
-    let s = shift as u32;
-    if s >= 33 {
-        let (half, k) = (1i32 << (s - 33), s - 32);
-        for v in e.iter_mut() {
-            let hi = ((*v as i64 * m as i64) >> 32) as i32;
-            put(v, hi.wrapping_add(half) >> k);
+        let s = shift as u32;
+        if s >= 33 {
+            let (half, k) = (1i32 << (s - 33), s - 32);
+            for v in e.iter_mut() {
+                let hi = ((*v as i64 * m as i64) >> 32) as i32;
+                put(v, hi.wrapping_add(half) >> k);
+            }
+        } else {
+            let half = 1i64 << (s - 1);
+            for v in e.iter_mut() {
+                let x = (*v as i64 * m as i64 + half) >> s;
+                // (`x` beyond i32 is beyond the clamp on the same side.)
+                put(v, x.clamp(-32768, 0) as i32);
+            }
         }
-    } else {
-        let half = 1i64 << (s - 1);
-        for v in e.iter_mut() {
-            let x = (*v as i64 * m as i64 + half) >> s;
-            // (`x` beyond i32 is beyond the clamp on the same side.)
-            put(v, x.clamp(-32768, 0) as i32);
-        }
+        sum += part as i64;
     }
     Some((most, sum))
 }
@@ -433,9 +448,12 @@ pub fn aggregate_cm(e: &[i32], v: &[i16], n: usize, j0: usize, cv: usize, acc: &
             let (r0, r1) = (row(2 * i), row(2 * i + 1));
             // Word-aligned rows (the engine's, for an even number of keys): one row at a time by
             // `LDRD`s; else both rows by word loads.
-            let (s0, s1) = match (row_sums_aligned(ep, r0), row_sums_aligned(ep, r1)) {
-                (Some(s0), Some(s1)) => (s0, s1),
-                _ => pair_sums_cm(ep, r0, r1),
+            let (s0, s1) = match row_sums2_aligned(ep, r0, r1) {
+                Some(s) => s,
+                None => match (row_sums_aligned(ep, r0), row_sums_aligned(ep, r1)) {
+                    (Some(s0), Some(s1)) => (s0, s1),
+                    _ => pair_sums_cm(ep, r0, r1),
+                },
             };
             *a0 += s0;
             *a1 += s1;
@@ -2269,4 +2287,240 @@ pub fn dot_i8_4cols(f1: &[i8], f2: &[i8], c: usize) -> [i32; 4] {
         }
     }
     acc
+}
+
+/// The correlation lookup's right feature row widened once per row (`kernels::corr::window_wide`):
+/// each whole quad `k` of `src` (values `4k .. 4k + 4`) becomes two words, `dst[2k] =
+/// SXTB16(quad)` (values 0 and 2) and `dst[2k + 1] = SXTB16(quad, ror 8)` (values 1 and 3), the
+/// order [`dot_w8_4cols`] reads. Returns the quads written (the shorter of `src.len() / 4` and
+/// `dst.len() / 2`).
+#[inline]
+pub fn widen_i8_quads(src: &[i8], dst: &mut [u32]) -> usize {
+    let b = bytes_of_i8(src);
+    let q = (b.len() / 4).min(dst.len() / 2);
+    for (k, d) in dst.chunks_exact_mut(2).take(q).enumerate() {
+        let v = word(b, 4 * k);
+        if let [e, o] = d {
+            (*e, *o) = (sxtb16(v), sxtb16_ror8(v));
+        }
+    }
+    q
+}
+
+/// [`dot_i8_4cols`] on a row widened by [`widen_i8_quads`]: `cols` holds four consecutive
+/// columns of `c / 2` words each (`c` a multiple of 4): `out[j] = sum f1[i] f2[j c + i]`. Each
+/// quad of `f1` is widened once for the four columns, each column's quad is one `LDRD` and two
+/// `SMLAD`: about 16 instructions per 16 MACs against 23 (the row's widening costs about 4 a quad,
+/// once per row for all the pixels whose windows read it). `None` where `c` is not a multiple of
+/// 4, over `2^15`, or either slice is short. The slim model's feature width (128) by an assembly
+/// loop (columns 256 bytes apart at immediate offsets, two quads a pass: 16 instructions per 16
+/// MACs; the compiled loop inlined into the lookup spilled: 26).
+#[inline]
+pub fn dot_w8_4cols(f1: &[i8], cols: &[u32], c: usize) -> Option<[i32; 4]> {
+    let a = bytes_of_i8(f1);
+    if !c.is_multiple_of(4) || c > 1 << 15 || a.len() < c || cols.len() < 2 * c {
+        return None;
+    }
+    // SAFETY: `c` a multiple of 4, `a` at least `c` bytes, `cols` at least `4 (c / 2)` words.
+    Some(unsafe {
+        match c {
+            128 => dot_w8_4cols_128(a.as_ptr(), cols.as_ptr()),
+            _ => dot_w8_4cols_at::<0>(a.as_ptr(), cols.as_ptr(), c, c / 2),
+        }
+    })
+}
+
+/// [`dot_w8_4cols`]' loop: column stride `H` words when not 0, else `h`.
+///
+/// # Safety
+/// `c` a multiple of 4, `a` valid for `c` bytes, `p` for `4 h` words (`h = H` when `H > 0`).
+#[inline(always)]
+unsafe fn dot_w8_4cols_at<const H: usize>(a: *const u8, p: *const u32, c: usize, h: usize) -> [i32; 4] {
+    let h = if H > 0 { H } else { h };
+    let (mut s0, mut s1, mut s2, mut s3) = (0i32, 0i32, 0i32, 0i32);
+    let mut i = 0;
+    while i + 4 <= c {
+        // SAFETY: `i + 4 <= c`: bytes `i .. i + 4` of `a`, words `j h + i / 2 ..= j h + i / 2 +
+        // 1` (`j < 4`) of `p`.
+        unsafe {
+            let q = core::ptr::read_unaligned(a.add(i) as *const u32);
+            let (qe, qo) = (sxtb16(q), sxtb16_ror8(q));
+            let w = p.add(i / 2);
+            s0 = smlad(*w.add(1), qo, smlad(*w, qe, s0));
+            s1 = smlad(*w.add(h + 1), qo, smlad(*w.add(h), qe, s1));
+            s2 = smlad(*w.add(2 * h + 1), qo, smlad(*w.add(2 * h), qe, s2));
+            s3 = smlad(*w.add(3 * h + 1), qo, smlad(*w.add(3 * h), qe, s3));
+        }
+        i += 4;
+    }
+    [s0, s1, s2, s3]
+}
+
+/// [`dot_w8_4cols`] for `c = 128`: per quad of `f1` one `LDR` and two `SXTB16`, per column one
+/// `LDRD` (post-indexed for the first) and two `SMLAD`; two quads a pass (32 quads).
+///
+/// # Safety
+/// `a` valid for 128 bytes, `p` for 256 words (four columns of 64).
+#[inline(always)]
+unsafe fn dot_w8_4cols_128(a: *const u8, p: *const u32) -> [i32; 4] {
+    let (mut s0, mut s1, mut s2, mut s3) = (0i32, 0i32, 0i32, 0i32);
+    // SAFETY: 16 passes of two quads: bytes `a .. a + 128`, words `p + j 64 .. p + j 64 + 64`
+    // (`j < 4`); SMLAD sets the Q flag only on overflow, which `c <= 2^15` excludes.
+    unsafe {
+        core::arch::asm!(
+            "2:",
+            "ldr {q}, [{a}], #4",
+            "ldrd {x}, {y}, [{p}], #8",
+            "sxtb16 {e}, {q}",
+            "sxtb16 {q}, {q}, ror #8",
+            "smlad {s0}, {x}, {e}, {s0}",
+            "smlad {s0}, {y}, {q}, {s0}",
+            "ldrd {x}, {y}, [{p}, #248]",
+            "smlad {s1}, {x}, {e}, {s1}",
+            "smlad {s1}, {y}, {q}, {s1}",
+            "ldrd {x}, {y}, [{p}, #504]",
+            "smlad {s2}, {x}, {e}, {s2}",
+            "smlad {s2}, {y}, {q}, {s2}",
+            "ldrd {x}, {y}, [{p}, #760]",
+            "smlad {s3}, {x}, {e}, {s3}",
+            "smlad {s3}, {y}, {q}, {s3}",
+            "ldr {q}, [{a}], #4",
+            "ldrd {x}, {y}, [{p}], #8",
+            "sxtb16 {e}, {q}",
+            "sxtb16 {q}, {q}, ror #8",
+            "smlad {s0}, {x}, {e}, {s0}",
+            "smlad {s0}, {y}, {q}, {s0}",
+            "ldrd {x}, {y}, [{p}, #248]",
+            "smlad {s1}, {x}, {e}, {s1}",
+            "smlad {s1}, {y}, {q}, {s1}",
+            "ldrd {x}, {y}, [{p}, #504]",
+            "smlad {s2}, {x}, {e}, {s2}",
+            "smlad {s2}, {y}, {q}, {s2}",
+            "ldrd {x}, {y}, [{p}, #760]",
+            "smlad {s3}, {x}, {e}, {s3}",
+            "smlad {s3}, {y}, {q}, {s3}",
+            "cmp {a}, {end}",
+            "bne 2b",
+            a = inout(reg) a => _,
+            p = inout(reg) p => _,
+            end = in(reg) a.wrapping_add(128),
+            s0 = inout(reg) s0,
+            s1 = inout(reg) s1,
+            s2 = inout(reg) s2,
+            s3 = inout(reg) s3,
+            q = out(reg) _,
+            e = out(reg) _,
+            x = out(reg) _,
+            y = out(reg) _,
+            options(nostack, readonly),
+        );
+    }
+    [s0, s1, s2, s3]
+}
+
+/// 36 halfwords on a word boundary (the path steps' predecessor window, `fullres::path_step`).
+#[repr(C, align(4))]
+pub struct Win36(pub [u16; 36]);
+
+/// `w` filled with `u16::MAX` and returned as its values: nine `STRD` of one register, where
+/// `[u16::MAX; N]` became a `memset` call (about 50 instructions).
+#[inline(always)]
+pub fn ones_u16_36(w: &mut core::mem::MaybeUninit<Win36>) -> &mut [u16; 36] {
+    // SAFETY: nine STRD write the 72 bytes of `w` (word-aligned); then every value is set.
+    unsafe {
+        asm!(
+            "strd {o}, {o}, [{p}]",
+            "strd {o}, {o}, [{p}, #8]",
+            "strd {o}, {o}, [{p}, #16]",
+            "strd {o}, {o}, [{p}, #24]",
+            "strd {o}, {o}, [{p}, #32]",
+            "strd {o}, {o}, [{p}, #40]",
+            "strd {o}, {o}, [{p}, #48]",
+            "strd {o}, {o}, [{p}, #56]",
+            "strd {o}, {o}, [{p}, #64]",
+            p = in(reg) w.as_mut_ptr(),
+            o = in(reg) u32::MAX,
+            options(nostack, preserves_flags),
+        );
+        &mut w.assume_init_mut().0
+    }
+}
+
+/// `x` saturated to i16 (`SSAT #16`): the same value as `arith::sat_i16(x as i64)`.
+#[inline(always)]
+pub fn ssat16(x: i32) -> i16 {
+    let r: i32;
+    // SAFETY: one register-only instruction (it may set the Q flag, which nothing reads).
+    unsafe { asm!("ssat {r}, #16, {x}", r = lateout(reg) r, x = in(reg) x, options(pure, nomem, nostack)) };
+    r as i16
+}
+
+/// [`row_sums_aligned`] of two channel rows with the same weights (`aggregate_cm`): per four keys
+/// one `LDRD` of weights, one of each row and four `SMLALD` (7 instructions per 8 products
+/// against 8 for two [`row_sums_aligned`] calls), sixteen keys a loop, the last 0 to 7 pairs in
+/// Rust. `None` unless `ep`, `r0` and `r1` are word-aligned.
+#[inline(always)]
+fn row_sums2_aligned(ep: &[u32], r0: &[i16], r1: &[i16]) -> Option<(i64, i64)> {
+    if !(ep.as_ptr() as usize | r0.as_ptr() as usize | r1.as_ptr() as usize).is_multiple_of(4) {
+        return None;
+    }
+    let pairs = ep.len().min(r0.len() / 2).min(r1.len() / 2);
+    let loops = pairs / 8;
+    let (mut lo0, mut hi0, mut lo1, mut hi1) = (0u32, 0u32, 0u32, 0u32);
+    if loops > 0 {
+        // SAFETY: `loops` loops read `8 loops <= pairs` words of `ep` and `16 loops <= 2 pairs`
+        // values of each row, word-aligned (checked: `LDRD` needs it); no stack; `subs` sets the
+        // flags (clobbered by default).
+        unsafe {
+            asm!(
+                "2:",
+                "ldrd {e0}, {e1}, [{ep}], #8",
+                "ldrd {t0}, {t1}, [{ra}], #8",
+                "smlald {lo0}, {hi0}, {e0}, {t0}",
+                "smlald {lo0}, {hi0}, {e1}, {t1}",
+                "ldrd {t0}, {t1}, [{rb}], #8",
+                "smlald {lo1}, {hi1}, {e0}, {t0}",
+                "smlald {lo1}, {hi1}, {e1}, {t1}",
+                "ldrd {e0}, {e1}, [{ep}], #8",
+                "ldrd {t0}, {t1}, [{ra}], #8",
+                "smlald {lo0}, {hi0}, {e0}, {t0}",
+                "smlald {lo0}, {hi0}, {e1}, {t1}",
+                "ldrd {t0}, {t1}, [{rb}], #8",
+                "smlald {lo1}, {hi1}, {e0}, {t0}",
+                "smlald {lo1}, {hi1}, {e1}, {t1}",
+                "ldrd {e0}, {e1}, [{ep}], #8",
+                "ldrd {t0}, {t1}, [{ra}], #8",
+                "smlald {lo0}, {hi0}, {e0}, {t0}",
+                "smlald {lo0}, {hi0}, {e1}, {t1}",
+                "ldrd {t0}, {t1}, [{rb}], #8",
+                "smlald {lo1}, {hi1}, {e0}, {t0}",
+                "smlald {lo1}, {hi1}, {e1}, {t1}",
+                "ldrd {e0}, {e1}, [{ep}], #8",
+                "ldrd {t0}, {t1}, [{ra}], #8",
+                "smlald {lo0}, {hi0}, {e0}, {t0}",
+                "smlald {lo0}, {hi0}, {e1}, {t1}",
+                "ldrd {t0}, {t1}, [{rb}], #8",
+                "smlald {lo1}, {hi1}, {e0}, {t0}",
+                "smlald {lo1}, {hi1}, {e1}, {t1}",
+                "subs {n}, #1",
+                "bne 2b",
+                ep = inout(reg) ep.as_ptr() => _,
+                ra = inout(reg) r0.as_ptr() => _,
+                rb = inout(reg) r1.as_ptr() => _,
+                n = inout(reg) loops => _,
+                lo0 = inout(reg) lo0, hi0 = inout(reg) hi0, lo1 = inout(reg) lo1, hi1 = inout(reg) hi1,
+                e0 = out(reg) _, e1 = out(reg) _, t0 = out(reg) _, t1 = out(reg) _,
+                options(nostack, readonly),
+            );
+        }
+    }
+    let (mut s0, mut s1) = (((hi0 as u64) << 32 | lo0 as u64) as i64, ((hi1 as u64) << 32 | lo1 as u64) as i64);
+    for t in 8 * loops..pairs {
+        if let (Some(&w), Some(&[a, b]), Some(&[c, d])) = (ep.get(t), r0.get(2 * t..2 * t + 2), r1.get(2 * t..2 * t + 2)) {
+            let (wl, wh) = (w as u16 as i16 as i64, (w >> 16) as u16 as i16 as i64);
+            s0 += wl * a as i64 + wh * b as i64;
+            s1 += wl * c as i64 + wh * d as i64;
+        }
+    }
+    Some((s0, s1))
 }

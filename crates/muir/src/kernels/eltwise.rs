@@ -3,7 +3,7 @@
 //! Every operation walks its slices together and stops at the shortest.
 #![deny(clippy::indexing_slicing)]
 
-use crate::arith::{rescale, rshift_round, sat_i16};
+use crate::arith::{rescale, sat_i16};
 use crate::kernels::Elem;
 
 /// `out = relu(y + rescale(skip))`: residual-block output. `y` is the block's second conv,
@@ -71,9 +71,24 @@ pub fn blend_q15(h: &mut [i16], z: &[i16], q: &[i16]) {
     return crate::kernels::mve::blend_q15(h, z, q);
     #[allow(unreachable_code)]
     for ((h, z), q) in h.iter_mut().zip(z).zip(q) {
-        let d = *q as i64 - *h as i64;
-        *h = sat_i16(*h as i64 + rshift_round(*z as i64 * d, 15));
+        *h = blend1(*h, *z, *q);
     }
+}
+
+/// One value of [`blend_q15`]: `sat_i16(h + rshift_round(z (q - h), 15))` in i32 (`|z (q - h)|
+/// <= 32768 * 65535`, so the product plus the rounding half `2^14` stays inside i32 and the
+/// arithmetic shift is `rshift_round`'s; the i64 form's checked add took a 64-bit compare per
+/// value).
+#[inline(always)]
+fn blend1(h: i16, z: i16, q: i16) -> i16 {
+    let d = q as i32 - h as i32;
+    sat_i16((h as i32 + ((z as i32 * d + (1 << 14)) >> 15)) as i64)
+}
+
+/// `sat_i16(rshift_round(x m, 15))` in i32 (`|x m| <= 2^30`).
+#[inline(always)]
+fn mul1(x: i16, m: i16) -> i16 {
+    sat_i16(((x as i32 * m as i32 + (1 << 14)) >> 15) as i64)
 }
 
 /// `out = x * m` with `m` in Q0.15 (format of `x` kept).
@@ -82,7 +97,7 @@ pub fn mul_q15(x: &[i16], m: &[i16], out: &mut [i16]) {
     return crate::kernels::mve::mul_q15(x, m, out);
     #[allow(unreachable_code)]
     for ((o, x), m) in out.iter_mut().zip(x).zip(m) {
-        *o = sat_i16(rshift_round(*x as i64 * *m as i64, 15));
+        *o = mul1(*x, *m);
     }
 }
 
@@ -99,7 +114,7 @@ pub fn mul_plane_q15(x: &[i16], m: &[i16], c: usize, out: &mut [i16]) {
         }
         #[allow(unreachable_code)]
         for (o, x) in o.iter_mut().zip(x) {
-            *o = sat_i16(rshift_round(*x as i64 * *m as i64, 15));
+            *o = mul1(*x, *m);
         }
     }
 }
@@ -116,7 +131,7 @@ pub fn mul_plane_q15_cm(x: &[i16], m: &[i16], c: usize, out: &mut [i16], n: usiz
     for (i, (x, m)) in x.chunks_exact(c).zip(m).enumerate() {
         for (ch, x) in x.iter().enumerate() {
             if let Some(o) = out.get_mut(ch * n + at + i) {
-                *o = sat_i16(rshift_round(*x as i64 * *m as i64, 15));
+                *o = mul1(*x, *m);
             }
         }
     }
@@ -163,6 +178,26 @@ mod tests {
         assert_eq!(o16, [14, 0, 140, 270, 32767]);
         residual_relu::<i16, i16>(&[-3, 7], Skip::Projected(&[1, 1]), 1, &mut o16[..2]);
         assert_eq!(o16[..2], [0, 8]);
+    }
+
+    /// The i32 blend and products (`blend1`, `mul1`) against the i64 formulas, every extreme
+    /// and random values.
+    #[test]
+    fn q15_i32_matches_the_i64_formulas() {
+        use crate::arith::rshift_round;
+        let mut r = crate::kernels::testutil::Rng(0x5eed_0015);
+        let ext = [i16::MIN, i16::MIN + 1, -16385, -16384, -1, 0, 1, 16383, 16384, i16::MAX - 1, i16::MAX];
+        let mut vals: Vec<i16> = ext.to_vec();
+        vals.extend((0..40).map(|_| r.i16()));
+        for &a in &vals {
+            for &b in &vals {
+                assert_eq!(mul1(a, b), sat_i16(rshift_round(a as i64 * b as i64, 15)), "mul {a} {b}");
+                for &c in &vals {
+                    let want = sat_i16(a as i64 + rshift_round(b as i64 * (c as i64 - a as i64), 15));
+                    assert_eq!(blend1(a, b, c), want, "blend {a} {b} {c}");
+                }
+            }
+        }
     }
 
     /// The i32 path for shifts -30..=15 against `rescale`'s i64 formula, every shift from -40 to

@@ -120,7 +120,10 @@ pub fn census_row(img: &ImageView<'_>, y: isize, grey: &mut [u8], out: &mut [u64
     #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
     if w > 2 * CENSUS_RADIUS && grey.len() >= (2 * CENSUS_RADIUS + 1) * w && out.len() >= w {
         let done = census_interior_dsp(grey, w, out);
-        census_codes(grey, w, (0..CENSUS_RADIUS).chain(done..w), out);
+        // The columns near the ends four at a time on clamped copies (`census_edge_dsp`).
+        for x0 in core::iter::once(0).chain((done..w).step_by(4)) {
+            census_edge_dsp(grey, w, x0, out);
+        }
         return;
     }
     #[cfg(all(target_arch = "x86_64", feature = "std"))]
@@ -190,6 +193,31 @@ fn census_interior_dsp(grey: &[u8], w: usize, out: &mut [u64]) -> usize {
         x += 4;
     }
     x
+}
+
+/// The census codes of columns `x0 .. x0 + 4` (those below `w`) by [`census_interior_dsp`] on a
+/// copy of the seven grey rows' columns `x0 - 3 .. x0 + 7`, each clamped to the image as
+/// [`census_codes`] clamps its neighbours (the three first and the last three to six columns of
+/// a row; [`census_codes`]' per-neighbour clamps and tests took 1.6 M more at 160x120).
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+fn census_edge_dsp(grey: &[u8], w: usize, x0: usize, out: &mut [u64]) {
+    const TW: usize = 4 + 2 * CENSUS_RADIUS;
+    let mut t = [0u8; (2 * CENSUS_RADIUS + 1) * TW];
+    for (dy, row) in t.chunks_exact_mut(TW).enumerate() {
+        let src = chunk(grey, dy, w);
+        for (k, v) in row.iter_mut().enumerate() {
+            let x = (x0 + k).saturating_sub(CENSUS_RADIUS).min(w.saturating_sub(1));
+            *v = src.get(x).copied().unwrap_or(0);
+        }
+    }
+    let mut codes = [0u64; TW];
+    if census_interior_dsp(&t, TW, &mut codes) == CENSUS_RADIUS + 4 {
+        for (j, c) in codes.iter().skip(CENSUS_RADIUS).take(4).enumerate() {
+            if x0 + j < w {
+                set_at(out, x0 + j, *c);
+            }
+        }
+    }
 }
 
 /// [`census_row`] without vector kernels: the specification.
@@ -392,9 +420,12 @@ pub fn row_costs(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w:
         (Some(&first), Some(&len)) => Band { first, len },
         _ => Band::default(),
     };
-    // Column `q`'s sums: the union of the bands of pixels `q - 1 ..= q + 1`.
-    let column = |q: usize| {
-        let mut col = Column { lo: 0, n: 0, v: [0; COLUMN_SPAN] };
+    // Column `q`'s sums into `col`: the union of the bands of pixels `q - 1 ..= q + 1` (in place:
+    // a `Column` returned by value was cleared and copied, a library call each).
+    let [l0, l1, l2] = left;
+    let [r0, r1, r2] = right;
+    let column = |q: usize, col: &mut Column| {
+        col.n = 0;
         let (mut lo, mut hi) = (usize::MAX, 0);
         for x in q.saturating_sub(1)..(q + 2).min(w) {
             let b = band(x);
@@ -404,12 +435,42 @@ pub fn row_costs(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w:
             }
         }
         if lo >= hi || hi - lo > COLUMN_SPAN {
-            return col; // no candidates, or too wide: the pixels compute their own
+            return; // no candidates, or too wide: the pixels compute their own
         }
-        let [l0, l1, l2] = left;
-        let [r0, r1, r2] = right;
+        let n = hi - lo;
+        col.lo = lo;
+        // Whole rows (the engine's): the right codes of candidates `d <= q` are columns `q - d`,
+        // walked down by slices, those of `d > q` all column 0 (clamped): one sum.
+        if let (Some(&a0), Some(&a1), Some(&a2), Some(&z0), Some(&z1), Some(&z2)) = (l0.get(q), l1.get(q), l2.get(q), r0.first(), r1.first(), r2.first())
+            && let Some(v) = col.v.get_mut(..n)
+        {
+            let a = [a0, a1, a2];
+            let m = if lo <= q { n.min(q - lo + 1) } else { 0 };
+            let top = q.wrapping_sub(lo);
+            let rows = if m > 0 {
+                let first = top + 1 - m;
+                match (r0.get(first..=top), r1.get(first..=top), r2.get(first..=top)) {
+                    (Some(s0), Some(s1), Some(s2)) => Some((s0, s1, s2)),
+                    _ => None,
+                }
+            } else {
+                Some((&[][..], &[][..], &[][..]))
+            };
+            if let Some((s0, s1, s2)) = rows {
+                let (near, far) = v.split_at_mut(m.min(n));
+                for (((o, b0), b1), b2) in near.iter_mut().zip(s0.iter().rev()).zip(s1.iter().rev()).zip(s2.iter().rev()) {
+                    *o = hamming3(a, [*b0, *b1, *b2]) as u16;
+                }
+                if !far.is_empty() {
+                    let h = hamming3(a, [z0, z1, z2]) as u16;
+                    far.iter_mut().for_each(|o| *o = h);
+                }
+                col.n = n;
+                return;
+            }
+        }
         let a = [l0.get(q), l1.get(q), l2.get(q)];
-        for (k, v) in col.v.iter_mut().enumerate().take(hi - lo) {
+        for (k, v) in col.v.iter_mut().enumerate().take(n) {
             let qr = q.saturating_sub(lo + k);
             let b = [r0.get(qr), r1.get(qr), r2.get(qr)];
             // A code missing from a shorter row adds nothing (as in `cost_plain`).
@@ -420,21 +481,34 @@ pub fn row_costs(left: &[&[u64]; WINDOW_ROWS], right: &[&[u64]; WINDOW_ROWS], w:
             let (p0, p1, p2) = (pair(0), pair(1), pair(2));
             *v = hamming3([p0.0, p1.0, p2.0], [p0.1, p1.1, p2.1]) as u16;
         }
-        (col.lo, col.n) = (lo, hi - lo);
-        col
+        col.n = n;
     };
     let mut ring = [Column { lo: 0, n: 0, v: [0; COLUMN_SPAN] }; 3];
     if let Some(c) = ring.get_mut(0) {
-        *c = column(0);
+        column(0, c);
     }
     for (x, out) in costs.chunks_exact_mut(SLOTS).enumerate().take(w) {
         if let (true, Some(c)) = (x + 1 < w, ring.get_mut((x + 1) % 3)) {
-            *c = column(x + 1);
+            column(x + 1, c);
         }
         let b = band(x);
         let cols = [x.saturating_sub(1), x, (x + 1).min(w - 1)];
         let [c0, c1, c2] = cols.map(|q| ring.get(q % 3));
         let out = head_mut(out, b.n());
+        // Every column holds the pixel's band (its union includes it) unless it was too wide:
+        // the three columns' runs added.
+        #[inline(always)]
+        fn run(c: Option<&Column>, first: i16, n: usize) -> Option<&[u16]> {
+            let d0 = first as usize;
+            c.filter(|c| first >= 0 && d0 >= c.lo && d0 + n <= c.lo + c.n).and_then(|c| c.v.get(d0 - c.lo..d0 - c.lo + n))
+        }
+        let n = out.len();
+        if let (Some(v0), Some(v1), Some(v2)) = (run(c0, b.first, n), run(c1, b.first, n), run(c2, b.first, n)) {
+            for (((o, a), b), c) in out.iter_mut().zip(v0).zip(v1).zip(v2) {
+                *o = *a + *b + *c;
+            }
+            continue;
+        }
         for (k, o) in out.iter_mut().enumerate() {
             let d = b.first as usize + k;
             let at = |c: Option<&Column>| c.filter(|c| d >= c.lo && d < c.lo + c.n).and_then(|c| c.v.get(d - c.lo)).map(|v| *v as u32);
@@ -474,6 +548,8 @@ static PENALTY2: [u16; 256] = {
     t
 };
 const _: () = assert!(P2 < u16::MAX as u32);
+// The DSP path step's window (`dsp::ones_u16_36`) holds `SLOTS + 6` values.
+const _: () = assert!(SLOTS + 6 == 36);
 
 /// A pixel's candidates: disparities `first .. first + len` (px).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -556,7 +632,8 @@ pub fn path_step(prev: &[u16], pband: Band, cost: &[u16], band: Band, p2: u32, o
                 let n = out.len().min(cost.len());
                 let shift = band.first as isize - pband.first as isize;
                 // `win[i] = prev[i - 1 + shift]` where that exists, `u16::MAX` elsewhere.
-                let mut win = [u16::MAX; SLOTS + 4];
+                let mut ones = core::mem::MaybeUninit::uninit();
+                let win = super::dsp::ones_u16_36(&mut ones);
                 let lo = (1 - shift).max(0);
                 let hi = (n as isize + 2).min(prev.len() as isize + 1 - shift);
                 if lo < hi {
@@ -567,7 +644,7 @@ pub fn path_step(prev: &[u16], pband: Band, cost: &[u16], band: Band, p2: u32, o
                         super::dsp::copy_u16(dst, src);
                     }
                 }
-                path_update_dsp(&win, cost, m, mp2 as u16, out);
+                path_update_dsp(win, cost, m, mp2 as u16, out);
                 return;
             }
         }
@@ -586,19 +663,23 @@ pub fn path_step(prev: &[u16], pband: Band, cost: &[u16], band: Band, p2: u32, o
 /// win[k + 2], mp2) + P1, mp2) - m` (`min16` by `USUB16` + `SEL`; with `mp2 + P1 <= 0xFFFF` no
 /// halfword overflows, `min(.., mp2) >= m`), for `k < min(cost.len(), out.len())`
 /// (`win.len() >= k + 4`).
+///
+/// Out of line, by unaligned word loads and stores after one length check (each window word read
+/// once: a pair's third word is the next pair's first); inlined into the refinement with checked
+/// slices the loop took about 30 instructions a pair.
 #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
-#[inline(always)]
-fn path_update_dsp(win: &[u16; SLOTS + 4], cost: &[u16], m: u16, mp2: u16, out: &mut [u16]) {
+#[inline(never)]
+fn path_update_dsp(win: &[u16; SLOTS + 6], cost: &[u16], m: u16, mp2: u16, out: &mut [u16]) {
     let n = cost.len().min(out.len()).min(SLOTS + 2);
     let pair = |v: u16| v as u32 * 0x0001_0001;
     let (mm, mp2s, p1s) = (pair(m), pair(mp2), pair(P1 as u16));
-    let two = |s: &[u16], k: usize| match s.get(k..k + 2) {
-        Some(&[a, b]) => a as u32 | (b as u32) << 16,
-        _ => 0,
-    };
+    let (wp, cp, op) = (win.as_ptr(), cost.as_ptr(), out.as_mut_ptr());
+    // SAFETY: `win` has `SLOTS + 6 >= 2` values.
+    let mut a = unsafe { wp.cast::<u32>().read_unaligned() };
     let mut k = 0;
     while k + 2 <= n {
-        let (a, b, c, cs) = (two(win, k), two(win, k + 1), two(win, k + 2), two(cost, k));
+        // SAFETY: `k + 2 <= n`, so `k + 4 <= SLOTS + 4 < win.len()` and `k + 2 <= cost.len()`.
+        let (b, c, cs) = unsafe { (wp.add(k + 1).cast::<u32>().read_unaligned(), wp.add(k + 2).cast::<u32>().read_unaligned(), cp.add(k).cast::<u32>().read_unaligned()) };
         let r: u32;
         // SAFETY: register-only DSP instructions (the GE flags they set are not read after the
         // block).
@@ -620,9 +701,9 @@ fn path_update_dsp(win: &[u16; SLOTS + 4], cost: &[u16], m: u16, mp2: u16, out: 
                 options(pure, nomem, nostack),
             );
         }
-        if let Some([o0, o1]) = out.get_mut(k..k + 2).and_then(|o| <&mut [u16; 2]>::try_from(o).ok()) {
-            (*o0, *o1) = (r as u16, (r >> 16) as u16);
-        }
+        // SAFETY: `k + 2 <= n <= out.len()`.
+        unsafe { op.add(k).cast::<u32>().write_unaligned(r) };
+        a = c;
         k += 2;
     }
     if k < n {
@@ -664,18 +745,108 @@ pub fn path_step_portable(prev: &[u16], pband: Band, cost: &[u16], band: Band, p
 /// The decision ([`decide`]) on the sums of the five paths' costs `p` of a pixel of band `band`
 /// (as far as each slice reaches); on the x86-64 host the sums and their first least value by one
 /// vector.
+/// `sum` is scratch (its values past the band's are left as they were: the caller keeps one
+/// array for a whole image, where one per pixel was cleared by a library call each time).
 #[inline(always)]
-fn sum_decide(p: [&[u16]; 5], band: Band) -> Option<i16> {
-    let mut sum = [0u32; SLOTS];
+fn sum_decide(p: [&[u16]; 5], band: Band, sum: &mut [u32; SLOTS]) -> Option<i16> {
     #[cfg(all(target_arch = "x86_64", feature = "std"))]
-    if let Some(i) = avx512::path_sums(p, band.n(), &mut sum) {
-        return decide_at(head(&sum, band.n()), band, i);
+    if let Some(i) = avx512::path_sums(p, band.n(), sum) {
+        return decide_at(head(sum, band.n()), band, i);
     }
+    // Armv7E-M: two candidates a word (`UADD16`): every path cost is below `432 + P2`, so the
+    // five-way sum fits a halfword (the `const` assertion on `P2` above; `refine_rows` writes
+    // only such costs into the planes).
+    #[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+    if let Some(i) = path_sums_dsp(p, band.n(), sum) {
+        return decide_at(head(sum, band.n()), band, i);
+    }
+    // The sums and their first least value in one pass (as [`decide`]: the first of the least).
     let [a, r, t0, t1, t2] = p;
-    for (((((s, a), r), t0), t1), t2) in sum.iter_mut().zip(a).zip(r).zip(t0).zip(t1).zip(t2).take(band.n()) {
+    let (mut i, mut least, mut n) = (0, u32::MAX, 0);
+    for (k, (((((s, a), r), t0), t1), t2)) in sum.iter_mut().zip(a).zip(r).zip(t0).zip(t1).zip(t2).take(band.n()).enumerate() {
+        let v = *a as u32 + *r as u32 + *t0 as u32 + *t1 as u32 + *t2 as u32;
+        *s = v;
+        if v < least {
+            (i, least) = (k, v);
+        }
+        n = k + 1;
+    }
+    // (every sum is below `5 * 2^16`, so the first is below `least`'s start)
+    if n < band.n() {
+        // A path shorter than the band (never in [`refine_rows`]): zeros after it, as [`decide`].
+        sum.iter_mut().take(band.n()).skip(n).for_each(|s| *s = 0);
+        return decide(sum, band);
+    }
+    decide_at(head(sum, n), band, i)
+}
+
+/// [`sum_decide`]'s sums of the first `n` candidates into `sum` two a word (`UADD16` of the five
+/// paths' unaligned words) and the index of their first least value; `None` (nothing written)
+/// where a path is shorter than `n` or `n` is 0. The paths' values must be below `2^16 / 5`
+/// (path costs are below `432 + P2`).
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+#[inline(always)]
+fn path_sums_dsp(p: [&[u16]; 5], n: usize, sum: &mut [u32; SLOTS]) -> Option<usize> {
+    let n = n.min(SLOTS);
+    if n == 0 || p.iter().any(|s| s.len() < n) {
+        return None;
+    }
+    let [a, r, t0, t1, t2] = p.map(|s| s.as_ptr());
+    let (mut i, mut least) = (0, u32::MAX);
+    let mut k = 0;
+    while k + 2 <= n {
+        // SAFETY: `k + 2 <= n` values of each path (checked above); unaligned words (Cortex-M7).
+        let w = unsafe { [a, r, t0, t1, t2].map(|s| s.add(k).cast::<u32>().read_unaligned()) };
+        let v: u32;
+        // SAFETY: register-only DSP instructions (the GE flags they set are not read after).
+        unsafe {
+            core::arch::asm!(
+                "uadd16 {v}, {a}, {b}",
+                "uadd16 {v}, {v}, {c}",
+                "uadd16 {v}, {v}, {d}",
+                "uadd16 {v}, {v}, {e}",
+                v = out(reg) v, a = in(reg) w[0], b = in(reg) w[1], c = in(reg) w[2], d = in(reg) w[3], e = in(reg) w[4],
+                options(pure, nomem, nostack),
+            );
+        }
+        let (v0, v1) = (v & 0xFFFF, v >> 16);
+        if let Some([s0, s1]) = sum.get_mut(k..k + 2).and_then(|s| <&mut [u32; 2]>::try_from(s).ok()) {
+            (*s0, *s1) = (v0, v1);
+        }
+        if v0 < least {
+            (i, least) = (k, v0);
+        }
+        if v1 < least {
+            (i, least) = (k + 1, v1);
+        }
+        k += 2;
+    }
+    if k < n {
+        // SAFETY: `k < n`.
+        let v = unsafe { [a, r, t0, t1, t2].map(|s| *s.add(k) as u32) }.iter().sum::<u32>();
+        if let Some(s) = sum.get_mut(k) {
+            *s = v;
+        }
+        if v < least {
+            i = k;
+        }
+    }
+    Some(i)
+}
+
+/// [`sum_decide`] as this build runs it, and its portable form (the five paths summed value by
+/// value, then [`decide`]): the on-target check of [`path_sums_dsp`] (`boards/qemu-mps3-m55`'s
+/// kernel binary).
+#[cfg(all(target_arch = "arm", feature = "dsp", not(feature = "mve")))]
+pub fn sum_decide_twins(p: [&[u16]; 5], band: Band) -> (Option<i16>, Option<i16>) {
+    let mut sum = [0u32; SLOTS];
+    let got = sum_decide(p, band, &mut sum);
+    let mut plain = [0u32; SLOTS];
+    let [a, r, t0, t1, t2] = p;
+    for (((((s, a), r), t0), t1), t2) in plain.iter_mut().zip(a).zip(r).zip(t0).zip(t1).zip(t2).take(band.n()) {
         *s = *a as u32 + *r as u32 + *t0 as u32 + *t1 as u32 + *t2 as u32;
     }
-    decide(&sum, band)
+    (got, decide(&plain, band))
 }
 
 /// The decision on summed path costs `s` (`band.len` values): the refined disparity (Q10.5), or
@@ -898,6 +1069,7 @@ fn refine_rows(left: &ImageView<'_>, right: &ImageView<'_>, disparity: &mut [i16
         _ => Band::default(),
     };
     let grey_of = |g: &[u8], x: usize| g.get(x).copied().unwrap_or(0);
+    let mut sums = [0u32; SLOTS];
     for y in 0..h {
         let yi = y as isize;
         let s = slot(yi + r);
@@ -957,7 +1129,7 @@ fn refine_rows(left: &ImageView<'_>, right: &ImageView<'_>, disparity: &mut [i16
                 path_step(&lr_prev, band_at(b_cur, x - 1), c, b, penalty2(grey_of(g_cur, x), grey_of(g_cur, x - 1)), &mut lr_cur);
             }
             let (rl_x, t0, t1, t2) = (chunk(rl, x, SLOTS), chunk(top_cur, x, SLOTS), chunk(top_cur, w + x, SLOTS), chunk(top_cur, 2 * w + x, SLOTS));
-            *dec = match sum_decide([&lr_cur, rl_x, t0, t1, t2], b) {
+            *dec = match sum_decide([&lr_cur, rl_x, t0, t1, t2], b, &mut sums) {
                 Some(d) => {
                     decided += 1;
                     d

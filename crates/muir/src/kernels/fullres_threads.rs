@@ -126,6 +126,7 @@ pub(super) fn refine(left: &ImageView<'_>, right: &ImageView<'_>, disparity: &mu
     let decide_task = |y: usize, c: usize| {
         let (x0, n) = (c * COLS, COLS.min(w.saturating_sub(c * COLS)));
         let mut count = 0;
+        let mut sums = [0u32; SLOTS];
         // SAFETY: the path planes of row `y` are complete (job 3 of row `y` is over) and not
         // written before job 3 of row `y + 1`; the disparity row is written by no task of this
         // job (the median tasks run in job 2); the decisions' columns are this task's.
@@ -135,7 +136,7 @@ pub(super) fn refine(left: &ImageView<'_>, right: &ImageView<'_>, disparity: &mu
         for (x, o) in (x0..).zip(dec.iter_mut()) {
             let b = band(y, x);
             let planes = [lr, rl, t0, t1, t2].map(|p| super::chunk(p, x, SLOTS));
-            *o = match sum_decide(planes, b) {
+            *o = match sum_decide(planes, b, &mut sums) {
                 Some(d) => {
                     count += 1;
                     d

@@ -55,12 +55,14 @@ pub fn upsample_pixel(logits: &[i16], mask_frac: i8, flow: &[i16], u: Option<&[i
                 *ek = lut::exp_q11(d.max(-32768));
                 s += *ek;
             }
-            let fd: i64 = e.iter().zip(&nb_flow).map(|(a, b)| (*a * *b) as i64).sum();
+            // (each product below 2^30 in magnitude: the i64 products are the i32 ones, one
+            // `SMLAL` each where a product widened after an i32 multiply took three)
+            let fd: i64 = e.iter().zip(&nb_flow).map(|(a, b)| *a as i64 * *b as i64).sum();
             if let Some(o) = disp_out.get_mut(dy * stride + dx) {
                 *o = sat_i16(-div_round(fd, s as i64));
             }
             if let Some(o) = u_out.as_deref_mut().and_then(|uo| uo.get_mut(dy * stride + dx)) {
-                let fu: i64 = e.iter().zip(&nb_u).map(|(a, b)| (*a * *b) as i64).sum();
+                let fu: i64 = e.iter().zip(&nb_u).map(|(a, b)| *a as i64 * *b as i64).sum();
                 *o = sat_i16(div_round(fu, s as i64));
             }
         }
