@@ -878,7 +878,7 @@ fn plan(args: &PlanArgs) -> Result<(), String> {
     }
     out!(
         "\nWorking RAM = the static arena (`Plan::ram_bytes`, all of the engine's buffers); reserve {} KiB of stack \
-         beside it (`engine::STACK_BUDGET`: the QEMU firmware measures 20.0-22.4 KiB on Cortex-M7 and M55, any image size). \
+         beside it (`engine::STACK_BUDGET`: the QEMU firmware measures 20.0-22.3 KiB on Cortex-M7 and M55, any image size). \
          The model stays in flash; the caller's images are not included.",
         muir::engine::STACK_BUDGET / 1024
     );

@@ -134,7 +134,7 @@ pub struct Plan {
 /// Stack to reserve beside the arena on Cortex-M (bytes). The engine keeps all its working memory in
 /// the arena; the stack holds only locals and call frames, which do not depend on the image size.
 /// Measured by the QEMU firmware (painted stack, `boards/*/run-tests.sh`, `MUIR-STACK` line):
-/// 20.0-22.4 KiB (20,516-22,904 B) on the Cortex-M7 and Cortex-M55 builds (firmware `main` included), at
+/// 20.0-22.3 KiB (20,516-22,800 B) on the Cortex-M7 and Cortex-M55 builds (firmware `main` included), at
 /// 64x48 and 160x120 alike; the firmware fails if a frame exceeds this budget.
 pub const STACK_BUDGET: usize = 24 * 1024;
 
