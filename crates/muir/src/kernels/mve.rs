@@ -1739,30 +1739,46 @@ macro_rules! requant4_sums_pair {
             "vldrb.u32 q3, [{m4}, q7]\n",
             "vneg.s32 q3, q3\n",
             "vadd.i32 q4, q3, {c32}\n",
-            "vldrw.u32 q0, [{da}], #", $stride, "\n",
-            "vmulh.s32 q1, q0, q2\n",
-            "vmul.i32 q0, q0, q2\n",
-            "vrshl.u32 q0, q0, q3\n",
-            "vqrshl.s32 q1, q1, q4\n",
-            "vqadd.s32 q1, q1, q0\n",
-            "vqadd.s32 q6, q6, q1\n",
-            "vldrw.u32 q0, [{db}], #", $stride, "\n",
-            "vmulh.s32 q1, q0, q2\n",
-            "vmul.i32 q0, q0, q2\n",
-            "vrshl.u32 q0, q0, q3\n",
-            "vqrshl.s32 q1, q1, q4\n",
-            "vqadd.s32 q1, q1, q0\n",
-            "vqadd.s32 q5, q5, q1\n",
+            requant4_part!("{da}", $stride, "q6"),
+            requant4_part!("{db}", $stride, "q5"),
             "add r1, r1, #8\n",
             "add {m4}, {m4}, #8\n",
             "subs {n}, {n}, #1\n",
             "bne 2b\n",
             "vrshr.s32 q6, q6, #8\n",
             "vrshr.s32 q5, q5, #8\n",
-            "vldrw.u32 q1, [{k}, #16]\n",
+            clamp_pair!("16", "32"),
+        )
+    };
+}
+
+/// One part's requantised sum of one pixel added to `$acc` (`q6` or `q5`): its four dot products
+/// loaded through `$d` (`{da}` or `{db}`, advanced by `$stride` bytes), then
+/// `VQRSHL(h, 32 - s) + VRSHL_u(l, -s)` from the product's high and low words (q2 the multipliers,
+/// q3 `-s`, q4 `32 - s`). Temporaries q0, q1.
+macro_rules! requant4_part {
+    ($d:literal, $stride:literal, $acc:literal) => {
+        concat!(
+            "vldrw.u32 q0, [", $d, "], #", $stride, "\n",
+            "vmulh.s32 q1, q0, q2\n",
+            "vmul.i32 q0, q0, q2\n",
+            "vrshl.u32 q0, q0, q3\n",
+            "vqrshl.s32 q1, q1, q4\n",
+            "vqadd.s32 q1, q1, q0\n",
+            "vqadd.s32 ", $acc, ", ", $acc, ", q1\n",
+        )
+    };
+}
+
+/// Both pixels' q6 and q5 clamped to `[k + $lo, k + $hi]` (byte offsets in [`Requant4`]).
+/// Temporary q1.
+macro_rules! clamp_pair {
+    ($lo:literal, $hi:literal) => {
+        concat!(
+            "vldrw.u32 q1, [{k}, #", $lo, "]\n",
             "vmax.s32 q6, q6, q1\n",
             "vmax.s32 q5, q5, q1\n",
-            "vldrw.u32 q1, [{k}, #32]\n",
+            "vldrw.u32 q1, [{k}, #", $hi, "]\n",
             "vmin.s32 q6, q6, q1\n",
             "vmin.s32 q5, q5, q1\n",
         )
@@ -1770,9 +1786,10 @@ macro_rules! requant4_sums_pair {
 }
 
 /// The table of [`requant4_lut`] on the clamped q-register `$q` (temporaries q0-q4, `{tab}` the
-/// table, `{tab1}` the table one entry on), then the clamp to `[k + 64, k + 80]`.
+/// table, `$next` a register holding the table one entry on: `{tab1}`, or `{da}` in the group
+/// loops, where `{da}` is free by then).
 macro_rules! lut_pair_piece {
-    ($q:literal) => {
+    ($q:literal, $next:literal) => {
         concat!(
             "vmov.i32 q1, #0x8000\n",
             "vadd.i32 ", $q, ", ", $q, ", q1\n",
@@ -1780,7 +1797,7 @@ macro_rules! lut_pair_piece {
             "vmov.i32 q1, #63\n",
             "vand ", $q, ", ", $q, ", q1\n",
             "vldrh.s32 q3, [{tab}, q2, uxtw #1]\n",
-            "vldrh.s32 q4, [{tab1}, q2, uxtw #1]\n",
+            "vldrh.s32 q4, [", $next, ", q2, uxtw #1]\n",
             "vsub.i32 q4, q4, q3\n",
             "vmul.i32 q4, q4, ", $q, "\n",
             "vrshr.s32 q4, q4, #6\n",
@@ -1820,14 +1837,9 @@ macro_rules! narrow_pair_fn {
                     Some(t) => asm!(
                         requant4_sums_pair!($stride),
                         "add.w {tab1}, {tab}, #2",
-                        lut_pair_piece!("q6"),
-                        lut_pair_piece!("q5"),
-                        "vldrw.u32 q1, [{k}, #64]",
-                        "vmax.s32 q6, q6, q1",
-                        "vmax.s32 q5, q5, q1",
-                        "vldrw.u32 q1, [{k}, #80]",
-                        "vmin.s32 q6, q6, q1",
-                        "vmin.s32 q5, q5, q1",
+                        lut_pair_piece!("q6", "{tab1}"),
+                        lut_pair_piece!("q5", "{tab1}"),
+                        clamp_pair!("64", "80"),
                         concat!($store, " q6, [r0]"),
                         concat!($store, " q5, [r2]"),
                         k = in(reg) k as *const Requant4,
@@ -1980,28 +1992,11 @@ macro_rules! groups_loop_reg1 {
             "vldrb.u32 q3, [{m4}, q7]\n",
             "vneg.s32 q3, q3\n",
             "vadd.i32 q4, q3, {n}\n",
-            "vldrw.u32 q0, [{da}], #16\n",
-            "vmulh.s32 q1, q0, q2\n",
-            "vmul.i32 q0, q0, q2\n",
-            "vrshl.u32 q0, q0, q3\n",
-            "vqrshl.s32 q1, q1, q4\n",
-            "vqadd.s32 q1, q1, q0\n",
-            "vqadd.s32 q6, q6, q1\n",
-            "vldrw.u32 q0, [{db}], #16\n",
-            "vmulh.s32 q1, q0, q2\n",
-            "vmul.i32 q0, q0, q2\n",
-            "vrshl.u32 q0, q0, q3\n",
-            "vqrshl.s32 q1, q1, q4\n",
-            "vqadd.s32 q1, q1, q0\n",
-            "vqadd.s32 q5, q5, q1\n",
+            requant4_part!("{da}", "16", "q6"),
+            requant4_part!("{db}", "16", "q5"),
             "vrshr.s32 q6, q6, #8\n",
             "vrshr.s32 q5, q5, #8\n",
-            "vldrw.u32 q1, [{k}, #16]\n",
-            "vmax.s32 q6, q6, q1\n",
-            "vmax.s32 q5, q5, q1\n",
-            "vldrw.u32 q1, [{k}, #32]\n",
-            "vmin.s32 q6, q6, q1\n",
-            "vmin.s32 q5, q5, q1\n",
+            clamp_pair!("16", "32"),
             $store, " q6, [r0], #", $size, "\n",
             $store, " q5, [r2], #", $size, "\n",
             "adds r1, r1, #32\n",
@@ -2019,33 +2014,9 @@ macro_rules! groups_lut {
     () => {
         concat!(
             "add.w {da}, {tab}, #2\n",
-            lut_pair_piece_da!("q6"),
-            lut_pair_piece_da!("q5"),
-            "vldrw.u32 q1, [{k}, #64]\n",
-            "vmax.s32 q6, q6, q1\n",
-            "vmax.s32 q5, q5, q1\n",
-            "vldrw.u32 q1, [{k}, #80]\n",
-            "vmin.s32 q6, q6, q1\n",
-            "vmin.s32 q5, q5, q1\n",
-        )
-    };
-}
-
-/// [`lut_pair_piece`] with the table one entry on in `{da}`.
-macro_rules! lut_pair_piece_da {
-    ($q:literal) => {
-        concat!(
-            "vmov.i32 q1, #0x8000\n",
-            "vadd.i32 ", $q, ", ", $q, ", q1\n",
-            "vshr.u32 q2, ", $q, ", #6\n",
-            "vmov.i32 q1, #63\n",
-            "vand ", $q, ", ", $q, ", q1\n",
-            "vldrh.s32 q3, [{tab}, q2, uxtw #1]\n",
-            "vldrh.s32 q4, [{da}, q2, uxtw #1]\n",
-            "vsub.i32 q4, q4, q3\n",
-            "vmul.i32 q4, q4, ", $q, "\n",
-            "vrshr.s32 q4, q4, #6\n",
-            "vadd.i32 ", $q, ", q3, q4\n",
+            lut_pair_piece!("q6", "{da}"),
+            lut_pair_piece!("q5", "{da}"),
+            clamp_pair!("64", "80"),
         )
     };
 }
