@@ -490,25 +490,8 @@ pub fn copy<T: Copy>(dst: &mut [T], src: &[T]) {
 /// `memset` call of about 40 instructions).
 #[inline]
 pub fn fill_ones(dst: &mut [core::mem::MaybeUninit<u16>]) {
-    let bytes = core::mem::size_of_val(dst);
-    if bytes == 0 {
-        return;
-    }
-    // SAFETY: `bytes` bytes of `dst` (tail-predicated: disabled lanes are not stored).
-    unsafe {
-        asm!(
-            "vmov.i8 q0, #0xff",
-            "dlstp.8 lr, {n}",
-            "2:",
-            "vstrb.8 q0, [{d}], #16",
-            "letp lr, 2b",
-            n = in(reg) bytes,
-            d = inout(reg) dst.as_mut_ptr() => _,
-            out("lr") _,
-            out("d0") _, out("d1") _,
-            options(nostack),
-        );
-    }
+    // SAFETY: every bit pattern is an initialised `u16`.
+    unsafe { fill_bytes::<0xff, _>(dst) }
 }
 
 /// `dst` set to all-zero bytes (the value 0 of the kernels' element types), sixteen bytes a
@@ -516,19 +499,30 @@ pub fn fill_ones(dst: &mut [core::mem::MaybeUninit<u16>]) {
 /// of about 170 instructions (the patches' padding columns, `conv::gather_part`).
 #[inline]
 pub fn zero<T: crate::kernels::Elem>(dst: &mut [T]) {
+    // SAFETY: every `Elem` (u8, i8, i16) is 0 when all its bytes are.
+    unsafe { fill_bytes::<0, _>(dst) }
+}
+
+/// Every byte of `dst` set to `B`, sixteen bytes a store, tail-predicated ([`fill_ones`],
+/// [`zero`]).
+///
+/// # Safety
+/// Bytes `B` must make a valid `T`.
+#[inline(always)]
+unsafe fn fill_bytes<const B: u8, T>(dst: &mut [T]) {
     let bytes = core::mem::size_of_val(dst);
     if bytes == 0 {
         return;
     }
-    // SAFETY: `bytes` bytes of `dst` (tail-predicated: disabled lanes are not stored); every
-    // `Elem` (u8, i8, i16) is 0 when all its bytes are.
+    // SAFETY: `bytes` bytes of `dst` (tail-predicated: disabled lanes are not stored).
     unsafe {
         asm!(
-            "vmov.i32 q0, #0",
+            "vmov.i8 q0, #{b}",
             "dlstp.8 lr, {n}",
             "2:",
             "vstrb.8 q0, [{d}], #16",
             "letp lr, 2b",
+            b = const B,
             n = in(reg) bytes,
             d = inout(reg) dst.as_mut_ptr() => _,
             out("lr") _,
