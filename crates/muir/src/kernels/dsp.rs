@@ -495,6 +495,13 @@ fn row_sums_aligned(ep: &[u32], r: &[i16]) -> Option<i64> {
     let pairs = ep.len().min(r.len() / 2);
     let loops = pairs / 8;
     let (mut lo, mut hi) = (0u32, 0u32);
+    // Four keys' pairs: one step, written out four times a loop (not `.rept`: the compiler sizes
+    // an `asm!` block by its lines).
+    macro_rules! step {
+        () => {
+            "ldrd {e0}, {e1}, [{ep}], #8\nldrd {t0}, {t1}, [{r}], #8\nsmlald {lo}, {hi}, {e0}, {t0}\nsmlald {lo}, {hi}, {e1}, {t1}"
+        };
+    }
     if loops > 0 {
         // SAFETY: `loops` loops read `8 loops <= pairs` words of `ep` and `16 loops <= 2 pairs`
         // values of `r`, word-aligned (checked: `LDRD` needs it); no stack; `subs` sets the flags
@@ -502,22 +509,10 @@ fn row_sums_aligned(ep: &[u32], r: &[i16]) -> Option<i64> {
         unsafe {
             asm!(
                 "2:",
-                "ldrd {e0}, {e1}, [{ep}], #8",
-                "ldrd {t0}, {t1}, [{r}], #8",
-                "smlald {lo}, {hi}, {e0}, {t0}",
-                "smlald {lo}, {hi}, {e1}, {t1}",
-                "ldrd {e0}, {e1}, [{ep}], #8",
-                "ldrd {t0}, {t1}, [{r}], #8",
-                "smlald {lo}, {hi}, {e0}, {t0}",
-                "smlald {lo}, {hi}, {e1}, {t1}",
-                "ldrd {e0}, {e1}, [{ep}], #8",
-                "ldrd {t0}, {t1}, [{r}], #8",
-                "smlald {lo}, {hi}, {e0}, {t0}",
-                "smlald {lo}, {hi}, {e1}, {t1}",
-                "ldrd {e0}, {e1}, [{ep}], #8",
-                "ldrd {t0}, {t1}, [{r}], #8",
-                "smlald {lo}, {hi}, {e0}, {t0}",
-                "smlald {lo}, {hi}, {e1}, {t1}",
+                step!(),
+                step!(),
+                step!(),
+                step!(),
                 "subs {n}, #1",
                 "bne 2b",
                 ep = inout(reg) ep.as_ptr() => _,
@@ -2467,6 +2462,12 @@ fn row_sums2_aligned(ep: &[u32], r0: &[i16], r1: &[i16]) -> Option<(i64, i64)> {
     let pairs = ep.len().min(r0.len() / 2).min(r1.len() / 2);
     let loops = pairs / 8;
     let (mut lo0, mut hi0, mut lo1, mut hi1) = (0u32, 0u32, 0u32, 0u32);
+    // Four keys' pairs of both rows: one step, written out four times a loop (not `.rept`).
+    macro_rules! step {
+        () => {
+            "ldrd {e0}, {e1}, [{ep}], #8\nldrd {t0}, {t1}, [{ra}], #8\nsmlald {lo0}, {hi0}, {e0}, {t0}\nsmlald {lo0}, {hi0}, {e1}, {t1}\nldrd {t0}, {t1}, [{rb}], #8\nsmlald {lo1}, {hi1}, {e0}, {t0}\nsmlald {lo1}, {hi1}, {e1}, {t1}"
+        };
+    }
     if loops > 0 {
         // SAFETY: `loops` loops read `8 loops <= pairs` words of `ep` and `16 loops <= 2 pairs`
         // values of each row, word-aligned (checked: `LDRD` needs it); no stack; `subs` sets the
@@ -2474,34 +2475,10 @@ fn row_sums2_aligned(ep: &[u32], r0: &[i16], r1: &[i16]) -> Option<(i64, i64)> {
         unsafe {
             asm!(
                 "2:",
-                "ldrd {e0}, {e1}, [{ep}], #8",
-                "ldrd {t0}, {t1}, [{ra}], #8",
-                "smlald {lo0}, {hi0}, {e0}, {t0}",
-                "smlald {lo0}, {hi0}, {e1}, {t1}",
-                "ldrd {t0}, {t1}, [{rb}], #8",
-                "smlald {lo1}, {hi1}, {e0}, {t0}",
-                "smlald {lo1}, {hi1}, {e1}, {t1}",
-                "ldrd {e0}, {e1}, [{ep}], #8",
-                "ldrd {t0}, {t1}, [{ra}], #8",
-                "smlald {lo0}, {hi0}, {e0}, {t0}",
-                "smlald {lo0}, {hi0}, {e1}, {t1}",
-                "ldrd {t0}, {t1}, [{rb}], #8",
-                "smlald {lo1}, {hi1}, {e0}, {t0}",
-                "smlald {lo1}, {hi1}, {e1}, {t1}",
-                "ldrd {e0}, {e1}, [{ep}], #8",
-                "ldrd {t0}, {t1}, [{ra}], #8",
-                "smlald {lo0}, {hi0}, {e0}, {t0}",
-                "smlald {lo0}, {hi0}, {e1}, {t1}",
-                "ldrd {t0}, {t1}, [{rb}], #8",
-                "smlald {lo1}, {hi1}, {e0}, {t0}",
-                "smlald {lo1}, {hi1}, {e1}, {t1}",
-                "ldrd {e0}, {e1}, [{ep}], #8",
-                "ldrd {t0}, {t1}, [{ra}], #8",
-                "smlald {lo0}, {hi0}, {e0}, {t0}",
-                "smlald {lo0}, {hi0}, {e1}, {t1}",
-                "ldrd {t0}, {t1}, [{rb}], #8",
-                "smlald {lo1}, {hi1}, {e0}, {t0}",
-                "smlald {lo1}, {hi1}, {e1}, {t1}",
+                step!(),
+                step!(),
+                step!(),
+                step!(),
                 "subs {n}, #1",
                 "bne 2b",
                 ep = inout(reg) ep.as_ptr() => _,
