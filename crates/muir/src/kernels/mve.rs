@@ -1877,6 +1877,46 @@ pub struct GroupState {
     bit: u32,
 }
 
+/// [`groups_loop`]'s store of a group's two pixels (q6, q5) and the advance of the output and
+/// dot-product pointers in the state `{g}` ([`GroupState`]).
+macro_rules! group_store {
+    ($store:literal, $size:literal) => {
+        concat!(
+            "ldrd r0, r2, [{g}, #16]\n",
+            $store, " q6, [r0]\n",
+            $store, " q5, [r2]\n",
+            "adds r0, r0, #", $size, "\n",
+            "adds r2, r2, #", $size, "\n",
+            "strd r0, r2, [{g}, #16]\n",
+            "ldrd {da}, {db}, [{g}]\n",
+            "adds {da}, {da}, #16\n",
+            "adds {db}, {db}, #16\n",
+            "strd {da}, {db}, [{g}]\n",
+        )
+    };
+}
+
+/// [`groups_loop`]'s saturation test: `FPSCR.QC` tested and cleared, the current group's bit
+/// added to the mask where it was set, the bit moved on to the next group (state in `{g}`).
+macro_rules! group_saturation {
+    () => {
+        concat!(
+            "vmrs {n}, fpscr\n",
+            "tst.w {n}, #0x8000000\n",
+            "beq 3f\n",
+            "bic {n}, {n}, #0x8000000\n",
+            "vmsr fpscr, {n}\n",
+            "ldrd {n}, {da}, [{g}, #32]\n",
+            "orrs {n}, {n}, {da}\n",
+            "str.w {n}, [{g}, #32]\n",
+            "3:\n",
+            "ldr.w {n}, [{g}, #36]\n",
+            "lsls {n}, {n}, #1\n",
+            "str.w {n}, [{g}, #36]\n",
+        )
+    };
+}
+
 /// The per-group loop of [`requant4_groups`] around [`requant4_sums_pair`]: `$size` is the output
 /// bytes of four values, `$lut` the table piece (empty without a table). State in `{g}`
 /// ([`GroupState`]), `{da}`/`{db}`/`{c32}` reloaded per group.
@@ -1890,33 +1930,13 @@ macro_rules! groups_loop {
             "ldr.w {n}, [{g}, #28]\n",
             requant4_sums_pair!($stride),
             $lut,
-            "ldrd r0, r2, [{g}, #16]\n",
-            $store, " q6, [r0]\n",
-            $store, " q5, [r2]\n",
-            "adds r0, r0, #", $size, "\n",
-            "adds r2, r2, #", $size, "\n",
-            "strd r0, r2, [{g}, #16]\n",
-            "ldrd {da}, {db}, [{g}]\n",
-            "adds {da}, {da}, #16\n",
-            "adds {db}, {db}, #16\n",
-            "strd {da}, {db}, [{g}]\n",
+            group_store!($store, $size),
             "ldrd r1, {c32}, [{g}, #8]\n",
             "ldr.w {n}, [{g}, #28]\n",
             "add.w r1, r1, {n}, lsl #5\n",
             "adds {c32}, {c32}, #32\n",
             "strd r1, {c32}, [{g}, #8]\n",
-            "vmrs {n}, fpscr\n",
-            "tst.w {n}, #0x8000000\n",
-            "beq 3f\n",
-            "bic {n}, {n}, #0x8000000\n",
-            "vmsr fpscr, {n}\n",
-            "ldrd {n}, {da}, [{g}, #32]\n",
-            "orrs {n}, {n}, {da}\n",
-            "str.w {n}, [{g}, #32]\n",
-            "3:\n",
-            "ldr.w {n}, [{g}, #36]\n",
-            "lsls {n}, {n}, #1\n",
-            "str.w {n}, [{g}, #36]\n",
+            group_saturation!(),
             "ldr.w {n}, [{g}, #24]\n",
             "subs {n}, {n}, #1\n",
             "str.w {n}, [{g}, #24]\n",
@@ -1936,32 +1956,12 @@ macro_rules! groups_loop_reg {
             "add.w {m4}, r1, #4\n",
             "mov {n}, {np}\n",
             requant4_sums_pair!($stride),
-            "ldrd r0, r2, [{g}, #16]\n",
-            $store, " q6, [r0]\n",
-            $store, " q5, [r2]\n",
-            "adds r0, r0, #", $size, "\n",
-            "adds r2, r2, #", $size, "\n",
-            "strd r0, r2, [{g}, #16]\n",
-            "ldrd {da}, {db}, [{g}]\n",
-            "adds {da}, {da}, #16\n",
-            "adds {db}, {db}, #16\n",
-            "strd {da}, {db}, [{g}]\n",
+            group_store!($store, $size),
             "ldrd r1, {c32}, [{g}, #8]\n",
             "add.w r1, r1, {np}, lsl #5\n",
             "adds {c32}, {c32}, #32\n",
             "strd r1, {c32}, [{g}, #8]\n",
-            "vmrs {n}, fpscr\n",
-            "tst.w {n}, #0x8000000\n",
-            "beq 3f\n",
-            "bic {n}, {n}, #0x8000000\n",
-            "vmsr fpscr, {n}\n",
-            "ldrd {n}, {da}, [{g}, #32]\n",
-            "orrs {n}, {n}, {da}\n",
-            "str.w {n}, [{g}, #32]\n",
-            "3:\n",
-            "ldr.w {n}, [{g}, #36]\n",
-            "lsls {n}, {n}, #1\n",
-            "str.w {n}, [{g}, #36]\n",
+            group_saturation!(),
             "subs {left}, {left}, #1\n",
             "bne 1b\n",
         )
