@@ -552,6 +552,45 @@ pub fn dot2x2_split_i16(w0: &[i8], w1: &[i8], a: &[i16], b: &[i16]) -> [i64; 4] 
     acc
 }
 
+/// One vector step of the i16 two-by-two products (`muir_mve_dot2x2_i16`, `muir_mve_dots_i16`):
+/// eight activations of each pixel (r6, r7), eight widened weights of each channel (r4, r5) into
+/// the four 64-bit sums r0:r1, r2:r3, r8:r9, r10:r11. Shared text for `global_asm!` (a Rust macro,
+/// not an assembler `.macro`: blocks may be assembled in different codegen units).
+macro_rules! dot2x2_i16_vec {
+    () => {
+        concat!(
+            "    vldrh.u16 q0, [r6], #16\n",
+            "    vldrh.u16 q1, [r7], #16\n",
+            "    vldrb.s16 q2, [r4], #8\n",
+            "    vmlaldava.s16 r0, r1, q0, q2\n",
+            "    vmlaldava.s16 r2, r3, q1, q2\n",
+            "    vldrb.s16 q2, [r5], #8\n",
+            "    vmlaldava.s16 r8, r9, q0, q2\n",
+            "    vmlaldava.s16 r10, r11, q1, q2\n",
+        )
+    };
+}
+
+/// One vector step of `muir_mve_dots_s8_1`: sixteen bytes of each pixel (r7, r9), each
+/// channel's weights (r1, r3, r5) into its two sums (the unrolled and the tail-predicated loops).
+macro_rules! dots_s8_1_vec {
+    () => {
+        concat!(
+            "    vldrb.u8 q0, [r7], #16\n",
+            "    vldrb.u8 q1, [r9], #16\n",
+            "    vldrb.u8 q2, [r1], #16\n",
+            "    vmladava.s8 r0, q0, q2\n",
+            "    vmladava.s8 r6, q1, q2\n",
+            "    vldrb.u8 q2, [r3], #16\n",
+            "    vmladava.s8 r2, q0, q2\n",
+            "    vmladava.s8 r8, q1, q2\n",
+            "    vldrb.u8 q2, [r5], #16\n",
+            "    vmladava.s8 r4, q0, q2\n",
+            "    vmladava.s8 r10, q1, q2\n",
+        )
+    };
+}
+
 core::arch::global_asm!(
     ".syntax unified",
     ".thumb",
@@ -582,14 +621,7 @@ core::arch::global_asm!(
     "    mov.w r11, #0",
     "    dlstp.16 lr, r12",
     "1:",
-    "    vldrh.u16 q0, [r6], #16",
-    "    vldrh.u16 q1, [r7], #16",
-    "    vldrb.s16 q2, [r4], #8",
-    "    vmlaldava.s16 r0, r1, q0, q2",
-    "    vmlaldava.s16 r2, r3, q1, q2",
-    "    vldrb.s16 q2, [r5], #8",
-    "    vmlaldava.s16 r8, r9, q0, q2",
-    "    vmlaldava.s16 r10, r11, q1, q2",
+    dot2x2_i16_vec!(),
     "    letp lr, 1b",
     "    ldr r12, [sp, #40]",
     "    strd r0, r1, [r12]",
@@ -722,28 +754,14 @@ core::arch::global_asm!(
     "    dls lr, lr",
     "2:",
     ".rept 4",
-    "    vldrh.u16 q0, [r6], #16",
-    "    vldrh.u16 q1, [r7], #16",
-    "    vldrb.s16 q2, [r4], #8",
-    "    vmlaldava.s16 r0, r1, q0, q2",
-    "    vmlaldava.s16 r2, r3, q1, q2",
-    "    vldrb.s16 q2, [r5], #8",
-    "    vmlaldava.s16 r8, r9, q0, q2",
-    "    vmlaldava.s16 r10, r11, q1, q2",
+    dot2x2_i16_vec!(),
     ".endr",
     "    le lr, 2b",
     "5:",
     "    ldr lr, [sp, #4]",
     "    wlstp.16 lr, lr, 6f",
     "7:",
-    "    vldrh.u16 q0, [r6], #16",
-    "    vldrh.u16 q1, [r7], #16",
-    "    vldrb.s16 q2, [r4], #8",
-    "    vmlaldava.s16 r0, r1, q0, q2",
-    "    vmlaldava.s16 r2, r3, q1, q2",
-    "    vldrb.s16 q2, [r5], #8",
-    "    vmlaldava.s16 r8, r9, q0, q2",
-    "    vmlaldava.s16 r10, r11, q1, q2",
+    dot2x2_i16_vec!(),
     "    letp lr, 7b",
     "6:",
     "    ldr.w lr, [r12, #52]",
@@ -1446,33 +1464,13 @@ core::arch::global_asm!(
     "    dls lr, lr",
     "2:",
     ".rept 4",
-    "    vldrb.u8 q0, [r7], #16",
-    "    vldrb.u8 q1, [r9], #16",
-    "    vldrb.u8 q2, [r1], #16",
-    "    vmladava.s8 r0, q0, q2",
-    "    vmladava.s8 r6, q1, q2",
-    "    vldrb.u8 q2, [r3], #16",
-    "    vmladava.s8 r2, q0, q2",
-    "    vmladava.s8 r8, q1, q2",
-    "    vldrb.u8 q2, [r5], #16",
-    "    vmladava.s8 r4, q0, q2",
-    "    vmladava.s8 r10, q1, q2",
+    dots_s8_1_vec!(),
     ".endr",
     "    le lr, 2b",
     "5:",
     "    wlstp.8 lr, r11, 6f",
     "7:",
-    "    vldrb.u8 q0, [r7], #16",
-    "    vldrb.u8 q1, [r9], #16",
-    "    vldrb.u8 q2, [r1], #16",
-    "    vmladava.s8 r0, q0, q2",
-    "    vmladava.s8 r6, q1, q2",
-    "    vldrb.u8 q2, [r3], #16",
-    "    vmladava.s8 r2, q0, q2",
-    "    vmladava.s8 r8, q1, q2",
-    "    vldrb.u8 q2, [r5], #16",
-    "    vmladava.s8 r4, q0, q2",
-    "    vmladava.s8 r10, q1, q2",
+    dots_s8_1_vec!(),
     "    letp lr, 7b",
     "6:",
     "    ldr.w lr, [r12, #40]",
