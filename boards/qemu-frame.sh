@@ -60,13 +60,16 @@ if [ ${#plugin_args[@]} -gt 0 ]; then
     insns=$((region - empty))
     say "icount: region delta=$region, markers $empty -> $insns instructions per frame"
     w=${size%x*} h=${size#*x}
+    # The iterations the frame ran (fewer than the config's with adaptive iterations), from
+    # its result line; the MACs are those of that many iterations.
+    iters=$(echo "$got" | sed -n 's/.* iters=\([0-9]*\).*/\1/p')
     # `muir macs` prints a Markdown table in G (3 decimals); the test profile reuses what
     # `cargo test` built (scripts/test.sh), where --release would build the whole crate again.
-    if gmacs=$(cd "$root" && cargo run -q --profile test --bin muir -- macs --config muir-slim --size "${w}x${h}" \
+    if gmacs=$(cd "$root" && cargo run -q --profile test --bin muir -- macs --config muir-slim --size "${w}x${h}" ${iters:+--iters "$iters"} \
         | awk -F'|' '/\*\*engine total\*\*/{gsub(/ /, "", $4); print $4}') && [ -n "$gmacs" ]; then
-        awk -v name="$name" -v g="$gmacs" -v n="$insns" 'BEGIN {
-            printf "%s: engine MACs per frame %.3f G (muir macs) -> %.4f MAC/instruction, %.2f instructions/MAC\n",
-                name, g, g * 1e9 / n, n / (g * 1e9) }'
+        awk -v name="$name" -v g="$gmacs" -v n="$insns" -v it="${iters:-all}" 'BEGIN {
+            printf "%s: engine MACs per frame %.3f G (muir macs, %s iterations) -> %.4f MAC/instruction, %.2f instructions/MAC\n",
+                name, g, it, g * 1e9 / n, n / (g * 1e9) }'
     else
         say "warning: could not read the engine total of 'muir macs'; MACs per instruction not computed"
     fi

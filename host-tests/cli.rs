@@ -489,3 +489,25 @@ fn main_job_runs_from_any_directory() {
         assert!(s.path("muir-out").join(f).is_file(), "muir-out/{f} missing");
     }
 }
+
+/// `--adaptive` is `--early-stop 100 --settled 1 --min-iters 2` (`EarlyStop::RECOMMENDED`): the
+/// same iterations and bits on the shipped pair, fewer iterations than the maximum there, and the
+/// float engine refuses it.
+#[test]
+fn adaptive_is_the_recommended_criterion() {
+    let s = Scratch::new("adaptive");
+    let (a, b) = (s.path("a.pfm"), s.path("b.pfm"));
+    let o = muir(&[&"run", &"--adaptive", &"--disparity", &a]);
+    let err_a = stderr(&o);
+    assert!(o.status.success(), "{err_a}");
+    let o = muir(&[&"run", &"--early-stop", &"100", &"--settled", &"1", &"--min-iters", &"2", &"--disparity", &b]);
+    let err_b = stderr(&o);
+    assert!(o.status.success(), "{err_b}");
+    let iters = |e: &str| e.split(" iters").next().and_then(|h| h.rsplit(", ").next()).map(str::to_owned).unwrap_or_default();
+    assert_eq!(iters(&err_a), iters(&err_b), "{err_a}\n{err_b}");
+    let used: usize = iters(&err_a).split(" of ").next().and_then(|n| n.parse().ok()).unwrap_or(0);
+    assert!((2..7).contains(&used), "{err_a}");
+    assert_eq!(std::fs::read(&a).unwrap(), std::fs::read(&b).unwrap());
+    let o = muir(&[&"run", &"--engine", &"float", &"--adaptive", &"--disparity", &a]);
+    assert_fails(&o, &["--adaptive", "fixed engine"]);
+}

@@ -17,18 +17,22 @@
 use std::path::{Path, PathBuf};
 
 use muir::Config;
-use muir::engine::{CHECKED_TAUS, Engine, Output, Plan, reject, u_threshold};
+use muir::engine::{CHECKED_TAUS, EarlyStop, Engine, Output, Plan, reject, u_threshold};
 use muir::format::{QuantModel, crc32};
 use muir::input::{ImageView, PixelFormat};
 
-/// Builds the firmware can run: expected-results file, size and trunk. The 64x48 ones are what CI
-/// runs (`run-tests.sh`, `run-tests.sh --wide-trunk`); the others are measurement builds
-/// (`--features frame-WxH`). The wide-trunk builds embed `models/muir-slim-wide.muirq`.
-const FRAMES: [(&str, usize, usize, bool); 4] = [
-    ("expected.txt", 64, 48, false),
-    ("expected-160x120.txt", 160, 120, false),
-    ("expected-wide.txt", 64, 48, true),
-    ("expected-wide-160x120.txt", 160, 120, true),
+/// Builds the firmware can run: expected-results file, size, trunk and adaptive iterations. The
+/// 64x48 ones without adaptive iterations are what CI runs (`run-tests.sh`, `run-tests.sh
+/// --wide-trunk`); the others are measurement builds (`--features frame-WxH`, `--features
+/// early-stop`: `run-tests.sh --size WxH --early-stop`). The wide-trunk builds embed
+/// `models/muir-slim-wide.muirq`; the early-stop builds stop by [`EarlyStop::RECOMMENDED`].
+const FRAMES: [(&str, usize, usize, bool, bool); 6] = [
+    ("expected.txt", 64, 48, false, false),
+    ("expected-160x120.txt", 160, 120, false, false),
+    ("expected-wide.txt", 64, 48, true, false),
+    ("expected-wide-160x120.txt", 160, 120, true, false),
+    ("expected-early.txt", 64, 48, false, true),
+    ("expected-early-160x120.txt", 160, 120, false, true),
 ];
 
 const HEADER: &str = "\
@@ -86,7 +90,7 @@ fn le_bytes(v: &[i16]) -> Vec<u8> {
 }
 
 /// What the firmware prints for a size: its `MUIR-RESULT` line.
-fn result_line(model: &QuantModel<'_>, w: usize, h: usize) -> String {
+fn result_line(model: &QuantModel<'_>, w: usize, h: usize, early: bool) -> String {
     let cfg = Config { wide_trunk: model.config().wide_trunk, ..Config::MUIR_SLIM };
     assert_eq!(*model.config(), cfg, "the firmware's memory plan is for muir-slim");
     let (l, r) = pair(w, h);
@@ -96,7 +100,9 @@ fn result_line(model: &QuantModel<'_>, w: usize, h: usize) -> String {
     let mut arena = vec![0u64; plan.ram_bytes.div_ceil(8)];
     let mut engine = Engine::new(model, bytemuck::cast_slice_mut(&mut arena)).unwrap();
     let (mut d, mut u) = (vec![0i16; w * h], vec![0i16; w * h]);
+    engine.set_early_stop(early.then_some(EarlyStop::RECOMMENDED));
     engine.run(&left, &right, &mut Output { disparity: &mut d, uncertainty: Some(&mut u) }).unwrap();
+    let iters = engine.last_iterations();
     let (d_crc, u_crc) = (crc32(&le_bytes(&d)), crc32(&le_bytes(&u)));
     let mut kept = d.clone();
     let kept_1px = reject(&mut kept, &u, u_threshold(1.0));
@@ -108,7 +114,7 @@ fn result_line(model: &QuantModel<'_>, w: usize, h: usize) -> String {
     });
     let list = |v: &[String]| v.join(",");
     format!(
-        "MUIR-RESULT width={w} height={h} ram={} disparity_crc=0x{d_crc:08x} uncertainty_crc=0x{u_crc:08x} kept_1px={kept_1px} u_thresholds={} kept={}",
+        "MUIR-RESULT width={w} height={h} ram={} disparity_crc=0x{d_crc:08x} uncertainty_crc=0x{u_crc:08x} kept_1px={kept_1px} u_thresholds={} kept={} iters={iters}",
         plan.ram_bytes,
         list(&t.map(|x| x.to_string())),
         list(&k.map(|x| x.to_string()))
@@ -127,11 +133,11 @@ fn host_engine_matches_the_firmware_expected_results() {
     });
     let update = std::env::var_os("MUIR_UPDATE_EXPECTED").is_some_and(|v| v == "1");
     let mut mismatches = Vec::new();
-    for (file, w, h, wide) in FRAMES {
+    for (file, w, h, wide, early) in FRAMES {
         let (name, bytes) = &blobs[wide as usize];
         let model = QuantModel::parse(bytes).unwrap_or_else(|e| panic!("models/{name}: {e}"));
         assert_eq!(model.config().wide_trunk, wide, "models/{name}: trunk width");
-        let got = result_line(&model, w, h);
+        let got = result_line(&model, w, h, early);
         let path = board().join(file);
         if update {
             std::fs::write(&path, format!("{HEADER}{got}\n")).unwrap_or_else(|e| panic!("{}: {e}", path.display()));

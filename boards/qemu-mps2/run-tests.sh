@@ -7,6 +7,7 @@
 #   boards/qemu-mps2/run-tests.sh                  # CI: the 64x48 pair, expected.txt
 #   boards/qemu-mps2/run-tests.sh --size 160x120   # measurement: feature frame-160x120, expected-160x120.txt
 #   boards/qemu-mps2/run-tests.sh --wide-trunk     # CI too: models/muir-slim-wide.muirq, expected-wide.txt
+#   boards/qemu-mps2/run-tests.sh --early-stop     # measurement: adaptive iterations (EarlyStop::RECOMMENDED), expected-early*.txt
 #
 # Needs: the thumbv7em-none-eabihf Rust target, qemu-system-arm, models/muir-slim.muirq; gcc for the
 # plugin (without it, or without ../shared, the run is checked but not counted).
@@ -17,12 +18,14 @@ board="$(cd "$(dirname "$0")" && pwd)"
 root="$(cd "$board/../.." && pwd)"
 size=64x48
 wide=0
+early=0
 while [ $# -gt 0 ]; do
     case "$1" in
         --size) size="$2"; shift 2 ;;
         --size=*) size="${1#--size=}"; shift ;;
         --wide-trunk) wide=1; shift ;;
-        -h|--help) sed -n '2,14p' "$0"; exit 0 ;;
+        --early-stop) early=1; shift ;;
+        -h|--help) sed -n '2,15p' "$0"; exit 0 ;;
         *) echo "run-tests.sh: unknown argument '$1' (try --help)" >&2; exit 2 ;;
     esac
 done
@@ -35,6 +38,11 @@ model=muir-slim.muirq
 if [ "$wide" = 1 ]; then
     features+=(wide-trunk) model=muir-slim-wide.muirq
     expected="$board/expected-wide${expected#"$board/expected"}"
+fi
+if [ "$early" = 1 ]; then
+    [ "$wide" = 0 ] || { echo "run-tests.sh: --early-stop runs the u8 trunk only" >&2; exit 2; }
+    features+=(early-stop)
+    expected="$board/expected-early${expected#"$board/expected"}"
 fi
 expected="$expected.txt"
 if [ ${#features[@]} -gt 0 ]; then features=(--features "$(IFS=,; echo "${features[*]}")"); fi

@@ -10,6 +10,7 @@
 #   boards/qemu-mps3-m55/run-tests.sh                  # CI: the 64x48 pair, expected.txt
 #   boards/qemu-mps3-m55/run-tests.sh --size 160x120   # measurement: feature frame-160x120, expected-160x120.txt
 #   boards/qemu-mps3-m55/run-tests.sh --wide-trunk     # CI too: models/muir-slim-wide.muirq, expected-wide.txt
+#   boards/qemu-mps3-m55/run-tests.sh --early-stop     # measurement: adaptive iterations (EarlyStop::RECOMMENDED), expected-early*.txt
 #   boards/qemu-mps3-m55/run-tests.sh --no-mve         # without the Helium kernels (DSP ones only)
 #
 # Needs: the thumbv8m.main-none-eabihf Rust target, qemu-system-arm (7.2+), models/muir-slim.muirq;
@@ -22,14 +23,16 @@ root="$(cd "$board/../.." && pwd)"
 results="$root/boards/qemu-mps2" # the expected*.txt files: one set for every board
 size=64x48
 wide=0
+early=0
 mve=1
 while [ $# -gt 0 ]; do
     case "$1" in
         --size) size="$2"; shift 2 ;;
         --size=*) size="${1#--size=}"; shift ;;
         --wide-trunk) wide=1; shift ;;
+        --early-stop) early=1; shift ;;
         --no-mve) mve=0; shift ;;
-        -h|--help) sed -n '2,18p' "$0"; exit 0 ;;
+        -h|--help) sed -n '2,19p' "$0"; exit 0 ;;
         *) echo "run-tests.sh: unknown argument '$1' (try --help)" >&2; exit 2 ;;
     esac
 done
@@ -42,6 +45,11 @@ model=muir-slim.muirq
 if [ "$wide" = 1 ]; then
     features+=(wide-trunk) model=muir-slim-wide.muirq
     expected="$results/expected-wide${expected#"$results/expected"}"
+fi
+if [ "$early" = 1 ]; then
+    [ "$wide" = 0 ] || { echo "run-tests.sh: --early-stop runs the u8 trunk only" >&2; exit 2; }
+    features+=(early-stop)
+    expected="$results/expected-early${expected#"$results/expected"}"
 fi
 expected="$expected.txt"
 [ "$mve" = 1 ] && features+=(mve)

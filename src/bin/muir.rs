@@ -144,6 +144,11 @@ struct RunArgs {
     /// the full-resolution refinement's rows.
     #[arg(long, value_name = "N", default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=4))]
     threads: u8,
+    /// Fixed engine: adaptive iterations with the recommended criterion (stop once at most 100
+    /// per mille of the 1/8-grid pixels still move by more than 1 px per iteration, after 2;
+    /// chosen on training scenes: docs/experiments/adaptive-iterations); --iters stays the maximum.
+    #[arg(long, conflicts_with = "early_stop")]
+    adaptive: bool,
     /// Fixed engine: adaptive iterations, stop once at most P per mille of the 1/8-grid pixels
     /// still move by more than --settled px (full resolution) per iteration; --iters stays the
     /// maximum.
@@ -488,8 +493,8 @@ fn run(args: &RunArgs) -> Result<(), String> {
     };
     let spinner = spinner(&format!("{} {}x{}, {iters} iterations, {label} engine", config.name, left.width, left.height));
     let start = Instant::now();
-    if args.early_stop.is_some() && engine_kind != Engine::Fixed {
-        return Err("--early-stop needs the fixed engine (--engine fixed or a .muirq model)".into());
+    if (args.early_stop.is_some() || args.adaptive) && engine_kind != Engine::Fixed {
+        return Err("--early-stop and --adaptive need the fixed engine (--engine fixed or a .muirq model)".into());
     }
     let early = args.early_stop.map(|p| muir::engine::EarlyStop {
         min_iters: args.min_iters,
@@ -497,6 +502,7 @@ fn run(args: &RunArgs) -> Result<(), String> {
         settled: (args.settled * 32.0).round().clamp(0.0, u16::MAX as f32) as u16,
         max_moving_per_mille: p.min(1000),
     });
+    let early = if args.adaptive { Some(muir::engine::EarlyStop::RECOMMENDED) } else { early };
     let pred = engine.predict(&left.view(), &right.view(), iters, args.reject_above, !args.no_refine, early, max_disparity, args.threads as usize);
     let network = start.elapsed();
     spinner.finish_and_clear();

@@ -22,7 +22,7 @@ use cortex_m_rt::entry;
 use embedded_hal::digital::{ErrorKind, ErrorType, OutputPin};
 use muir::Config;
 use muir::engine::hal::run_with_busy_pin;
-use muir::engine::{Arena, CHECKED_TAUS, Disparity, Engine, Output, Plan, predicted_error_px, reject, u_threshold};
+use muir::engine::{Arena, CHECKED_TAUS, Disparity, EarlyStop, Engine, Output, Plan, predicted_error_px, reject, u_threshold};
 use muir::format::{QuantModel, crc32};
 use muir::input::{ImageView, PixelFormat};
 use semihosting::{eprintln, println, process};
@@ -49,6 +49,10 @@ const CONFIG: Config = Config { wide_trunk: cfg!(feature = "wide-trunk"), ..Conf
 
 /// The memory plan of this model and image size, evaluated at compile time.
 const PLAN: Plan = Plan::new(&CONFIG, W, H);
+
+/// Adaptive iterations: with feature `early-stop`, the recommended criterion
+/// ([`EarlyStop::RECOMMENDED`]); without it, all 7 iterations.
+const EARLY_STOP: Option<EarlyStop> = if cfg!(feature = "early-stop") { Some(EarlyStop::RECOMMENDED) } else { None };
 
 #[path = "../../../common/once_static.rs"]
 mod once_static;
@@ -244,6 +248,7 @@ fn main() -> ! {
     let left = ImageView::new(W, H, PixelFormat::Gray8, LEFT).unwrap_or_else(|e| fail("left image", e));
     let right = ImageView::new(W, H, PixelFormat::Gray8, RIGHT).unwrap_or_else(|e| fail("right image", e));
     let mut engine = Engine::new(&model, &mut arena.0).unwrap_or_else(|e| fail("engine", e));
+    engine.set_early_stop(EARLY_STOP);
     let mut led = FpgaLed { bit: 0, edges: 0 };
     let mut out = Output { disparity: &mut disparity[..], uncertainty: Some(&mut uncertainty[..]) };
 
@@ -255,6 +260,7 @@ fn main() -> ! {
     let result = run_with_busy_pin(&mut engine, &left, &right, &mut out, &mut led);
     bench_end();
     result.unwrap_or_else(|e| fail("frame", e));
+    let iters = engine.last_iterations();
     let stack_bytes = stack::high_water(painted);
     if stack_bytes > muir::engine::STACK_BUDGET {
         fail("stack", format_args!("the frame used {stack_bytes} bytes of stack, over engine::STACK_BUDGET ({})", muir::engine::STACK_BUDGET));
@@ -282,7 +288,7 @@ fn main() -> ! {
     };
     println!(
         "MUIR-RESULT width={W} height={H} ram={} disparity_crc=0x{d_crc:08x} uncertainty_crc=0x{u_crc:08x} kept_1px={kept_1px} \
-         u_thresholds={} kept={}",
+         u_thresholds={} kept={} iters={iters}",
         PLAN.ram_bytes,
         list(&t.map(i64::from)),
         list(&k.map(|n| n as i64)),
