@@ -511,3 +511,21 @@ fn adaptive_is_the_recommended_criterion() {
     let o = muir(&[&"run", &"--engine", &"float", &"--adaptive", &"--disparity", &a]);
     assert_fails(&o, &["--adaptive", "fixed engine"]);
 }
+
+/// `--timings` prints one line per phase of the fixed engine's frame and their sum; the float
+/// engine refuses it.
+#[test]
+fn timings_list_every_phase() {
+    let s = Scratch::new("timings");
+    let d = s.path("d.pfm");
+    let o = muir(&[&"run", &"--timings", &"--disparity", &d]);
+    let err = stderr(&o);
+    assert!(o.status.success(), "{err}");
+    for p in muir::engine::Phase::ALL {
+        assert!(err.lines().any(|l| l.contains(p.name()) && l.ends_with('%')), "no line for {}:\n{err}", p.name());
+    }
+    let frame = err.lines().find(|l| l.contains(" frame ")).and_then(|l| l.trim_end_matches(" ms").rsplit(' ').next()?.parse::<f64>().ok());
+    assert!(frame.is_some_and(|f| f > 0.0), "{err}");
+    let o = muir(&[&"run", &"--engine", &"float", &"--timings", &"--disparity", &d]);
+    assert_fails(&o, &["--timings", "fixed engine"]);
+}

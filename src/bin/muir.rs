@@ -144,6 +144,10 @@ struct RunArgs {
     /// the full-resolution refinement's rows.
     #[arg(long, value_name = "N", default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=4))]
     threads: u8,
+    /// Fixed engine: print the wall time of each phase of the frame (encoders, UFI, MGA, MUD, the
+    /// ConvGRUs, the heads, the full-resolution refinement) after the summary.
+    #[arg(long)]
+    timings: bool,
     /// Fixed engine: adaptive iterations with the recommended criterion (stop once at most 100
     /// per mille of the 1/8-grid pixels still move by more than 1 px per iteration, after 2;
     /// chosen on training scenes: docs/experiments/adaptive-iterations); --iters stays the maximum.
@@ -397,6 +401,8 @@ struct Prediction {
     rejected: Option<usize>,
     /// Refinement iterations run.
     iters_used: usize,
+    /// The fixed engine's phase times.
+    phases: Option<muir::engine::PhaseTimes>,
 }
 
 fn run(args: &RunArgs) -> Result<(), String> {
@@ -496,6 +502,9 @@ fn run(args: &RunArgs) -> Result<(), String> {
     if (args.early_stop.is_some() || args.adaptive) && engine_kind != Engine::Fixed {
         return Err("--early-stop and --adaptive need the fixed engine (--engine fixed or a .muirq model)".into());
     }
+    if args.timings && engine_kind != Engine::Fixed {
+        return Err("--timings needs the fixed engine (--engine fixed or a .muirq model)".into());
+    }
     let early = args.early_stop.map(|p| muir::engine::EarlyStop {
         min_iters: args.min_iters,
         // full-resolution px -> Q7.8 at 1/8: x 256 / 8 = x 32
@@ -522,6 +531,9 @@ fn run(args: &RunArgs) -> Result<(), String> {
         }
     }
     eprintln!("{}", summary(&config, label, w, h, iters, network, &pred));
+    if let (true, Some(t)) = (args.timings, &pred.phases) {
+        eprint!("{}", phase_table(t));
+    }
     if let Some(gt) = &gt {
         eprintln!("{}", score(gt, &pred));
     }
@@ -598,7 +610,7 @@ impl Loaded {
                     (Some(t), Some(e)) => Some(reject_float(&mut disparity, e, t)),
                     _ => None,
                 };
-                Ok(Prediction { width: p.width, height: p.height, disparity, error_px, raw_disparity, rejected, iters_used: iters })
+                Ok(Prediction { width: p.width, height: p.height, disparity, error_px, raw_disparity, rejected, iters_used: iters, phases: None })
             }
             Loaded::Fixed(bytes) => {
                 let model = QuantModel::parse(bytes).map_err(|e| e.to_string())?;
@@ -624,7 +636,7 @@ impl Loaded {
                 };
                 let disparity = d.iter().map(|v| if *v == REJECTED { f32::INFINITY } else { px(*v) }).collect();
                 let error_px = model.config().mud.then(|| u.iter().map(|v| (0.5 * LogVariance::from_bits(*v).to_num::<f32>()).exp()).collect());
-                Ok(Prediction { width: w, height: h, disparity, error_px, raw_disparity, rejected, iters_used: used })
+                Ok(Prediction { width: w, height: h, disparity, error_px, raw_disparity, rejected, iters_used: used, phases: Some(engine.last_phase_times()) })
             }
         }
     }
@@ -663,6 +675,16 @@ fn summary(config: &Config, engine: &str, w: usize, h: usize, iters: usize, netw
         if pred.iters_used == iters { format!("{iters}") } else { format!("{} of {iters}", pred.iters_used) },
         network.as_secs_f64()
     )
+}
+
+/// `--timings`: one line per phase of the frame, milliseconds and share.
+fn phase_table(t: &muir::engine::PhaseTimes) -> String {
+    let total = t.total().as_secs_f64().max(1e-9);
+    let mut s = String::new();
+    for (p, d) in t.iter() {
+        s += &format!("muir:   {:<22} {:>9.1} ms {:>5.1} %\n", p.name(), d.as_secs_f64() * 1e3, 100.0 * d.as_secs_f64() / total);
+    }
+    s + &format!("muir:   {:<22} {:>9.1} ms\n", "frame", total * 1e3)
 }
 
 fn spinner(message: &str) -> ProgressBar {

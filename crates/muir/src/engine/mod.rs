@@ -25,6 +25,8 @@ mod encoder;
 pub mod hal;
 #[cfg(feature = "std")]
 mod host_rows;
+#[cfg(feature = "std")]
+mod phase_times;
 #[cfg(feature = "internals")]
 pub mod layout;
 #[cfg(not(feature = "internals"))]
@@ -42,6 +44,8 @@ mod ring;
 use core::fmt;
 
 pub use plan::{Grid, Plan, STACK_BUDGET, ram_bytes};
+#[cfg(feature = "std")]
+pub use phase_times::{Phase, PhaseTimes};
 
 use crate::format::QuantModel;
 use crate::model::config::MaxDisparity;
@@ -181,6 +185,8 @@ pub struct Engine<'m, 'a, 'w> {
     last_iters: usize,
     #[cfg(feature = "std")]
     threads: usize,
+    #[cfg(feature = "std")]
+    phase_times: PhaseTimes,
 }
 
 impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
@@ -199,6 +205,8 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
             last_iters: 0,
             #[cfg(feature = "std")]
             threads: 1,
+            #[cfg(feature = "std")]
+            phase_times: PhaseTimes::default(),
         })
     }
 
@@ -228,6 +236,12 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
     /// Refinement iterations the last successful run used.
     pub fn last_iterations(&self) -> usize {
         self.last_iters
+    }
+
+    /// Wall time of each phase of the last successful run (host builds, feature `std`).
+    #[cfg(feature = "std")]
+    pub fn last_phase_times(&self) -> PhaseTimes {
+        self.phase_times
     }
 
     /// Turns the full-resolution refinement (semi-global matching in a band around the network's disparity, `kernels::fullres`) on (the default) or off
@@ -279,6 +293,19 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
         // The kernels' threads (host): this engine's count.
         #[cfg(feature = "std")]
         crate::kernels::pool::set_threads(self.threads);
+        // Host: the phases' wall times ([`Engine::last_phase_times`]); nothing on a target.
+        #[cfg(feature = "std")]
+        let mut clock = phase_times::Stopwatch::new();
+        #[cfg(feature = "std")]
+        macro_rules! lap {
+            ($p:ident) => {
+                clock.lap(Phase::$p)
+            };
+        }
+        #[cfg(not(feature = "std"))]
+        macro_rules! lap {
+            ($p:ident) => {};
+        }
         // Encoder: right image first (features only), then the left (features and context).
         #[cfg(feature = "std")]
         // With threads, both encoders side by side (the kernel pool held meanwhile: each
@@ -293,28 +320,36 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
             encode_image(m, &plan, self.arena, right, false);
             encode_image(m, &plan, self.arena, left, true);
         }
+        lap!(Encoders);
         // Refinement.
         let mut c = refine_ctx(m, &plan, self.arena);
         c.st.flow.fill(0);
         if cfg.ufi {
             refine::ufi(&mut c, self.max_disparity.grid8());
         }
+        lap!(Ufi);
         if cfg.mga {
             refine::mga_setup(&mut c);
         }
+        lap!(MgaSetup);
         let n8 = plan.grid.n8() as u64;
         let mut used = 0;
         for it in 0..iters {
             if cfg.mud {
                 refine::mud_pass(&mut c);
             }
+            lap!(Mud);
             if cfg.mga {
                 refine::mga_values(&mut c);
             }
+            lap!(MgaValues);
             refine::gru16(&mut c);
             refine::gru16(&mut c);
+            lap!(Gru16);
             refine::gru08(&mut c);
+            lap!(Gru08);
             let moved = refine::flow_head(&mut c, self.early_stop.map_or(0, |s| s.settled));
+            lap!(FlowHead);
             used = it + 1;
             if let Some(stop) = self.early_stop
                 && used >= stop.min_iters
@@ -328,11 +363,17 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
             refine::mud_pass(&mut c);
         }
         refine::upsample(&mut c, width, height, out.disparity, out.uncertainty.as_deref_mut());
+        lap!(Output);
         if self.full_res {
             let mut cv = Carver::new(first_n_mut(self.arena, plan.ram_bytes));
             let b = plan.fullres;
             let scratch = crate::kernels::fullres::Scratch { census: cv.u64(b.census), paths: cv.u16(b.paths), rows: cv.i16(b.rows), grey: cv.u8(b.grey) };
             crate::kernels::fullres::refine_image(left, right, out.disparity, out.uncertainty.as_deref(), scratch);
+        }
+        lap!(FullRes);
+        #[cfg(feature = "std")]
+        {
+            self.phase_times = clock.times;
         }
         Ok(())
     }
