@@ -34,6 +34,35 @@ const STALLED: u32 = SPINS_BEFORE_YIELD + 2048;
 const BACK_OFF_JOBS: u32 = 4096;
 /// Jobs left to run on the caller alone (see [`STALLED`]).
 static INLINE_JOBS: AtomicU32 = AtomicU32::new(0);
+/// Stalled jobs (see [`STALLED`]) within [`STALL_WINDOW`] of each other that make the pool back
+/// off: one alone is no sign of a busy machine. On an idle machine a worker stalls about once a
+/// frame: woken from its sleep after the encoders (a futex wake-up on a VM takes hundreds of
+/// microseconds) or first touching a large buffer (the OS zeroes its pages); backing off then made
+/// two-thirds of a 450x375 frame's jobs run on the caller alone.
+const STALLS_TO_BACK_OFF: u32 = 3;
+/// See [`STALLS_TO_BACK_OFF`].
+const STALL_WINDOW: std::time::Duration = std::time::Duration::from_millis(50);
+/// The process's stalls (see [`StallCount`]).
+static STALLS: StallCount = StallCount { n: AtomicU32::new(0), last_ns: AtomicU64::new(0) };
+
+/// Stalls counted in the current window, and when the last one happened.
+struct StallCount {
+    n: AtomicU32,
+    /// Nanoseconds since the pool's first use.
+    last_ns: AtomicU64,
+}
+
+impl StallCount {
+    /// Counts a stall at `now_ns`; `true` when it is the [`STALLS_TO_BACK_OFF`]-th, each within
+    /// [`STALL_WINDOW`] of the one before (the count then starts again).
+    fn stall(&self, now_ns: u64) -> bool {
+        let last = self.last_ns.swap(now_ns, Ordering::Relaxed);
+        let n = if now_ns.saturating_sub(last) > STALL_WINDOW.as_nanos() as u64 { 1 } else { self.n.load(Ordering::Relaxed) + 1 };
+        let back_off = n >= STALLS_TO_BACK_OFF;
+        self.n.store(if back_off { 0 } else { n }, Ordering::Relaxed);
+        back_off
+    }
+}
 
 /// Threads the kernels use, the caller included.
 static THREADS: AtomicUsize = AtomicUsize::new(1);
@@ -140,7 +169,9 @@ pub fn run(tasks: usize, f: &(dyn Fn(usize) + Sync)) {
     let job = Job { f, tasks, next: AtomicUsize::new(0), done: AtomicUsize::new(0), panicked: AtomicBool::new(false) };
     p.job.store(&job as *const Job as *mut Job, Ordering::SeqCst);
     p.epoch.fetch_add(1, Ordering::SeqCst);
-    if p.sleepers.load(Ordering::SeqCst) > 0 {
+    // A sleeping worker takes a while to wake: a slow job then is no stall (see `STALLED`).
+    let woke = p.sleepers.load(Ordering::SeqCst) > 0;
+    if woke {
         let _g = p.lock.lock();
         p.wake.notify_all();
     }
@@ -157,12 +188,12 @@ pub fn run(tasks: usize, f: &(dyn Fn(usize) + Sync)) {
         pause(&mut waits);
     }
     p.busy.store(false, Ordering::Release);
-    if waits >= STALLED && start.elapsed() > 3 * worked {
+    if !woke && waits >= STALLED && start.elapsed() > 3 * worked && repeated_stall() {
         // A worker held its task far longer than the caller's own share took (and over a
-        // millisecond): the OS had descheduled it (the cores are busy with other processes).
-        // Waiting on it again would make the frame slower than one thread, so the next jobs run
-        // on the caller alone. (Coarse jobs, e.g. the float engine's halves of a product, wait
-        // long but not for longer than they worked.)
+        // millisecond), several times within a short while: the OS deschedules it (the cores
+        // are busy with other processes). Waiting on it again would make the frame slower than
+        // one thread, so the next jobs run on the caller alone. (Coarse jobs, e.g. the float
+        // engine's halves of a product, wait long but not for longer than they worked.)
         INLINE_JOBS.store(BACK_OFF_JOBS, Ordering::Relaxed);
     }
     if job.panicked.load(Ordering::Relaxed) {
@@ -171,6 +202,12 @@ pub fn run(tasks: usize, f: &(dyn Fn(usize) + Sync)) {
             panic!("a kernel task panicked on a worker thread");
         }
     }
+}
+
+/// Counts a stalled job now ([`StallCount::stall`]).
+fn repeated_stall() -> bool {
+    static EPOCH: OnceLock<std::time::Instant> = OnceLock::new();
+    STALLS.stall(EPOCH.get_or_init(std::time::Instant::now).elapsed().as_nanos() as u64)
 }
 
 /// One step of the caller's wait for a worker's last task: a spin, and after a while a yield of
@@ -309,5 +346,21 @@ mod tests {
             }
         }
         set_threads(1);
+    }
+
+    #[test]
+    fn one_stall_is_no_back_off_but_repeated_ones_are() {
+        let c = StallCount { n: AtomicU32::new(0), last_ns: AtomicU64::new(0) };
+        let (ms, win) = (1_000_000u64, STALL_WINDOW.as_nanos() as u64);
+        let t0 = 10 * win;
+        // Within one window of each other: the third stall backs off and the count starts again.
+        let within: Vec<bool> = (0..4).map(|i| c.stall(t0 + i * ms)).collect();
+        assert_eq!(within, [false, false, true, false]);
+        // A stall after a quiet window starts a new count: spread-out stalls never back off.
+        let spread: Vec<bool> = (1..=5).map(|i| c.stall(t0 + i * (win + ms))).collect();
+        assert_eq!(spread, [false; 5]);
+        // Two close ones after a gap are two, not three.
+        let t1 = t0 + 10 * win;
+        assert_eq!([c.stall(t1), c.stall(t1 + ms), c.stall(t1 + 2 * ms)], [false, false, true]);
     }
 }
