@@ -43,10 +43,19 @@ struct Scratch {
     el: Vec<i32>,
     /// The queries' i64 sums, `[query][cv]`.
     acc: Vec<i64>,
+    /// [`Prepared::stats_avx512`]'s logits of its first pass, for its second: per 16 keys and
+    /// query the lanes `h` and `l` of [`logits16`].
+    logits: Vec<__m512i>,
 }
 
 std::thread_local! {
     static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
+}
+
+/// A zero vector (plain SSE2-level code: no AVX-512 needed to build the value).
+fn _mm512_setzero_si512_safe() -> __m512i {
+    // SAFETY: `__m512i` is plain data; all-zero bits are a valid value.
+    unsafe { core::mem::zeroed() }
 }
 
 /// `exp_q11`'s knots as `a + (b - a) << 16` for knot pairs `(a, b)` = entries `i, i + 1` of its
@@ -159,32 +168,40 @@ impl Prepared {
         let row = self.npad / 2;
         let kept = keep.len() >= nq * row;
         let mut ok = true;
-        let mut i = 0;
-        while i < nq {
-            let r = (nq - i).min(R);
-            let (qh, ql) = split_queries(qs.get(i * c..(i + r) * c).unwrap_or_default(), c);
-            let k = if kept { keep.get_mut(i * row..(i + r) * row).unwrap_or_default() } else { &mut [][..] };
-            // SAFETY: the CPU has AVX-512 F/BW/VNNI (`fill_keys` checked); `k` is empty or
-            // holds `r` rows of `npad / 2`.
-            let (st, fine) = unsafe { self.stats_avx512(&qh, &ql, r, m, k) };
-            ok &= fine;
-            for (o, (mx, sum)) in out.get_mut(2 * i..2 * (i + r)).unwrap_or_default().chunks_exact_mut(2).zip(st) {
-                if let [a, b] = o {
-                    (*a, *b) = (mx, sum);
-                }
+        SCRATCH.with_borrow_mut(|s| {
+            // Logits of the first pass, `npad / 16` blocks of `2 R` vectors.
+            if s.logits.len() < self.npad / 16 * 2 * R {
+                s.logits.resize(self.npad / 16 * 2 * R, _mm512_setzero_si512_safe());
             }
-            i += r;
-        }
+            let mut i = 0;
+            while i < nq {
+                let r = (nq - i).min(R);
+                let (qh, ql) = split_queries(qs.get(i * c..(i + r) * c).unwrap_or_default(), c);
+                let k = if kept { keep.get_mut(i * row..(i + r) * row).unwrap_or_default() } else { &mut [][..] };
+                // SAFETY: the CPU has AVX-512 F/BW/VNNI (`fill_keys` checked); `k` is empty or
+                // holds `r` rows of `npad / 2`; `s.logits` holds `npad / 16` blocks of `2 R`.
+                let (st, fine) = unsafe { self.stats_avx512(&qh, &ql, r, m, k, &mut s.logits) };
+                ok &= fine;
+                for (o, (mx, sum)) in out.get_mut(2 * i..2 * (i + r)).unwrap_or_default().chunks_exact_mut(2).zip(st) {
+                    if let [a, b] = o {
+                        (*a, *b) = (mx, sum);
+                    }
+                }
+                i += r;
+            }
+        });
         ok || !kept
     }
 
     /// `(max, sum)` of `r <= R` split queries, and where `keep` is not empty (`r` rows of
-    /// `npad / 2`) their weights as key pairs; `true` when every weight is in `[0, 32768]`.
+    /// `npad / 2`) their weights as key pairs; `true` when every weight is in `[0, 32768]`. The
+    /// first pass (the maxima) keeps its logits in `logits` for the second (the weights).
     ///
     /// # Safety
-    /// The CPU has AVX-512 F, BW and VNNI; `keep` is empty or holds `r npad / 2` values.
+    /// The CPU has AVX-512 F, BW and VNNI; `keep` is empty or holds `r npad / 2` values;
+    /// `logits` holds `npad / 16` blocks of `2 R` vectors.
     #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
-    unsafe fn stats_avx512(&self, qh: &[[i32; R]; MAX_C / 2], ql: &[[i32; R]; MAX_C / 2], r: usize, m: Multiplier, keep: &mut [u32]) -> ([(i64, i64); R], bool) {
+    unsafe fn stats_avx512(&self, qh: &[[i32; R]; MAX_C / 2], ql: &[[i32; R]; MAX_C / 2], r: usize, m: Multiplier, keep: &mut [u32], logits: &mut [__m512i]) -> ([(i64, i64); R], bool) {
         let (npad, n, g_n) = (self.npad, self.n, self.c / 2);
         let (kt, qhp, qlp) = (self.kt.as_ptr(), qh.as_ptr().cast::<i32>(), ql.as_ptr().cast::<i32>());
         let lanes = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
@@ -199,6 +216,11 @@ impl Prepared {
             }
             // SAFETY: `kt` holds `c / 2` rows of `npad >= j + 16`; `qh`, `ql` `MAX_C / 2` rows.
             let (ah, al) = unsafe { logits16(kt, npad, j, g_n, qhp, qlp) };
+            if let Some(d) = logits.get_mut(j / 16 * 2 * R..(j / 16 + 1) * 2 * R) {
+                let (dh, dl) = d.split_at_mut(R);
+                dh.copy_from_slice(&ah);
+                dl.copy_from_slice(&al);
+            }
             for ((mx, ah), al) in mx.iter_mut().zip(ah).zip(al) {
                 let lo = _mm512_add_epi64(_mm512_slli_epi64::<8>(_mm512_cvtepi32_epi64(_mm512_castsi512_si256(ah))), _mm512_cvtepi32_epi64(_mm512_castsi512_si256(al)));
                 let hi = _mm512_add_epi64(
@@ -224,8 +246,15 @@ impl Prepared {
             if k == 0 {
                 break;
             }
-            // SAFETY: as above.
-            let (ah, al) = unsafe { logits16(kt, npad, j, g_n, qhp, qlp) };
+            // The first pass's logits (computed again where `logits` is short).
+            let (ah, al) = match logits.get(j / 16 * 2 * R..(j / 16 + 1) * 2 * R) {
+                Some(b) => {
+                    let (h, l) = b.split_at(R);
+                    (core::array::from_fn::<_, R, _>(|t| h.get(t).copied().unwrap_or(_mm512_setzero_si512())), core::array::from_fn::<_, R, _>(|t| l.get(t).copied().unwrap_or(_mm512_setzero_si512())))
+                }
+                // SAFETY: as above.
+                None => unsafe { logits16(kt, npad, j, g_n, qhp, qlp) },
+            };
             for (t, ((o, ah), al)) in out.iter_mut().zip(ah).zip(al).take(r).enumerate() {
                 // SAFETY: `e` is 16 i32.
                 unsafe { weights16(ah, al, o.0, m, knots, e.as_mut_ptr()) };
