@@ -52,8 +52,9 @@ std::thread_local! {
     static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
 }
 
-/// A zero vector (plain SSE2-level code: no AVX-512 needed to build the value).
-fn _mm512_setzero_si512_safe() -> __m512i {
+/// A zero vector, built without AVX-512 instructions (for resizing the scratch outside the
+/// `target_feature` functions).
+fn zero_vector() -> __m512i {
     // SAFETY: `__m512i` is plain data; all-zero bits are a valid value.
     unsafe { core::mem::zeroed() }
 }
@@ -171,7 +172,7 @@ impl Prepared {
         SCRATCH.with_borrow_mut(|s| {
             // Logits of the first pass, `npad / 16` blocks of `2 R` vectors.
             if s.logits.len() < self.npad / 16 * 2 * R {
-                s.logits.resize(self.npad / 16 * 2 * R, _mm512_setzero_si512_safe());
+                s.logits.resize(self.npad / 16 * 2 * R, zero_vector());
             }
             let mut i = 0;
             while i < nq {
