@@ -2359,41 +2359,20 @@ unsafe fn dot_w8_4cols_at<const H: usize>(a: *const u8, p: *const u32, c: usize,
 #[inline(always)]
 unsafe fn dot_w8_4cols_128(a: *const u8, p: *const u32) -> [i32; 4] {
     let (mut s0, mut s1, mut s2, mut s3) = (0i32, 0i32, 0i32, 0i32);
+    // One quad of `f1` against the four columns (256 bytes apart): one step, written out twice a
+    // pass (not `.rept`).
+    macro_rules! step {
+        () => {
+            "ldr {q}, [{a}], #4\nldrd {x}, {y}, [{p}], #8\nsxtb16 {e}, {q}\nsxtb16 {q}, {q}, ror #8\nsmlad {s0}, {x}, {e}, {s0}\nsmlad {s0}, {y}, {q}, {s0}\nldrd {x}, {y}, [{p}, #248]\nsmlad {s1}, {x}, {e}, {s1}\nsmlad {s1}, {y}, {q}, {s1}\nldrd {x}, {y}, [{p}, #504]\nsmlad {s2}, {x}, {e}, {s2}\nsmlad {s2}, {y}, {q}, {s2}\nldrd {x}, {y}, [{p}, #760]\nsmlad {s3}, {x}, {e}, {s3}\nsmlad {s3}, {y}, {q}, {s3}"
+        };
+    }
     // SAFETY: 16 passes of two quads: bytes `a .. a + 128`, words `p + j 64 .. p + j 64 + 64`
     // (`j < 4`); SMLAD sets the Q flag only on overflow, which `c <= 2^15` excludes.
     unsafe {
         core::arch::asm!(
             "2:",
-            "ldr {q}, [{a}], #4",
-            "ldrd {x}, {y}, [{p}], #8",
-            "sxtb16 {e}, {q}",
-            "sxtb16 {q}, {q}, ror #8",
-            "smlad {s0}, {x}, {e}, {s0}",
-            "smlad {s0}, {y}, {q}, {s0}",
-            "ldrd {x}, {y}, [{p}, #248]",
-            "smlad {s1}, {x}, {e}, {s1}",
-            "smlad {s1}, {y}, {q}, {s1}",
-            "ldrd {x}, {y}, [{p}, #504]",
-            "smlad {s2}, {x}, {e}, {s2}",
-            "smlad {s2}, {y}, {q}, {s2}",
-            "ldrd {x}, {y}, [{p}, #760]",
-            "smlad {s3}, {x}, {e}, {s3}",
-            "smlad {s3}, {y}, {q}, {s3}",
-            "ldr {q}, [{a}], #4",
-            "ldrd {x}, {y}, [{p}], #8",
-            "sxtb16 {e}, {q}",
-            "sxtb16 {q}, {q}, ror #8",
-            "smlad {s0}, {x}, {e}, {s0}",
-            "smlad {s0}, {y}, {q}, {s0}",
-            "ldrd {x}, {y}, [{p}, #248]",
-            "smlad {s1}, {x}, {e}, {s1}",
-            "smlad {s1}, {y}, {q}, {s1}",
-            "ldrd {x}, {y}, [{p}, #504]",
-            "smlad {s2}, {x}, {e}, {s2}",
-            "smlad {s2}, {y}, {q}, {s2}",
-            "ldrd {x}, {y}, [{p}, #760]",
-            "smlad {s3}, {x}, {e}, {s3}",
-            "smlad {s3}, {y}, {q}, {s3}",
+            step!(),
+            step!(),
             "cmp {a}, {end}",
             "bne 2b",
             a = inout(reg) a => _,
