@@ -247,12 +247,11 @@ impl Prepared {
             if k == 0 {
                 break;
             }
-            // The first pass's logits (computed again where `logits` is short).
-            let (ah, al) = match logits.get(j / 16 * 2 * R..(j / 16 + 1) * 2 * R) {
-                Some(b) => {
-                    let (h, l) = b.split_at(R);
-                    (core::array::from_fn::<_, R, _>(|t| h.get(t).copied().unwrap_or(_mm512_setzero_si512())), core::array::from_fn::<_, R, _>(|t| l.get(t).copied().unwrap_or(_mm512_setzero_si512())))
-                }
+            // The first pass's logits (computed again only where `logits` is short, which the
+            // contract excludes).
+            let stored = logits.get(j / 16 * 2 * R..(j / 16 + 1) * 2 * R).and_then(|b| Some((<[__m512i; R]>::try_from(b.get(..R)?).ok()?, <[__m512i; R]>::try_from(b.get(R..)?).ok()?)));
+            let (ah, al) = match stored {
+                Some(v) => v,
                 // SAFETY: as above.
                 None => unsafe { logits16(kt, npad, j, g_n, qhp, qlp) },
             };
