@@ -505,13 +505,16 @@ fn run(args: &RunArgs) -> Result<(), String> {
     if args.timings && engine_kind != Engine::Fixed {
         return Err("--timings needs the fixed engine (--engine fixed or a .muirq model)".into());
     }
-    let early = args.early_stop.map(|p| muir::engine::EarlyStop {
-        min_iters: args.min_iters,
-        // full-resolution px -> Q7.8 at 1/8: x 256 / 8 = x 32
-        settled: (args.settled * 32.0).round().clamp(0.0, u16::MAX as f32) as u16,
-        max_moving_per_mille: p.min(1000),
-    });
-    let early = if args.adaptive { Some(muir::engine::EarlyStop::RECOMMENDED) } else { early };
+    let early = if args.adaptive {
+        Some(muir::engine::EarlyStop::RECOMMENDED)
+    } else {
+        args.early_stop.map(|p| muir::engine::EarlyStop {
+            min_iters: args.min_iters,
+            // full-resolution px -> Q7.8 at 1/8: x 256 / 8 = x 32
+            settled: (args.settled * 32.0).round().clamp(0.0, u16::MAX as f32) as u16,
+            max_moving_per_mille: p.min(1000),
+        })
+    };
     let pred = engine.predict(&left.view(), &right.view(), iters, args.reject_above, !args.no_refine, early, max_disparity, args.threads as usize);
     let network = start.elapsed();
     spinner.finish_and_clear();
