@@ -180,6 +180,38 @@ pub fn stats_row(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, y: usize, w: usiz
     });
 }
 
+/// This thread's frame state of the attention (the kept softmax weights and the pass's layout of
+/// keys and values), moved out so that another thread can aggregate with it ([`lend_attention`]
+/// there), and back with [`lend_attention`] here.
+pub struct AttentionState {
+    #[cfg(target_arch = "x86_64")]
+    kept: Kept,
+    #[cfg(target_arch = "x86_64")]
+    prepared: (Prepared, bool),
+}
+
+/// Takes this thread's [`AttentionState`] (it is left empty: a pass here would lay out and
+/// compute afresh).
+pub fn take_attention() -> AttentionState {
+    AttentionState {
+        #[cfg(target_arch = "x86_64")]
+        kept: KEPT.with_borrow_mut(|k| core::mem::replace(k, Kept { w: Vec::new(), row: 0, filled: Vec::new() })),
+        #[cfg(target_arch = "x86_64")]
+        prepared: PREPARED.with_borrow_mut(core::mem::take),
+    }
+}
+
+/// Makes `s` this thread's [`AttentionState`] (what it had is dropped).
+pub fn lend_attention(s: AttentionState) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        KEPT.with_borrow_mut(|k| *k = s.kept);
+        PREPARED.with_borrow_mut(|p| *p = s.prepared);
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = s;
+}
+
 /// Starts a pass of [`aggregate_row`] calls over keys and values that stay as they are until the
 /// next call of this function (the GRU pass: values are written before it, keys once a frame).
 pub fn new_values() {

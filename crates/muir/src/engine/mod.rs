@@ -27,6 +27,8 @@ pub mod hal;
 mod host_rows;
 #[cfg(feature = "std")]
 mod phase_times;
+#[cfg(feature = "std")]
+mod side;
 #[cfg(feature = "internals")]
 pub mod layout;
 #[cfg(not(feature = "internals"))]
@@ -324,30 +326,59 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
         // Refinement.
         let mut c = refine_ctx(m, &plan, self.arena);
         c.st.flow.fill(0);
-        if cfg.ufi {
-            refine::ufi(&mut c, self.max_disparity.grid8());
+        // With threads, the refinement's passes in two streams, each on a thread of its own
+        // (`side`): the passes of one iteration work on rows too short to split well over the
+        // kernel pool.
+        #[cfg(feature = "std")]
+        let mut side = threaded.then(side::SideBuffers::default);
+        #[cfg(feature = "std")]
+        let beside = match side.as_mut() {
+            Some(side) if cfg.mga => {
+                side::setup(&mut c, &plan, side, self.max_disparity.grid8(), |p| clock.lap(p));
+                true
+            }
+            _ => false,
+        };
+        #[cfg(not(feature = "std"))]
+        let beside = false;
+        if !beside {
+            if cfg.ufi {
+                refine::ufi(&mut c, self.max_disparity.grid8());
+            }
+            lap!(Ufi);
+            if cfg.mga {
+                refine::mga_setup(&mut c);
+            }
+            lap!(MgaSetup);
         }
-        lap!(Ufi);
-        if cfg.mga {
-            refine::mga_setup(&mut c);
-        }
-        lap!(MgaSetup);
         let n8 = plan.grid.n8() as u64;
         let mut used = 0;
         for it in 0..iters {
-            if cfg.mud {
-                refine::mud_pass(&mut c);
+            #[cfg(feature = "std")]
+            let beside = match side.as_mut() {
+                Some(side) if cfg.mud || cfg.mga => {
+                    side::iteration(&mut c, &plan, side, |p| clock.lap(p));
+                    true
+                }
+                _ => false,
+            };
+            #[cfg(not(feature = "std"))]
+            let beside = false;
+            if !beside {
+                if cfg.mud {
+                    refine::mud_pass(&mut c);
+                }
+                lap!(Mud);
+                if cfg.mga {
+                    refine::mga_values(&mut c);
+                }
+                lap!(MgaValues);
+                refine::gru16(&mut c);
+                refine::gru16(&mut c);
+                lap!(Gru16);
+                refine::gru08(&mut c);
+                lap!(Gru08);
             }
-            lap!(Mud);
-            if cfg.mga {
-                refine::mga_values(&mut c);
-            }
-            lap!(MgaValues);
-            refine::gru16(&mut c);
-            refine::gru16(&mut c);
-            lap!(Gru16);
-            refine::gru08(&mut c);
-            lap!(Gru08);
             let moved = refine::flow_head(&mut c, self.early_stop.map_or(0, |s| s.settled));
             lap!(FlowHead);
             used = it + 1;
@@ -455,15 +486,7 @@ pub fn refine_ctx<'f, 'm, 'a>(m: &'m QuantModel<'a>, plan: &Plan, arena: &'f mut
         inp08: cv.u8(fr.inp08),
         inp16: cv.u8(fr.inp16),
     };
-    let (patch, window, prefix, peaks_row) = (cv.raw(px.patch), cv.i32(px.window), cv.i64(px.prefix), cv.i32(px.peaks_row));
-    let attn = cv.raw(px.attn);
-    // Both splits lie inside their plan-sized buffers; a shorter buffer (never, for a checked
-    // arena) leaves the second part empty.
-    let split = 8 * cfg.hidden_dim;
-    let (acc, query) = if attn.len() >= split { attn.split_at_mut(split) } else { (attn, &mut [][..]) };
-    let logits = cv.i16(px.logits);
-    let split = crate::model::layers::MASK_CHANNELS;
-    let (logits, mask_px) = if logits.len() >= split { logits.split_at_mut(split) } else { (logits, &mut [][..]) };
+    let pixel = pixel_scratch(&mut cv, &px, cfg.hidden_dim);
     let st = refine::State {
         flow: cv.i16(r.flow),
         mask: cv.i16(r.mask),
@@ -472,7 +495,21 @@ pub fn refine_ctx<'f, 'm, 'a>(m: &'m QuantModel<'a>, plan: &Plan, arena: &'f mut
         stats: cv.i64(r.stats),
         values: cv.i16(r.values),
     };
-    let pixel = refine::Pixel {
+    refine::Ctx { m, g: plan.grid, frame, st, px: pixel, rings: cv.raw(r.rings) }
+}
+
+/// The per-pixel scratch laid out by `px`, carved from `cv` (next after what it carved before).
+fn pixel_scratch<'f>(cv: &mut Carver<'f>, px: &plan::PixelBufs, hidden: usize) -> refine::Pixel<'f> {
+    let (patch, window, prefix, peaks_row) = (cv.raw(px.patch), cv.i32(px.window), cv.i64(px.prefix), cv.i32(px.peaks_row));
+    let attn = cv.raw(px.attn);
+    // Both splits lie inside their plan-sized buffers; a shorter buffer (never, for a checked
+    // arena) leaves the second part empty.
+    let split = 8 * hidden;
+    let (acc, query) = if attn.len() >= split { attn.split_at_mut(split) } else { (attn, &mut [][..]) };
+    let logits = cv.i16(px.logits);
+    let split = crate::model::layers::MASK_CHANNELS;
+    let (logits, mask_px) = if logits.len() >= split { logits.split_at_mut(split) } else { (logits, &mut [][..]) };
+    refine::Pixel {
         patch,
         window,
         prefix,
@@ -481,8 +518,7 @@ pub fn refine_ctx<'f, 'm, 'a>(m: &'m QuantModel<'a>, plan: &Plan, arena: &'f mut
         query: bytemuck::cast_slice_mut(query),
         logits,
         mask_px,
-    };
-    refine::Ctx { m, g: plan.grid, frame, st, px: pixel, rings: cv.raw(r.rings) }
+    }
 }
 
 /// The predicted-error limits (px) at which the firmware and the host test compare rejection

@@ -538,12 +538,50 @@ pub fn mga_values(c: &mut Ctx<'_, '_, '_>) {
 /// The 1/16 ConvGRU step: `net16 = gru16(net16, ctx16, pool2x(net08))`, in place.
 #[inline(never)] // a phase: its stack frame must not add to the caller's (see `engine::STACK_BUDGET`)
 pub fn gru16(c: &mut Ctx<'_, '_, '_>) {
-    let m = c.m;
-    let cfg = *m.config();
     let g = c.g;
-    let (w8, h8, w, h, hd, ctx) = (g.w8, g.h8, g.w16, g.h16, cfg.hidden_dim, cfg.context_dim);
-    let lay = GruLayout::new(&cfg, &g);
-    let mut cv = Carver::new(c.rings);
+    let hd = c.m.config().hidden_dim;
+    let net08 = &*c.frame.net08;
+    gru16_with(c.m, &g, c.frame.inp16, c.frame.net16, c.px.patch, c.rings, |s, out| pool2x_row(net08, g.h8, g.w8, hd, s, out));
+}
+
+/// Every row of `pool2x(net08)` (`h16 x w16 x hidden`) into `out`: the 1/16 steps' input from the
+/// 1/8 state, for [`gru16_with`] on a thread that does not read `net08` itself (host).
+#[cfg(feature = "std")]
+pub fn pool2x_state(m: &QuantModel<'_>, g: &Grid, net08: &[i16], out: &mut [i16]) {
+    let hd = m.config().hidden_dim;
+    for y in 0..g.h16 {
+        pool2x_row(net08, g.h8, g.w8, hd, y, chunk_mut(out, y, g.w16 * hd));
+    }
+}
+
+/// The MGA output of every row of the iteration (host: its values final, written by
+/// [`mga_values`]) into `out` (`h8` rows of `w8 x hidden`), each row passed to `done` as soon as
+/// it is written: [`gru08_with`]'s rows computed on another thread ahead of it.
+#[cfg(feature = "std")]
+#[allow(clippy::too_many_arguments)]
+pub fn glb_rows<'o>(m: &QuantModel<'_>, g: &Grid, inp08: &[u8], keys: &[i16], stats: &[i64], values: &[i16], out: &'o mut [i16], mut done: impl FnMut(&'o [i16])) {
+    let cfg = *m.config();
+    let (w, hd, ctx) = (g.w8, cfg.hidden_dim, cfg.context_dim);
+    super::host_rows::new_values();
+    let pqy = conv(m, MgaQuery);
+    let phases = rope_phases(m);
+    let phases = first_n(&phases, cfg.mga_qk_dim / 2);
+    let (am, glb_shift) = (m.att_mult(), frac(m, Act::Glb) - frac(m, Act::MgaV));
+    for (y, d) in out.chunks_exact_mut((w * hd).max(1)).take(g.h8).enumerate() {
+        let stats = chunk(stats, y, 2 * w);
+        super::host_rows::aggregate_row(&pqy, inp08, ctx, y, w, phases, keys, values, hd, stats, am, glb_shift, &mut *d);
+        done(d);
+    }
+}
+
+/// [`gru16`] on explicit buffers: `pooled(y, row)` writes row `y` of `pool2x(net08)`; `patch`
+/// and `rings` as the context's (the plan's sizes).
+#[allow(clippy::too_many_arguments)]
+pub fn gru16_with(m: &QuantModel<'_>, g: &Grid, inp16: &[u8], net16: &mut [i16], patch: &mut [u8], rings: &mut [u8], pooled: impl Fn(usize, &mut [i16])) {
+    let cfg = *m.config();
+    let (w, h, hd, ctx) = (g.w16, g.h16, cfg.hidden_dim, cfg.context_dim);
+    let lay = GruLayout::new(&cfg, g);
+    let mut cv = Carver::new(rings);
     let row = w * hd;
     let mut pool = Ring::of_len(cv.i16(lay.mo.buf), lay.mo, row, h);
     let mut inp = Ring::of_len(cv.i16(lay.inp.buf), lay.inp, w * ctx, h);
@@ -556,20 +594,20 @@ pub fn gru16(c: &mut Ctx<'_, '_, '_>) {
     let (pz, pr, pq) = (conv(m, Gru16Z), conv(m, Gru16R), conv(m, Gru16Q));
     for s in 0..gru16_stages::SCHEDULE.steps(h) {
         if gru16_stages::SCHEDULE.row(s, gru16_stages::INPUTS, h).is_some() {
-            pool2x_row(c.frame.net08, h8, w8, hd, s, pool.push());
-            widen_row(chunk(c.frame.inp16, s, w * ctx), inp.push());
+            pooled(s, pool.push());
+            widen_row(chunk(inp16, s, w * ctx), inp.push());
         }
         if let Some(r) = gru16_stages::SCHEDULE.row(s, gru16_stages::GATES, h) {
-            let parts = [full(c.frame.net16, h, row, r, 3), rows(&pool, r, 3), rows(&inp, r, 3)];
-            conv16_spare(&pz, &parts, r, w, rz.push(), c.px.patch, spare);
+            let parts = [full(net16, h, row, r, 3), rows(&pool, r, 3), rows(&inp, r, 3)];
+            conv16_spare(&pz, &parts, r, w, rz.push(), patch, spare);
             let gate = first_n_mut(gate, row);
-            conv16_spare(&pr, &parts, r, w, gate, c.px.patch, spare);
-            mul_q15(gate, chunk(c.frame.net16, r, row), rh.push());
+            conv16_spare(&pr, &parts, r, w, gate, patch, spare);
+            mul_q15(gate, chunk(net16, r, row), rh.push());
         }
         if let Some(r) = gru16_stages::SCHEDULE.row(s, gru16_stages::CANDIDATE, h) {
             let q = first_n_mut(q, row);
-            conv16_spare(&pq, &[rows(&rh, r, 3), rows(&pool, r, 3), rows(&inp, r, 3)], r, w, q, c.px.patch, spare);
-            blend_q15(chunk_mut(c.frame.net16, r, row), rz.row(r), q);
+            conv16_spare(&pq, &[rows(&rh, r, 3), rows(&pool, r, 3), rows(&inp, r, 3)], r, w, q, patch, spare);
+            blend_q15(chunk_mut(net16, r, row), rz.row(r), q);
         }
     }
 }
@@ -578,6 +616,13 @@ pub fn gru16(c: &mut Ctx<'_, '_, '_>) {
 /// in place; the correlation is looked up at the current disparity row by row.
 #[inline(never)] // a phase: its stack frame must not add to the caller's (see `engine::STACK_BUDGET`)
 pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
+    gru08_with(c, None)
+}
+
+/// [`gru08`], its MGA output rows from `glb(y, row)` where given (host: aggregated on another
+/// thread, `engine::side`) instead of aggregated here.
+#[allow(clippy::type_complexity)]
+pub fn gru08_with(c: &mut Ctx<'_, '_, '_>, mut glb: Option<&mut dyn FnMut(usize, &mut [i16])>) {
     let m = c.m;
     let cfg = *m.config();
     let g = c.g;
@@ -640,7 +685,9 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
                 interp_row(net16, h16, w16, hd, h8, w, y, d);
             });
             fill(&mut rinp, upto, |y, d| widen_row(chunk(c.frame.inp08, y, w * ctx), d));
-            if let Some(pqy) = &pquery {
+            if let (Some(f), true) = (glb.as_mut(), cfg.mga) {
+                fill(&mut rglb, upto, |y, d| f(y, d));
+            } else if let Some(pqy) = &pquery {
                 let st = &c.st;
                 let px = &mut c.px;
                 fill(&mut rglb, upto, |y, d| {

@@ -1,0 +1,224 @@
+//! Host, two or more threads (feature `std`): an iteration's MUD and MGA value passes on a second
+//! thread beside the two 1/16 ConvGRU steps on this one.
+//!
+//! Why: those passes work on rows of 30-80 pixels at 1/8 and 1/16 resolution. Split over the
+//! kernel pool by pixels, each thread streams a layer's whole weights for a handful of pixels
+//! and waits on the other once per row: on two cores they ran 1.04-1.15x faster than on one
+//! (`muir run --timings`). The two sides have no data in common but what both only read (the
+//! features, the context and the 1/8 state), and take about the same time (Teddy, one thread:
+//! 34 ms for the 1/16 steps against 33 ms for MUD and the MGA values), so side by side each runs
+//! at one thread's speed on its own core.
+//!
+//! The 1/16 steps read `pool2x(net08)`; this thread computes it into a buffer of its own first,
+//! so that the other thread can borrow `net08` (which it only reads) for the whole pass. The
+//! other thread's line buffers and per-pixel scratch are its own too (the plan's sizes, laid out
+//! as in the arena). The integers are those of the sequential order: each pass computes what it
+//! computes there from the same inputs.
+#![deny(clippy::indexing_slicing)]
+
+use std::sync::mpsc;
+
+use super::host_rows;
+use super::phase_times::Phase;
+use super::plan::{Buf, PixelBufs, Plan};
+use super::refine::{self, Ctx};
+use super::ring::{Carver, chunk, copy_row};
+use crate::kernels::pool::scratch;
+
+/// The second thread's buffers, kept for the frame's iterations.
+#[derive(Default)]
+pub(super) struct SideBuffers {
+    /// Its per-pixel scratch and line buffers (u64: 8-byte aligned).
+    own: Vec<u64>,
+    /// `pool2x(net08)`, `h16 x w16 x hidden`.
+    pooled: Vec<i16>,
+    /// The MGA output of the iteration, `h8 x w8 x hidden`.
+    glb: Vec<i16>,
+}
+
+/// The kernel pool held while both threads run (each one's kernels on its own thread: the
+/// pool's workers would only compete with them for the cores), and released by the thread that
+/// finishes first: the other one's kernels then have the workers for the rest.
+struct Held(std::sync::Mutex<Option<crate::kernels::pool::Hold>>);
+
+impl Held {
+    fn new() -> Self {
+        Held(std::sync::Mutex::new(Some(crate::kernels::pool::hold())))
+    }
+
+    fn release(&self) {
+        if let Ok(mut h) = self.0.lock() {
+            h.take();
+        }
+    }
+
+    /// Releases when the returned guard is dropped (also when its thread unwinds).
+    fn release_on_drop(&self) -> impl Drop + '_ {
+        struct Release<'h>(&'h Held);
+        impl Drop for Release<'_> {
+            fn drop(&mut self) {
+                self.0.release();
+            }
+        }
+        Release(self)
+    }
+}
+
+/// The other thread's per-pixel scratch and line buffers: the plan's sizes, laid out from 0 in
+/// `own`.
+fn other_scratch<'s>(plan: &Plan, own: &'s mut Vec<u64>, hidden: usize) -> (refine::Pixel<'s>, &'s mut [u8]) {
+    let mut at = 0;
+    let mut next = |len: usize| {
+        let b = Buf { at, len };
+        at = (at + len).div_ceil(8) * 8;
+        b
+    };
+    let p = plan.pixel;
+    let px = PixelBufs { patch: next(p.patch.len), window: next(p.window.len), prefix: next(p.prefix.len), peaks_row: next(p.peaks_row.len), attn: next(p.attn.len), logits: next(p.logits.len) };
+    let rings = next(plan.refine.rings.len);
+    let mut cv = Carver::new(bytemuck::cast_slice_mut(scratch(own, at / 8)));
+    let pixel = super::pixel_scratch(&mut cv, &px, hidden);
+    (pixel, cv.raw(rings))
+}
+
+/// The frame's setup: UFI on this thread, and the MGA keys and softmax statistics (as the model
+/// has them) on a second one. They share nothing but what both only read (the context): UFI
+/// writes the 1/8 state, the disparity and the uncertainty, the statistics pass the keys, the
+/// statistics and the kept softmax weights (moved to this thread afterwards). `lap(phase)` ends a
+/// phase of the timer here: ufi when UFI is done, mga setup when the other thread is too.
+pub(super) fn setup(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuffers, max_d8: usize, mut lap: impl FnMut(Phase)) {
+    let m = c.m;
+    let cfg = *m.config();
+    let g = c.g;
+    let (pixel, rings) = other_scratch(plan, &mut side.own, cfg.hidden_dim);
+    let inp08 = c.frame.inp08;
+    let (keys, stats) = (core::mem::take(&mut c.st.keys), core::mem::take(&mut c.st.stats));
+    let held = Held::new();
+    let (keys, stats, attention) = std::thread::scope(|s| {
+        let held = &held;
+        let other = s.spawn(move || {
+            let _release = held.release_on_drop();
+            #[cfg(target_arch = "x86_64")]
+            let _frame = crate::kernels::conv::FrameScope::new();
+            let mut o = Ctx {
+                m,
+                g,
+                frame: refine::Frame { f1: &[], f2: &[], net08: &mut [], net16: &mut [], inp08, inp16: &[] },
+                st: refine::State { flow: &mut [], mask: &mut [], u: &mut [], keys: &mut *keys, stats: &mut *stats, values: &mut [] },
+                px: pixel,
+                rings,
+            };
+            refine::mga_setup(&mut o);
+            (keys, stats, host_rows::take_attention())
+        });
+        if cfg.ufi {
+            refine::ufi(c, max_d8);
+        }
+        held.release();
+        lap(Phase::Ufi);
+        let back = match other.join() {
+            Ok(back) => back,
+            Err(panic) => std::panic::resume_unwind(panic),
+        };
+        lap(Phase::MgaSetup);
+        back
+    });
+    host_rows::lend_attention(attention);
+    (c.st.keys, c.st.stats) = (keys, stats);
+}
+
+/// One iteration up to the disparity head: the MUD pass, the MGA value pass and the MGA
+/// aggregation (as the model has them) on a second thread; the two 1/16 ConvGRU steps and the
+/// motion encoder and 1/8 ConvGRU on this one. `lap(phase)` ends a phase of the timer here:
+/// gru16 when the 1/16 steps are done, mud when the other thread has given back the state (MUD
+/// and the MGA values done), gru08 at the end.
+pub(super) fn iteration(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuffers, mut lap: impl FnMut(Phase)) {
+    let m = c.m;
+    let cfg = *m.config();
+    let g = c.g;
+    let row16 = g.w16 * cfg.hidden_dim;
+    let pooled = scratch(&mut side.pooled, g.h16 * row16);
+    refine::pool2x_state(m, &g, c.frame.net08, pooled);
+    let pooled = &*pooled;
+    let glb = scratch(&mut side.glb, if cfg.mga { g.h8 * g.w8 * cfg.hidden_dim } else { 0 });
+
+    let (pixel, rings) = other_scratch(plan, &mut side.own, cfg.hidden_dim);
+
+    // Lent to the other thread: the state MUD and the MGA values read and write (given back
+    // when they are done), and what the aggregation reads (given back at the end).
+    let (f1, f2, inp08, inp16) = (c.frame.f1, c.frame.f2, c.frame.inp08, c.frame.inp16);
+    let net08 = core::mem::take(&mut c.frame.net08);
+    let (flow, mask, u, values) =
+        (core::mem::take(&mut c.st.flow), core::mem::take(&mut c.st.mask), core::mem::take(&mut c.st.u), core::mem::take(&mut c.st.values));
+    let (keys, stats) = (core::mem::take(&mut c.st.keys), core::mem::take(&mut c.st.stats));
+    let (keys_r, stats_r) = (&*keys, &*stats);
+    let attention = host_rows::take_attention();
+    let held = Held::new();
+    let (state_tx, state_rx) = mpsc::channel();
+    let (row_tx, row_rx) = mpsc::channel::<&[i16]>();
+    let (values, attention) = std::thread::scope(|s| {
+        let held = &held;
+        let other = s.spawn(move || {
+            let _release = held.release_on_drop();
+            // This thread's copies of the layers' re-laid weights (see `Engine::run_iters`).
+            #[cfg(target_arch = "x86_64")]
+            let _frame = crate::kernels::conv::FrameScope::new();
+            let mut o = Ctx {
+                m,
+                g,
+                frame: refine::Frame { f1, f2, net08: &mut *net08, net16: &mut [], inp08, inp16 },
+                st: refine::State { flow: &mut *flow, mask: &mut *mask, u: &mut *u, keys: &mut [], stats: &mut [], values: &mut *values },
+                px: pixel,
+                rings,
+            };
+            if cfg.mud {
+                refine::mud_pass(&mut o);
+            }
+            if cfg.mga {
+                refine::mga_values(&mut o);
+            }
+            // (A closed channel: the other side panicked, which the scope reports.)
+            let _ = state_tx.send((net08, flow, mask, u));
+            host_rows::lend_attention(attention);
+            if cfg.mga {
+                refine::glb_rows(m, &g, inp08, keys_r, stats_r, values, glb, |r| {
+                    let _ = row_tx.send(r);
+                });
+            }
+            drop(row_tx);
+            (values, host_rows::take_attention())
+        });
+        for _ in 0..2 {
+            refine::gru16_with(m, &g, inp16, c.frame.net16, c.px.patch, c.rings, |y, out| copy_row(out, chunk(pooled, y, row16)));
+        }
+        lap(Phase::Gru16);
+        if let Ok((net08, flow, mask, u)) = state_rx.recv() {
+            c.frame.net08 = net08;
+            (c.st.flow, c.st.mask, c.st.u) = (flow, mask, u);
+        }
+        lap(Phase::Mud);
+        let mut rows: Vec<&[i16]> = Vec::with_capacity(g.h8);
+        let mut glb_row = |y: usize, d: &mut [i16]| {
+            while rows.len() <= y {
+                match row_rx.recv() {
+                    Ok(r) => rows.push(r),
+                    Err(_) => break,
+                }
+            }
+            if let Some(r) = rows.get(y) {
+                copy_row(d, r);
+            }
+        };
+        refine::gru08_with(c, if cfg.mga { Some(&mut glb_row) } else { None });
+        held.release();
+        let back = match other.join() {
+            Ok(back) => back,
+            Err(panic) => std::panic::resume_unwind(panic),
+        };
+        lap(Phase::Gru08);
+        back
+    });
+    host_rows::lend_attention(attention);
+    c.st.values = values;
+    (c.st.keys, c.st.stats) = (keys, stats);
+}
