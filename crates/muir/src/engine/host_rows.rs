@@ -391,3 +391,74 @@ pub fn lookup_row(p: &LookupParams<'_>, f1: &[i8], f2row: &[i8], flow: &[i16], f
         });
     });
 }
+
+std::thread_local! {
+    /// A band of the disparity head: its hidden rows, a row of its output, the conv's patch (on
+    /// the thread that runs it).
+    static HEAD: RefCell<(Vec<i16>, Vec<i16>, Vec<u8>)> = const { RefCell::new((Vec::new(), Vec::new(), Vec::new())) };
+}
+
+/// The disparity head ([`super::refine::flow_head`]) in two bands of rows as two tasks on the
+/// kernel pool, each band's convolutions on the thread that runs it: the same integers (each
+/// band computes the hidden rows it reads: its own and the one beyond its inner edge, the one
+/// row both compute). Split row by row over the pool by pixels instead, the head ran 1.2-1.4x
+/// faster on two threads than on one (`scripts/phase_times.py`). Returns the pixels that moved
+/// by more than `settled`.
+pub fn flow_head_bands(m: &crate::format::QuantModel<'_>, g: &crate::model::grid::Grid, net08: &[i16], flow: &mut [i16], settled: u16) -> usize {
+    let cfg = *m.config();
+    let (w, h8, fc) = (g.w8, g.h8, cfg.flow_channels);
+    let split = h8 / 2;
+    let (top, bottom) = flow.split_at_mut((split * w * fc).min(flow.len()));
+    let bands = [std::sync::Mutex::new(Some((top, 0..split))), std::sync::Mutex::new(Some((bottom, split..h8)))];
+    let moved = core::sync::atomic::AtomicUsize::new(0);
+    pool::run(2, &|t| {
+        let Some((flow, rows)) = bands.get(t).and_then(|b| b.lock().ok()).and_then(|mut b| b.take()) else { return };
+        // A worker's own copies of the layers' re-laid weights (the engine's thread has its frame's).
+        #[cfg(target_arch = "x86_64")]
+        let _frame = crate::kernels::conv::FrameScope::unless_on();
+        let n = HEAD.with_borrow_mut(|(hidden, out, patch)| head_band(m, g, net08, flow, rows, settled, hidden, out, patch));
+        moved.fetch_add(n, core::sync::atomic::Ordering::Relaxed);
+    });
+    moved.into_inner()
+}
+
+/// [`flow_head_bands`]' band: output rows `rows` into `flow` (those rows of the disparity state).
+#[allow(clippy::too_many_arguments)]
+fn head_band(
+    m: &crate::format::QuantModel<'_>,
+    g: &crate::model::grid::Grid,
+    net08: &[i16],
+    flow: &mut [i16],
+    rows: core::ops::Range<usize>,
+    settled: u16,
+    hidden: &mut Vec<i16>,
+    out: &mut Vec<i16>,
+    patch: &mut Vec<u8>,
+) -> usize {
+    use crate::model::layers::ConvId;
+    let cfg = *m.config();
+    let (w, h8, hd, fc) = (g.w8, g.h8, cfg.hidden_dim, cfg.flow_channels);
+    let len = w * cfg.flow_head_dim;
+    let (p1, p2) = (super::encoder::conv(m, ConvId::Flow1), super::encoder::conv(m, ConvId::Flow2));
+    let patch = scratch(patch, 4 * p1.patch_len().max(p2.patch_len()).max(1));
+    // The hidden rows the band's outputs read.
+    let (h0, h1) = (rows.start.saturating_sub(1), (rows.end + 1).min(h8));
+    let hidden = scratch(hidden, h1.saturating_sub(h0) * len);
+    for (y, row) in (h0..h1).zip(hidden.chunks_exact_mut(len.max(1))) {
+        super::refine::conv16(&p1, &[PartRows::of_tensor(net08, h8, w * hd, y, 3, 1)], w, row, patch);
+    }
+    let hidden = &*hidden;
+    let out = scratch(out, w * fc);
+    let mut moved = 0;
+    for (r, flow) in rows.zip(flow.chunks_exact_mut((w * fc).max(1))) {
+        // Hidden rows r - 1 .. r + 1 (zero padding outside the grid), from the band's.
+        let mut parts = [None; MAX_K];
+        for (ky, part) in parts.iter_mut().enumerate().take(3) {
+            let y = (r + ky).checked_sub(1).filter(|&y| y < h8);
+            *part = y.and_then(|y| hidden.get((y - h0) * len..(y - h0 + 1) * len));
+        }
+        super::refine::conv16(&p2, &[PartRows { rows: parts }], w, out, patch);
+        moved += super::refine::add_update(flow, out, w, fc, settled);
+    }
+    moved
+}

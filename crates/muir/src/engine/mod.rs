@@ -212,11 +212,12 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
         })
     }
 
-    /// Threads for a frame (host builds, feature `std`; default 1): with 2 or more the right
-    /// image's encoder runs on a second thread beside the left one's, with its own scratch (the
-    /// encoder's line buffers and patch, allocated per frame: the one allocation of a host frame;
-    /// the firmware path has none; the kernel pool is held meanwhile, so each encoder's kernels
-    /// run on its own thread), and the refinement's kernels split their work over the
+    /// Threads for a frame (host builds, feature `std`; default 1). With 2 or more, work runs in
+    /// two streams, each on a thread of its own with scratch of its own (allocated per frame; the
+    /// firmware path allocates nothing): the two image encoders; UFI beside the MGA keys and
+    /// softmax statistics; in each iteration MUD, the MGA values and the MGA aggregation beside
+    /// the 1/16 and 1/8 ConvGRUs (`side`). The kernel pool is held while both streams run and
+    /// released by the first to finish. The other kernels split their work over the
     /// process-wide worker pool ([`crate::kernels::pool`], sized to this count when a frame
     /// starts). The same integers for any count.
     #[cfg(feature = "std")]
@@ -379,7 +380,16 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
                 refine::gru08(&mut c);
                 lap!(Gru08);
             }
-            let moved = refine::flow_head(&mut c, self.early_stop.map_or(0, |s| s.settled));
+            let settled = self.early_stop.map_or(0, |s| s.settled);
+            // Host, with threads: in two bands of rows, a band a thread.
+            #[cfg(feature = "std")]
+            let moved = if threaded && plan.grid.h8 >= 4 {
+                host_rows::flow_head_bands(m, &plan.grid, c.frame.net08, c.st.flow, settled)
+            } else {
+                refine::flow_head(&mut c, settled)
+            };
+            #[cfg(not(feature = "std"))]
+            let moved = refine::flow_head(&mut c, settled);
             lap!(FlowHead);
             used = it + 1;
             if let Some(stop) = self.early_stop

@@ -6,7 +6,12 @@ use core::time::Duration;
 use std::time::Instant;
 
 /// The phases of a frame, in the order they run (the per-iteration ones summed over the
-/// iterations).
+/// iterations). With two or more threads some run beside each other (`engine::side`), and the
+/// timer, on the calling thread, books them as follows: UFI and the MGA setup under [`Phase::Ufi`]
+/// until UFI ends and under [`Phase::MgaSetup`] for the wait for the other thread after it; MUD,
+/// the MGA values and the 1/16 steps under [`Phase::Gru16`] until the 1/16 steps end and under
+/// [`Phase::Mud`] for the wait after them ([`Phase::MgaValues`] stays 0); the MGA aggregation
+/// within [`Phase::Gru08`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Phase {
     /// Both image encoders (side by side with threads).

@@ -181,7 +181,7 @@ fn fill(ring: &mut Ring<'_, i16>, upto: usize, mut f: impl FnMut(usize, &mut [i1
     }
 }
 
-fn conv16(p: &ConvParams<'_>, parts: &[PartRows<'_, i16>], w: usize, out: &mut [i16], patch: &mut [u8]) {
+pub(super) fn conv16(p: &ConvParams<'_>, parts: &[PartRows<'_, i16>], w: usize, out: &mut [i16], patch: &mut [u8]) {
     run_conv(p, parts, w, &mut OutRow::I16(out), patch);
 }
 
@@ -767,15 +767,22 @@ pub fn flow_head(c: &mut Ctx<'_, '_, '_>, settled: u16) -> usize {
         if let Some(r) = flow_head_stages::SCHEDULE.row(s, flow_head_stages::OUT, h8) {
             let out = first_n_mut(out, w * fc);
             conv16(&p2, &[rows(&rh, r, 3)], w, out, c.px.patch);
-            let flow = chunk_mut(c.st.flow, r, w * fc);
-            for x in 0..w {
-                let i = x * fc;
-                let (Some(f), Some(&delta)) = (flow.get_mut(i), out.get(i)) else { break };
-                let before = *f;
-                *f = sat_i16(before as i64 + delta as i64);
-                moved += ((*f as i64 - before as i64).unsigned_abs() > settled as u64) as usize;
-            }
+            moved += add_update(chunk_mut(c.st.flow, r, w * fc), out, w, fc, settled);
         }
+    }
+    moved
+}
+
+/// Adds a row of the disparity head's output (`out`, `w` pixels of `fc`; channel 0 is the
+/// update) to the row's disparity state; returns how many pixels moved by more than `settled`.
+pub fn add_update(flow: &mut [i16], out: &[i16], w: usize, fc: usize, settled: u16) -> usize {
+    let mut moved = 0;
+    for x in 0..w {
+        let i = x * fc;
+        let (Some(f), Some(&delta)) = (flow.get_mut(i), out.get(i)) else { break };
+        let before = *f;
+        *f = sat_i16(before as i64 + delta as i64);
+        moved += ((*f as i64 - before as i64).unsigned_abs() > settled as u64) as usize;
     }
     moved
 }

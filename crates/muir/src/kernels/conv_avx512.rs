@@ -201,6 +201,12 @@ impl Relaid {
 pub struct FrameScope(());
 
 impl FrameScope {
+    /// A frame on this thread unless one is on already (a task of the kernel pool that may run
+    /// on the engine's own thread, inside its frame, or on a worker, outside any).
+    pub fn unless_on() -> Option<Self> {
+        if FRAME_ON.with(|on| on.get()) { None } else { Some(Self::new()) }
+    }
+
     /// Starts a frame on this thread.
     pub fn new() -> Self {
         FRAME.with_borrow_mut(|f| match f {
