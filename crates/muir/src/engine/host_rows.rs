@@ -462,3 +462,31 @@ fn head_band(
     }
     moved
 }
+
+std::thread_local! {
+    /// A band's row buffer and conv patch ([`row_bands`], on the thread that runs it).
+    static BAND: RefCell<(Vec<i16>, Vec<u8>)> = const { RefCell::new((Vec::new(), Vec::new())) };
+}
+
+/// A row of [`row_bands`]: `row(y, buf, patch)`.
+pub type BandRow<'a> = dyn Fn(usize, &mut [i16], &mut [u8]) + Sync + 'a;
+
+/// Runs `row(y, buf, patch)` for every row `y < rows`, the rows in as many bands as the kernel
+/// pool has threads, each band a task (its rows in order on the thread that runs it, with that
+/// thread's `buf` of `len` values and a patch for convolutions of `patch_len`): for passes whose
+/// rows are independent (the upsampling's), so each thread streams a layer's weights for its
+/// own rows instead of every row's pixels being split between the threads.
+pub fn row_bands(rows: usize, len: usize, patch_len: usize, row: &BandRow<'_>) {
+    let bands = pool::threads().min(rows).max(1);
+    pool::run(bands, &|t| {
+        // A worker's own copies of the layers' re-laid weights (the engine's thread has its frame's).
+        #[cfg(target_arch = "x86_64")]
+        let _frame = crate::kernels::conv::FrameScope::unless_on();
+        BAND.with_borrow_mut(|(buf, patch)| {
+            let (buf, patch) = (scratch(buf, len), scratch(patch, 4 * patch_len.max(1)));
+            for y in t * rows / bands..(t + 1) * rows / bands {
+                row(y, buf, patch);
+            }
+        });
+    });
+}

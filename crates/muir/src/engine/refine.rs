@@ -831,20 +831,22 @@ pub fn upsample(c: &mut Ctx<'_, '_, '_>, width: usize, height: usize, disp: &mut
     #[cfg(not(feature = "std"))]
     let (mut dblk, mut ublk) = ([0i16; UP * UP], [0i16; UP * UP]);
     let flow0 = first_n(flow0, g.n8());
-    let mid = first_n_mut(mid, w * mh);
-    for y in 0..h8 {
-        conv16(&p1, &[full(c.frame.net08, h8, w * hd, y, 3)], w, mid, c.px.patch);
-        // Host: the row's logits by one conv call, its pixels' blocks on the kernel pool (each
-        // writes its own columns of the output); firmware: by one conv call per run of pixels
-        // (runs of equal length) in the idle line buffers, pixel by pixel where they cannot hold
-        // one pixel's logits. A 1x1 convolution: the same integers either way.
-        #[cfg(feature = "std")]
-        {
-            let (dp, dlen) = (crate::kernels::pool::Shared(disp.as_mut_ptr()), disp.len());
-            let (up, ulen) = match unc.as_deref_mut() {
-                Some(u) => (crate::kernels::pool::Shared(u.as_mut_ptr()), u.len()),
-                None => (crate::kernels::pool::Shared(core::ptr::null_mut()), 0),
-            };
+    // Host: the rows in bands, a band a thread (`host_rows::row_bands`); each row's logits by
+    // one conv call, its pixels' blocks on the kernel pool where it is free (each writes its own
+    // columns of the output). Firmware: row by row, the logits by one conv call per run of
+    // pixels (runs of equal length) in the idle line buffers, pixel by pixel where they cannot
+    // hold one pixel's logits. A 1x1 convolution: the same integers either way.
+    #[cfg(feature = "std")]
+    {
+        let _ = mid;
+        let (dp, dlen) = (crate::kernels::pool::Shared(disp.as_mut_ptr()), disp.len());
+        let (up, ulen) = match unc.as_mut() {
+            Some(u) => (crate::kernels::pool::Shared(u.as_mut_ptr()), u.len()),
+            None => (crate::kernels::pool::Shared(core::ptr::null_mut()), 0),
+        };
+        let net08 = &*c.frame.net08;
+        super::host_rows::row_bands(h8, w * mh, p1.patch_len(), &|y, mid, patch| {
+            conv16(&p1, &[full(net08, h8, w * hd, y, 3)], w, mid, patch);
             super::host_rows::mask_logits_row(&p2, mid, w, mh, &|x, logits| {
                 let (mut dblk, mut ublk) = ([0i16; UP * UP], [0i16; UP * UP]);
                 upsample_pixel(logits, mask_frac, flow0, u_src, h8, w, y, x, &mut dblk, u_src.map(|_| &mut ublk[..]), UP);
@@ -852,15 +854,20 @@ pub fn upsample(c: &mut Ctx<'_, '_, '_>, width: usize, height: usize, disp: &mut
                     crop_block(x, y, width, height, blk, |at, row| {
                         if at + row.len() <= len {
                             // SAFETY: `at .. at + row.len()` lies inside the output (`len`
-                            // values; 0 without uncertainty) and belongs to pixel `x`'s block,
-                            // which no other task writes.
+                            // values; 0 without uncertainty) and belongs to pixel `x`'s block
+                            // of row `y`, which no other task writes.
                             unsafe { out.slice(at, row.len()) }.copy_from_slice(row);
                         }
                     });
                 }
             });
-        }
-        #[cfg(not(feature = "std"))]
+        });
+    }
+    #[cfg(not(feature = "std"))]
+    let mid = first_n_mut(mid, w * mh);
+    #[cfg(not(feature = "std"))]
+    for y in 0..h8 {
+        conv16(&p1, &[full(c.frame.net08, h8, w * hd, y, 3)], w, mid, c.px.patch);
         let mut pixel = |x: usize, logits: &mut [i16]| {
             upsample_pixel(logits, mask_frac, flow0, u_src, h8, w, y, x, &mut dblk, u_src.map(|_| &mut ublk[..]), UP);
             crop_block(x, y, width, height, &dblk, |at, row| {
@@ -876,7 +883,6 @@ pub fn upsample(c: &mut Ctx<'_, '_, '_>, width: usize, height: usize, disp: &mut
                 });
             }
         };
-        #[cfg(not(feature = "std"))]
         {
             let per = spare.len() / MASK_CHANNELS;
             if per == 0 {
