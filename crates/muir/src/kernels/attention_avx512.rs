@@ -679,10 +679,20 @@ mod tests {
             return;
         }
         let mut r = Rng(77);
-        for (n, c, cv, nq, big) in [(37, 32, 64, 5, false), (300, 32, 16, 4, true), (513, 16, 32, 3, false), (1, 2, 16, 1, true), (260, 64, 64, 2, true)] {
+        // `flat`: every key zero, so every weight is 32768 (the largest), and the values extreme:
+        // the value sums' lanes at their largest.
+        for (n, c, cv, nq, big, flat) in [
+            (37, 32, 64, 5, false, false),
+            (300, 32, 16, 4, true, false),
+            (513, 16, 32, 3, false, false),
+            (1, 2, 16, 1, true, false),
+            (260, 64, 64, 2, true, false),
+            (600, 32, 48, 7, true, false),
+            (700, 32, 64, 6, true, true),
+        ] {
             let val = |r: &mut Rng| if big { if r.next() % 2 == 0 { i16::MIN } else { i16::MAX } } else { r.i16() >> 3 };
-            let keys: Vec<i16> = (0..n * c).map(|_| val(&mut r)).collect();
-            let values: Vec<i16> = (0..n * cv).map(|_| r.i16()).collect();
+            let keys: Vec<i16> = (0..n * c).map(|_| if flat { 0 } else { val(&mut r) }).collect();
+            let values: Vec<i16> = (0..n * cv).map(|_| if flat { val(&mut r) } else { r.i16() }).collect();
             let qs: Vec<i16> = (0..nq * c).map(|_| val(&mut r)).collect();
             for m in [Multiplier { m: 1 << 30, shift: 40 }, Multiplier { m: 1_500_000_000, shift: 20 }, Multiplier { m: 1 << 30, shift: 70 }] {
                 let mut stats = vec![];
