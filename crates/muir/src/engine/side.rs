@@ -64,6 +64,15 @@ impl Held {
     }
 }
 
+/// What the other thread returned; its panic (a bug in a pass, not a consequence of input) goes
+/// on unwinding here.
+fn joined<T>(other: std::thread::ScopedJoinHandle<'_, T>) -> T {
+    match other.join() {
+        Ok(back) => back,
+        Err(panic) => std::panic::resume_unwind(panic),
+    }
+}
+
 /// The other thread's per-pixel scratch and line buffers: the plan's sizes, laid out from 0 in
 /// `own`.
 fn other_scratch<'s>(plan: &Plan, own: &'s mut Vec<u64>, hidden: usize) -> (refine::Pixel<'s>, &'s mut [u8]) {
@@ -116,10 +125,7 @@ pub(super) fn setup(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuffers
         }
         held.release();
         lap(Phase::Ufi);
-        let back = match other.join() {
-            Ok(back) => back,
-            Err(panic) => std::panic::resume_unwind(panic),
-        };
+        let back = joined(other);
         lap(Phase::MgaSetup);
         back
     });
@@ -211,10 +217,7 @@ pub(super) fn iteration(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuf
         };
         refine::gru08_with(c, if cfg.mga { Some(&mut glb_row) } else { None });
         held.release();
-        let back = match other.join() {
-            Ok(back) => back,
-            Err(panic) => std::panic::resume_unwind(panic),
-        };
+        let back = joined(other);
         lap(Phase::Gru08);
         back
     });
