@@ -63,6 +63,7 @@ const KEPT_BYTES: usize = 256 << 20;
 /// the iterations aggregate values without computing queries, logits and weights again: they
 /// depend on the context alone, which a frame does not change.
 #[cfg(target_arch = "x86_64")]
+#[derive(Default)]
 struct Kept {
     /// `row` key pairs per query, queries in pixel order.
     w: Vec<u32>,
@@ -195,7 +196,7 @@ pub struct AttentionState {
 pub fn take_attention() -> AttentionState {
     AttentionState {
         #[cfg(target_arch = "x86_64")]
-        kept: KEPT.with_borrow_mut(|k| core::mem::replace(k, Kept { w: Vec::new(), row: 0, filled: Vec::new() })),
+        kept: KEPT.with_borrow_mut(core::mem::take),
         #[cfg(target_arch = "x86_64")]
         prepared: PREPARED.with_borrow_mut(core::mem::take),
     }

@@ -812,7 +812,9 @@ pub fn upsample(c: &mut Ctx<'_, '_, '_>, width: usize, height: usize, disp: &mut
     let lay = FlowHeadLayout::new(&cfg, &g);
     let rings_len = c.rings.len();
     let mut cv = Carver::new(c.rings);
-    let mid = cv.i16(lay.head.buf);
+    // (Host: each band's row of the mask head is its thread's, `host_rows::row_bands`.)
+    #[cfg(not(feature = "std"))]
+    let mid = first_n_mut(cv.i16(lay.head.buf), w * mh);
     let flow0 = cv.i16(lay.flow0);
     // The line buffers past this pass's (the iterations' are larger): the firmware's runs of
     // mask logits.
@@ -838,7 +840,6 @@ pub fn upsample(c: &mut Ctx<'_, '_, '_>, width: usize, height: usize, disp: &mut
     // hold one pixel's logits. A 1x1 convolution: the same integers either way.
     #[cfg(feature = "std")]
     {
-        let _ = mid;
         let (dp, dlen) = (crate::kernels::pool::Shared(disp.as_mut_ptr()), disp.len());
         let (up, ulen) = match unc.as_mut() {
             Some(u) => (crate::kernels::pool::Shared(u.as_mut_ptr()), u.len()),
@@ -863,8 +864,6 @@ pub fn upsample(c: &mut Ctx<'_, '_, '_>, width: usize, height: usize, disp: &mut
             });
         });
     }
-    #[cfg(not(feature = "std"))]
-    let mid = first_n_mut(mid, w * mh);
     #[cfg(not(feature = "std"))]
     for y in 0..h8 {
         conv16(&p1, &[full(c.frame.net08, h8, w * hd, y, 3)], w, mid, c.px.patch);

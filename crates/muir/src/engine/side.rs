@@ -64,6 +64,17 @@ impl Held {
     }
 }
 
+/// Starts `f` on the other thread of `s`: it holds its own copies of the layers' re-laid weights
+/// (see `Engine::run_iters`) and releases `held` when done (also when it unwinds).
+fn spawn_other<'scope, T: Send + 'scope>(s: &'scope std::thread::Scope<'scope, '_>, held: &'scope Held, f: impl FnOnce() -> T + Send + 'scope) -> std::thread::ScopedJoinHandle<'scope, T> {
+    s.spawn(move || {
+        let _release = held.release_on_drop();
+        #[cfg(target_arch = "x86_64")]
+        let _frame = crate::kernels::conv::FrameScope::new();
+        f()
+    })
+}
+
 /// What the other thread returned; its panic (a bug in a pass, not a consequence of input) goes
 /// on unwinding here.
 fn joined<T>(other: std::thread::ScopedJoinHandle<'_, T>) -> T {
@@ -104,11 +115,7 @@ pub(super) fn setup(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuffers
     let (keys, stats) = (core::mem::take(&mut c.st.keys), core::mem::take(&mut c.st.stats));
     let held = Held::new();
     let (keys, stats, attention) = std::thread::scope(|s| {
-        let held = &held;
-        let other = s.spawn(move || {
-            let _release = held.release_on_drop();
-            #[cfg(target_arch = "x86_64")]
-            let _frame = crate::kernels::conv::FrameScope::new();
+        let other = spawn_other(s, &held, move || {
             let mut o = Ctx {
                 m,
                 g,
@@ -163,12 +170,7 @@ pub(super) fn iteration(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuf
     let (state_tx, state_rx) = mpsc::channel();
     let (row_tx, row_rx) = mpsc::channel::<&[i16]>();
     let (values, attention) = std::thread::scope(|s| {
-        let held = &held;
-        let other = s.spawn(move || {
-            let _release = held.release_on_drop();
-            // This thread's copies of the layers' re-laid weights (see `Engine::run_iters`).
-            #[cfg(target_arch = "x86_64")]
-            let _frame = crate::kernels::conv::FrameScope::new();
+        let other = spawn_other(s, &held, move || {
             let mut o = Ctx {
                 m,
                 g,
