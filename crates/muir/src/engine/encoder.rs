@@ -386,9 +386,7 @@ fn features(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &FeatureHeadLayout, ri
     let mid_row = |r: usize, raw: &mut [i16], patch: &mut [u8], dst: &mut [u8]| {
         let raw = first_n_mut(raw, row);
         run_conv(&p1, &[src.part_rows(r, 3, 1)], w, &mut OutRow::I16(raw), patch);
-        for (i, (d, v)) in dst.iter_mut().zip(raw.iter()).enumerate() {
-            *d = sat_u8(normalize(*v, stat(stats1, i % d3.max(1)), f_mid));
-        }
+        normalize_row(raw, stats1, d3, dst, |v, s| sat_u8(normalize(v, s, f_mid)));
     };
     // Pass 2: statistics of conv2 over the normalised conv1 rows.
     st2.fill(0);
@@ -416,9 +414,7 @@ fn features(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &FeatureHeadLayout, ri
                 mid_row(q, raw, patch, mid.push());
             }
             run_conv(&p2, &[mid.part_rows(r, 3, 1)], w, &mut OutRow::I16(ybuf), patch);
-            for (i, v) in ybuf.iter_mut().enumerate() {
-                *v = crate::arith::sat_i16(normalize(*v, stat(stats2, i % d3), f_blk).max(0));
-            }
+            normalize_in_place(ybuf, stats2, d3, |v, s| crate::arith::sat_i16(normalize(v, s, f_blk).max(0)));
             residual_relu(ybuf, Skip::Input { x: chunk(l3, r, row), frac: f_l3 }, f_blk, blk.push());
         }
         run_conv(&p3, &[blk.part_rows(y, 3, 1)], w, &mut OutRow::I8(chunk_mut(f, y, fo)), patch);
@@ -438,10 +434,42 @@ fn add_sums(st: &mut [i64], c: usize, row: &[i16]) {
     if c == 0 {
         return; // no channels
     }
-    for (i, v) in row.iter().enumerate() {
-        if let [sum, squares] = chunk_mut(st, i % c, 2) {
-            *sum += *v as i64;
-            *squares += *v as i64 * *v as i64;
+    // Pixel by pixel, channel `i` of a pixel to pair `i` of `st` (no division per value).
+    for px in row.chunks_exact(c) {
+        for (v, pair) in px.iter().zip(st.chunks_exact_mut(2)) {
+            if let [sum, squares] = pair {
+                *sum += *v as i64;
+                *squares += *v as i64 * *v as i64;
+            }
+        }
+    }
+}
+
+/// `dst[i] = f(src[i], stat(channel of i))` for rows of `c`-channel pixels (`st` the statistics
+/// pairs of [`finish_stats`]), pixel by pixel without a division per value.
+fn normalize_row<T>(src: &[i16], st: &[i64], c: usize, dst: &mut [T], f: impl Fn(i16, ChannelNorm) -> T) {
+    if c == 0 {
+        return; // no channels
+    }
+    for (dp, sp) in dst.chunks_exact_mut(c).zip(src.chunks_exact(c)) {
+        for ((d, v), pair) in dp.iter_mut().zip(sp).zip(st.chunks_exact(2)) {
+            if let &[mean, recip] = pair {
+                *d = f(*v, ChannelNorm { mean, recip });
+            }
+        }
+    }
+}
+
+/// [`normalize_row`] of a row onto itself.
+fn normalize_in_place(row: &mut [i16], st: &[i64], c: usize, f: impl Fn(i16, ChannelNorm) -> i16) {
+    if c == 0 {
+        return; // no channels
+    }
+    for px in row.chunks_exact_mut(c) {
+        for (v, pair) in px.iter_mut().zip(st.chunks_exact(2)) {
+            if let &[mean, recip] = pair {
+                *v = f(*v, ChannelNorm { mean, recip });
+            }
         }
     }
 }
@@ -455,13 +483,6 @@ fn finish_stats(st: &mut [i64], c: usize, n: i64, f_in: i8) -> &[i64] {
         }
     }
     st
-}
-
-fn stat(st: &[i64], ch: usize) -> ChannelNorm {
-    match *chunk(st, ch, 2) {
-        [mean, recip] => ChannelNorm { mean, recip },
-        _ => ChannelNorm { mean: 0, recip: 0 },
-    }
 }
 
 /// Frame-zone outputs of the encoder.
