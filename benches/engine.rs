@@ -302,6 +302,19 @@ fn kernels(c: &mut Criterion, fast: &Model, att: Option<&Attention>) {
             black_box(&out);
         })
     });
+    // The same inside an engine frame (x86-64): the layer's weights widened to i16 once, as the
+    // engine's frames do, instead of per call (the figure the engine's refinement sees).
+    #[cfg(target_arch = "x86_64")]
+    g.bench_function(format!("conv_row gru08 i16 3x3 {}->{} ({rows} rows of {w}), in a frame", p.patch_len() / 9, p.cout), |b| {
+        let _frame = muir::kernels::conv::FrameScope::new();
+        b.iter(|| {
+            for y in 0..rows {
+                let pr: Vec<PartRows<'_, i16>> = tensors.iter().zip(parts).map(|(t, &ch)| PartRows::of_tensor(t, rows, w * ch, y, 3, 1)).collect();
+                conv_row(&p, &pr, w, &mut OutRow::I16(&mut out[y * w * p.cout..(y + 1) * w * p.cout]), &mut patch);
+            }
+            black_box(&out);
+        })
+    });
     let refs: Vec<&[i16]> = tensors.iter().map(|t| t.as_slice()).collect();
     g.bench_function(format!("conv_plain gru08 i16 3x3 {}->{} ({rows} rows of {w})", p.patch_len() / 9, p.cout), |b| {
         b.iter(|| {
