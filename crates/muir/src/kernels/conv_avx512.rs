@@ -1480,6 +1480,10 @@ mod tests {
             check(10, &|_| i8::MIN, 3, 1, &[64], 11, PostOp::None, w, true);
             // One tap of more than an i16 chunk (520 / 2 = 260 groups > 255).
             check(11, &|_| i16::MIN, 1, 1, &[520], 4, PostOp::None, w, true);
+            // A tame first part (sums within i32: `add_part`'s vector formula), then an extreme
+            // one (totals beyond i32: the scalar formula, added to the first part's).
+            check(12, &|_| i16::MIN, 3, 1, &[2, 128], 8, PostOp::None, w, true);
+            check(13, &|r: &mut Rng| if r.next() % 2 == 0 { i16::MIN } else { i16::MAX }, 3, 1, &[2, 128], 16, PostOp::None, w, true);
         }
     }
 }
