@@ -83,25 +83,59 @@ impl Row {
     #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
     unsafe fn window_avx512(&self, f1: &[i8], at: usize, win: &mut [i32]) {
         let bias = 128 * f1.iter().map(|v| *v as i32).sum::<i32>();
-        let t = self.t.as_ptr();
+        // Up to 8 blocks of 16 columns at a time, each its own accumulator, every group's
+        // weights broadcast once for all of them: one block's products are a chain (each
+        // `vpdpbusd` waits for the one before). One block at a time, the `lookup_with` bench (a
+        // row of 40 pixels) took 21.9 us instead of 15.6 us.
         let mut i = 0;
         while i < win.len() {
-            let mut acc = _mm512_set1_epi32(-bias);
-            for (g, q) in f1.chunks_exact(4).enumerate() {
-                if let &[a, b, c, d] = q {
-                    let w = i32::from_le_bytes([a as u8, b as u8, c as u8, d as u8]);
-                    // SAFETY: the function's contract.
-                    let x = unsafe { _mm512_loadu_si512(t.add(g * self.stride + at + i).cast()) };
-                    acc = _mm512_dpbusd_epi32(acc, x, _mm512_set1_epi32(w));
+            let blocks = (win.len() - i).div_ceil(16).min(8);
+            let out = win.get_mut(i..).unwrap_or_default();
+            // SAFETY: the contract, for columns `at + i ..` (blocks of 16 up to the window's end
+            // rounded up to 16).
+            unsafe {
+                match blocks {
+                    8 => self.blocks::<8>(f1, at + i, bias, out),
+                    7 => self.blocks::<7>(f1, at + i, bias, out),
+                    6 => self.blocks::<6>(f1, at + i, bias, out),
+                    5 => self.blocks::<5>(f1, at + i, bias, out),
+                    4 => self.blocks::<4>(f1, at + i, bias, out),
+                    3 => self.blocks::<3>(f1, at + i, bias, out),
+                    2 => self.blocks::<2>(f1, at + i, bias, out),
+                    _ => self.blocks::<1>(f1, at + i, bias, out),
                 }
             }
-            let mut out = [0i32; 16];
+            i += 16 * blocks;
+        }
+    }
+
+    /// `N` blocks of 16 columns from `at` on into `out` (as many as it holds): the correlations
+    /// `sum(f1 (x + 128)) - bias` of the `x + 128` packed columns.
+    ///
+    /// # Safety
+    /// As [`Row::window_avx512`], for columns `at .. at + 16 N`.
+    #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+    #[inline]
+    unsafe fn blocks<const N: usize>(&self, f1: &[i8], at: usize, bias: i32, out: &mut [i32]) {
+        let t = self.t.as_ptr();
+        let mut acc = [_mm512_set1_epi32(-bias); N];
+        for (g, q) in f1.chunks_exact(4).enumerate() {
+            if let &[a, b, c, d] = q {
+                let w = _mm512_set1_epi32(i32::from_le_bytes([a as u8, b as u8, c as u8, d as u8]));
+                for (k, acc) in acc.iter_mut().enumerate() {
+                    // SAFETY: the function's contract (column `at + 16 k + 15` at most).
+                    let x = unsafe { _mm512_loadu_si512(t.add(g * self.stride + at + 16 * k).cast()) };
+                    *acc = _mm512_dpbusd_epi32(*acc, x, w);
+                }
+            }
+        }
+        for (k, acc) in acc.iter().enumerate() {
+            let mut v = [0i32; 16];
             // SAFETY: 16 i32.
-            unsafe { _mm512_storeu_si512(out.as_mut_ptr().cast(), acc) };
-            for (d, v) in win.get_mut(i..).unwrap_or_default().iter_mut().zip(out) {
+            unsafe { _mm512_storeu_si512(v.as_mut_ptr().cast(), *acc) };
+            for (d, v) in out.get_mut(16 * k..).unwrap_or_default().iter_mut().zip(v) {
                 *d = v;
             }
-            i += 16;
         }
     }
 }
@@ -128,7 +162,8 @@ mod tests {
             assert!(row.fill(&f2, w, c));
             for trial in 0..50 {
                 let f1: Vec<i8> = (0..c).map(|_| if extreme && trial % 2 == 0 { -128 } else { r.i8() }).collect();
-                let n = 1 + r.below(120) as usize;
+                // (Past 128 columns: the window in more than one round of 8 blocks.)
+                let n = 1 + r.below(if trial % 4 == 0 { 300 } else { 120 }) as usize;
                 let lo = r.below(2 * w as u64 + 240) as i64 - 120;
                 let (mut want, mut got) = (vec![0i32; n], vec![7i32; n]);
                 super::super::window(&f1, &f2, w, lo, &mut want);
