@@ -1459,6 +1459,9 @@ mod tests {
                     (3, 2, &[64, 36][..], 9),
                     (1, 2, &[16][..], 5),
                     (5, 2, &[12, 2][..], 3),
+                    // Parts of 7 to 15 groups whose last one is partial: u8 7 and 8 groups,
+                    // i16 13 and 15.
+                    (3, 1, &[25, 30][..], 6),
                 ]
                 {
                     seed += 1;
