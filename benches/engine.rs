@@ -339,6 +339,19 @@ fn kernels(c: &mut Criterion, fast: &Model, att: Option<&Attention>) {
             black_box(&out);
         })
     });
+    // The same inside an engine frame (x86-64): the layer's weights re-laid once per frame where
+    // the row takes the output-channels-along-the-vector path, as the engine runs it.
+    #[cfg(target_arch = "x86_64")]
+    g.bench_function(format!("conv_row layer1 u8 3x3 64->64 ({rows} rows of {w}), in a frame"), |b| {
+        let _frame = muir::kernels::conv::FrameScope::new();
+        b.iter(|| {
+            for y in 0..rows {
+                let pr = [PartRows::of_tensor(&x, rows, w * p.parts[0], y, 3, 1)];
+                conv_row(&p, &pr, w, &mut OutRow::U8(&mut out[y * w * p.cout..(y + 1) * w * p.cout]), &mut patch);
+            }
+            black_box(&out);
+        })
+    });
     g.bench_function(format!("conv_plain layer1 u8 3x3 64->64 ({rows} rows of {w})"), |b| {
         b.iter(|| {
             conv_plain(&p, &[&x[..]], rows, w, &mut OutRow::U8(&mut out));

@@ -213,6 +213,7 @@ impl FrameScope {
             Some(layers) => layers.iter_mut().for_each(Relaid::invalidate),
             None => *f = Some(Vec::new()),
         });
+        direct::invalidate();
         FRAME_ON.with(|on| on.set(true));
         FrameScope(())
     }
@@ -231,6 +232,7 @@ impl Drop for FrameScope {
                 layers.iter_mut().for_each(Relaid::invalidate);
             }
         });
+        direct::invalidate();
         FRAME_ON.with(|on| on.set(false));
     }
 }
@@ -294,10 +296,19 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
     if !whole_row(p, inputs.len(), w_in, out.len()) || w_in >= 1 << 20 || !has_avx512() {
         return false;
     }
+    // The 3x3 stride-1 rows of one u8 part with the output channels along the vector
+    // (`direct`), unless a part's sums are kept for the frame.
     // SAFETY: the CPU has AVX-512 F/BW/VNNI (`has_avx512`); the layer passed the checks above.
+    if constant.is_none() && unsafe { direct::conv_row(p, inputs, w_in, out) } {
+        return true;
+    }
+    // SAFETY: as above.
     SCRATCH.with_borrow_mut(|s| unsafe { run(p, inputs, w_in, w_out, kind, out, s, constant) });
     true
 }
+
+#[path = "conv_avx512_direct.rs"]
+mod direct;
 
 /// One input part's place in the row's work.
 #[derive(Clone, Copy, Debug, Default)]
@@ -1462,6 +1473,12 @@ mod tests {
                     // Parts of 7 to 15 groups whose last one is partial: u8 7 and 8 groups,
                     // i16 13 and 15.
                     (3, 1, &[25, 30][..], 6),
+                    // One u8 part, 3x3, stride 1, channels out in sixteens: the rows with the
+                    // output channels along the vector (`direct`; 16, 32 and 48 channels out:
+                    // blocks of 32, then one of 16).
+                    (3, 1, &[32][..], 32),
+                    (3, 1, &[64][..], 48),
+                    (3, 1, &[4][..], 16),
                 ]
                 {
                     seed += 1;
@@ -1487,6 +1504,10 @@ mod tests {
             // one (totals beyond i32: the scalar formula, added to the first part's).
             check(12, &|_| i16::MIN, 3, 1, &[2, 128], 8, PostOp::None, w, true);
             check(13, &|r: &mut Rng| if r.next() % 2 == 0 { i16::MIN } else { i16::MAX }, 3, 1, &[2, 128], 16, PostOp::None, w, true);
+            // The `direct` rows at their extremes: u8 255 against weights -128 over 128
+            // channels, sums near -2^22.
+            check(14, &|_| u8::MAX, 3, 1, &[128], 32, PostOp::None, w, true);
+            check(15, &|r: &mut Rng| if r.next() % 2 == 0 { 0 } else { u8::MAX }, 3, 1, &[128], 16, PostOp::Relu, w, true);
         }
     }
 }

@@ -1,0 +1,275 @@
+//! A convolution row with the output channels along the vector (host, x86-64, AVX-512 VNNI):
+//! the 3x3 stride-1 layers of one u8 input part, the trunk's and the heads' bulk. One pixel's
+//! group of 4 input channels is broadcast against 16 output channels' weights (re-laid
+//! `[tap][group][cout]` once per engine frame), 8 pixels x 32 channels in registers, and the row
+//! is read and written in its own `[x][c]` order: neither the input rows nor the outputs are
+//! transposed ([`super`] lays pixels along the vector and transposes both), and the epilogue runs
+//! on vectors of channels. `docs/experiments/host-direct-conv` measured the layout alone.
+//!
+//! Exactness: a lane adds at most `9 (c / 4)` groups of `4 * 255 * 128 < 2^17` (`c < 3640`: at
+//! most [`super::U8_CHUNK`] groups, `< 2^30`), the exact i32 sum. The epilogue is the portable
+//! path's formula where it is short ([`super::super::short_ok`], `|bias| <`
+//! [`super::super::SHORT_MAX_BIAS`], no table): `(sum m + 2^(s-1)) >> s`, `+ bias + 2^7 >> 8`,
+//! the ReLU, the output type's saturation. Layers outside these bounds take [`super`]'s path.
+
+use core::arch::x86_64::*;
+use core::cell::RefCell;
+
+use super::super::super::pool::{self, Shared, scratch};
+use super::super::{ConvParams, EXTRA_BITS, PartRows, SHORT_MAX_BIAS, short_ok};
+use super::{Elem, OutRow, PARALLEL_MACS, cast, out_ptr, out_range};
+use crate::model::graph::PostOp;
+
+/// Output pixels a register block holds.
+const PX: usize = 8;
+/// Columns of zeros after a padded row, so that a block's last pixels read zeros.
+const SLACK: usize = PX + 1;
+
+/// A layer's weights as [`block`] reads them: `[tap][group][cout]`, 4 weights an i32.
+struct Relaid {
+    /// The layer: its weight table's address and length, channels in and out.
+    key: (usize, usize, usize, usize),
+    /// This frame's copy.
+    valid: bool,
+    w: Vec<i32>,
+}
+
+std::thread_local! {
+    /// This thread's relaid layers (kept while a [`super::FrameScope`] lives).
+    static LAYERS: RefCell<Vec<Relaid>> = const { RefCell::new(Vec::new()) };
+    /// The relaid weights of a layer outside a frame, and the padded input rows.
+    static SCRATCH: RefCell<(Vec<i32>, [Vec<u8>; 3])> = const { RefCell::new((Vec::new(), [Vec::new(), Vec::new(), Vec::new()])) };
+}
+
+/// Drops this thread's relaid layers from use (a frame starts or ends).
+pub(super) fn invalidate() {
+    LAYERS.with_borrow_mut(|l| l.iter_mut().for_each(|r| r.valid = false));
+}
+
+/// Whether the row takes this path: one u8 part of whole groups, 3x3, stride 1, output channels
+/// in sixteens, no activation table, and the short epilogue for every channel.
+fn eligible<T: Elem>(p: &ConvParams<'_>) -> bool {
+    let Some(&ch) = p.parts.first() else { return false };
+    cast::<T, u8>(&[]).is_some()
+        && p.parts.len() == 1
+        && p.k == 3
+        && p.stride == 1
+        && ch > 0
+        && ch.is_multiple_of(4)
+        && 9 * ch / 4 <= super::U8_CHUNK
+        && p.cout > 0
+        && p.cout.is_multiple_of(16)
+        && p.cout <= 512
+        && matches!(p.post, PostOp::None | PostOp::Relu)
+        && p.weights.len() >= p.cout * 9 * ch
+        && (0..p.cout).all(|c| short_ok(p.mult.get(c)) && p.bias.get(c).unsigned_abs() < SHORT_MAX_BIAS)
+}
+
+/// `[tap][group][cout]` of the blob's `[c][tap][ci]` weights into `w` (`9 (ch / 4) cout`).
+fn relay(p: &ConvParams<'_>, ch: usize, w: &mut [i32]) {
+    let (g_n, cout) = (ch / 4, p.cout);
+    for (c, wc) in p.weights.chunks_exact(9 * ch).take(cout).enumerate() {
+        for (tg, q) in wc.chunks_exact(4).enumerate() {
+            if let (Some(d), &[a, b, e, f]) = (w.get_mut(tg * cout + c), q) {
+                *d = i32::from_le_bytes([a as u8, b as u8, e as u8, f as u8]);
+            }
+        }
+    }
+    let _ = g_n;
+}
+
+/// [`super::conv_row`] by this path, or `false` (nothing written) where the layer is not one it
+/// takes.
+///
+/// # Safety
+/// The CPU has AVX-512 F, BW and VNNI; the layer passed [`super::conv_row`]'s checks.
+pub(super) unsafe fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, out: &mut OutRow<'_>) -> bool {
+    if !eligible::<T>(p) {
+        return false;
+    }
+    let (ch, cout) = (p.parts.first().copied().unwrap_or(0), p.cout);
+    let Some(rows) = inputs.first() else { return false };
+    let n = 9 * (ch / 4) * cout;
+    let framed = super::FRAME_ON.with(|on| on.get());
+    SCRATCH.with_borrow_mut(|(own, pads)| {
+        // The rows padded with a zero column in front and `SLACK` behind (a missing row: none).
+        let mut padded: [Option<&[u8]>; 3] = [None; 3];
+        for ((dst, src), pad) in padded.iter_mut().zip(rows.rows.iter()).zip(pads.iter_mut()) {
+            let Some(src) = src.and_then(|r| cast::<T, u8>(r)) else { continue };
+            let v = scratch(pad, (w_in + 1 + SLACK) * ch);
+            let (front, rest) = v.split_at_mut(ch.min(v.len()));
+            front.fill(0);
+            let take = (w_in * ch).min(src.len()).min(rest.len());
+            if let (Some(d), Some(s)) = (rest.get_mut(..take), src.get(..take)) {
+                d.copy_from_slice(s);
+            }
+            rest.get_mut(take..).unwrap_or_default().fill(0);
+            *dst = Some(&*v);
+        }
+        let mut run = |w: &[i32]| {
+            // SAFETY: the caller's CPU features; `w` holds `n` relaid weights; the padded rows
+            // hold `(w_in + 1 + SLACK) ch` bytes.
+            unsafe { row(p, ch, &padded, w, w_in, out) }
+        };
+        if framed {
+            LAYERS.with_borrow_mut(|layers| {
+                let key = (p.weights.as_ptr() as usize, p.weights.len(), ch, cout);
+                let i = match layers.iter().position(|l| l.key == key) {
+                    Some(i) => i,
+                    None => {
+                        let i = layers.iter().position(|l| !l.valid).unwrap_or(layers.len());
+                        if i == layers.len() {
+                            layers.push(Relaid { key, valid: false, w: Vec::new() });
+                        }
+                        i
+                    }
+                };
+                if let Some(l) = layers.get_mut(i) {
+                    if !(l.valid && l.key == key) {
+                        l.key = key;
+                        relay(p, ch, scratch(&mut l.w, n));
+                        l.valid = true;
+                    }
+                    run(l.w.get(..n).unwrap_or_default());
+                }
+            });
+        } else {
+            let w = scratch(own, n);
+            relay(p, ch, w);
+            run(w);
+        }
+    });
+    true
+}
+
+/// The row: blocks of [`PX`] pixels (split over the pool when the layer is large and the pool
+/// free), every channel.
+///
+/// # Safety
+/// As [`conv_row`]; `w` holds `9 (ch / 4) cout` relaid weights; each padded row holds `(w_in + 1
+/// + SLACK) ch` bytes.
+#[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+unsafe fn row(p: &ConvParams<'_>, ch: usize, rows: &[Option<&[u8]>; 3], w: &[i32], w_in: usize, out: &mut OutRow<'_>) {
+    let cout = p.cout;
+    let (lo, hi) = out_range(out);
+    let lo = if p.post == PostOp::Relu { lo.max(0) } else { lo };
+    let (op, size) = out_ptr(out);
+    // Per channel: multiplier, shift, bias (the short epilogue's operands).
+    let mut ep = [0i64; 3 * 512];
+    let ep = if 3 * cout <= ep.len() { ep.get_mut(..3 * cout).unwrap_or_default() } else { return };
+    for c in 0..cout {
+        let m = p.mult.get(c);
+        if let Some([a, b, e]) = ep.get_mut(3 * c..3 * c + 3).and_then(|s| <&mut [i64; 3]>::try_from(s).ok()) {
+            (*a, *b, *e) = (m.m as i64, m.shift as i64, p.bias.get(c));
+        }
+    }
+    let ep = &*ep;
+    let blocks = w_in.div_ceil(PX);
+    let big = w_in * cout * 9 * ch >= PARALLEL_MACS;
+    let ranges = if big && blocks >= 2 && pool::free() { pool::threads().min(blocks) } else { 1 };
+    let task = |t: usize| {
+        let (b0, b1) = (t * blocks / ranges, (t + 1) * blocks / ranges);
+        for b in b0..b1 {
+            let x0 = b * PX;
+            let np = (w_in - x0).min(PX);
+            let mut cb = 0;
+            while cb < cout {
+                // SAFETY: pixels `x0 .. x0 + np` of the row and channels `cb ..` of them, this
+                // task's only; the rest as `row`'s contract.
+                unsafe {
+                    if cb + 32 <= cout {
+                        block::<2>(rows, w, ch, cout, x0, np, cb, ep, (lo, hi), &op, size);
+                        cb += 32;
+                    } else {
+                        block::<1>(rows, w, ch, cout, x0, np, cb, ep, (lo, hi), &op, size);
+                        cb += 16;
+                    }
+                }
+            }
+        }
+    };
+    if ranges > 1 {
+        pool::run(ranges, &task);
+    } else {
+        task(0);
+    }
+}
+
+/// Output pixels `x0 .. x0 + np` (`np <= PX`), channels `cb .. cb + 16 NV`: the exact sums of
+/// the present rows' taps, then the epilogue into the output row.
+///
+/// # Safety
+/// As [`row`]; `cb + 16 NV <= cout`; pixels `x0 .. x0 + np` of the output row (`size` bytes a
+/// value) are the caller's to write.
+#[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+#[inline]
+#[allow(clippy::too_many_arguments)]
+unsafe fn block<const NV: usize>(rows: &[Option<&[u8]>; 3], w: &[i32], ch: usize, cout: usize, x0: usize, np: usize, cb: usize, ep: &[i64], (lo, hi): (i32, i32), op: &Shared<u8>, size: usize) {
+    let g_n = ch / 4;
+    let mut acc = [[_mm512_setzero_si512(); NV]; PX];
+    for (ky, r) in rows.iter().enumerate() {
+        let Some(r) = r else { continue };
+        for kx in 0..3 {
+            // SAFETY: pixel `x0 + p + kx <= w_in + PX + 1` of the padded row, group `g < g_n`:
+            // inside its `(w_in + 1 + SLACK) ch` bytes; weights of tap `ky 3 + kx`, group `g`,
+            // channels `cb .. cb + 16 NV <= cout`: inside `w`.
+            unsafe {
+                let xp = r.as_ptr().add((x0 + kx) * ch);
+                let wt = w.as_ptr().add((ky * 3 + kx) * g_n * cout + cb);
+                for g in 0..g_n {
+                    let mut wv = [_mm512_setzero_si512(); NV];
+                    for (v, wv) in wv.iter_mut().enumerate() {
+                        *wv = _mm512_loadu_si512(wt.add(g * cout + 16 * v).cast());
+                    }
+                    for (p, acc) in acc.iter_mut().enumerate() {
+                        let a = _mm512_set1_epi32(xp.add(p * ch + 4 * g).cast::<i32>().read_unaligned());
+                        for (acc, wv) in acc.iter_mut().zip(wv) {
+                            *acc = _mm512_dpbusd_epi32(*acc, a, wv);
+                        }
+                    }
+                }
+            }
+        }
+    }
+    let (l, h) = (_mm512_set1_epi64(lo as i64), _mm512_set1_epi64(hi as i64));
+    let round = _mm512_set1_epi64(1 << (EXTRA_BITS - 1));
+    let one = _mm512_set1_epi64(1);
+    for v in 0..NV {
+        let c = cb + 16 * v;
+        // The 16 channels' operands as two vectors of 8 (multiplier, shift, half, bias).
+        let mut opnd = [[0i64; 8]; 6];
+        for (k, row) in opnd.iter_mut().enumerate() {
+            for (j, d) in row.iter_mut().enumerate() {
+                *d = ep.get(3 * (c + 8 * (k / 3) + j) + k % 3).copied().unwrap_or(0);
+            }
+        }
+        // SAFETY: 8 i64 each.
+        let [m0, s0, b0, m1, s1, b1] = [0, 1, 2, 3, 4, 5].map(|k| opnd.get(k).map_or(_mm512_setzero_si512(), |r| unsafe { _mm512_loadu_si512(r.as_ptr().cast()) }));
+        let (h0, h1) = (_mm512_sllv_epi64(one, _mm512_sub_epi64(s0, one)), _mm512_sllv_epi64(one, _mm512_sub_epi64(s1, one)));
+        // requantize (short), + bias, rounded >> EXTRA_BITS, ReLU / saturation. (A macro, not a
+        // closure: the intrinsics stay inline under this function's target features.)
+        macro_rules! finish {
+            ($a:expr, $m:expr, $s:expr, $half:expr, $b:expr) => {{
+                let r = _mm512_srav_epi64(_mm512_add_epi64(_mm512_mul_epi32($a, $m), $half), $s);
+                let r = _mm512_srai_epi64::<{ EXTRA_BITS }>(_mm512_add_epi64(_mm512_add_epi64(r, $b), round));
+                _mm512_min_epi64(_mm512_max_epi64(r, l), h)
+            }};
+        }
+        for (p, acc) in acc.iter().enumerate().take(np) {
+            let a = acc.get(v).copied().unwrap_or(_mm512_setzero_si512());
+            let (a0, a1) = (_mm512_cvtepi32_epi64(_mm512_castsi512_si256(a)), _mm512_cvtepi32_epi64(_mm512_extracti64x4_epi64::<1>(a)));
+            let (r0, r1) = (finish!(a0, m0, s0, h0, b0), finish!(a1, m1, s1, h1, b1));
+            // SAFETY: channels `c .. c + 16` of pixel `x0 + p` (the contract).
+            unsafe {
+                let d = op.0.add(((x0 + p) * cout + c) * size);
+                if size == 2 {
+                    _mm_storeu_si128(d.cast(), _mm512_cvtepi64_epi16(r0));
+                    _mm_storeu_si128(d.add(16).cast(), _mm512_cvtepi64_epi16(r1));
+                } else {
+                    _mm_storel_epi64(d.cast(), _mm512_cvtepi64_epi8(r0));
+                    _mm_storel_epi64(d.add(8).cast(), _mm512_cvtepi64_epi8(r1));
+                }
+            }
+        }
+    }
+}
