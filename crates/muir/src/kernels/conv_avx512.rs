@@ -1473,12 +1473,14 @@ mod tests {
                     // Parts of 7 to 15 groups whose last one is partial: u8 7 and 8 groups,
                     // i16 13 and 15.
                     (3, 1, &[25, 30][..], 6),
-                    // One u8 part, 3x3, stride 1, channels out in sixteens: the rows with the
+                    // One u8 part, 3x3, stride 1 or 2, channels out in sixteens: the rows with the
                     // output channels along the vector (`direct`; 16, 32 and 48 channels out:
                     // blocks of 32, then one of 16).
                     (3, 1, &[32][..], 32),
                     (3, 1, &[64][..], 48),
                     (3, 1, &[4][..], 16),
+                    (3, 2, &[32][..], 48),
+                    (3, 2, &[4][..], 16),
                 ]
                 {
                     seed += 1;

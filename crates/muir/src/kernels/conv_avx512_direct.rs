@@ -1,5 +1,5 @@
 //! A convolution row with the output channels along the vector (host, x86-64, AVX-512 VNNI):
-//! the 3x3 stride-1 layers of one u8 input part, the trunk's and the heads' bulk. One pixel's
+//! the 3x3 layers (stride 1 or 2) of one u8 input part, the trunk's and the heads' bulk. One pixel's
 //! group of 4 input channels is broadcast against 16 output channels' weights (re-laid
 //! `[tap][group][cout]` once per engine frame), 8 pixels x 32 channels in registers, and the row
 //! is read and written in its own `[x][c]` order: neither the input rows nor the outputs are
@@ -22,8 +22,11 @@ use crate::model::graph::PostOp;
 
 /// Output pixels a register block holds.
 const PX: usize = 8;
-/// Columns of zeros after a padded row, so that a block's last pixels read zeros.
-const SLACK: usize = PX + 1;
+/// Columns of a padded row (a zero column in front): every column a block of [`PX`] pixels
+/// reads, zeros past the row's own.
+fn padded_cols(w_in: usize, w_out: usize, stride: usize) -> usize {
+    (w_in + 1).max(stride * (w_out + PX) + 3)
+}
 
 /// A layer's weights as [`block`] reads them: `[tap][group][cout]`, 4 weights an i32.
 struct Relaid {
@@ -46,14 +49,14 @@ pub(super) fn invalidate() {
     LAYERS.with_borrow_mut(|l| l.iter_mut().for_each(|r| r.valid = false));
 }
 
-/// Whether the row takes this path: one u8 part of whole groups, 3x3, stride 1, output channels
+/// Whether the row takes this path: one u8 part of whole groups, 3x3, stride 1 or 2, output channels
 /// in sixteens, no activation table, and the short epilogue for every channel.
 fn eligible<T: Elem>(p: &ConvParams<'_>) -> bool {
     let Some(&ch) = p.parts.first() else { return false };
     cast::<T, u8>(&[]).is_some()
         && p.parts.len() == 1
         && p.k == 3
-        && p.stride == 1
+        && (p.stride == 1 || p.stride == 2)
         && ch > 0
         && ch.is_multiple_of(4)
         && 9 * ch / 4 <= super::U8_CHUNK
@@ -90,13 +93,15 @@ pub(super) unsafe fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_
     let (ch, cout) = (p.parts.first().copied().unwrap_or(0), p.cout);
     let Some(rows) = inputs.first() else { return false };
     let n = 9 * (ch / 4) * cout;
+    let w_out = p.out_width(w_in);
+    let cols = padded_cols(w_in, w_out, p.stride);
     let framed = super::FRAME_ON.with(|on| on.get());
     SCRATCH.with_borrow_mut(|(own, pads)| {
-        // The rows padded with a zero column in front and `SLACK` behind (a missing row: none).
+        // The rows padded with a zero column in front and zeros behind (a missing row: none).
         let mut padded: [Option<&[u8]>; 3] = [None; 3];
         for ((dst, src), pad) in padded.iter_mut().zip(rows.rows.iter()).zip(pads.iter_mut()) {
             let Some(src) = src.and_then(|r| cast::<T, u8>(r)) else { continue };
-            let v = scratch(pad, (w_in + 1 + SLACK) * ch);
+            let v = scratch(pad, cols * ch);
             let (front, rest) = v.split_at_mut(ch.min(v.len()));
             front.fill(0);
             let take = (w_in * ch).min(src.len()).min(rest.len());
@@ -108,8 +113,8 @@ pub(super) unsafe fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_
         }
         let mut run = |w: &[i32]| {
             // SAFETY: the caller's CPU features; `w` holds `n` relaid weights; the padded rows
-            // hold `(w_in + 1 + SLACK) ch` bytes.
-            unsafe { row(p, ch, &padded, w, w_in, out) }
+            // hold `padded_cols` columns.
+            unsafe { row(p, ch, &padded, w, w_out, out) }
         };
         if framed {
             LAYERS.with_borrow_mut(|layers| {
@@ -146,10 +151,10 @@ pub(super) unsafe fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_
 /// free), every channel.
 ///
 /// # Safety
-/// As [`conv_row`]; `w` holds `9 (ch / 4) cout` relaid weights; each padded row holds `(w_in + 1
-/// + SLACK) ch` bytes.
+/// As [`conv_row`]; `w` holds `9 (ch / 4) cout` relaid weights; each padded row holds
+/// [`padded_cols`] columns of `ch` bytes for the row's `w_out` outputs.
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
-unsafe fn row(p: &ConvParams<'_>, ch: usize, rows: &[Option<&[u8]>; 3], w: &[i32], w_in: usize, out: &mut OutRow<'_>) {
+unsafe fn row(p: &ConvParams<'_>, ch: usize, rows: &[Option<&[u8]>; 3], w: &[i32], w_out: usize, out: &mut OutRow<'_>) {
     let cout = p.cout;
     let (lo, hi) = out_range(out);
     let lo = if p.post == PostOp::Relu { lo.max(0) } else { lo };
@@ -164,24 +169,25 @@ unsafe fn row(p: &ConvParams<'_>, ch: usize, rows: &[Option<&[u8]>; 3], w: &[i32
         }
     }
     let ep = &*ep;
-    let blocks = w_in.div_ceil(PX);
-    let big = w_in * cout * 9 * ch >= PARALLEL_MACS;
+    let stride = p.stride;
+    let blocks = w_out.div_ceil(PX);
+    let big = w_out * cout * 9 * ch >= PARALLEL_MACS;
     let ranges = if big && blocks >= 2 && pool::free() { pool::threads().min(blocks) } else { 1 };
     let task = |t: usize| {
         let (b0, b1) = (t * blocks / ranges, (t + 1) * blocks / ranges);
         for b in b0..b1 {
             let x0 = b * PX;
-            let np = (w_in - x0).min(PX);
+            let np = (w_out - x0).min(PX);
             let mut cb = 0;
             while cb < cout {
                 // SAFETY: pixels `x0 .. x0 + np` of the row and channels `cb ..` of them, this
                 // task's only; the rest as `row`'s contract.
                 unsafe {
                     if cb + 32 <= cout {
-                        block::<2>(rows, w, ch, cout, x0, np, cb, ep, (lo, hi), &op, size);
+                        block::<2>(rows, w, ch, cout, stride, x0, np, cb, ep, (lo, hi), &op, size);
                         cb += 32;
                     } else {
-                        block::<1>(rows, w, ch, cout, x0, np, cb, ep, (lo, hi), &op, size);
+                        block::<1>(rows, w, ch, cout, stride, x0, np, cb, ep, (lo, hi), &op, size);
                         cb += 16;
                     }
                 }
@@ -204,17 +210,17 @@ unsafe fn row(p: &ConvParams<'_>, ch: usize, rows: &[Option<&[u8]>; 3], w: &[i32
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
 #[inline]
 #[allow(clippy::too_many_arguments)]
-unsafe fn block<const NV: usize>(rows: &[Option<&[u8]>; 3], w: &[i32], ch: usize, cout: usize, x0: usize, np: usize, cb: usize, ep: &[i64], (lo, hi): (i32, i32), op: &Shared<u8>, size: usize) {
+unsafe fn block<const NV: usize>(rows: &[Option<&[u8]>; 3], w: &[i32], ch: usize, cout: usize, stride: usize, x0: usize, np: usize, cb: usize, ep: &[i64], (lo, hi): (i32, i32), op: &Shared<u8>, size: usize) {
     let g_n = ch / 4;
     let mut acc = [[_mm512_setzero_si512(); NV]; PX];
     for (ky, r) in rows.iter().enumerate() {
         let Some(r) = r else { continue };
         for kx in 0..3 {
-            // SAFETY: pixel `x0 + p + kx <= w_in + PX + 1` of the padded row, group `g < g_n`:
-            // inside its `(w_in + 1 + SLACK) ch` bytes; weights of tap `ky 3 + kx`, group `g`,
-            // channels `cb .. cb + 16 NV <= cout`: inside `w`.
+            // SAFETY: padded column `stride (x0 + p) + kx < stride (w_out + PX) + 3` (`x0 + p <
+            // w_out + PX - 1`), group `g < g_n`: inside the padded row ([`padded_cols`]); weights
+            // of tap `ky 3 + kx`, group `g`, channels `cb .. cb + 16 NV <= cout`: inside `w`.
             unsafe {
-                let xp = r.as_ptr().add((x0 + kx) * ch);
+                let xp = r.as_ptr().add((stride * x0 + kx) * ch);
                 let wt = w.as_ptr().add((ky * 3 + kx) * g_n * cout + cb);
                 for g in 0..g_n {
                     let mut wv = [_mm512_setzero_si512(); NV];
@@ -222,7 +228,7 @@ unsafe fn block<const NV: usize>(rows: &[Option<&[u8]>; 3], w: &[i32], ch: usize
                         *wv = _mm512_loadu_si512(wt.add(g * cout + 16 * v).cast());
                     }
                     for (p, acc) in acc.iter_mut().enumerate() {
-                        let a = _mm512_set1_epi32(xp.add(p * ch + 4 * g).cast::<i32>().read_unaligned());
+                        let a = _mm512_set1_epi32(xp.add(p * stride * ch + 4 * g).cast::<i32>().read_unaligned());
                         for (acc, wv) in acc.iter_mut().zip(wv) {
                             *acc = _mm512_dpbusd_epi32(*acc, a, wv);
                         }
