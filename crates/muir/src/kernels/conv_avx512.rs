@@ -378,10 +378,7 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
                 let i = match hit {
                     Some(i) => i,
                     None => {
-                        let i = l.memo.iter().position(|m| !m.valid).unwrap_or(l.memo.len());
-                        if i == l.memo.len() {
-                            l.memo.push(Memo { part, row, valid: false, src: Vec::new(), sums: Vec::new(), pixpad });
-                        }
+                        let i = free_slot(&mut l.memo, |m| m.valid, || Memo { part, row, valid: false, src: Vec::new(), sums: Vec::new(), pixpad });
                         let m = l.memo.get_mut(i)?;
                         (m.part, m.row, m.pixpad, m.valid) = (part, row, pixpad, false);
                         m.keep_rows(rows);
@@ -434,6 +431,15 @@ fn part_plans(p: &ConvParams<'_>, kind: Kind, pixpad: usize, taps: &mut Vec<Tap>
     (plans, xt_len, tasks)
 }
 
+/// The first entry of `v` not `used` in this frame (its buffers for reuse), else a `new` one
+/// pushed: its index.
+fn free_slot<E>(v: &mut Vec<E>, used: impl Fn(&E) -> bool, new: impl FnOnce() -> E) -> usize {
+    v.iter().position(|e| !used(e)).unwrap_or_else(|| {
+        v.push(new());
+        v.len() - 1
+    })
+}
+
 /// This frame's entry of layer `p`: its weights re-laid (built on first use in the frame, into a
 /// buffer of an earlier frame where one is free) where a part needs a copy, and its memos.
 ///
@@ -448,10 +454,7 @@ unsafe fn layer<'a>(layers: &'a mut Vec<Relaid>, p: &ConvParams<'_>, plans: &[Pa
         Some(i) => i,
         None => {
             // A buffer of a layer this frame has not used, else a new one.
-            let i = layers.iter().position(|l| !l.valid).unwrap_or(layers.len());
-            if i == layers.len() {
-                layers.push(Relaid { key, valid: false, buf: Vec::new(), at: [0; MAX_PARTS], memo: Vec::new() });
-            }
+            let i = free_slot(layers, |l| l.valid, || Relaid { key, valid: false, buf: Vec::new(), at: [0; MAX_PARTS], memo: Vec::new() });
             let l = layers.get_mut(i)?;
             l.invalidate();
             l.key = key;

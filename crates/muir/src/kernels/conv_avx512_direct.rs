@@ -28,20 +28,23 @@ fn padded_cols(w_in: usize, w_out: usize, stride: usize) -> usize {
     (w_in + 1).max(stride * (w_out + PX) + 3)
 }
 
-/// A layer's weights as [`block`] reads them: `[tap][group][cout]`, 4 weights an i32.
+/// A layer as [`block`] reads it ([`relay`]).
 struct Relaid {
     /// The layer: its weight table's address and length, channels in and out.
     key: (usize, usize, usize, usize),
     /// This frame's copy.
     valid: bool,
+    /// The weights, `[tap][group][cout]`, 4 weights an i32.
     w: Vec<i32>,
+    /// The epilogue's operands, four planes of `cout`: multiplier, shift, rounding half, bias.
+    ep: Vec<i64>,
 }
 
 std::thread_local! {
     /// This thread's relaid layers (kept while a [`super::FrameScope`] lives).
     static LAYERS: RefCell<Vec<Relaid>> = const { RefCell::new(Vec::new()) };
-    /// The relaid weights of a layer outside a frame, and the padded input rows.
-    static SCRATCH: RefCell<(Vec<i32>, [Vec<u8>; 3])> = const { RefCell::new((Vec::new(), [Vec::new(), Vec::new(), Vec::new()])) };
+    /// The relaid layer outside a frame, and the padded input rows.
+    static SCRATCH: RefCell<(Relaid, [Vec<u8>; 3])> = const { RefCell::new((Relaid { key: (0, 0, 0, 0), valid: false, w: Vec::new(), ep: Vec::new() }, [Vec::new(), Vec::new(), Vec::new()])) };
 }
 
 /// Drops this thread's relaid layers from use (a frame starts or ends).
@@ -62,15 +65,18 @@ fn eligible<T: Elem>(p: &ConvParams<'_>) -> bool {
         && 9 * ch / 4 <= super::U8_CHUNK
         && p.cout > 0
         && p.cout.is_multiple_of(16)
-        && p.cout <= 512
         && matches!(p.post, PostOp::None | PostOp::Relu)
         && p.weights.len() >= p.cout * 9 * ch
         && (0..p.cout).all(|c| short_ok(p.mult.get(c)) && p.bias.get(c).unsigned_abs() < SHORT_MAX_BIAS)
 }
 
-/// `[tap][group][cout]` of the blob's `[c][tap][ci]` weights into `w` (`9 (ch / 4) cout`).
-fn relay(p: &ConvParams<'_>, ch: usize, w: &mut [i32]) {
-    let (g_n, cout) = (ch / 4, p.cout);
+/// Layer `p` (`ch` channels in) as [`block`] reads it, into `l`: the blob's `[c][tap][ci]`
+/// weights as `[tap][group][cout]` (`9 (ch / 4) cout`), and the short epilogue's operands as
+/// four planes of `cout` (multiplier, shift, rounding half `2^(shift - 1)`, bias), loaded 8
+/// channels at a time.
+fn relay(p: &ConvParams<'_>, ch: usize, l: &mut Relaid) {
+    let cout = p.cout;
+    let w = scratch(&mut l.w, 9 * (ch / 4) * cout);
     for (c, wc) in p.weights.chunks_exact(9 * ch).take(cout).enumerate() {
         for (tg, q) in wc.chunks_exact(4).enumerate() {
             if let (Some(d), &[a, b, e, f]) = (w.get_mut(tg * cout + c), q) {
@@ -78,7 +84,17 @@ fn relay(p: &ConvParams<'_>, ch: usize, w: &mut [i32]) {
             }
         }
     }
-    let _ = g_n;
+    let ep = scratch(&mut l.ep, 4 * cout);
+    for c in 0..cout {
+        let m = p.mult.get(c);
+        // (`eligible`: every channel's shift is in 8..=62.)
+        let half = 1i64.wrapping_shl(u32::from(m.shift.max(1)) - 1);
+        for (k, v) in [m.m as i64, m.shift as i64, half, p.bias.get(c)].into_iter().enumerate() {
+            if let Some(d) = ep.get_mut(k * cout + c) {
+                *d = v;
+            }
+        }
+    }
 }
 
 /// [`super::conv_row`] by this path, or `false` (nothing written) where the layer is not one it
@@ -111,37 +127,30 @@ pub(super) unsafe fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_
             rest.get_mut(take..).unwrap_or_default().fill(0);
             *dst = Some(&*v);
         }
-        let mut run = |w: &[i32]| {
-            // SAFETY: the caller's CPU features; `w` holds `n` relaid weights; the padded rows
-            // hold `padded_cols` columns.
-            unsafe { row(p, ch, &padded, w, w_out, out) }
+        let mut run = |l: &Relaid| {
+            // SAFETY: the caller's CPU features; `l` is the layer relaid (`n` weights, `4 cout`
+            // operands); the padded rows hold `padded_cols` columns.
+            unsafe { row(p, ch, &padded, l.w.get(..n).unwrap_or_default(), l.ep.get(..4 * cout).unwrap_or_default(), w_out, out) }
         };
         if framed {
             LAYERS.with_borrow_mut(|layers| {
                 let key = (p.weights.as_ptr() as usize, p.weights.len(), ch, cout);
                 let i = match layers.iter().position(|l| l.key == key) {
                     Some(i) => i,
-                    None => {
-                        let i = layers.iter().position(|l| !l.valid).unwrap_or(layers.len());
-                        if i == layers.len() {
-                            layers.push(Relaid { key, valid: false, w: Vec::new() });
-                        }
-                        i
-                    }
+                    None => super::free_slot(layers, |l| l.valid, || Relaid { key, valid: false, w: Vec::new(), ep: Vec::new() }),
                 };
                 if let Some(l) = layers.get_mut(i) {
                     if !(l.valid && l.key == key) {
                         l.key = key;
-                        relay(p, ch, scratch(&mut l.w, n));
+                        relay(p, ch, l);
                         l.valid = true;
                     }
-                    run(l.w.get(..n).unwrap_or_default());
+                    run(l);
                 }
             });
         } else {
-            let w = scratch(own, n);
-            relay(p, ch, w);
-            run(w);
+            relay(p, ch, own);
+            run(own);
         }
     });
     true
@@ -151,24 +160,19 @@ pub(super) unsafe fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_
 /// free), every channel.
 ///
 /// # Safety
-/// As [`conv_row`]; `w` holds `9 (ch / 4) cout` relaid weights; each padded row holds
-/// [`padded_cols`] columns of `ch` bytes for the row's `w_out` outputs.
+/// As [`conv_row`]; `w` and `ep` are the layer relaid ([`relay`]: `9 (ch / 4) cout` weights, `4
+/// cout` operands); each padded row holds [`padded_cols`] columns of `ch` bytes for the row's
+/// `w_out` outputs.
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
-unsafe fn row(p: &ConvParams<'_>, ch: usize, rows: &[Option<&[u8]>; 3], w: &[i32], w_out: usize, out: &mut OutRow<'_>) {
+#[allow(clippy::too_many_arguments)]
+unsafe fn row(p: &ConvParams<'_>, ch: usize, rows: &[Option<&[u8]>; 3], w: &[i32], ep: &[i64], w_out: usize, out: &mut OutRow<'_>) {
     let cout = p.cout;
     let (lo, hi) = out_range(out);
     let lo = if p.post == PostOp::Relu { lo.max(0) } else { lo };
     let (op, size) = out_ptr(out);
-    // Per channel: multiplier, shift, bias (the short epilogue's operands).
-    let mut ep = [0i64; 3 * 512];
-    let ep = if 3 * cout <= ep.len() { ep.get_mut(..3 * cout).unwrap_or_default() } else { return };
-    for c in 0..cout {
-        let m = p.mult.get(c);
-        if let Some([a, b, e]) = ep.get_mut(3 * c..3 * c + 3).and_then(|s| <&mut [i64; 3]>::try_from(s).ok()) {
-            (*a, *b, *e) = (m.m as i64, m.shift as i64, p.bias.get(c));
-        }
+    if ep.len() < 4 * cout || w.len() < 9 * (ch / 4) * cout {
+        return;
     }
-    let ep = &*ep;
     let stride = p.stride;
     let blocks = w_out.div_ceil(PX);
     let big = w_out * cout * 9 * ch >= PARALLEL_MACS;
@@ -239,19 +243,16 @@ unsafe fn block<const NV: usize>(rows: &[Option<&[u8]>; 3], w: &[i32], ch: usize
     }
     let (l, h) = (_mm512_set1_epi64(lo as i64), _mm512_set1_epi64(hi as i64));
     let round = _mm512_set1_epi64(1 << (EXTRA_BITS - 1));
-    let one = _mm512_set1_epi64(1);
     for v in 0..NV {
         let c = cb + 16 * v;
-        // The 16 channels' operands as two vectors of 8 (multiplier, shift, half, bias).
-        let mut opnd = [[0i64; 8]; 6];
-        for (k, row) in opnd.iter_mut().enumerate() {
-            for (j, d) in row.iter_mut().enumerate() {
-                *d = ep.get(3 * (c + 8 * (k / 3) + j) + k % 3).copied().unwrap_or(0);
-            }
-        }
-        // SAFETY: 8 i64 each.
-        let [m0, s0, b0, m1, s1, b1] = [0, 1, 2, 3, 4, 5].map(|k| opnd.get(k).map_or(_mm512_setzero_si512(), |r| unsafe { _mm512_loadu_si512(r.as_ptr().cast()) }));
-        let (h0, h1) = (_mm512_sllv_epi64(one, _mm512_sub_epi64(s0, one)), _mm512_sllv_epi64(one, _mm512_sub_epi64(s1, one)));
+        // The 16 channels' operands, two vectors of 8 from each plane (`ep`: four planes of
+        // `cout >= c + 16`, `row`'s check).
+        let [mp, sp, hp, bp] = [0, 1, 2, 3].map(|k| ep.as_ptr().wrapping_add(k * cout));
+        // SAFETY: 8 i64 of each plane from `c` and from `c + 8` (above).
+        let (m0, s0, h0, b0, m1, s1, h1, b1) = unsafe {
+            let ld = |q: *const i64| _mm512_loadu_si512(q.cast());
+            (ld(mp.add(c)), ld(sp.add(c)), ld(hp.add(c)), ld(bp.add(c)), ld(mp.add(c + 8)), ld(sp.add(c + 8)), ld(hp.add(c + 8)), ld(bp.add(c + 8)))
+        };
         // requantize (short), + bias, rounded >> EXTRA_BITS, ReLU / saturation. (A macro, not a
         // closure: the intrinsics stay inline under this function's target features.)
         macro_rules! finish {
