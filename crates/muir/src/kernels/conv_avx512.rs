@@ -214,6 +214,7 @@ impl FrameScope {
             None => *f = Some(Vec::new()),
         });
         direct::invalidate();
+        direct16::invalidate();
         FRAME_ON.with(|on| on.set(true));
         FrameScope(())
     }
@@ -233,6 +234,7 @@ impl Drop for FrameScope {
             }
         });
         direct::invalidate();
+        direct16::invalidate();
         FRAME_ON.with(|on| on.set(false));
     }
 }
@@ -302,6 +304,11 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
     if constant.is_none() && unsafe { direct::conv_row(p, inputs, w_in, out) } {
         return true;
     }
+    // The i16 rows likewise (`direct16`), the constant part's sums kept there.
+    // SAFETY: as above.
+    if unsafe { direct16::conv_row(p, inputs, w_in, out, constant) } {
+        return true;
+    }
     // SAFETY: as above.
     SCRATCH.with_borrow_mut(|s| unsafe { run(p, inputs, w_in, w_out, kind, out, s, constant) });
     true
@@ -309,6 +316,8 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
 
 #[path = "conv_avx512_direct.rs"]
 mod direct;
+#[path = "conv_avx512_direct16.rs"]
+mod direct16;
 
 /// One input part's place in the row's work.
 #[derive(Clone, Copy, Debug, Default)]
@@ -599,6 +608,17 @@ fn split_ranges(big: bool, nblk: usize) -> usize {
         return r.clamp(1, nblk.max(1));
     }
     if big && nblk >= 2 && pool::free() { pool::threads().min(nblk) } else { 0 }
+}
+
+/// Ranges of pixel blocks a row with the output channels along the vector ([`direct`],
+/// [`direct16`]) is split into: one a thread for a row of enough multiply-accumulates (`big`) and
+/// at least two blocks when the pool is free, else 1.
+fn block_ranges(big: bool, blocks: usize) -> usize {
+    #[cfg(test)]
+    if let Some(r) = FORCE_RANGES.with(|f| f.get()) {
+        return r.clamp(1, blocks.max(1));
+    }
+    if big && blocks >= 2 && pool::free() { pool::threads().min(blocks) } else { 1 }
 }
 
 #[cfg(test)]
@@ -952,7 +972,6 @@ unsafe fn finish_channel(post: PostOp, bias: i64, wild: bool, sum: &[i64], fin: 
     };
     let lo_v = if post == PostOp::Relu { lo.max(0) } else { lo };
     let (b, l, h) = (_mm512_set1_epi64(bias + (1 << (super::EXTRA_BITS - 1))), _mm512_set1_epi64(lo_v as i64), _mm512_set1_epi64(hi as i64));
-    let (i16_lo, i16_hi) = (_mm512_set1_epi64(i16::MIN as i64), _mm512_set1_epi64(i16::MAX as i64));
     let (lo8, hi8) = (_mm256_set1_epi32(lo), _mm256_set1_epi32(hi));
     let n = sum.len().min(fin.len());
     let mut x = 0;
@@ -965,14 +984,7 @@ unsafe fn finish_channel(post: PostOp, bias: i64, wild: bool, sum: &[i64], fin: 
                 let v = _mm512_srai_epi64::<{ super::EXTRA_BITS }>(_mm512_add_epi64(_mm512_loadu_si512(sp.add(x).cast()), b));
                 let out = match table {
                     None => _mm512_cvtepi64_epi32(_mm512_min_epi64(_mm512_max_epi64(v, l), h)),
-                    Some(t) => {
-                        let u = _mm256_add_epi32(_mm512_cvtepi64_epi32(_mm512_min_epi64(_mm512_max_epi64(v, i16_lo), i16_hi)), _mm256_set1_epi32(1 << 15));
-                        let pair = _mm256_i32gather_epi32::<2>(t.cast(), _mm256_srli_epi32::<6>(u));
-                        let (a, bb) = (_mm256_srai_epi32::<16>(_mm256_slli_epi32::<16>(pair)), _mm256_srai_epi32::<16>(pair));
-                        let frac = _mm256_and_si256(u, _mm256_set1_epi32(63));
-                        let step = _mm256_srai_epi32::<6>(_mm256_add_epi32(_mm256_mullo_epi32(_mm256_sub_epi32(bb, a), frac), _mm256_set1_epi32(32)));
-                        _mm256_min_epi32(_mm256_max_epi32(_mm256_add_epi32(a, step), lo8), hi8)
-                    }
+                    Some(t) => _mm256_min_epi32(_mm256_max_epi32(table8(t, v), lo8), hi8),
                 };
                 _mm256_storeu_si256(fp.add(x).cast(), out);
             }
@@ -982,6 +994,26 @@ unsafe fn finish_channel(post: PostOp, bias: i64, wild: bool, sum: &[i64], fin: 
     for (s, f) in sum.iter().zip(fin.iter_mut()).skip(x) {
         *f = finish_with(post, bias, *s).clamp(lo as i64, hi as i64) as i32;
     }
+}
+
+/// The sigmoid or tanh table `t` (1025 i16, [`crate::arith::lut`]'s) at 8 values `v` (i64), as
+/// [`crate::arith::lut`] reads it: the value saturated to i16, `u = v + 2^15`, the entry pair at
+/// `u >> 6` by one 32-bit gather, `a + ((b - a) (u & 63) + 32) >> 6`.
+///
+/// # Safety
+/// The CPU has AVX-512 F; `t` points at 1025 i16 (each gather reads the 4 bytes at `2 i` for
+/// `i <= 1023`).
+#[target_feature(enable = "avx512f")]
+#[inline]
+unsafe fn table8(t: *const i16, v: __m512i) -> __m256i {
+    let (i16_lo, i16_hi) = (_mm512_set1_epi64(i16::MIN as i64), _mm512_set1_epi64(i16::MAX as i64));
+    let u = _mm256_add_epi32(_mm512_cvtepi64_epi32(_mm512_min_epi64(_mm512_max_epi64(v, i16_lo), i16_hi)), _mm256_set1_epi32(1 << 15));
+    // SAFETY: indices `u >> 6 <= 1023` (the contract).
+    let pair = unsafe { _mm256_i32gather_epi32::<2>(t.cast(), _mm256_srli_epi32::<6>(u)) };
+    let (a, b) = (_mm256_srai_epi32::<16>(_mm256_slli_epi32::<16>(pair)), _mm256_srai_epi32::<16>(pair));
+    let frac = _mm256_and_si256(u, _mm256_set1_epi32(63));
+    let step = _mm256_srai_epi32::<6>(_mm256_add_epi32(_mm256_mullo_epi32(_mm256_sub_epi32(b, a), frac), _mm256_set1_epi32(32)));
+    _mm256_add_epi32(a, step)
 }
 
 /// `sum[x] = sum[x].saturating_add(requantize(acc[x] - corr, m))` for every pixel (`sum[x] =
@@ -1373,8 +1405,15 @@ mod tests {
         if !has_avx512() {
             return;
         }
+        // 9 channels out: the transposing path; 18: `direct16`.
+        for cout in [9, 18] {
+            relay_case(cout);
+        }
+    }
+
+    fn relay_case(cout: usize) {
         let mut r = Rng(5);
-        let (k, parts, cout, w) = (3, &[8usize, 3][..], 9, 20);
+        let (k, parts, w) = (3, &[8usize, 3][..], 20);
         let kl = k * k * parts.iter().sum::<usize>();
         let b: Vec<i64> = (0..cout).map(|_| (r.next() as i64) >> 50).collect();
         let m: Vec<Multiplier> = (0..cout * parts.len()).map(|_| Multiplier { m: 1 << 30, shift: 24 }).collect();
@@ -1409,8 +1448,15 @@ mod tests {
         if !has_avx512() {
             return;
         }
+        // 10 channels out: the transposing path; 20: `direct16`.
+        for cout in [10, 20] {
+            constant_parts_case(cout);
+        }
+    }
+
+    fn constant_parts_case(cout: usize) {
         let mut r = Rng(6);
-        let (k, parts, cout, w, h) = (3, &[8usize, 6][..], 10, 37, 4);
+        let (k, parts, w, h) = (3, &[8usize, 6][..], 37, 4);
         let kl = k * k * parts.iter().sum::<usize>();
         let wts: Vec<i8> = (0..cout * kl).map(|_| r.i8()).collect();
         let b: Vec<i64> = (0..cout).map(|_| (r.next() as i64) >> 50).collect();
@@ -1450,6 +1496,38 @@ mod tests {
         FORCE_RANGES.with(|f| f.set(None));
     }
 
+    /// Rows longer than the layer's width (a buffer with more columns) are read to `w_in`
+    /// columns only: the columns past it are padding, as in the portable path.
+    #[test]
+    fn columns_past_the_width_are_padding() {
+        if !has_avx512() {
+            return;
+        }
+        let mut r = Rng(9);
+        for (k, stride, parts, cout) in [(3, 1, &[8usize, 3][..], 32), (3, 1, &[16][..], 16), (5, 2, &[4, 1][..], 20)] {
+            let (h, w, extra) = (4, 19, 3);
+            let kl = k * k * parts.iter().sum::<usize>();
+            let wts: Vec<i8> = (0..cout * kl).map(|_| r.i8()).collect();
+            let b: Vec<i64> = (0..cout).map(|_| (r.next() as i64) >> 50).collect();
+            let m: Vec<Multiplier> = (0..cout * parts.len()).map(|_| Multiplier { m: 1 << 30, shift: 24 }).collect();
+            let (bias, mult) = (encode_bias(&b), encode_mults(&m));
+            let p = ConvParams { k, stride, parts, cout, weights: &wts, bias: BiasRef(&bias), mult: MultRef(&mult), post: PostOp::None };
+            // Each part `w + extra` columns wide (no zero in them), and its first `w` columns.
+            let wide: Vec<Vec<i16>> = parts.iter().map(|&c| (0..h * (w + extra) * c).map(|_| r.i16() | 1).collect()).collect();
+            let narrow: Vec<Vec<i16>> = wide.iter().zip(parts).map(|(t, &c)| t.chunks_exact((w + extra) * c).flat_map(|row| row[..w * c].to_vec()).collect()).collect();
+            let refs: Vec<&[i16]> = narrow.iter().map(|t| t.as_slice()).collect();
+            let (ho, wo) = ((h + 2 * (k / 2) - k) / stride + 1, p.out_width(w));
+            let mut want = vec![0i16; ho * wo * cout];
+            conv_plain(&p, &refs, h, w, &mut OutRow::I16(&mut want));
+            let mut got = vec![0i16; ho * wo * cout];
+            for (oy, o) in got.chunks_exact_mut(wo * cout).enumerate() {
+                let rows: Vec<PartRows<i16>> = wide.iter().zip(parts).map(|(t, &c)| PartRows::of_tensor(t, h, (w + extra) * c, oy, k, stride)).collect();
+                assert!(conv_row(&p, &rows, w, &mut OutRow::I16(o)));
+            }
+            assert_eq!(want, got, "k {k} s {stride} parts {parts:?} cout {cout}");
+        }
+    }
+
     #[test]
     fn matrix_product_matches_plain_twin() {
         if !has_avx512() {
@@ -1484,6 +1562,15 @@ mod tests {
                     (3, 1, &[4][..], 16),
                     (3, 2, &[32][..], 48),
                     (3, 2, &[4][..], 16),
+                    // i16 rows with the output channels along the vector (`direct16`): the GRU
+                    // gates' six parts with odd counts (a pair reads the next pixel's first
+                    // value), channels out not a multiple of 16 (a partial last vector), kernels
+                    // 1, 5 and 7, stride 2.
+                    (3, 1, &[8, 7, 1, 8, 6, 9][..], 20),
+                    (3, 1, &[3, 1][..], 31),
+                    (1, 1, &[5][..], 16),
+                    (7, 2, &[3][..], 32),
+                    (5, 2, &[12, 2][..], 17),
                 ]
                 {
                     seed += 1;
@@ -1513,6 +1600,12 @@ mod tests {
             // channels, sums near -2^22.
             check(14, &|_| u8::MAX, 3, 1, &[128], 32, PostOp::None, w, true);
             check(15, &|r: &mut Rng| if r.next() % 2 == 0 { 0 } else { u8::MAX }, 3, 1, &[128], 16, PostOp::Relu, w, true);
+            // The `direct16` rows at their extremes: sums beyond i32 in some blocks (every
+            // value -2^15 against -128: the scalar formula for those blocks), several i32 chunks
+            // a part (3 3 128 / 2 = 576 pairs), a tame part before an extreme one.
+            check(16, &|_| i16::MIN, 3, 1, &[128], 32, PostOp::None, w, true);
+            check(17, &|r: &mut Rng| if r.next() % 2 == 0 { i16::MIN } else { i16::MAX }, 3, 1, &[2, 128, 1], 48, PostOp::Tanh, w, true);
+            check(18, &|r: &mut Rng| if r.next() % 3 == 0 { i16::MIN } else { r.i16() }, 3, 1, &[64, 96], 16, PostOp::Relu, w, true);
         }
     }
 }

@@ -176,7 +176,7 @@ unsafe fn row(p: &ConvParams<'_>, ch: usize, rows: &[Option<&[u8]>; 3], w: &[i32
     let stride = p.stride;
     let blocks = w_out.div_ceil(PX);
     let big = w_out * cout * 9 * ch >= PARALLEL_MACS;
-    let ranges = if big && blocks >= 2 && pool::free() { pool::threads().min(blocks) } else { 1 };
+    let ranges = super::block_ranges(big, blocks);
     let task = |t: usize| {
         let (b0, b1) = (t * blocks / ranges, (t + 1) * blocks / ranges);
         for b in b0..b1 {
