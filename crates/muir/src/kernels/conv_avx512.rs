@@ -1450,26 +1450,30 @@ mod tests {
         }
         // 10 channels out: the transposing path; 20: `direct16`.
         for cout in [10, 20] {
-            constant_parts_case(cout);
+            constant_parts_case(cout, 6, false);
         }
+        // A context of 128 channels at -2^15 against weights of -128: `direct16`'s kept sums
+        // beyond i32 (the portable formula for those blocks, on every reuse too).
+        constant_parts_case(16, 128, true);
     }
 
-    fn constant_parts_case(cout: usize) {
+    fn constant_parts_case(cout: usize, cc: usize, extreme: bool) {
         let mut r = Rng(6);
-        let (k, parts, w, h) = (3, &[8usize, 6][..], 37, 4);
+        let (k, parts, w, h) = (3, &[8usize, cc][..], 37, 4);
         let kl = k * k * parts.iter().sum::<usize>();
-        let wts: Vec<i8> = (0..cout * kl).map(|_| r.i8()).collect();
+        let wts: Vec<i8> = (0..cout * kl).map(|_| if extreme { -128 } else { r.i8() }).collect();
         let b: Vec<i64> = (0..cout).map(|_| (r.next() as i64) >> 50).collect();
-        let m: Vec<Multiplier> = (0..cout * parts.len()).map(|_| Multiplier { m: 1 << 30, shift: 24 }).collect();
+        let shift = if extreme { 50 } else { 24 };
+        let m: Vec<Multiplier> = (0..cout * parts.len()).map(|_| Multiplier { m: 1 << 30, shift }).collect();
         let (bias, mult) = (encode_bias(&b), encode_mults(&m));
         let p = ConvParams { k, stride: 1, parts, cout, weights: &wts, bias: BiasRef(&bias), mult: MultRef(&mult), post: PostOp::None };
         let a: Vec<i16> = (0..h * w * 8).map(|_| r.i16() >> 2).collect();
-        let ctx: Vec<i16> = (0..h * w * 6).map(|_| r.i16() >> 2).collect();
+        let ctx: Vec<i16> = (0..h * w * cc).map(|_| if extreme { i16::MIN } else { r.i16() >> 2 }).collect();
         // Every output row, the context part marked constant or not.
         let frame = |ctx: &[i16], constant: bool| {
             let mut o = vec![0i16; h * w * cout];
             for (y, o) in o.chunks_exact_mut(w * cout).enumerate() {
-                let rows = [PartRows::of_tensor(&a, h, w * 8, y, k, 1), PartRows::of_tensor(ctx, h, w * 6, y, k, 1)];
+                let rows = [PartRows::of_tensor(&a, h, w * 8, y, k, 1), PartRows::of_tensor(ctx, h, w * cc, y, k, 1)];
                 let mut call = || assert!(conv_row(&p, &rows, w, &mut OutRow::I16(o)));
                 if constant { with_constant_part(1, y, call) } else { call() }
             }
@@ -1483,8 +1487,13 @@ mod tests {
             let _f = FrameScope::new();
             assert_eq!(frame(&ctx, true), want, "sums computed and kept");
             assert_eq!(frame(&ctx, true), want, "sums reused");
-            // The context changes in the same frame (one value of row 2): rows 1 to 3 read it.
-            ctx[2 * w * 6 + 5] ^= 0x155;
+            // The context changes in the same frame (one value of row 2, or the whole row for
+            // the extreme one, whose single values do not show): rows 1 to 3 read it.
+            if extreme {
+                ctx[2 * w * cc..3 * w * cc].fill(i16::MAX);
+            } else {
+                ctx[2 * w * cc + 5] ^= 0x155;
+            }
             let want2 = frame(&ctx, false);
             assert_ne!(want, want2);
             assert_eq!(frame(&ctx, true), want2, "changed rows recomputed");

@@ -10,9 +10,11 @@
 //! copy with the padding's zeros instead. A part of an odd channel count reads, for its last
 //! pair, the next pixel's first value, against a zero weight.
 //!
-//! Exactness: a lane adds at most `2 * 2^15 * 2^7 = 2^23` a pair; the pairs of whole taps, at
-//! most [`super::I16_CHUNK`] of them (`255 * 2^23 < 2^31`), sum in i32 lanes, which are then added
-//! into i64 sums: each part's sum is the exact integer. Where it fits in i32 (every multiplier
+//! Exactness: a part whose every output channel has `sum |w| <= 65535` (the shipped layers:
+//! [`Layer::narrow`]) has all its sums, partial ones included, within `2^15 * 65535 < 2^31`: its
+//! i32 lanes hold them whole. Otherwise a lane adds at most `2 * 2^15 * 2^7 = 2^23` a pair; the
+//! pairs of whole taps, at most [`super::I16_CHUNK`] of them (`255 * 2^23 < 2^31`), sum in i32
+//! lanes, which are then added into i64 sums: each part's sum is the exact integer. Where it fits in i32 (every multiplier
 //! short, [`super::super::short_ok`]) the contribution is `(sum m + 2^(s-1)) >> s`, the
 //! portable path's integer; the contributions, the bias (`<` [`super::super::SHORT_MAX_BIAS`]) and
 //! the rounding half sum far inside i64, so plain adds are its saturating ones; then `>> 8`, the
@@ -50,11 +52,16 @@ struct Layer {
     /// Every (channel, part) multiplier short and every bias below the short bound: the layer
     /// takes this path.
     short: bool,
-    /// The weights: per part, `[tap][pair][coutp]`, two i16 an i32 (a pair past the part's
-    /// channels and the channels past `cout` zero).
+    /// The weights: per part, blocks of 32 output channels, each `[tap][pair][channel]`
+    /// ([`weight_at`]), two i16 an i32 (a pair past the part's channels and the channels past
+    /// `cout` zero).
     w: Vec<i32>,
     /// Where each part's weights start in `w`.
     at: [usize; MAX_PARTS],
+    /// Per part: every output channel's `sum |w|` is at most 65535, so every sum of the part
+    /// (`|x| <= 2^15`), and every partial sum, lies within `32768 * 65535 < 2^31`: the i32
+    /// lanes hold it whole, with no chunks and no check.
+    narrow: [bool; MAX_PARTS],
     /// The epilogue's operands, planes of `coutp`: per part its multiplier, shift and rounding
     /// half, then the bias.
     ep: Vec<i64>,
@@ -64,7 +71,7 @@ struct Layer {
 
 impl Layer {
     const fn new() -> Self {
-        Layer { key: (0, 0, 0, 0, 0, [0; MAX_PARTS]), valid: false, short: false, w: Vec::new(), at: [0; MAX_PARTS], ep: Vec::new(), memo: Vec::new() }
+        Layer { key: (0, 0, 0, 0, 0, [0; MAX_PARTS]), valid: false, short: false, w: Vec::new(), at: [0; MAX_PARTS], narrow: [false; MAX_PARTS], ep: Vec::new(), memo: Vec::new() }
     }
     fn invalidate(&mut self) {
         self.valid = false;
@@ -89,6 +96,14 @@ pub(super) fn invalidate() {
 /// Output channels padded to whole vectors.
 fn coutp(cout: usize) -> usize {
     cout.next_multiple_of(16)
+}
+
+/// Where a part's weight pair `i` (of `n`: tap-major, `[tap][pair]`) of output channel `c` lies
+/// among its `n coutp` relaid ones: blocks of 32 channels (the last one 16 where `coutp` is odd
+/// in sixteens), each `[i][channel]`, so that [`block`] reads one block's weights in order.
+fn weight_at(c: usize, i: usize, n: usize, cp: usize) -> usize {
+    let b = c / 32 * 32;
+    b * n + i * (cp - b).min(32) + (c - b)
 }
 
 /// Whether the row may take this path (the multipliers are checked with the relaid layer): i16
@@ -118,14 +133,16 @@ fn relay(p: &ConvParams<'_>, l: &mut Layer) {
     let w = scratch(&mut l.w, len);
     w.fill(0);
     let mut off = 0;
-    for (&at, &ch) in l.at.iter().zip(p.parts) {
+    for ((&at, &ch), narrow) in l.at.iter().zip(p.parts).zip(l.narrow.iter_mut()) {
         let g_n = ch.div_ceil(2);
+        *narrow = true;
         for c in 0..cout {
             let src = p.weights.get(c * kl + off..c * kl + off + k * k * ch).unwrap_or_default();
+            *narrow &= src.iter().map(|w| w.unsigned_abs() as u64).sum::<u64>() <= 65535;
             for (t, tap) in src.chunks_exact(ch).enumerate() {
                 for (g, pair) in tap.chunks(2).enumerate() {
                     let (a, b) = (pair.first().copied().unwrap_or(0), pair.get(1).copied().unwrap_or(0));
-                    if let Some(d) = w.get_mut(at + (t * g_n + g) * cp + c) {
+                    if let Some(d) = w.get_mut(at + weight_at(c, t * g_n + g, k * k * g_n, cp)) {
                         *d = (a as i16 as u16 as u32 | (b as i16 as u16 as u32) << 16) as i32;
                     }
                 }
@@ -221,7 +238,7 @@ pub(super) unsafe fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_
             };
             // SAFETY: the caller's CPU features; `l` is the layer relaid, its memo entry holds
             // `w_out coutp` sums.
-            unsafe { row(p, rows, w_in, w_out, w, at, ep, kept, out) };
+            unsafe { row(p, rows, w_in, w_out, w, at, l.narrow, ep, kept, out) };
             if let Some((i, false, _)) = memo
                 && let Some(m) = l.memo.get_mut(i)
             {
@@ -236,7 +253,7 @@ pub(super) unsafe fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_
                 return false;
             }
             // SAFETY: the caller's CPU features; `l` is the layer relaid.
-            unsafe { row(p, rows, w_in, w_out, &l.w, l.at, &l.ep, None, out) };
+            unsafe { row(p, rows, w_in, w_out, &l.w, l.at, l.narrow, &l.ep, None, out) };
             true
         })
     }
@@ -250,7 +267,7 @@ pub(super) unsafe fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_
 /// holds `w_out coutp` sums (`hit`: this frame's of the row, else to be written).
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
 #[allow(clippy::too_many_arguments)]
-unsafe fn row(p: &ConvParams<'_>, rows: &[PartRows<'_, i16>], w_in: usize, w_out: usize, w: &[i32], at: [usize; MAX_PARTS], ep: &[i64], memo: Option<(Shared<i64>, bool, usize)>, out: &mut OutRow<'_>) {
+unsafe fn row(p: &ConvParams<'_>, rows: &[PartRows<'_, i16>], w_in: usize, w_out: usize, w: &[i32], at: [usize; MAX_PARTS], narrow: [bool; MAX_PARTS], ep: &[i64], memo: Option<(Shared<i64>, bool, usize)>, out: &mut OutRow<'_>) {
     let (cout, cp, k, np) = (p.cout, coutp(p.cout), p.k, p.parts.len());
     let (lo, hi) = out_range(out);
     let (op, size) = out_ptr(out);
@@ -258,7 +275,7 @@ unsafe fn row(p: &ConvParams<'_>, rows: &[PartRows<'_, i16>], w_in: usize, w_out
     if w.len() < wlen || ep.len() < (3 * np + 1) * cp {
         return;
     }
-    let cx = Ctx { p, rows, w_in, w, at, ep, memo, lo, hi, op, size };
+    let cx = Ctx { p, rows, w_in, w, at, ep, narrow, memo, lo, hi, op, size };
     let blocks = w_out.div_ceil(PX);
     let big = w_out * cout * p.patch_len() >= PARALLEL_MACS;
     let ranges = super::block_ranges(big, blocks);
@@ -298,6 +315,8 @@ struct Ctx<'a, 'p> {
     w: &'a [i32],
     at: [usize; MAX_PARTS],
     ep: &'a [i64],
+    /// Per part: every sum fits in i32 ([`Layer::narrow`]).
+    narrow: [bool; MAX_PARTS],
     /// The constant part's kept sums (`[x][coutp]`), whether they hold this row's, the part.
     memo: Option<(Shared<i64>, bool, usize)>,
     /// The output type's range, and the output row (`size` bytes a value).
@@ -392,93 +411,114 @@ unsafe fn block<const NV: usize, const P: usize>(cx: &Ctx<'_, '_>, src: &[[*cons
     let mut wild = false;
     for (part, &ch) in p.parts.iter().enumerate() {
         let g_n = ch.div_ceil(2);
-        // The part's exact sums, 8 i64 a vector.
-        let mut e = [[_mm512_setzero_si512(); 4]; P];
+        // Every sum of the part fits in i32 (`relay`): one chunk, no check.
+        let narrow = cx.narrow.get(part).copied().unwrap_or(false);
         let kept = cx.memo.as_ref().filter(|m| m.2 == part).map(|m| (m.0.0, m.1));
-        let check;
-        if let Some((m, true)) = kept {
-            for (q, e) in e.iter_mut().enumerate() {
-                for (j, e) in e.iter_mut().enumerate().take(2 * NV) {
-                    // SAFETY: the memo holds `w_out coutp` sums; pixel `x0 + q < w_out`.
-                    *e = unsafe { _mm512_loadu_si512(m.add((x0 + q) * cp + cb + 8 * j).cast()) };
-                }
-            }
-            check = true;
-        } else {
-            let mut acc = [[_mm512_setzero_si512(); NV]; P];
-            let mut used = 0;
-            let mut flushed = false;
-            let wp = cx.w.as_ptr().wrapping_add(cx.at.get(part).copied().unwrap_or(0));
-            let rows = src.get(part).copied().unwrap_or([core::ptr::null(); MAX_K]);
-            for (ky, &r) in rows.iter().enumerate().take(k) {
-                if r.is_null() {
-                    continue;
-                }
-                for kx in 0..k {
-                    if used + g_n > I16_CHUNK {
-                        // The chunk's i32 sums into the exact ones.
-                        for (e, acc) in e.iter_mut().zip(acc.iter_mut()) {
-                            for (v, a) in acc.iter_mut().enumerate() {
-                                widen_add(e, v, *a);
-                                *a = _mm512_setzero_si512();
-                            }
-                        }
-                        used = 0;
-                        flushed = true;
-                    }
-                    // SAFETY: columns `q stride + kx < span` of the row (and the value after
-                    // the last pair); weights of tap `ky k + kx`, pair `g < g_n`, channels `cb ..
-                    // cb + 16 NV <= coutp` inside the part's (`relay`).
-                    unsafe {
-                        let xp = r.add(kx * ch);
-                        let wt = wp.add((ky * k + kx) * g_n * cp + cb);
-                        for g in 0..g_n {
-                            let mut wv = [_mm512_setzero_si512(); NV];
-                            for (v, wv) in wv.iter_mut().enumerate() {
-                                *wv = _mm512_loadu_si512(wt.add(g * cp + 16 * v).cast());
-                            }
-                            for (q, acc) in acc.iter_mut().enumerate() {
-                                let a = _mm512_set1_epi32(xp.add(q * stride * ch + 2 * g).cast::<i32>().read_unaligned());
-                                for (acc, wv) in acc.iter_mut().zip(wv) {
-                                    *acc = _mm512_dpwssd_epi32(*acc, a, wv);
-                                }
-                            }
-                        }
-                    }
-                    used += g_n;
-                }
-            }
-            for (e, acc) in e.iter_mut().zip(acc) {
-                for (v, a) in acc.into_iter().enumerate() {
-                    widen_add(e, v, a);
-                }
-            }
-            check = flushed;
-            if let Some((m, false)) = kept {
-                for (q, e) in e.iter().enumerate() {
-                    for (j, e) in e.iter().enumerate().take(2 * NV) {
-                        // SAFETY: as the loads above.
-                        unsafe { _mm512_storeu_si512(m.add((x0 + q) * cp + cb + 8 * j).cast(), *e) };
-                    }
-                }
+        // The part's multipliers, shifts and rounding halves for channels `cb + 8 j ..`.
+        let mut ops = [(_mm512_setzero_si512(), _mm512_setzero_si512(), _mm512_setzero_si512()); 4];
+        for (j, op) in ops.iter_mut().enumerate().take(2 * NV) {
+            let ep = cx.ep.as_ptr().wrapping_add(cb + 8 * j);
+            // SAFETY: planes `3 part ..= 3 part + 2` of `coutp`, channels `cb + 8 j .. + 8 <=
+            // coutp` (`row`'s check of `ep`).
+            unsafe {
+                let ld = |plane: usize| _mm512_loadu_si512(ep.add(plane * cp).cast());
+                *op = (ld(3 * part), ld(3 * part + 1), ld(3 * part + 2));
             }
         }
-        // The part's contributions: `(e m + 2^(s-1)) >> s` where `e` fits in i32.
-        let ep = cx.ep.as_ptr();
-        for j in 0..2 * NV {
-            let c = cb + 8 * j;
-            // SAFETY: planes `3 part ..= 3 part + 2` of `coutp`, channels `c .. c + 8 <= coutp`.
-            let (m, s, h) = unsafe {
-                let ld = |plane: usize| _mm512_loadu_si512(ep.add(plane * cp + c).cast());
-                (ld(3 * part), ld(3 * part + 1), ld(3 * part + 2))
-            };
-            for (sum, e) in sum.iter_mut().zip(&e) {
-                let (Some(sum), Some(&e)) = (sum.get_mut(j), e.get(j)) else { continue };
-                if check {
-                    wild |= _mm512_cmpeq_epi64_mask(e, _mm512_cvtepi32_epi64(_mm512_cvtepi64_epi32(e))) != 0xFF;
+        // The contribution `(e m + 2^(s-1)) >> s` of 8 exact sums `e` (in i32) of channel
+        // vector `j`, into `sum[j]`. (A macro, not a closure: the intrinsics stay inline under
+        // this function's target features.)
+        macro_rules! contribute {
+            ($sum:expr, $e:expr, $j:expr) => {{
+                if let (Some(sum), Some(&(m, s, h))) = ($sum.get_mut($j), ops.get($j)) {
+                    let r = _mm512_srav_epi64(_mm512_add_epi64(_mm512_mul_epi32($e, m), h), s);
+                    *sum = if part == 0 { r } else { _mm512_add_epi64(*sum, r) };
                 }
-                let r = _mm512_srav_epi64(_mm512_add_epi64(_mm512_mul_epi32(e, m), h), s);
-                *sum = if part == 0 { r } else { _mm512_add_epi64(*sum, r) };
+            }};
+        }
+        if let Some((m, true)) = kept {
+            for (q, sum) in sum.iter_mut().enumerate() {
+                for j in 0..2 * NV {
+                    // SAFETY: the memo holds `w_out coutp` sums; pixel `x0 + q < w_out`.
+                    let e = unsafe { _mm512_loadu_si512(m.add((x0 + q) * cp + cb + 8 * j).cast()) };
+                    if !narrow {
+                        wild |= _mm512_cmpeq_epi64_mask(e, _mm512_cvtepi32_epi64(_mm512_cvtepi64_epi32(e))) != 0xFF;
+                    }
+                    contribute!(sum, e, j);
+                }
+            }
+            continue;
+        }
+        let mut acc = [[_mm512_setzero_si512(); NV]; P];
+        // A wide part's exact sums (chunks of whole taps), 8 i64 a vector.
+        let mut e = [[_mm512_setzero_si512(); 4]; P];
+        let mut used = 0;
+        let mut flushed = false;
+        let wp = cx.w.as_ptr().wrapping_add(cx.at.get(part).copied().unwrap_or(0));
+        let rows = src.get(part).copied().unwrap_or([core::ptr::null(); MAX_K]);
+        for (ky, &r) in rows.iter().enumerate().take(k) {
+            if r.is_null() {
+                continue;
+            }
+            for kx in 0..k {
+                if !narrow && used + g_n > I16_CHUNK {
+                    // The chunk's i32 sums into the exact ones.
+                    for (e, acc) in e.iter_mut().zip(acc.iter_mut()) {
+                        for (v, a) in acc.iter_mut().enumerate() {
+                            widen_add(e, v, *a);
+                            *a = _mm512_setzero_si512();
+                        }
+                    }
+                    used = 0;
+                    flushed = true;
+                }
+                // SAFETY: columns `q stride + kx < span` of the row (and the value after the
+                // last pair); weights of tap `ky k + kx`, pair `g < g_n`, channels `cb .. cb +
+                // 16 NV <= coutp` inside the part's (`relay`).
+                unsafe {
+                    let xp = r.add(kx * ch);
+                    let wb = (cp - cb).min(32);
+                    let wt = wp.add(weight_at(cb, (ky * k + kx) * g_n, k * k * g_n, cp));
+                    for g in 0..g_n {
+                        let mut wv = [_mm512_setzero_si512(); NV];
+                        for (v, wv) in wv.iter_mut().enumerate() {
+                            *wv = _mm512_loadu_si512(wt.add(g * wb + 16 * v).cast());
+                        }
+                        for (q, acc) in acc.iter_mut().enumerate() {
+                            let a = _mm512_set1_epi32(xp.add(q * stride * ch + 2 * g).cast::<i32>().read_unaligned());
+                            for (acc, wv) in acc.iter_mut().zip(wv) {
+                                *acc = _mm512_dpwssd_epi32(*acc, a, wv);
+                            }
+                        }
+                    }
+                }
+                used += g_n;
+            }
+        }
+        let store = match kept {
+            Some((m, false)) => m,
+            _ => core::ptr::null_mut(),
+        };
+        for (q, ((sum, e), acc)) in sum.iter_mut().zip(e.iter_mut()).zip(acc).enumerate() {
+            for (v, a) in acc.into_iter().enumerate() {
+                // The lanes as i64 (added to the earlier chunks' sums, if any).
+                let (mut e0, mut e1) = (_mm512_cvtepi32_epi64(_mm512_castsi512_si256(a)), _mm512_cvtepi32_epi64(_mm512_extracti64x4_epi64::<1>(a)));
+                if flushed {
+                    e0 = _mm512_add_epi64(e0, e.get(2 * v).copied().unwrap_or(_mm512_setzero_si512()));
+                    e1 = _mm512_add_epi64(e1, e.get(2 * v + 1).copied().unwrap_or(_mm512_setzero_si512()));
+                    for e in [e0, e1] {
+                        wild |= _mm512_cmpeq_epi64_mask(e, _mm512_cvtepi32_epi64(_mm512_cvtepi64_epi32(e))) != 0xFF;
+                    }
+                }
+                if !store.is_null() {
+                    // SAFETY: as the memo's loads above.
+                    unsafe {
+                        _mm512_storeu_si512(store.add((x0 + q) * cp + cb + 16 * v).cast(), e0);
+                        _mm512_storeu_si512(store.add((x0 + q) * cp + cb + 16 * v + 8).cast(), e1);
+                    }
+                }
+                contribute!(sum, e0, 2 * v);
+                contribute!(sum, e1, 2 * v + 1);
             }
         }
     }
