@@ -2,11 +2,11 @@
 //! AVX-512 VNNI): the refinement's layers (the ConvGRUs' gates over up to six input parts, the
 //! heads, the motion encoder), as [`super::direct`] does for the trunk's u8 rows. One pixel's pair
 //! of input channels is broadcast against 16 output channels' weight pairs (`vpdpwssd`; the
-//! weights widened to i16 and re-laid `[part][tap][pair][cout]` once per engine frame), 8 pixels x
-//! 32 channels in registers, and the rows are read where they lie, in their `[x][c]` order: no
-//! transposition of the inputs or the outputs ([`super`]'s layout has pixels along the vector and
-//! transposes both), and each part's requantisation, the bias and the activation run on vectors
-//! of channels. A block whose columns reach past the row's ends (the first and the last) reads a
+//! weights widened to i16 and re-laid per part, `[32 channels][tap][pair][channel]`, once per
+//! engine frame), 8 pixels x 32 channels in registers, and the rows are read where they lie, in
+//! their `[x][c]` order: no transposition of the inputs or the outputs ([`super`]'s layout has
+//! pixels along the vector and transposes both), and each part's requantisation, the bias and
+//! the activation run on vectors //! of channels. A block whose columns reach past the row's ends (the first and the last) reads a
 //! copy with the padding's zeros instead. A part of an odd channel count reads, for its last
 //! pair, the next pixel's first value, against a zero weight.
 //!
