@@ -6,9 +6,9 @@
 //! engine frame), 8 pixels x 32 channels in registers, and the rows are read where they lie, in
 //! their `[x][c]` order: no transposition of the inputs or the outputs ([`super`]'s layout has
 //! pixels along the vector and transposes both), and each part's requantisation, the bias and
-//! the activation run on vectors //! of channels. A block whose columns reach past the row's ends (the first and the last) reads a
-//! copy with the padding's zeros instead. A part of an odd channel count reads, for its last
-//! pair, the next pixel's first value, against a zero weight.
+//! the activation run on vectors of channels. A block whose columns reach past the row's ends
+//! (the first and the last) reads a copy with the padding's zeros instead. A part of an odd
+//! channel count reads, for its last pair, the next pixel's first value, against a zero weight.
 //!
 //! Exactness: a part whose every output channel has `sum |w| <= 65535` (the shipped layers:
 //! [`Layer::narrow`]) has all its sums, partial ones included, within `2^15 * 65535 < 2^31`: its
