@@ -82,8 +82,6 @@ impl Layer {
 std::thread_local! {
     /// This thread's relaid layers (kept while a [`super::FrameScope`] lives).
     static LAYERS: RefCell<Vec<Layer>> = const { RefCell::new(Vec::new()) };
-    /// The relaid layer outside a frame.
-    static OWN: RefCell<Layer> = const { RefCell::new(Layer::new()) };
     /// A block's input columns with the padding's zeros (the row's first and last blocks).
     static EDGE: RefCell<Vec<i16>> = const { RefCell::new(Vec::new()) };
 }
@@ -175,12 +173,15 @@ fn relay(p: &ConvParams<'_>, l: &mut Layer) {
 }
 
 /// [`super::conv_row`] by this path, or `false` (nothing written) where the layer is not one it
-/// takes. `constant`: the part whose sums are kept for the frame, and the output row.
+/// takes or no [`super::FrameScope`] lives. `constant`: the part whose sums are kept for the
+/// frame, and the output row.
 ///
 /// # Safety
 /// The CPU has AVX-512 F, BW and VNNI; the layer passed [`super::conv_row`]'s checks.
 pub(super) unsafe fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usize, out: &mut OutRow<'_>, constant: Option<(usize, usize)>) -> bool {
-    if !eligible::<T>(p) {
+    // Outside an engine frame the layer would be re-laid on every call (the portable path's
+    // re-layout costs less there).
+    if !eligible::<T>(p) || !super::FRAME_ON.with(|on| on.get()) {
         return false;
     }
     let mut rows = [PartRows { rows: [None; MAX_K] }; MAX_PARTS];
@@ -196,67 +197,55 @@ pub(super) unsafe fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_
         parts.iter_mut().zip(p.parts).for_each(|(d, s)| *d = *s);
         parts
     });
-    if super::FRAME_ON.with(|on| on.get()) {
-        LAYERS.with_borrow_mut(|layers| {
-            let i = match layers.iter().position(|l| l.key == key) {
-                Some(i) => i,
-                None => super::free_slot(layers, |l| l.valid, Layer::new),
-            };
-            let Some(l) = layers.get_mut(i) else { return false };
-            if !(l.valid && l.key == key) {
-                l.invalidate();
-                l.key = key;
-                relay(p, l);
-                l.valid = true;
-            }
-            if !l.short {
-                return false;
-            }
-            // The constant part's kept sums for the row: this frame's where its rows are as
-            // kept, else a free entry (of an earlier frame, or new) to fill.
-            let cp = coutp(p.cout);
-            let memo = constant.and_then(|(part, row)| {
-                let src = rows.get(part)?.rows.get(..p.k)?;
-                let hit = l.memo.iter().position(|m| m.valid && (m.part, m.row, m.pixpad) == (part, row, w_out) && m.same_rows(src));
-                let i = match hit {
-                    Some(i) => i,
-                    None => {
-                        let i = super::free_slot(&mut l.memo, |m| m.valid, || Memo { part, row, valid: false, src: Vec::new(), sums: Vec::new(), pixpad: w_out });
-                        let m = l.memo.get_mut(i)?;
-                        (m.part, m.row, m.pixpad, m.valid) = (part, row, w_out, false);
-                        m.keep_rows(src);
-                        scratch(&mut m.sums, w_out * cp);
-                        i
-                    }
-                };
-                Some((i, hit.is_some(), part))
-            });
-            let (w, at, ep) = (&l.w, l.at, &l.ep);
-            let kept = match memo {
-                Some((i, hit, part)) => l.memo.get_mut(i).map(|m| (Shared(m.sums.as_mut_ptr()), hit, part)),
-                None => None,
-            };
-            // SAFETY: the caller's CPU features; `l` is the layer relaid, its memo entry holds
-            // `w_out coutp` sums.
-            unsafe { row(p, rows, w_in, w_out, w, at, l.narrow, ep, kept, out) };
-            if let Some((i, false, _)) = memo
-                && let Some(m) = l.memo.get_mut(i)
-            {
-                m.valid = true; // computed by every block of the row
-            }
-            true
-        })
-    } else {
-        OWN.with_borrow_mut(|l| {
+    LAYERS.with_borrow_mut(|layers| {
+        let i = match layers.iter().position(|l| l.key == key) {
+            Some(i) => i,
+            None => super::free_slot(layers, |l| l.valid, Layer::new),
+        };
+        let Some(l) = layers.get_mut(i) else { return false };
+        if !(l.valid && l.key == key) {
+            l.invalidate();
+            l.key = key;
             relay(p, l);
-            if !l.short {
-                return false;
-            }
-            // SAFETY: the caller's CPU features; `l` is the layer relaid.
-            unsafe { row(p, rows, w_in, w_out, &l.w, l.at, l.narrow, &l.ep, None, out) };
-            true
-        })
-    }
+            l.valid = true;
+        }
+        if !l.short {
+            return false;
+        }
+        // The constant part's kept sums for the row: this frame's where its rows are as
+        // kept, else a free entry (of an earlier frame, or new) to fill.
+        let cp = coutp(p.cout);
+        let memo = constant.and_then(|(part, row)| {
+            let src = rows.get(part)?.rows.get(..p.k)?;
+            let hit = l.memo.iter().position(|m| m.valid && (m.part, m.row, m.pixpad) == (part, row, w_out) && m.same_rows(src));
+            let i = match hit {
+                Some(i) => i,
+                None => {
+                    let i = super::free_slot(&mut l.memo, |m| m.valid, || Memo { part, row, valid: false, src: Vec::new(), sums: Vec::new(), pixpad: w_out });
+                    let m = l.memo.get_mut(i)?;
+                    (m.part, m.row, m.pixpad, m.valid) = (part, row, w_out, false);
+                    m.keep_rows(src);
+                    scratch(&mut m.sums, w_out * cp);
+                    i
+                }
+            };
+            Some((i, hit.is_some(), part))
+        });
+        let (w, at, ep) = (&l.w, l.at, &l.ep);
+        let kept = match memo {
+            Some((i, hit, part)) => l.memo.get_mut(i).map(|m| (Shared(m.sums.as_mut_ptr()), hit, part)),
+            None => None,
+        };
+        // SAFETY: the caller's CPU features; `l` is the layer relaid, its memo entry holds
+        // `w_out coutp` sums.
+        unsafe { row(p, rows, w_in, w_out, w, at, l.narrow, ep, kept, out) };
+        if let Some((i, false, _)) = memo
+            && let Some(m) = l.memo.get_mut(i)
+        {
+            m.valid = true; // computed by every block of the row
+        }
+        true
+    })
 }
 
 /// The row: blocks of [`PX`] pixels (split over the pool when the layer is large and the pool
