@@ -482,6 +482,39 @@ fn refinement(c: &mut Criterion, md: &Model, pair: &(OwnedImage, OwnedImage)) {
     g.finish();
 }
 
+/// The shipped model's 1/8 ConvGRU gate as the engine runs it on Teddy (x86-64): muir-slim's
+/// `Gru08Z` (six i16 parts, 64 channels out) on rows of 58, inside an engine frame, the context
+/// part's sums kept (`with_constant_part`, computed once and reused, as in six of a frame's seven
+/// iterations).
+#[cfg(target_arch = "x86_64")]
+fn slim_gate(c: &mut Criterion, slim: &Model) {
+    let qm = QuantModel::parse(&slim.blob).unwrap();
+    let mut r = Rng(43);
+    let mut g = c.benchmark_group("kernels muir-slim");
+    g.sample_size(10).warm_up_time(Duration::from_millis(300)).measurement_time(Duration::from_secs(2));
+    let (rows, w) = (4, 58);
+    let p = qm.conv(ConvId::Gru08Z).unwrap();
+    let parts = p.parts;
+    let tensors: Vec<Vec<i16>> = parts.iter().map(|&ch| (0..rows * w * ch).map(|_| r.i16()).collect()).collect();
+    let mut out = vec![0i16; rows * w * p.cout];
+    let mut patch = vec![0i16; p.patch_len()];
+    let ctx_ch = parts.last().copied().unwrap_or(0);
+    g.throughput(Throughput::Elements((rows * w * (p.patch_len() - 9 * ctx_ch) * p.cout) as u64));
+    g.bench_function(format!("conv_row gru08 i16 3x3 {:?}->{} ({rows} rows of {w}), in a frame, context kept", parts, p.cout), |b| {
+        let _frame = muir::kernels::conv::FrameScope::new();
+        b.iter(|| {
+            for y in 0..rows {
+                let pr: Vec<PartRows<'_, i16>> = tensors.iter().zip(parts).map(|(t, &ch)| PartRows::of_tensor(t, rows, w * ch, y, 3, 1)).collect();
+                muir::kernels::conv::with_constant_part(parts.len() - 1, y, || {
+                    conv_row(&p, &pr, w, &mut OutRow::I16(&mut out[y * w * p.cout..(y + 1) * w * p.cout]), &mut patch)
+                });
+            }
+            black_box(&out);
+        })
+    });
+    g.finish();
+}
+
 fn all(c: &mut Criterion) {
     let (pair, calib, source) = images();
     println!("pair: {source}; models: seeded weights, calibrated on another crop");
@@ -492,6 +525,8 @@ fn all(c: &mut Criterion) {
     frames(c, &models, &pair);
     let att = stages(c, &models, &pair);
     kernels(c, &models[1], att.as_ref());
+    #[cfg(target_arch = "x86_64")]
+    slim_gate(c, &models[0]);
     refinement(c, &models[0], &pair);
 }
 
