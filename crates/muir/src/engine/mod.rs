@@ -377,6 +377,9 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
                 refine::gru16(&mut c);
                 refine::gru16(&mut c);
                 lap!(Gru16);
+                #[cfg(feature = "std")]
+                refine::gru08_after_glb(&mut c);
+                #[cfg(not(feature = "std"))]
                 refine::gru08(&mut c);
                 lap!(Gru08);
             }

@@ -619,6 +619,35 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
     gru08_with(c, None)
 }
 
+/// Host, one thread: [`gru08`] with the iteration's MGA output rows aggregated first, all of them,
+/// into a buffer of this thread (`h8` rows of `w8 x hidden`), then read row by row. Aggregated
+/// between the gate rows instead (the firmware's order, which has no RAM for the rows), each row
+/// streams the kept softmax weights and the values through the caches and evicts the gates'
+/// weights: `muir-slim`'s update and reset gates took 96 us a row against 76 us on Teddy. The
+/// same integers: the rows read the final keys, statistics and values, as on the second thread
+/// of [`super::side`].
+#[cfg(feature = "std")]
+#[inline(never)] // a phase: its stack frame must not add to the caller's (see `engine::STACK_BUDGET`)
+pub fn gru08_after_glb(c: &mut Ctx<'_, '_, '_>) {
+    std::thread_local! {
+        /// The rows, kept for the next frames (no allocation once the first has run).
+        static GLB: core::cell::RefCell<Vec<i16>> = const { core::cell::RefCell::new(Vec::new()) };
+    }
+    let m = c.m;
+    let cfg = *m.config();
+    if !cfg.mga {
+        return gru08(c);
+    }
+    let g = c.g;
+    let row = g.w8 * cfg.hidden_dim;
+    GLB.with_borrow_mut(|glb| {
+        let out = crate::kernels::pool::scratch(glb, g.h8 * row);
+        glb_rows(m, &g, c.frame.inp08, c.st.keys, c.st.stats, c.st.values, out, |_| {});
+        let out = &*out;
+        gru08_with(c, Some(&mut |y, d| copy_row(d, chunk(out, y, row))));
+    });
+}
+
 /// [`gru08`], its MGA output rows from `glb(y, row)` where given (host: aggregated on another
 /// thread, `engine::side`) instead of aggregated here.
 #[allow(clippy::type_complexity)]

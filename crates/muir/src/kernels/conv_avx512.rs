@@ -116,8 +116,9 @@ struct Relaid {
     memo: Vec<Memo>,
 }
 
-/// One output row's exact sums of a constant part ([`with_constant_part`]).
-struct Memo {
+/// One output row's exact sums of a constant part ([`with_constant_part`]), as `S` (i64 here,
+/// i32 in [`direct16`]).
+struct Memo<S = i64> {
     /// The part and the output row.
     part: usize,
     row: usize,
@@ -126,12 +127,12 @@ struct Memo {
     /// The part's input rows as they were: per row its length in bytes (`u64::MAX` for a
     /// padding row) as 8 bytes, then its bytes.
     src: Vec<u8>,
-    /// The sums, `cout` rows of `pixpad`.
-    sums: Vec<i64>,
+    /// The sums, `cout` rows of `pixpad` (laid out `[x][c]` in [`direct16`]).
+    sums: Vec<S>,
     pixpad: usize,
 }
 
-impl Memo {
+impl<S> Memo<S> {
     /// Whether `rows` (the first `k`) are the rows `src` holds.
     fn same_rows<T: Elem>(&self, rows: &[Option<&[T]>]) -> bool {
         let mut at = 0;
@@ -1452,8 +1453,9 @@ mod tests {
         for cout in [10, 20] {
             constant_parts_case(cout, 6, false);
         }
-        // A context of 128 channels at -2^15 against weights of -128: `direct16`'s kept sums
-        // beyond i32 (the portable formula for those blocks, on every reuse too).
+        // A context of 128 channels at -2^15 against weights of -128, sums beyond i32: a wide
+        // part, which `direct16` does not keep (computed in every call, the portable formula for
+        // those blocks).
         constant_parts_case(16, 128, true);
     }
 

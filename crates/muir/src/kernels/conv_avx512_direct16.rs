@@ -65,8 +65,8 @@ struct Layer {
     /// The epilogue's operands, planes of `coutp`: per part its multiplier, shift and rounding
     /// half, then the bias.
     ep: Vec<i64>,
-    /// Kept sums of the constant part, per output row.
-    memo: Vec<Memo>,
+    /// Kept sums of the constant part, per output row (a narrow part's: exact in i32).
+    memo: Vec<Memo<i32>>,
 }
 
 impl Layer {
@@ -215,7 +215,8 @@ pub(super) unsafe fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_
         // The constant part's kept sums for the row: this frame's where its rows are as
         // kept, else a free entry (of an earlier frame, or new) to fill.
         let cp = coutp(p.cout);
-        let memo = constant.and_then(|(part, row)| {
+        // (A wide constant part, which no shipped layer has, is computed in every call.)
+        let memo = constant.filter(|&(part, _)| l.narrow.get(part) == Some(&true)).and_then(|(part, row)| {
             let src = rows.get(part)?.rows.get(..p.k)?;
             let hit = l.memo.iter().position(|m| m.valid && (m.part, m.row, m.pixpad) == (part, row, w_out) && m.same_rows(src));
             let i = match hit {
@@ -256,7 +257,7 @@ pub(super) unsafe fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_
 /// holds `w_out coutp` sums (`hit`: this frame's of the row, else to be written).
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
 #[allow(clippy::too_many_arguments)]
-unsafe fn row(p: &ConvParams<'_>, rows: &[PartRows<'_, i16>], w_in: usize, w_out: usize, w: &[i32], at: [usize; MAX_PARTS], narrow: [bool; MAX_PARTS], ep: &[i64], memo: Option<(Shared<i64>, bool, usize)>, out: &mut OutRow<'_>) {
+unsafe fn row(p: &ConvParams<'_>, rows: &[PartRows<'_, i16>], w_in: usize, w_out: usize, w: &[i32], at: [usize; MAX_PARTS], narrow: [bool; MAX_PARTS], ep: &[i64], memo: Option<(Shared<i32>, bool, usize)>, out: &mut OutRow<'_>) {
     let (cout, cp, k, np) = (p.cout, coutp(p.cout), p.k, p.parts.len());
     let (lo, hi) = out_range(out);
     let (op, size) = out_ptr(out);
@@ -306,8 +307,9 @@ struct Ctx<'a, 'p> {
     ep: &'a [i64],
     /// Per part: every sum fits in i32 ([`Layer::narrow`]).
     narrow: [bool; MAX_PARTS],
-    /// The constant part's kept sums (`[x][coutp]`), whether they hold this row's, the part.
-    memo: Option<(Shared<i64>, bool, usize)>,
+    /// The constant part's kept sums (`[x][coutp]`, i32: the part is narrow), whether they hold
+    /// this row's, the part.
+    memo: Option<(Shared<i32>, bool, usize)>,
     /// The output type's range, and the output row (`size` bytes a value).
     lo: i32,
     hi: i32,
@@ -427,13 +429,11 @@ unsafe fn block<const NV: usize, const P: usize>(cx: &Ctx<'_, '_>, src: &[[*cons
         }
         if let Some((m, true)) = kept {
             for (q, sum) in sum.iter_mut().enumerate() {
-                for j in 0..2 * NV {
+                for v in 0..NV {
                     // SAFETY: the memo holds `w_out coutp` sums; pixel `x0 + q < w_out`.
-                    let e = unsafe { _mm512_loadu_si512(m.add((x0 + q) * cp + cb + 8 * j).cast()) };
-                    if !narrow {
-                        wild |= _mm512_cmpeq_epi64_mask(e, _mm512_cvtepi32_epi64(_mm512_cvtepi64_epi32(e))) != 0xFF;
-                    }
-                    contribute!(sum, e, j);
+                    let a = unsafe { _mm512_loadu_si512(m.add((x0 + q) * cp + cb + 16 * v).cast()) };
+                    contribute!(sum, _mm512_cvtepi32_epi64(_mm512_castsi512_si256(a)), 2 * v);
+                    contribute!(sum, _mm512_cvtepi32_epi64(_mm512_extracti64x4_epi64::<1>(a)), 2 * v + 1);
                 }
             }
             continue;
@@ -500,11 +500,8 @@ unsafe fn block<const NV: usize, const P: usize>(cx: &Ctx<'_, '_>, src: &[[*cons
                     }
                 }
                 if !store.is_null() {
-                    // SAFETY: as the memo's loads above.
-                    unsafe {
-                        _mm512_storeu_si512(store.add((x0 + q) * cp + cb + 16 * v).cast(), e0);
-                        _mm512_storeu_si512(store.add((x0 + q) * cp + cb + 16 * v + 8).cast(), e1);
-                    }
+                    // SAFETY: as the memo's loads above (a kept part is narrow: `a` is its sums).
+                    unsafe { _mm512_storeu_si512(store.add((x0 + q) * cp + cb + 16 * v).cast(), a) };
                 }
                 contribute!(sum, e0, 2 * v);
                 contribute!(sum, e1, 2 * v + 1);
