@@ -625,7 +625,7 @@ pub fn gru08(c: &mut Ctx<'_, '_, '_>) {
 /// streams the kept softmax weights and the values through the caches and evicts the gates'
 /// weights: `muir-slim`'s update and reset gates took 96 us a row against 76 us on Teddy. The
 /// same integers: the rows read the final keys, statistics and values, as on the second thread
-/// of [`super::side`].
+/// of `engine::side`.
 #[cfg(feature = "std")]
 #[inline(never)] // a phase: its stack frame must not add to the caller's (see `engine::STACK_BUDGET`)
 pub fn gru08_after_glb(c: &mut Ctx<'_, '_, '_>) {
