@@ -33,6 +33,12 @@
 //! epilogue is [`super::finish_with`] of the saturating sum of [`requantize`]d parts, the
 //! portable path's formula: the same integers for every input (the tests compare them).
 //!
+//! Most rows never reach this layout: the trunk's u8 3x3 rows ([`direct`]) and, inside an engine
+//! frame, the i16 rows of 16 or more channels out ([`direct16`]) run with the output channels
+//! along the vector instead. What is left here: rows of fewer than 16 channels out (the heads'
+//! last convolutions), the i8 rows and the u8 ones other than one-part 3x3 rows, and the i16 rows
+//! outside an engine frame.
+//!
 //! Layers whose tables or buffers are shorter than their parameters say are left to the portable
 //! path (the caller's fallback), which defines what happens then.
 #![deny(clippy::indexing_slicing)]
