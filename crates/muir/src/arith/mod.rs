@@ -461,7 +461,7 @@ mod tests {
                     }
                 }
             }
-            ns.extend((0..100).map(|_| ((r.next() as i64) >> (r.next() % 40))));
+            ns.extend((0..100).map(|_| (r.next() as i64) >> (r.next() % 40)));
             for n in ns {
                 assert_eq!(div_round_sat_i16(n, d), sat_i16(div_round(n, d)), "n={n} d={d}");
             }
