@@ -159,6 +159,24 @@ impl<S> Memo<S> {
         at == self.src.len()
     }
 
+    /// The entry of `memos` that holds this frame's sums of `part` for output row `row` (`pixpad`
+    /// pixels) and whose rows are `rows` (the first `k`), and `true`; else a free entry (one of an
+    /// earlier frame, or a new one) set up to receive them, `len` sums, and `false`.
+    fn entry<T: Elem>(memos: &mut Vec<Self>, part: usize, row: usize, pixpad: usize, rows: &[Option<&[T]>], len: usize) -> Option<(usize, bool)>
+    where
+        S: Copy + Default,
+    {
+        if let Some(i) = memos.iter().position(|m| m.valid && (m.part, m.row, m.pixpad) == (part, row, pixpad) && m.same_rows(rows)) {
+            return Some((i, true));
+        }
+        let i = free_slot(memos, |m| m.valid, || Memo { part, row, valid: false, src: Vec::new(), sums: Vec::new(), pixpad });
+        let m = memos.get_mut(i)?;
+        (m.part, m.row, m.pixpad, m.valid) = (part, row, pixpad, false);
+        m.keep_rows(rows);
+        scratch(&mut m.sums, len);
+        Some((i, false))
+    }
+
     /// Keeps `rows` (the first `k`) as [`Memo::same_rows`] reads them.
     fn keep_rows<T: Elem>(&mut self, rows: &[Option<&[T]>]) {
         self.src.clear();
@@ -388,21 +406,8 @@ unsafe fn run<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: usi
             let weights = plans.iter().any(|pl| pl.copied(kind)).then_some((l.buf.as_slice(), l.at));
             let memo = constant.and_then(|(part, row)| {
                 let rows = inputs.get(part)?.rows.get(..p.k)?;
-                // This frame's sums of the part for the row where its rows are as kept, else a
-                // free entry (one of an earlier frame, or a new one) to fill.
-                let hit = l.memo.iter().position(|m| m.valid && (m.part, m.row, m.pixpad) == (part, row, pixpad) && m.same_rows(rows));
-                let i = match hit {
-                    Some(i) => i,
-                    None => {
-                        let i = free_slot(&mut l.memo, |m| m.valid, || Memo { part, row, valid: false, src: Vec::new(), sums: Vec::new(), pixpad });
-                        let m = l.memo.get_mut(i)?;
-                        (m.part, m.row, m.pixpad, m.valid) = (part, row, pixpad, false);
-                        m.keep_rows(rows);
-                        scratch(&mut m.sums, p.cout * pixpad);
-                        i
-                    }
-                };
-                Some((l.memo.get_mut(i)?, hit.is_some(), part))
+                let (i, hit) = Memo::entry(&mut l.memo, part, row, pixpad, rows, p.cout * pixpad)?;
+                Some((l.memo.get_mut(i)?, hit, part))
             });
             // SAFETY: forwarded (this function's contract); a memo's sums hold `cout pixpad`.
             unsafe { run_with(p, inputs, w_in, w_out, kind, out, s, plans, xt_len, tasks, weights, memo) }

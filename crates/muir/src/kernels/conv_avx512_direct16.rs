@@ -31,10 +31,8 @@ use core::arch::x86_64::*;
 use core::cell::RefCell;
 
 use super::super::super::pool::{self, Shared, scratch};
-use super::super::super::dot_plain;
-use super::super::{ConvParams, EXTRA_BITS, MAX_K, PartRows, SHORT_MAX_BIAS, column, finish_with, mult_at, short_ok};
+use super::super::{ConvParams, EXTRA_BITS, MAX_K, PartRows, SHORT_MAX_BIAS, channel_at, column, gather, mult_at, short_ok};
 use super::{Elem, I16_CHUNK, Memo, OutRow, PARALLEL_MACS, cast, out_ptr, out_range};
-use crate::arith::requantize;
 use crate::model::graph::{MAX_PARTS, PostOp};
 
 /// Output pixels a register block holds.
@@ -84,6 +82,8 @@ std::thread_local! {
     static LAYERS: RefCell<Vec<Layer>> = const { RefCell::new(Vec::new()) };
     /// A block's input columns with the padding's zeros (the row's first and last blocks).
     static EDGE: RefCell<Vec<i16>> = const { RefCell::new(Vec::new()) };
+    /// A pixel's patch for [`scalar_block`].
+    static PATCH: RefCell<Vec<i16>> = const { RefCell::new(Vec::new()) };
 }
 
 /// Drops this thread's relaid layers and kept sums from use (a frame starts or ends).
@@ -217,20 +217,8 @@ pub(super) unsafe fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_
         let cp = coutp(p.cout);
         // (A wide constant part, which no shipped layer has, is computed in every call.)
         let memo = constant.filter(|&(part, _)| l.narrow.get(part) == Some(&true)).and_then(|(part, row)| {
-            let src = rows.get(part)?.rows.get(..p.k)?;
-            let hit = l.memo.iter().position(|m| m.valid && (m.part, m.row, m.pixpad) == (part, row, w_out) && m.same_rows(src));
-            let i = match hit {
-                Some(i) => i,
-                None => {
-                    let i = super::free_slot(&mut l.memo, |m| m.valid, || Memo { part, row, valid: false, src: Vec::new(), sums: Vec::new(), pixpad: w_out });
-                    let m = l.memo.get_mut(i)?;
-                    (m.part, m.row, m.pixpad, m.valid) = (part, row, w_out, false);
-                    m.keep_rows(src);
-                    scratch(&mut m.sums, w_out * cp);
-                    i
-                }
-            };
-            Some((i, hit.is_some(), part))
+            let (i, hit) = Memo::entry(&mut l.memo, part, row, w_out, rows.get(part)?.rows.get(..p.k)?, w_out * cp)?;
+            Some((i, hit, part))
         });
         let (w, at, ep) = (&l.w, l.at, &l.ep);
         let kept = match memo {
@@ -260,12 +248,13 @@ pub(super) unsafe fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_
 unsafe fn row(p: &ConvParams<'_>, rows: &[PartRows<'_, i16>], w_in: usize, w_out: usize, w: &[i32], at: [usize; MAX_PARTS], narrow: [bool; MAX_PARTS], ep: &[i64], memo: Option<(Shared<i32>, bool, usize)>, out: &mut OutRow<'_>) {
     let (cout, cp, k, np) = (p.cout, coutp(p.cout), p.k, p.parts.len());
     let (lo, hi) = out_range(out);
+    let signed = matches!(out, OutRow::I8(_));
     let (op, size) = out_ptr(out);
     let wlen: usize = p.parts.iter().map(|ch| k * k * ch.div_ceil(2) * cp).sum();
     if w.len() < wlen || ep.len() < (3 * np + 1) * cp {
         return;
     }
-    let cx = Ctx { p, rows, w_in, w, at, ep, narrow, memo, lo, hi, op, size };
+    let cx = Ctx { p, rows, w_in, w, at, ep, narrow, memo, lo, hi, op, size, signed };
     let blocks = w_out.div_ceil(PX);
     let big = w_out * cout * p.patch_len() >= PARALLEL_MACS;
     let ranges = super::block_ranges(big, blocks);
@@ -310,11 +299,32 @@ struct Ctx<'a, 'p> {
     /// The constant part's kept sums (`[x][coutp]`, i32: the part is narrow), whether they hold
     /// this row's, the part.
     memo: Option<(Shared<i32>, bool, usize)>,
-    /// The output type's range, and the output row (`size` bytes a value).
+    /// The output type's range, and the output row (`size` bytes a value; i8 where `signed`).
     lo: i32,
     hi: i32,
     op: Shared<u8>,
     size: usize,
+    signed: bool,
+}
+
+impl Ctx<'_, '_> {
+    /// Pixel `x`'s `cout` outputs, as an [`OutRow`] of the row's type.
+    ///
+    /// # Safety
+    /// `x < w_out`; no one else touches those outputs while the result lives.
+    unsafe fn pixel_out(&self, x: usize) -> OutRow<'_> {
+        let n = self.p.cout;
+        let d = self.op.0.wrapping_add(x * n * self.size);
+        // SAFETY: `op` is the output row of `w_out cout` values of its type (`row`), aligned for
+        // it; the values are the caller's (the contract).
+        unsafe {
+            match (self.size, self.signed) {
+                (2, _) => OutRow::I16(core::slice::from_raw_parts_mut(d.cast(), n)),
+                (_, true) => OutRow::I8(core::slice::from_raw_parts_mut(d.cast(), n)),
+                _ => OutRow::U8(core::slice::from_raw_parts_mut(d, n)),
+            }
+        }
+    }
 }
 
 // SAFETY: the memo and output pointers are written only at the pixels of one task (see
@@ -331,14 +341,13 @@ unsafe impl Sync for Ctx<'_, '_> {}
 unsafe fn pixel_block<const P: usize>(cx: &Ctx<'_, '_>, x0: usize, edge: &mut Vec<i16>) -> usize {
     let p = cx.p;
     let (k, stride, pad) = (p.k, p.stride, p.k / 2);
-    // Input columns `c_lo ..= c_hi` feed the block's `PX` pixels.
+    // Input columns `c_lo ..= c_hi` feed the block's `P` pixels.
     let c_lo = (stride * x0) as isize - pad as isize;
     let span = (P - 1) * stride + k;
     let c_hi = c_lo + span as isize - 1;
     // Per part and kernel row, where column `c_lo` starts (null: a padding row).
     let mut src = [[core::ptr::null::<i16>(); MAX_K]; MAX_PARTS];
     let inside = |r: &[i16], ch: usize| c_lo >= 0 && (c_hi as usize) < cx.w_in && (c_hi as usize + 1) * ch + ch % 2 <= r.len();
-    let need: usize = p.parts.iter().map(|ch| k * (span * ch + 2)).sum();
     let all_inside = cx.rows.iter().zip(p.parts).all(|(r, &ch)| r.rows.iter().take(k).flatten().all(|r| inside(r, ch)));
     if all_inside {
         for ((s, r), &ch) in src.iter_mut().zip(cx.rows).zip(p.parts) {
@@ -350,6 +359,7 @@ unsafe fn pixel_block<const P: usize>(cx: &Ctx<'_, '_>, x0: usize, edge: &mut Ve
         }
     } else {
         // A copy of the columns, zeros where the portable path reads padding (`column`).
+        let need: usize = p.parts.iter().map(|ch| k * (span * ch + 2)).sum();
         let buf = scratch(edge, need);
         buf.fill(0);
         let mut o = 0;
@@ -565,41 +575,23 @@ fn widen_add(e: &mut [__m512i; 4], v: usize, a: __m512i) {
     }
 }
 
-/// Pixels `x0 .. x0 + np`, channels `c0 .. c1` (those below `cout`) by the portable formula,
-/// value by value: the blocks where a part's sum left i32.
+/// Pixels `x0 .. x0 + np`, channels `c0 .. c1` (those below `cout`) by the portable path's own
+/// pieces (each pixel's patch gathered, each channel's value computed): the blocks where a
+/// part's sum left i32.
 ///
 /// # Safety
 /// As [`block`].
 unsafe fn scalar_block(cx: &Ctx<'_, '_>, x0: usize, np: usize, c0: usize, c1: usize) {
     let p = cx.p;
-    let (k, stride, pad, kl, nparts) = (p.k, p.stride, (p.k / 2) as isize, p.patch_len(), p.parts.len());
-    for x in x0..x0 + np {
-        for c in c0..c1.min(p.cout) {
-            let wts = p.weights.get(c * kl..(c + 1) * kl).unwrap_or_default();
-            let (mut sum, mut o) = (0i64, 0);
-            for (part, (rows, &ch)) in cx.rows.iter().zip(p.parts).enumerate() {
-                let mut acc = 0i64;
-                for ky in 0..k {
-                    let r = rows.rows.get(ky).copied().flatten();
-                    for kx in 0..k {
-                        if let (Some(w), Some(col)) = (wts.get(o..o + ch), column(r, (x * stride + kx) as isize - pad, cx.w_in, ch)) {
-                            acc += dot_plain(w, col);
-                        }
-                        o += ch;
-                    }
-                }
-                sum = sum.saturating_add(requantize(acc, p.mult.get(c * nparts + part)));
-            }
-            let v = finish_with(p.post, p.bias.get(c), sum).clamp(cx.lo as i64, cx.hi as i64);
-            // SAFETY: channel `c` of pixel `x` (the contract).
-            unsafe {
-                let d = cx.op.0.add((x * p.cout + c) * cx.size);
-                if cx.size == 2 {
-                    d.cast::<i16>().write_unaligned(v as i16);
-                } else {
-                    d.write(v as u8);
-                }
+    PATCH.with_borrow_mut(|patch| {
+        let patch = scratch(patch, p.patch_len());
+        for x in x0..x0 + np {
+            gather(p, cx.rows, cx.w_in, x, patch);
+            // SAFETY: pixel `x`'s outputs are the caller's (the contract).
+            let mut out = unsafe { cx.pixel_out(x) };
+            for c in c0..c1.min(p.cout) {
+                channel_at(p, patch, c, &mut out, 0);
             }
         }
-    }
+    });
 }
