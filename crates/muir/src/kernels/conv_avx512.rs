@@ -622,6 +622,33 @@ fn split_ranges(big: bool, nblk: usize) -> usize {
     if big && nblk >= 2 && pool::free() { pool::threads().min(nblk) } else { 0 }
 }
 
+/// One tap's products for the rows with the output channels along the vector ([`direct`],
+/// [`direct16`]): for each of `g_n` groups of 4 bytes (4 u8, or 2 i16), each of the `P` pixels'
+/// group (`pixel` bytes apart from `x`) broadcast against `16 NV` channels' weights (`w`, `wrow`
+/// i32 a group), added into `acc` by `vpdpbusd` (`U8`) or `vpdpwssd`.
+///
+/// # Safety
+/// The CPU has AVX-512 F and VNNI; for every `q < P` and `g < g_n`, the 4 bytes at `x + q pixel +
+/// 4 g` and the `16 NV` values at `w + g wrow` are readable.
+#[target_feature(enable = "avx512f,avx512vnni")]
+#[inline]
+unsafe fn tap_products<const U8: bool, const NV: usize, const P: usize>(acc: &mut [[__m512i; NV]; P], x: *const u8, pixel: usize, w: *const i32, wrow: usize, g_n: usize) {
+    for g in 0..g_n {
+        let mut wv = [_mm512_setzero_si512(); NV];
+        for (v, wv) in wv.iter_mut().enumerate() {
+            // SAFETY: the contract.
+            *wv = unsafe { _mm512_loadu_si512(w.add(g * wrow + 16 * v).cast()) };
+        }
+        for (q, acc) in acc.iter_mut().enumerate() {
+            // SAFETY: the contract.
+            let a = _mm512_set1_epi32(unsafe { x.add(q * pixel + 4 * g).cast::<i32>().read_unaligned() });
+            for (acc, wv) in acc.iter_mut().zip(wv) {
+                *acc = if U8 { _mm512_dpbusd_epi32(*acc, a, wv) } else { _mm512_dpwssd_epi32(*acc, a, wv) };
+            }
+        }
+    }
+}
+
 /// Ranges of pixel blocks a row with the output channels along the vector ([`direct`],
 /// [`direct16`]) is split into: one a thread for a row of enough multiply-accumulates (`big`) and
 /// at least two blocks when the pool is free, else 1.

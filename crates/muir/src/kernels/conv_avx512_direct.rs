@@ -226,18 +226,7 @@ unsafe fn block<const NV: usize>(rows: &[Option<&[u8]>; 3], w: &[i32], ch: usize
             unsafe {
                 let xp = r.as_ptr().add((stride * x0 + kx) * ch);
                 let wt = w.as_ptr().add((ky * 3 + kx) * g_n * cout + cb);
-                for g in 0..g_n {
-                    let mut wv = [_mm512_setzero_si512(); NV];
-                    for (v, wv) in wv.iter_mut().enumerate() {
-                        *wv = _mm512_loadu_si512(wt.add(g * cout + 16 * v).cast());
-                    }
-                    for (p, acc) in acc.iter_mut().enumerate() {
-                        let a = _mm512_set1_epi32(xp.add(p * stride * ch + 4 * g).cast::<i32>().read_unaligned());
-                        for (acc, wv) in acc.iter_mut().zip(wv) {
-                            *acc = _mm512_dpbusd_epi32(*acc, a, wv);
-                        }
-                    }
-                }
+                super::tap_products::<true, NV, PX>(&mut acc, xp, stride * ch, wt, cout, g_n);
             }
         }
     }

@@ -476,20 +476,8 @@ unsafe fn block<const NV: usize, const P: usize>(cx: &Ctx<'_, '_>, src: &[[*cons
                 // 16 NV <= coutp` inside the part's (`relay`).
                 unsafe {
                     let xp = r.add(kx * ch);
-                    let wb = (cp - cb).min(32);
                     let wt = wp.add(weight_at(cb, (ky * k + kx) * g_n, k * k * g_n, cp));
-                    for g in 0..g_n {
-                        let mut wv = [_mm512_setzero_si512(); NV];
-                        for (v, wv) in wv.iter_mut().enumerate() {
-                            *wv = _mm512_loadu_si512(wt.add(g * wb + 16 * v).cast());
-                        }
-                        for (q, acc) in acc.iter_mut().enumerate() {
-                            let a = _mm512_set1_epi32(xp.add(q * stride * ch + 2 * g).cast::<i32>().read_unaligned());
-                            for (acc, wv) in acc.iter_mut().zip(wv) {
-                                *acc = _mm512_dpwssd_epi32(*acc, a, wv);
-                            }
-                        }
-                    }
+                    super::tap_products::<false, NV, P>(&mut acc, xp.cast(), 2 * stride * ch, wt, (cp - cb).min(32), g_n);
                 }
                 used += g_n;
             }
