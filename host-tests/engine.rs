@@ -354,7 +354,8 @@ fn early_stop_is_the_same_as_fewer_iterations() {
 
 /// Host threads (`Engine::set_threads`): the right image's encoder on a second thread with its
 /// own scratch, and the convolution rows split into ranges of pixels (264 px: 33 pixels at 1/8,
-/// three blocks of 16), give the same bits as one thread, whatever the arena held before.
+/// three blocks of 16), give the same bits as one thread, whatever the arena held before and
+/// whichever thread computes an MGA output row.
 #[test]
 fn threads_give_the_same_bits() {
     // With threads the refinement runs in two streams (`engine::side`) as far as the model has
@@ -385,6 +386,11 @@ fn threads_give_the_same_bits() {
         };
         let one = run(1, 0);
         assert_eq!(run(2, 0), one, "{}: 2 threads", cfg.name);
+        // The MGA output rows on both threads, whatever the timing (`engine::side`).
+        muir::engine::side::ALTERNATE_GLB_ROWS.store(true, std::sync::atomic::Ordering::Relaxed);
+        let alternate = run(2, 0);
+        muir::engine::side::ALTERNATE_GLB_ROWS.store(false, std::sync::atomic::Ordering::Relaxed);
+        assert_eq!(alternate, one, "{}: 2 threads, MGA rows alternating", cfg.name);
         assert_eq!(run(3, 0xA5A5_A5A5_A5A5_A5A5), one, "{}: 3 threads on a dirty arena", cfg.name);
     }
 }

@@ -221,7 +221,8 @@ pub fn new_values() {
 }
 
 /// The aggregated values of every query of row `y` into `d` (`w cv`); `stats` are the row's
-/// softmax statistics (`2 w`). Call [`new_values`] before each pass.
+/// softmax statistics (`2 w`). Call [`new_values`] before each pass. This thread's attention
+/// state ([`AttentionState::aggregate_row`]: a state several threads read).
 #[allow(clippy::too_many_arguments)]
 pub fn aggregate_row(
     p: &ConvParams<'_>,
@@ -239,15 +240,104 @@ pub fn aggregate_row(
     d: &mut [i16],
 ) {
     #[cfg(target_arch = "x86_64")]
-    if aggregate_kept(p.cout, y, w, keys, values, cv, stats, shift, d) {
+    KEPT.with_borrow(|kept| {
+        PREPARED.with_borrow_mut(|(prep, fresh)| {
+            // Laid out on the pass's first call ([`new_values`]): they do not change in it.
+            if !*fresh {
+                *fresh = prep.fill(keys, values, p.cout, cv);
+            }
+            let l = Layouts { kept, prep: fresh.then_some(&*prep) };
+            aggregate_with(l, p, inp08, ctx, y, w, phases, keys, values, cv, stats, m, shift, d);
+        })
+    });
+    #[cfg(not(target_arch = "x86_64"))]
+    aggregate_with(Layouts { none: core::marker::PhantomData }, p, inp08, ctx, y, w, phases, keys, values, cv, stats, m, shift, d);
+}
+
+impl AttentionState {
+    /// Lays out the pass's keys and values (`qk` channels a key, `cv` a value), as the pass's
+    /// first [`aggregate_row`] does on the thread whose state it is, for
+    /// [`AttentionState::aggregate_row`].
+    pub fn lay_out_pass(&mut self, keys: &[i16], values: &[i16], qk: usize, cv: usize) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            let (prep, fresh) = &mut self.prepared;
+            *fresh = prep.fill(keys, values, qk, cv);
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = (keys, values, qk, cv);
+    }
+
+    /// [`aggregate_row`] with this state (laid out by [`AttentionState::lay_out_pass`]) instead
+    /// of this thread's: a pass's rows on several threads at once, the same integers.
+    #[allow(clippy::too_many_arguments)]
+    pub fn aggregate_row(
+        &self,
+        p: &ConvParams<'_>,
+        inp08: &[u8],
+        ctx: usize,
+        y: usize,
+        w: usize,
+        phases: &[u32],
+        keys: &[i16],
+        values: &[i16],
+        cv: usize,
+        stats: &[i64],
+        m: Multiplier,
+        shift: i8,
+        d: &mut [i16],
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        let l = Layouts { kept: &self.kept, prep: self.prepared.1.then_some(&self.prepared.0) };
+        #[cfg(not(target_arch = "x86_64"))]
+        let l = Layouts { none: core::marker::PhantomData };
+        aggregate_with(l, p, inp08, ctx, y, w, phases, keys, values, cv, stats, m, shift, d);
+    }
+}
+
+/// What a row's aggregation reads of an [`AttentionState`]: the kept softmax weights, and the
+/// pass's keys and values laid out for the batched aggregation (`None` where that layout does
+/// not apply, see [`Prepared::fill`]).
+#[derive(Clone, Copy)]
+struct Layouts<'a> {
+    #[cfg(target_arch = "x86_64")]
+    kept: &'a Kept,
+    #[cfg(target_arch = "x86_64")]
+    prep: Option<&'a Prepared>,
+    #[cfg(not(target_arch = "x86_64"))]
+    none: core::marker::PhantomData<&'a ()>,
+}
+
+/// [`aggregate_row`] with the state `l`.
+#[allow(clippy::too_many_arguments)]
+fn aggregate_with(
+    l: Layouts<'_>,
+    p: &ConvParams<'_>,
+    inp08: &[u8],
+    ctx: usize,
+    y: usize,
+    w: usize,
+    phases: &[u32],
+    keys: &[i16],
+    values: &[i16],
+    cv: usize,
+    stats: &[i64],
+    m: Multiplier,
+    shift: i8,
+    d: &mut [i16],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if aggregate_kept(l, y, w, cv, stats, shift, d) {
         return;
     }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = l;
     ROW.with_borrow_mut(|(q, patch)| {
         let qk = queries(p, inp08, ctx, y, w, phases, q, patch);
         let (q, out) = (&*q, Shared(d.as_mut_ptr()));
         let n = w.min(d.len() / cv.max(1)).min(stats.len() / 2);
         #[cfg(target_arch = "x86_64")]
-        let batched = with_pass_layout(keys, values, qk, cv, |prep| {
+        if let Some(prep) = l.prep {
             // Four queries a task, two at a time in the kernel.
             per_pixels(n, &|px| {
                 let (x0, x1) = (px.start, px.end);
@@ -255,11 +345,6 @@ pub fn aggregate_row(
                 let o = unsafe { out.slice(x0 * cv, (x1 - x0) * cv) };
                 prep.aggregate(q.get(x0 * qk..x1 * qk).unwrap_or_default(), stats.get(2 * x0..2 * x1).unwrap_or_default(), m, shift, o);
             });
-            true
-        });
-        #[cfg(not(target_arch = "x86_64"))]
-        let batched = false;
-        if batched {
             return;
         }
         per_pixels(n, &|px| {
@@ -279,48 +364,25 @@ pub fn aggregate_row(
     });
 }
 
-/// `f` of this pass's keys and values laid out for the batched aggregation (laid out on the
-/// pass's first call, [`new_values`]: they do not change in it); `false` where that layout does
-/// not apply (see [`Prepared::fill`]) or `f` says so.
+/// [`aggregate_row`] from the weights the statistics pass kept for row `y`'s queries; `false`
+/// (nothing written) where they were not kept or the pass's layout does not match them.
 #[cfg(target_arch = "x86_64")]
-fn with_pass_layout(keys: &[i16], values: &[i16], qk: usize, cv: usize, f: impl FnOnce(&Prepared) -> bool) -> bool {
-    PREPARED.with_borrow_mut(|(prep, fresh)| {
-        if !*fresh {
-            if !prep.fill(keys, values, qk, cv) {
-                return false;
-            }
-            *fresh = true;
-        }
-        f(prep)
-    })
-}
-
-/// [`aggregate_row`] from the weights the statistics pass kept for row `y`'s queries (`qk`
-/// channels each); `false` (nothing written) where they were not kept.
-#[cfg(target_arch = "x86_64")]
-#[allow(clippy::too_many_arguments)]
-fn aggregate_kept(qk: usize, y: usize, w: usize, keys: &[i16], values: &[i16], cv: usize, stats: &[i64], shift: i8, d: &mut [i16]) -> bool {
+fn aggregate_kept(l: Layouts<'_>, y: usize, w: usize, cv: usize, stats: &[i64], shift: i8, d: &mut [i16]) -> bool {
     let n = w.min(d.len() / cv.max(1)).min(stats.len() / 2);
-    KEPT.with_borrow(|kept| {
-        let (base, row) = (y * w, kept.row);
-        if row == 0 || !kept.filled.get(base..base + n).is_some_and(|f| f.iter().all(|&f| f)) {
-            return false;
-        }
-        with_pass_layout(keys, values, qk, cv, |prep| {
-            if prep.kept_row() != row {
-                return false;
-            }
-            let out = Shared(d.as_mut_ptr());
-            per_pixels(n, &|px| {
-                let (x0, x1) = (px.start, px.end);
-                // SAFETY: values `x0 cv .. x1 cv <= d.len()`, this task's pixels only.
-                let o = unsafe { out.slice(x0 * cv, (x1 - x0) * cv) };
-                let rows = kept.w.get((base + x0) * row..(base + x1) * row).unwrap_or_default();
-                prep.aggregate_kept(rows, stats.get(2 * x0..2 * x1).unwrap_or_default(), shift, o);
-            });
-            true
-        })
-    })
+    let (kept, Some(prep)) = (l.kept, l.prep) else { return false };
+    let (base, row) = (y * w, kept.row);
+    if row == 0 || prep.kept_row() != row || !kept.filled.get(base..base + n).is_some_and(|f| f.iter().all(|&f| f)) {
+        return false;
+    }
+    let out = Shared(d.as_mut_ptr());
+    per_pixels(n, &|px| {
+        let (x0, x1) = (px.start, px.end);
+        // SAFETY: values `x0 cv .. x1 cv <= d.len()`, this task's pixels only.
+        let o = unsafe { out.slice(x0 * cv, (x1 - x0) * cv) };
+        let rows = kept.w.get((base + x0) * row..(base + x1) * row).unwrap_or_default();
+        prep.aggregate_kept(rows, stats.get(2 * x0..2 * x1).unwrap_or_default(), shift, o);
+    });
+    true
 }
 
 /// [`crate::kernels::resample::interp_row`] with the row's pixels on the kernel pool.

@@ -27,7 +27,9 @@ pub mod hal;
 mod host_rows;
 #[cfg(feature = "std")]
 mod phase_times;
-#[cfg(feature = "std")]
+#[cfg(all(feature = "std", feature = "internals"))]
+pub mod side;
+#[cfg(all(feature = "std", not(feature = "internals")))]
 mod side;
 #[cfg(feature = "internals")]
 pub mod layout;

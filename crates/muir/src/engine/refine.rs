@@ -554,23 +554,74 @@ pub fn pool2x_state(m: &QuantModel<'_>, g: &Grid, net08: &[i16], out: &mut [i16]
     }
 }
 
-/// The MGA output of every row of the iteration (host: its values final, written by
-/// [`mga_values`]) into `out` (`h8` rows of `w8 x hidden`), each row passed to `done` as soon as
-/// it is written: [`gru08_with`]'s rows computed on another thread ahead of it.
+/// The MGA output rows of an iteration (host: its values final, written by [`mga_values`]),
+/// each computed on its own, in any order and on any thread: what every row reads.
 #[cfg(feature = "std")]
-#[allow(clippy::too_many_arguments)]
-pub fn glb_rows<'o>(m: &QuantModel<'_>, g: &Grid, inp08: &[u8], keys: &[i16], stats: &[i64], values: &[i16], out: &'o mut [i16], mut done: impl FnMut(&'o [i16])) {
-    let cfg = *m.config();
-    let (w, hd, ctx) = (g.w8, cfg.hidden_dim, cfg.context_dim);
+pub struct GlbPass<'a> {
+    pqy: ConvParams<'a>,
+    phases: [u32; crate::model::config::MAX_WIDTH / 2],
+    qk: usize,
+    inp08: &'a [u8],
+    keys: &'a [i16],
+    stats: &'a [i64],
+    values: &'a [i16],
+    g: Grid,
+    hd: usize,
+    ctx: usize,
+    am: crate::arith::Multiplier,
+    shift: i8,
+}
+
+#[cfg(feature = "std")]
+impl<'a> GlbPass<'a> {
+    /// The pass of model `m` on grid `g`: the context `inp08`, the frame's keys and softmax
+    /// statistics, the iteration's values.
+    pub fn new(m: &'a QuantModel<'_>, g: &Grid, inp08: &'a [u8], keys: &'a [i16], stats: &'a [i64], values: &'a [i16]) -> Self {
+        let cfg = *m.config();
+        GlbPass {
+            pqy: conv(m, MgaQuery),
+            phases: rope_phases(m),
+            qk: cfg.mga_qk_dim,
+            inp08,
+            keys,
+            stats,
+            values,
+            g: *g,
+            hd: cfg.hidden_dim,
+            ctx: cfg.context_dim,
+            am: m.att_mult(),
+            shift: frac(m, Act::Glb) - frac(m, Act::MgaV),
+        }
+    }
+
+    /// The keys, the values and their channels, for the engine's `AttentionState::lay_out_pass`.
+    pub fn keys_values(&self) -> (&'a [i16], &'a [i16], usize, usize) {
+        (self.keys, self.values, self.pqy.cout, self.hd)
+    }
+
+    /// Row `y` into `d` (`w8 x hidden`), with the attention state `att` (laid out for this
+    /// pass) where given, else this thread's (the engine's `host_rows::new_values` called before
+    /// the pass).
+    pub fn row(&self, att: Option<&super::host_rows::AttentionState>, y: usize, d: &mut [i16]) {
+        let w = self.g.w8;
+        let stats = chunk(self.stats, y, 2 * w);
+        let phases = first_n(&self.phases, self.qk / 2);
+        let (p, inp, keys, values, hd) = (&self.pqy, self.inp08, self.keys, self.values, self.hd);
+        match att {
+            Some(a) => a.aggregate_row(p, inp, self.ctx, y, w, phases, keys, values, hd, stats, self.am, self.shift, d),
+            None => super::host_rows::aggregate_row(p, inp, self.ctx, y, w, phases, keys, values, hd, stats, self.am, self.shift, d),
+        }
+    }
+}
+
+/// The MGA output of every row of the iteration (host: its values final, written by
+/// [`mga_values`]) into `out` (`h8` rows of `w8 x hidden`), with this thread's attention state.
+#[cfg(feature = "std")]
+pub fn glb_rows(m: &QuantModel<'_>, g: &Grid, inp08: &[u8], keys: &[i16], stats: &[i64], values: &[i16], out: &mut [i16]) {
     super::host_rows::new_values();
-    let pqy = conv(m, MgaQuery);
-    let phases = rope_phases(m);
-    let phases = first_n(&phases, cfg.mga_qk_dim / 2);
-    let (am, glb_shift) = (m.att_mult(), frac(m, Act::Glb) - frac(m, Act::MgaV));
-    for (y, d) in out.chunks_exact_mut((w * hd).max(1)).take(g.h8).enumerate() {
-        let stats = chunk(stats, y, 2 * w);
-        super::host_rows::aggregate_row(&pqy, inp08, ctx, y, w, phases, keys, values, hd, stats, am, glb_shift, &mut *d);
-        done(d);
+    let pass = GlbPass::new(m, g, inp08, keys, stats, values);
+    for (y, d) in out.chunks_exact_mut((g.w8 * pass.hd).max(1)).take(g.h8).enumerate() {
+        pass.row(None, y, d);
     }
 }
 
@@ -642,7 +693,7 @@ pub fn gru08_after_glb(c: &mut Ctx<'_, '_, '_>) {
     let row = g.w8 * cfg.hidden_dim;
     GLB.with_borrow_mut(|glb| {
         let out = crate::kernels::pool::scratch(glb, g.h8 * row);
-        glb_rows(m, &g, c.frame.inp08, c.st.keys, c.st.stats, c.st.values, out, |_| {});
+        glb_rows(m, &g, c.frame.inp08, c.st.keys, c.st.stats, c.st.values, out);
         let out = &*out;
         gru08_with(c, Some(&mut |y, d| copy_row(d, chunk(out, y, row))));
     });

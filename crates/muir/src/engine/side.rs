@@ -17,6 +17,8 @@
 #![deny(clippy::indexing_slicing)]
 
 use std::sync::mpsc;
+#[cfg(feature = "internals")]
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 use super::host_rows;
 use super::phase_times::Phase;
@@ -34,6 +36,8 @@ pub(super) struct SideBuffers {
     pooled: Vec<i16>,
     /// The MGA output of the iteration, `h8 x w8 x hidden`.
     glb: Vec<i16>,
+    /// The MGA values of the iteration, as the plan's buffer.
+    values: Vec<i16>,
 }
 
 /// The kernel pool held while both threads run (each one's kernels on its own thread: the
@@ -140,11 +144,23 @@ pub(super) fn setup(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuffers
     (c.st.keys, c.st.stats) = (keys, stats);
 }
 
-/// One iteration up to the disparity head: the MUD pass, the MGA value pass and the MGA
-/// aggregation (as the model has them) on a second thread; the two 1/16 ConvGRU steps and the
-/// motion encoder and 1/8 ConvGRU on this one. `lap(phase)` ends a phase of the timer here:
-/// gru16 when the 1/16 steps are done, mud when the other thread has given back the state (MUD
-/// and the MGA values done), gru08 at the end.
+/// Tests (`internals`): while set, the second thread takes an MGA output row only once this one
+/// has taken more than it (this one takes a row whenever it waits for one), so that both
+/// threads' rows are tested whatever the timing.
+#[cfg(feature = "internals")]
+pub static ALTERNATE_GLB_ROWS: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// One iteration up to the disparity head: the MUD pass and the MGA value pass on a second
+/// thread beside the two 1/16 ConvGRU steps, the motion encoder and the 1/8 ConvGRU on this one;
+/// the MGA output rows on both. `lap(phase)` ends a phase of the timer here: gru16 when the 1/16
+/// steps are done, mud when the other thread has given back the state (MUD and the MGA values
+/// done), gru08 at the end.
+///
+/// The MGA rows: the other thread takes them in order from the top as soon as it has laid out
+/// the pass; this one, whenever the 1/8 ConvGRU needs a row not done yet, takes the next row no
+/// one has taken rather than wait. (Left to the other thread alone, the rows were the longer
+/// side: on KITTI this thread waited 26-28 ms an iteration of 81.) Any row is the same integers
+/// on either thread ([`refine::GlbPass::row`]).
 pub(super) fn iteration(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuffers, mut lap: impl FnMut(Phase)) {
     let m = c.m;
     let cfg = *m.config();
@@ -153,23 +169,48 @@ pub(super) fn iteration(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuf
     let pooled = scratch(&mut side.pooled, g.h16 * row16);
     refine::pool2x_state(m, &g, c.frame.net08, pooled);
     let pooled = &*pooled;
-    let glb = scratch(&mut side.glb, if cfg.mga { g.h8 * g.w8 * cfg.hidden_dim } else { 0 });
+    let row8 = (g.w8 * cfg.hidden_dim).max(1);
+    let glb = scratch(&mut side.glb, if cfg.mga { g.h8 * row8 } else { 0 });
+    // The other thread's MGA values (the pass writes them, then both threads read them).
+    let values = scratch(&mut side.values, c.st.values.len());
 
     let (pixel, rings) = other_scratch(plan, &mut side.own, cfg.hidden_dim);
 
-    // Lent to the other thread: the state MUD and the MGA values read and write (given back
-    // when they are done), and what the aggregation reads (given back at the end).
+    // Lent to the other thread: the state MUD reads and writes (given back when MUD and the MGA
+    // values are done).
     let (f1, f2, inp08, inp16) = (c.frame.f1, c.frame.f2, c.frame.inp08, c.frame.inp16);
     let net08 = core::mem::take(&mut c.frame.net08);
-    let (flow, mask, u, values) =
-        (core::mem::take(&mut c.st.flow), core::mem::take(&mut c.st.mask), core::mem::take(&mut c.st.u), core::mem::take(&mut c.st.values));
-    let (keys, stats) = (core::mem::take(&mut c.st.keys), core::mem::take(&mut c.st.stats));
-    let (keys_r, stats_r) = (&*keys, &*stats);
+    let (flow, mask, u) = (core::mem::take(&mut c.st.flow), core::mem::take(&mut c.st.mask), core::mem::take(&mut c.st.u));
+    let (keys_m, stats_m) = (core::mem::take(&mut c.st.keys), core::mem::take(&mut c.st.stats));
+    let (keys, stats) = (&*keys_m, &*stats_m);
     let attention = host_rows::take_attention();
+    // The MGA rows not yet taken, and each row once written.
+    let todo = std::sync::Mutex::new(glb.chunks_exact_mut(row8).take(g.h8).enumerate());
+    let done: Vec<std::sync::OnceLock<&[i16]>> = (0..if cfg.mga { g.h8 } else { 0 }).map(|_| std::sync::OnceLock::new()).collect();
+    // The attention state laid out for the pass, and the pass, once the values are written.
+    let pass = std::sync::OnceLock::new();
+    // Takes the next row no one has taken and writes it; `false` when none is left.
+    let take_row = |(att, pass): &(host_rows::AttentionState, refine::GlbPass<'_>)| {
+        let next = match todo.lock() {
+            Ok(mut t) => t.next(),
+            Err(_) => None, // (the other thread panicked holding it: the scope reports that)
+        };
+        let Some((y, d)) = next else { return false };
+        pass.row(Some(att), y, d);
+        if let Some(slot) = done.get(y) {
+            let _ = slot.set(&*d);
+        }
+        true
+    };
+    // Rows each thread has taken ([`ALTERNATE_GLB_ROWS`]).
+    #[cfg(feature = "internals")]
+    let (main_rows, side_rows) = (AtomicUsize::new(0), AtomicUsize::new(0));
     let held = Held::new();
     let (state_tx, state_rx) = mpsc::channel();
-    let (row_tx, row_rx) = mpsc::channel::<&[i16]>();
-    let (values, attention) = std::thread::scope(|s| {
+    std::thread::scope(|s| {
+        let (pass, take_row) = (&pass, &take_row);
+        #[cfg(feature = "internals")]
+        let (main_rows, side_rows, todo) = (&main_rows, &side_rows, &todo);
         let other = spawn_other(s, &held, move || {
             let mut o = Ctx {
                 m,
@@ -187,14 +228,32 @@ pub(super) fn iteration(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuf
             }
             // (A closed channel: the other side panicked, which the scope reports.)
             let _ = state_tx.send((net08, flow, mask, u));
-            host_rows::lend_attention(attention);
             if cfg.mga {
-                refine::glb_rows(m, &g, inp08, keys_r, stats_r, values, glb, |r| {
-                    let _ = row_tx.send(r);
-                });
+                let values: &[i16] = values;
+                let p = refine::GlbPass::new(m, &g, inp08, keys, stats, values);
+                let mut attention = attention;
+                let (k, v, qk, cv) = p.keys_values();
+                attention.lay_out_pass(k, v, qk, cv);
+                let _ = pass.set((attention, p));
+                if let Some(pass) = pass.get() {
+                    loop {
+                        #[cfg(feature = "internals")]
+                        while ALTERNATE_GLB_ROWS.load(Ordering::Relaxed)
+                            && side_rows.load(Ordering::Acquire) >= main_rows.load(Ordering::Acquire)
+                            && todo.lock().is_ok_and(|t| t.len() > 0)
+                        {
+                            std::thread::yield_now();
+                        }
+                        if !take_row(pass) {
+                            break;
+                        }
+                        #[cfg(feature = "internals")]
+                        side_rows.fetch_add(1, Ordering::Release);
+                    }
+                }
+            } else {
+                let _ = pass.set((attention, refine::GlbPass::new(m, &g, inp08, keys, stats, &[])));
             }
-            drop(row_tx);
-            (values, host_rows::take_attention())
         });
         for _ in 0..2 {
             refine::gru16_with(m, &g, inp16, c.frame.net16, c.px.patch, c.rings, |y, out| copy_row(out, chunk(pooled, y, row16)));
@@ -205,25 +264,40 @@ pub(super) fn iteration(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuf
             (c.st.flow, c.st.mask, c.st.u) = (flow, mask, u);
         }
         lap(Phase::Mud);
-        let mut rows: Vec<&[i16]> = Vec::with_capacity(g.h8);
         let mut glb_row = |y: usize, d: &mut [i16]| {
-            while rows.len() <= y {
-                match row_rx.recv() {
-                    Ok(r) => rows.push(r),
-                    Err(_) => break,
+            let mut idle = 0u32;
+            loop {
+                if let Some(r) = done.get(y).and_then(|r| r.get()) {
+                    copy_row(d, r);
+                    return;
                 }
-            }
-            if let Some(r) = rows.get(y) {
-                copy_row(d, r);
+                if let Some(p) = pass.get()
+                    && take_row(p)
+                {
+                    #[cfg(feature = "internals")]
+                    main_rows.fetch_add(1, Ordering::Release);
+                    continue;
+                }
+                // Every row taken, row `y` by the other thread: it ends soon, or it has
+                // panicked (the row is never written; the scope reports the panic).
+                if other.is_finished() && done.get(y).and_then(|r| r.get()).is_none() {
+                    return;
+                }
+                idle += 1;
+                if idle < 256 {
+                    core::hint::spin_loop();
+                } else {
+                    std::thread::yield_now();
+                }
             }
         };
         refine::gru08_with(c, if cfg.mga { Some(&mut glb_row) } else { None });
         held.release();
-        let back = joined(other);
+        joined(other);
         lap(Phase::Gru08);
-        back
     });
-    host_rows::lend_attention(attention);
-    c.st.values = values;
-    (c.st.keys, c.st.stats) = (keys, stats);
+    if let Some((attention, _)) = pass.into_inner() {
+        host_rows::lend_attention(attention);
+    }
+    (c.st.keys, c.st.stats) = (keys_m, stats_m);
 }
