@@ -210,26 +210,30 @@ impl Prepared {
         let live = |j: usize| _mm512_cmplt_epi32_mask(_mm512_add_epi32(_mm512_set1_epi32(j as i32), lanes), _mm512_set1_epi32(n as i32));
         // 1. The maxima.
         let mut mx = [_mm512_set1_epi64(i64::MIN); R];
-        for j in (0..npad).step_by(16) {
-            let k = live(j);
-            if k == 0 {
+        // 32 keys a step (`npad` is a multiple of `KEYS`): two independent sums per query and
+        // part, so that the `vpdpwssd` chains do not wait on each other's latency.
+        for j in (0..npad).step_by(32) {
+            if live(j) == 0 {
                 break;
             }
-            // SAFETY: `kt` holds `c / 2` rows of `npad >= j + 16`; `qh`, `ql` `MAX_C / 2` rows.
-            let (ah, al) = unsafe { logits16(kt, npad, j, g_n, qhp, qlp) };
-            if let Some(d) = logits.get_mut(j / 16 * 2 * R..(j / 16 + 1) * 2 * R) {
-                let (dh, dl) = d.split_at_mut(R);
-                dh.copy_from_slice(&ah);
-                dl.copy_from_slice(&al);
-            }
-            for ((mx, ah), al) in mx.iter_mut().zip(ah).zip(al) {
-                let lo = _mm512_add_epi64(_mm512_slli_epi64::<8>(_mm512_cvtepi32_epi64(_mm512_castsi512_si256(ah))), _mm512_cvtepi32_epi64(_mm512_castsi512_si256(al)));
-                let hi = _mm512_add_epi64(
-                    _mm512_slli_epi64::<8>(_mm512_cvtepi32_epi64(_mm512_extracti64x4_epi64::<1>(ah))),
-                    _mm512_cvtepi32_epi64(_mm512_extracti64x4_epi64::<1>(al)),
-                );
-                *mx = _mm512_mask_max_epi64(*mx, k as u8, *mx, lo);
-                *mx = _mm512_mask_max_epi64(*mx, (k >> 8) as u8, *mx, hi);
+            // SAFETY: `kt` holds `c / 2` rows of `npad >= j + 32`; `qh`, `ql` `MAX_C / 2` rows.
+            let both = unsafe { logits16::<2>(kt, npad, j, g_n, qhp, qlp) };
+            for (v, (ah, al)) in both.into_iter().enumerate() {
+                let (j, k) = (j + 16 * v, live(j + 16 * v));
+                if let Some(d) = logits.get_mut(j / 16 * 2 * R..(j / 16 + 1) * 2 * R) {
+                    let (dh, dl) = d.split_at_mut(R);
+                    dh.copy_from_slice(&ah);
+                    dl.copy_from_slice(&al);
+                }
+                for ((mx, ah), al) in mx.iter_mut().zip(ah).zip(al) {
+                    let lo = _mm512_add_epi64(_mm512_slli_epi64::<8>(_mm512_cvtepi32_epi64(_mm512_castsi512_si256(ah))), _mm512_cvtepi32_epi64(_mm512_castsi512_si256(al)));
+                    let hi = _mm512_add_epi64(
+                        _mm512_slli_epi64::<8>(_mm512_cvtepi32_epi64(_mm512_extracti64x4_epi64::<1>(ah))),
+                        _mm512_cvtepi32_epi64(_mm512_extracti64x4_epi64::<1>(al)),
+                    );
+                    *mx = _mm512_mask_max_epi64(*mx, k as u8, *mx, lo);
+                    *mx = _mm512_mask_max_epi64(*mx, (k >> 8) as u8, *mx, hi);
+                }
             }
         }
         let mut out = [(0i64, 0i64); R];
@@ -242,6 +246,8 @@ impl Prepared {
         let kept = !keep.is_empty() && keep.len() >= r * row;
         let mut fine = true;
         let mut e = [0i32; 16];
+        // The weights' sums, 8 + 8 i64 lanes per query.
+        let mut sums = [[_mm512_setzero_si512(); 2]; R];
         for j in (0..npad).step_by(16) {
             let k = live(j);
             if k == 0 {
@@ -253,15 +259,19 @@ impl Prepared {
             let (ah, al) = match stored {
                 Some(v) => v,
                 // SAFETY: as above.
-                None => unsafe { logits16(kt, npad, j, g_n, qhp, qlp) },
+                None => {
+                    let [v] = unsafe { logits16::<1>(kt, npad, j, g_n, qhp, qlp) };
+                    v
+                }
             };
-            for (t, ((o, ah), al)) in out.iter_mut().zip(ah).zip(al).take(r).enumerate() {
+            for (t, (((o, ah), al), sum)) in out.iter_mut().zip(ah).zip(al).zip(sums.iter_mut()).take(r).enumerate() {
                 // SAFETY: `e` is 16 i32.
                 unsafe { weights16(ah, al, o.0, m, knots, e.as_mut_ptr()) };
-                o.1 += e.iter().take(n - j).map(|&v| v as i64).sum::<i64>();
+                // SAFETY: `e` is 16 i32.
+                let v = _mm512_maskz_mov_epi32(k, unsafe { _mm512_loadu_si512(e.as_ptr().cast()) });
+                sum[0] = _mm512_add_epi64(sum[0], _mm512_cvtepi32_epi64(_mm512_castsi512_si256(v)));
+                sum[1] = _mm512_add_epi64(sum[1], _mm512_cvtepi32_epi64(_mm512_extracti64x4_epi64::<1>(v)));
                 if kept {
-                    // SAFETY: `e` is 16 i32.
-                    let v = _mm512_maskz_mov_epi32(k, unsafe { _mm512_loadu_si512(e.as_ptr().cast()) });
                     fine &= _mm512_cmpgt_epu32_mask(v, _mm512_set1_epi32(32768)) == 0;
                     if let Some(d) = keep.get_mut(t * row + j / 2..t * row + j / 2 + 8) {
                         // SAFETY: `d` is 8 u32: the 16 weights narrowed to u16, in key order.
@@ -269,6 +279,9 @@ impl Prepared {
                     }
                 }
             }
+        }
+        for (o, sum) in out.iter_mut().zip(sums) {
+            o.1 = _mm512_reduce_add_epi64(_mm512_add_epi64(sum[0], sum[1]));
         }
         if kept {
             // Keys past the last 16 weigh nothing.
@@ -413,7 +426,7 @@ impl Prepared {
                 let j = j0 + jv;
                 // SAFETY: `kt` holds `c / 2` rows of `npad >= j + 16` keys; `qh`, `ql` hold
                 // `MAX_C / 2 >= c / 2` rows of `R`.
-                let (ah, al) = unsafe { logits16(kt, npad, j, g_n, qhp, qlp) };
+                let [(ah, al)] = unsafe { logits16::<1>(kt, npad, j, g_n, qhp, qlp) };
                 for (t, ((&ah, &al), &mxs)) in ah.iter().zip(al.iter()).zip(max.iter()).enumerate().take(r) {
                     // SAFETY: `e` holds `R KEYS` values; `t < R`, `jv + 16 <= KEYS`; the CPU has
                     // AVX-512 (this function's contract).
@@ -570,28 +583,30 @@ unsafe fn weights16(ah: __m512i, al: __m512i, max: i64, m: Multiplier, knots: &[
 }
 
 /// Logits of `R` queries (channel pairs split as `256 qh + ql`, `[g][query]`) with keys
-/// `j .. j + 16` of `kt` (`g_n` rows of `npad`): per query the lanes `h` and `l` of
-/// [`weights16`].
+/// `j .. j + 16 V` of `kt` (`g_n` rows of `npad`), per 16 keys: per query the lanes `h` and `l`
+/// of [`weights16`].
 ///
 /// # Safety
-/// The CPU has AVX-512 F, BW and VNNI; `kt` holds `g_n` rows of `npad >= j + 16`; `qh`, `ql`
+/// The CPU has AVX-512 F, BW and VNNI; `kt` holds `g_n` rows of `npad >= j + 16 V`; `qh`, `ql`
 /// `g_n` rows of `R`.
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
 #[inline]
-unsafe fn logits16(kt: *const i32, npad: usize, j: usize, g_n: usize, qh: *const i32, ql: *const i32) -> ([__m512i; R], [__m512i; R]) {
+unsafe fn logits16<const V: usize>(kt: *const i32, npad: usize, j: usize, g_n: usize, qh: *const i32, ql: *const i32) -> [([__m512i; R], [__m512i; R]); V] {
     let z = _mm512_setzero_si512();
-    let (mut ah, mut al) = ([z; R], [z; R]);
+    let mut a = [([z; R], [z; R]); V];
     for g in 0..g_n {
         // SAFETY: the contract.
         unsafe {
-            let k = _mm512_loadu_si512(kt.add(g * npad + j).cast());
-            for (t, (ah, al)) in ah.iter_mut().zip(al.iter_mut()).enumerate() {
-                *ah = _mm512_dpwssd_epi32(*ah, k, _mm512_set1_epi32(*qh.add(g * R + t)));
-                *al = _mm512_dpwssd_epi32(*al, k, _mm512_set1_epi32(*ql.add(g * R + t)));
+            for (v, (ah, al)) in a.iter_mut().enumerate() {
+                let k = _mm512_loadu_si512(kt.add(g * npad + j + 16 * v).cast());
+                for (t, (ah, al)) in ah.iter_mut().zip(al.iter_mut()).enumerate() {
+                    *ah = _mm512_dpwssd_epi32(*ah, k, _mm512_set1_epi32(*qh.add(g * R + t)));
+                    *al = _mm512_dpwssd_epi32(*al, k, _mm512_set1_epi32(*ql.add(g * R + t)));
+                }
             }
         }
     }
-    (ah, al)
+    a
 }
 
 /// Adds `256 h + l` of the block's key pairs into channel blocks `cb .. cb + NB` of the `r`
