@@ -624,20 +624,26 @@ fn split_ranges(big: bool, nblk: usize) -> usize {
 
 /// One tap's products for the rows with the output channels along the vector ([`direct`],
 /// [`direct16`]): for each of `g_n` groups of 4 bytes (4 u8, or 2 i16), each of the `P` pixels'
-/// group (`pixel` bytes apart from `x`) broadcast against `16 NV` channels' weights (`w`, `wrow`
-/// i32 a group), added into `acc` by `vpdpbusd` (`U8`) or `vpdpwssd`.
+/// group (`pixel` bytes apart from `x`) broadcast against `16 NV` channels' weights, added into
+/// `acc` by `vpdpbusd` (`U8`: the weights `w` are groups of 4 i8, an i32 a channel, `wrow`
+/// channels a group) or `vpdpwssd` (the weights are pairs of i8, 2 bytes a channel, widened to
+/// i16 pairs in the loop: half the bytes of i16 pairs, so that a ConvGRU's three gates stay in
+/// the L2 cache from one row to the next; the widening costs nothing beside `vpdpwssd`,
+/// docs/performance.md, twelfth session).
 ///
 /// # Safety
-/// The CPU has AVX-512 F and VNNI; for every `q < P` and `g < g_n`, the 4 bytes at `x + q pixel +
-/// 4 g` and the `16 NV` values at `w + g wrow` are readable.
-#[target_feature(enable = "avx512f,avx512vnni")]
+/// The CPU has AVX-512 F, BW and VNNI; for every `q < P` and `g < g_n`, the 4 bytes at `x + q
+/// pixel + 4 g` and the `16 NV` channels' weights of group `g` (from `w + (4 or 2) g wrow`) are
+/// readable.
+#[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
 #[inline]
-unsafe fn tap_products<const U8: bool, const NV: usize, const P: usize>(acc: &mut [[__m512i; NV]; P], x: *const u8, pixel: usize, w: *const i32, wrow: usize, g_n: usize) {
+unsafe fn tap_products<const U8: bool, const NV: usize, const P: usize>(acc: &mut [[__m512i; NV]; P], x: *const u8, pixel: usize, w: *const u8, wrow: usize, g_n: usize) {
     for g in 0..g_n {
         let mut wv = [_mm512_setzero_si512(); NV];
         for (v, wv) in wv.iter_mut().enumerate() {
+            let at = g * wrow + 16 * v;
             // SAFETY: the contract.
-            *wv = unsafe { _mm512_loadu_si512(w.add(g * wrow + 16 * v).cast()) };
+            *wv = unsafe { if U8 { _mm512_loadu_si512(w.add(4 * at).cast()) } else { _mm512_cvtepi8_epi16(_mm256_loadu_si256(w.add(2 * at).cast())) } };
         }
         for (q, acc) in acc.iter_mut().enumerate() {
             // SAFETY: the contract.

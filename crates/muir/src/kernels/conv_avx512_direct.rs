@@ -226,7 +226,7 @@ unsafe fn block<const NV: usize>(rows: &[Option<&[u8]>; 3], w: &[i32], ch: usize
             unsafe {
                 let xp = r.as_ptr().add((stride * x0 + kx) * ch);
                 let wt = w.as_ptr().add((ky * 3 + kx) * g_n * cout + cb);
-                super::tap_products::<true, NV, PX>(&mut acc, xp, stride * ch, wt, cout, g_n);
+                super::tap_products::<true, NV, PX>(&mut acc, xp, stride * ch, wt.cast(), cout, g_n);
             }
         }
     }

@@ -2,8 +2,9 @@
 //! AVX-512 VNNI): the refinement's layers (the ConvGRUs' gates over up to six input parts, the
 //! heads, the motion encoder), as [`super::direct`] does for the trunk's u8 rows. One pixel's pair
 //! of input channels is broadcast against 16 output channels' weight pairs (`vpdpwssd`; the
-//! weights widened to i16 and re-laid per part, `[32 channels][tap][pair][channel]`, once per
-//! engine frame), 8 pixels x 32 channels in registers, and the rows are read where they lie, in
+//! weights re-laid per part, `[32 channels][tap][pair][channel]`, once per engine frame, as i8
+//! and widened to i16 pairs in the loop: half the bytes, so that the three gates of a ConvGRU
+//! stay in the L2 cache from one row to the next), 8 pixels x 32 channels in registers, and the rows are read where they lie, in
 //! their `[x][c]` order: no transposition of the inputs or the outputs ([`super`]'s layout has
 //! pixels along the vector and transposes both), and each part's requantisation, the bias and
 //! the activation run on vectors of channels. A block whose columns reach past the row's ends
@@ -51,9 +52,10 @@ struct Layer {
     /// takes this path.
     short: bool,
     /// The weights: per part, blocks of 32 output channels, each `[tap][pair][channel]`
-    /// ([`weight_at`]), two i16 an i32 (a pair past the part's channels and the channels past
-    /// `cout` zero).
-    w: Vec<i32>,
+    /// ([`weight_at`] counts slots), a slot the pair's two i8 (widened to the i16 pair
+    /// `vpdpwssd` reads in the loop; a pair past the part's channels and the channels past `cout`
+    /// zero).
+    w: Vec<i8>,
     /// Where each part's weights start in `w`.
     at: [usize; MAX_PARTS],
     /// Per part: every output channel's `sum |w|` is at most 65535, so every sum of the part
@@ -128,7 +130,7 @@ fn relay(p: &ConvParams<'_>, l: &mut Layer) {
         *at = len;
         len += k * k * ch.div_ceil(2) * cp;
     }
-    let w = scratch(&mut l.w, len);
+    let w = scratch(&mut l.w, 2 * len);
     w.fill(0);
     let mut off = 0;
     for ((&at, &ch), narrow) in l.at.iter().zip(p.parts).zip(l.narrow.iter_mut()) {
@@ -140,8 +142,9 @@ fn relay(p: &ConvParams<'_>, l: &mut Layer) {
             for (t, tap) in src.chunks_exact(ch).enumerate() {
                 for (g, pair) in tap.chunks(2).enumerate() {
                     let (a, b) = (pair.first().copied().unwrap_or(0), pair.get(1).copied().unwrap_or(0));
-                    if let Some(d) = w.get_mut(at + weight_at(c, t * g_n + g, k * k * g_n, cp)) {
-                        *d = (a as i16 as u16 as u32 | (b as i16 as u16 as u32) << 16) as i32;
+                    let slot = at + weight_at(c, t * g_n + g, k * k * g_n, cp);
+                    if let Some(d) = w.get_mut(2 * slot..2 * slot + 2) {
+                        d.copy_from_slice(&[a, b]);
                     }
                 }
             }
@@ -245,13 +248,13 @@ pub(super) unsafe fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_
 /// holds `w_out coutp` sums (`hit`: this frame's of the row, else to be written).
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
 #[allow(clippy::too_many_arguments)]
-unsafe fn row(p: &ConvParams<'_>, rows: &[PartRows<'_, i16>], w_in: usize, w_out: usize, w: &[i32], at: [usize; MAX_PARTS], narrow: [bool; MAX_PARTS], ep: &[i64], memo: Option<(Shared<i32>, bool, usize)>, out: &mut OutRow<'_>) {
+unsafe fn row(p: &ConvParams<'_>, rows: &[PartRows<'_, i16>], w_in: usize, w_out: usize, w: &[i8], at: [usize; MAX_PARTS], narrow: [bool; MAX_PARTS], ep: &[i64], memo: Option<(Shared<i32>, bool, usize)>, out: &mut OutRow<'_>) {
     let (cout, cp, k, np) = (p.cout, coutp(p.cout), p.k, p.parts.len());
     let (lo, hi) = out_range(out);
     let signed = matches!(out, OutRow::I8(_));
     let (op, size) = out_ptr(out);
     let wlen: usize = p.parts.iter().map(|ch| k * k * ch.div_ceil(2) * cp).sum();
-    if w.len() < wlen || ep.len() < (3 * np + 1) * cp {
+    if w.len() < 2 * wlen || ep.len() < (3 * np + 1) * cp {
         return;
     }
     let cx = Ctx { p, rows, w_in, w, at, ep, narrow, memo, lo, hi, op, size, signed };
@@ -291,7 +294,7 @@ struct Ctx<'a, 'p> {
     p: &'a ConvParams<'p>,
     rows: &'a [PartRows<'a, i16>],
     w_in: usize,
-    w: &'a [i32],
+    w: &'a [i8],
     at: [usize; MAX_PARTS],
     ep: &'a [i64],
     /// Per part: every sum fits in i32 ([`Layer::narrow`]).
@@ -453,7 +456,7 @@ unsafe fn block<const NV: usize, const P: usize>(cx: &Ctx<'_, '_>, src: &[[*cons
         let mut e = [[_mm512_setzero_si512(); 4]; P];
         let mut used = 0;
         let mut flushed = false;
-        let wp = cx.w.as_ptr().wrapping_add(cx.at.get(part).copied().unwrap_or(0));
+        let wp = cx.w.as_ptr().wrapping_add(2 * cx.at.get(part).copied().unwrap_or(0));
         let rows = src.get(part).copied().unwrap_or([core::ptr::null(); MAX_K]);
         for (ky, &r) in rows.iter().enumerate().take(k) {
             if r.is_null() {
@@ -476,8 +479,8 @@ unsafe fn block<const NV: usize, const P: usize>(cx: &Ctx<'_, '_>, src: &[[*cons
                 // 16 NV <= coutp` inside the part's (`relay`).
                 unsafe {
                     let xp = r.add(kx * ch);
-                    let wt = wp.add(weight_at(cb, (ky * k + kx) * g_n, k * k * g_n, cp));
-                    super::tap_products::<false, NV, P>(&mut acc, xp.cast(), 2 * stride * ch, wt, (cp - cb).min(32), g_n);
+                    let wt = wp.add(2 * weight_at(cb, (ky * k + kx) * g_n, k * k * g_n, cp));
+                    super::tap_products::<false, NV, P>(&mut acc, xp.cast(), 2 * stride * ch, wt.cast(), (cp - cb).min(32), g_n);
                 }
                 used += g_n;
             }
