@@ -292,7 +292,7 @@ fn kernels(c: &mut Criterion, fast: &Model, att: Option<&Attention>) {
     let tensors: Vec<Vec<i16>> = parts.iter().map(|&ch| (0..rows * w * ch).map(|_| r.i16()).collect()).collect();
     let mut out = vec![0i16; rows * w * p.cout];
     let mut patch = vec![0i16; p.patch_len()];
-    g.throughput(Throughput::Elements((rows * w * p.patch_len() * p.cout) as u64));
+    g.throughput(Throughput::Elements((kernel_rows(rows) * w * p.patch_len() / 3 * p.cout) as u64));
     g.bench_function(format!("conv_row gru08 i16 3x3 {}->{} ({rows} rows of {w})", p.patch_len() / 9, p.cout), |b| {
         b.iter(|| {
             for y in 0..rows {
@@ -329,7 +329,7 @@ fn kernels(c: &mut Criterion, fast: &Model, att: Option<&Attention>) {
     let x: Vec<u8> = (0..rows * w * p.parts[0]).map(|_| r.i8() as u8).collect();
     let mut out = vec![0u8; rows * w * p.cout];
     let mut patch = vec![0u8; p.patch_len()];
-    g.throughput(Throughput::Elements((rows * w * p.patch_len() * p.cout) as u64));
+    g.throughput(Throughput::Elements((kernel_rows(rows) * w * p.patch_len() / 3 * p.cout) as u64));
     g.bench_function(format!("conv_row layer1 u8 3x3 64->64 ({rows} rows of {w})"), |b| {
         b.iter(|| {
             for y in 0..rows {
@@ -482,6 +482,13 @@ fn refinement(c: &mut Criterion, md: &Model, pair: &(OwnedImage, OwnedImage)) {
     g.finish();
 }
 
+/// Kernel rows a 3x3 layer's `rows` output rows read inside the image: the first and the last
+/// read two of three, the padding rows being skipped (counting them, until 2026-12-06, overstated
+/// the rate by 12 / 10 for 4 rows).
+fn kernel_rows(rows: usize) -> usize {
+    (0..rows).map(|y| (y.saturating_sub(1)..(y + 2).min(rows)).len()).sum()
+}
+
 /// The shipped model's 1/8 ConvGRU gate as the engine runs it on Teddy (x86-64): muir-slim's
 /// `Gru08Z` (six i16 parts, 64 channels out) on rows of 58, inside an engine frame, the context
 /// part's sums kept (`with_constant_part`, computed once and reused, as in six of a frame's seven
@@ -499,7 +506,7 @@ fn slim_gate(c: &mut Criterion, slim: &Model) {
     let mut out = vec![0i16; rows * w * p.cout];
     let mut patch = vec![0i16; p.patch_len()];
     let ctx_ch = parts.last().copied().unwrap_or(0);
-    g.throughput(Throughput::Elements((rows * w * (p.patch_len() - 9 * ctx_ch) * p.cout) as u64));
+    g.throughput(Throughput::Elements((kernel_rows(rows) * 3 * w * (p.patch_len() / 9 - ctx_ch) * p.cout) as u64));
     g.bench_function(format!("conv_row gru08 i16 3x3 {:?}->{} ({rows} rows of {w}), in a frame, context kept", parts, p.cout), |b| {
         let _frame = muir::kernels::conv::FrameScope::new();
         b.iter(|| {
