@@ -5,9 +5,9 @@
 //! weights re-laid per part, `[32 channels][tap][pair][channel]`, once per engine frame, as i8
 //! and widened to i16 pairs in the loop: half the bytes, so that the three gates of a ConvGRU
 //! stay in the L2 cache from one row to the next), 8 pixels x 32 channels in registers, and the
-//! rows are read where they lie, in their `[x][c]` order: no transposition of the inputs or the outputs ([`super`]'s layout has
-//! pixels along the vector and transposes both), and each part's requantisation, the bias and
-//! the activation run on vectors of channels. A block whose columns reach past the row's ends
+//! rows are read where they lie, in their `[x][c]` order: no transposition of the inputs or the
+//! outputs ([`super`]'s layout has pixels along the vector and transposes both), and each part's
+//! requantisation, the bias and the activation run on vectors of channels. A block whose columns reach past the row's ends
 //! (the first and the last) reads a copy with the padding's zeros instead. A part of an odd
 //! channel count reads, for its last pair, the next pixel's first value, against a zero weight.
 //!
