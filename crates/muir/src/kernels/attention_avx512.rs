@@ -493,11 +493,42 @@ impl Prepared {
 
 /// The queries' aggregated values into `out` (`cv` each) from their sums `acc` (`cv` each) and
 /// statistics `stats` (`max, sum` each), as [`super::aggregate_query`] finishes them.
+///
+/// The division by a query's sum of weights is [`crate::arith::DivRoundSat16::apply`]'s: where
+/// the sum lies in `1 ..= i32::MAX`, the quotient is estimated with a multiplication by its f64
+/// reciprocal instead of an integer division (the sums `s < 2^46`: the estimate is within one of
+/// the quotient), and corrected as there from the exact remainder. A division per value took 1 %
+/// of a Teddy frame.
 fn outputs(out: &mut [i16], acc: &[i64], stats: &[i64], cv: usize, shift: i8) {
     for ((o, a), st) in out.chunks_exact_mut(cv.max(1)).zip(acc.chunks_exact(cv.max(1))).zip(stats.chunks_exact(2)) {
-        let sum = st.get(1).copied().unwrap_or(0);
+        let d = st.get(1).copied().unwrap_or(0);
+        if !(1..=i32::MAX as i64).contains(&d) {
+            for (o, a) in o.iter_mut().zip(a) {
+                *o = aggregated(*a, shift, d);
+            }
+            continue;
+        }
+        let (inv, half, bound) = (1.0 / d as f64, d as u64 / 2, 32768 * d as u64);
         for (o, a) in o.iter_mut().zip(a) {
-            *o = aggregated(*a, shift, sum);
+            let n = crate::arith::shift_round(*a, shift as i32);
+            // `|n| <= 2^63`, `d / 2 < 2^30`: no overflow.
+            let s = n.unsigned_abs() + half;
+            *o = if s >= bound {
+                if n < 0 { i16::MIN } else { i16::MAX }
+            } else {
+                // `s < 2^15 d < 2^46`: exact in f64, the product within one of `s / d`.
+                let mut q = (s as f64 * inv) as i64;
+                let mut r = s as i64 - q * d;
+                while r < 0 {
+                    q -= 1;
+                    r += d;
+                }
+                while r >= d {
+                    q += 1;
+                    r -= d;
+                }
+                (if n < 0 { -q } else { q }) as i16
+            };
         }
     }
 }
@@ -684,6 +715,32 @@ mod tests {
             let f = u - 32 * i as i32;
             let (a, d) = (t[i] & 0xFFFF, t[i] >> 16);
             assert_eq!(a + ((d * f + 16) >> 5), crate::arith::lut::exp_q11(x), "{x}");
+        }
+    }
+
+    /// `outputs`' division (an f64 estimate, corrected) gives `aggregated`'s integers: divisors
+    /// across i32 and beyond, sums at the saturation bounds and the rounding halves, both signs.
+    #[test]
+    fn outputs_divide_as_aggregated() {
+        let mut r = Rng(0xd1d0_0002);
+        let mut ds = vec![1i64, 2, 3, 7, 65535, 65536, 65537, (1 << 31) - 1, 1 << 31, 0, -5, i64::MAX];
+        ds.extend((0..100).map(|_| (r.next() >> (33 + r.next() % 31)) as i64 + 1));
+        for &d in &ds {
+            let mut ns = vec![0i64, 1, -1, i64::MAX, i64::MIN, i64::MIN + 1];
+            for k in [32766i64, 32767, 32768, 32769, 1, 100] {
+                if let Some(b) = d.checked_mul(k) {
+                    for e in [-1i64, 0, 1, d / 2, d / 2 + 1, -(d / 2), -(d / 2) - 1] {
+                        ns.extend([b + e, -(b + e)]);
+                    }
+                }
+            }
+            ns.extend((0..50).map(|_| (r.next() as i64) >> (r.next() % 63)));
+            for shift in [-3i8, 0, 2] {
+                let mut got = vec![0i16; ns.len()];
+                outputs(&mut got, &ns, &[0, d], ns.len(), shift);
+                let want: Vec<i16> = ns.iter().map(|&n| aggregated(n, shift, d)).collect();
+                assert_eq!(got, want, "d {d} shift {shift}");
+            }
         }
     }
 
