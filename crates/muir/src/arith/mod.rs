@@ -206,21 +206,51 @@ impl DivRoundSat16 {
     /// `sat_i16(div_round(n, d))`.
     #[inline]
     pub const fn apply(&self, n: i64) -> i16 {
+        match self.rounded(n) {
+            Err(v) => v,
+            Ok(s) => {
+                // `s < 2^15 d`: shifted by `z`, `s < 2^47`; the estimate from the top bits.
+                let top = if self.top == 0 { 1 } else { self.top };
+                self.quotient(n, s, (((s << self.z) >> 16) as u32 / top) as i64)
+            }
+        }
+    }
+
+    /// [`DivRoundSat16::apply`] with the quotient estimated from `inv`, `1 / d` in f64, instead of
+    /// an integer division (host: the batched attention's outputs); the same integers.
+    #[cfg(feature = "std")]
+    #[inline]
+    pub fn apply_f64(&self, n: i64, inv: f64) -> i16 {
+        match self.rounded(n) {
+            Err(v) => v,
+            // `s < 2^15 d < 2^46`: exact in f64, the product within one of `s / d`.
+            Ok(s) => self.quotient(n, s, (s as f64 * inv) as i64),
+        }
+    }
+
+    /// `Ok(|n| + d / 2)` for the fast path, or `Err(result)`: the slow path's, or a quotient
+    /// whose magnitude reaches 32768 saturated.
+    #[inline]
+    const fn rounded(&self, n: i64) -> Result<u64, i16> {
         let d = self.d;
         if !self.fast {
-            return sat_i16(div_round(n, d));
+            return Err(sat_i16(div_round(n, d)));
         }
         // `n_abs <= 2^63`, `d / 2 < 2^30`: no overflow.
         let s = n.unsigned_abs() + d as u64 / 2;
         if s >= self.bound {
             // |quotient| >= 32768: `i16::MAX` (positive), `i16::MIN` (negative: -32768 exactly
             // or saturated).
-            return if n < 0 { i16::MIN } else { i16::MAX };
+            return Err(if n < 0 { i16::MIN } else { i16::MAX });
         }
-        // `s < 2^15 d`: shifted by `z`, `s < 2^47`; the estimate from the top bits, then the
-        // remainder's correction.
-        let top = if self.top == 0 { 1 } else { self.top };
-        let mut q = (((s << self.z) >> 16) as u32 / top) as i64;
+        Ok(s)
+    }
+
+    /// `s / d` (`s < 2^15 d`) from an estimate `q` a few units off, corrected from the
+    /// remainder, with `n`'s sign.
+    #[inline]
+    const fn quotient(&self, n: i64, s: u64, q: i64) -> i16 {
+        let (d, mut q) = (self.d, q);
         let mut r = s as i64 - q * d;
         while r < 0 {
             q -= 1;

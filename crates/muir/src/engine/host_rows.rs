@@ -221,10 +221,12 @@ pub fn new_values() {
 }
 
 /// The aggregated values of every query of row `y` into `d` (`w cv`); `stats` are the row's
-/// softmax statistics (`2 w`). Call [`new_values`] before each pass. This thread's attention
-/// state ([`AttentionState::aggregate_row`]: a state several threads read).
+/// softmax statistics (`2 w`). With `att`, that attention state (laid out for the pass by
+/// [`AttentionState::lay_out_pass`]: a pass's rows on several threads at once); without, this
+/// thread's (call [`new_values`] before each pass). The same integers either way.
 #[allow(clippy::too_many_arguments)]
 pub fn aggregate_row(
+    att: Option<&AttentionState>,
     p: &ConvParams<'_>,
     inp08: &[u8],
     ctx: usize,
@@ -239,25 +241,72 @@ pub fn aggregate_row(
     shift: i8,
     d: &mut [i16],
 ) {
-    #[cfg(target_arch = "x86_64")]
-    KEPT.with_borrow(|kept| {
-        PREPARED.with_borrow_mut(|(prep, fresh)| {
-            // Laid out on the pass's first call ([`new_values`]): they do not change in it.
-            if !*fresh {
-                *fresh = prep.fill(keys, values, p.cout, cv);
+    with_layouts(att, keys, values, p.cout, cv, |l| {
+        #[cfg(target_arch = "x86_64")]
+        if aggregate_kept(l, y, w, cv, stats, shift, d) {
+            return;
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = l;
+        ROW.with_borrow_mut(|(q, patch)| {
+            let qk = queries(p, inp08, ctx, y, w, phases, q, patch);
+            let (q, out) = (&*q, Shared(d.as_mut_ptr()));
+            let n = w.min(d.len() / cv.max(1)).min(stats.len() / 2);
+            #[cfg(target_arch = "x86_64")]
+            if let Some(prep) = l.prep {
+                // Four queries a task, two at a time in the kernel.
+                per_pixels(n, &|px| {
+                    let (x0, x1) = (px.start, px.end);
+                    // SAFETY: values `x0 cv .. x1 cv <= d.len()`, this task's pixels only.
+                    let o = unsafe { out.slice(x0 * cv, (x1 - x0) * cv) };
+                    prep.aggregate(q.get(x0 * qk..x1 * qk).unwrap_or_default(), stats.get(2 * x0..2 * x1).unwrap_or_default(), m, shift, o);
+                });
+                return;
             }
-            let l = Layouts { kept, prep: fresh.then_some(&*prep) };
-            aggregate_with(l, p, inp08, ctx, y, w, phases, keys, values, cv, stats, m, shift, d);
-        })
+            per_pixels(n, &|px| {
+                ACC.with_borrow_mut(|acc| {
+                    let acc = scratch(acc, cv);
+                    for x in px {
+                        let st = match stats.get(2 * x..2 * x + 2) {
+                            Some(&[a, b]) => (a, b),
+                            _ => (0, 0),
+                        };
+                        // SAFETY: values `x cv .. (x + 1) cv <= d.len()`, this task's pixels only.
+                        let o = unsafe { out.slice(x * cv, cv) };
+                        aggregate_query(q.get(x * qk..(x + 1) * qk).unwrap_or_default(), keys, values, cv, st, m, shift, acc, o);
+                    }
+                });
+            });
+        });
     });
+}
+
+/// `f` of the attention state `att`, or of this thread's (its pass's layout made on the pass's
+/// first call, [`new_values`]: the keys and values do not change in it).
+fn with_layouts<R>(att: Option<&AttentionState>, keys: &[i16], values: &[i16], qk: usize, cv: usize, f: impl FnOnce(Layouts<'_>) -> R) -> R {
+    #[cfg(target_arch = "x86_64")]
+    match att {
+        Some(a) => f(Layouts { kept: &a.kept, prep: a.prepared.1.then_some(&a.prepared.0) }),
+        None => KEPT.with_borrow(|kept| {
+            PREPARED.with_borrow_mut(|(prep, fresh)| {
+                if !*fresh {
+                    *fresh = prep.fill(keys, values, qk, cv);
+                }
+                f(Layouts { kept, prep: fresh.then_some(&*prep) })
+            })
+        }),
+    }
     #[cfg(not(target_arch = "x86_64"))]
-    aggregate_with(Layouts { none: core::marker::PhantomData }, p, inp08, ctx, y, w, phases, keys, values, cv, stats, m, shift, d);
+    {
+        let _ = (att, keys, values, qk, cv);
+        f(Layouts { none: core::marker::PhantomData })
+    }
 }
 
 impl AttentionState {
     /// Lays out the pass's keys and values (`qk` channels a key, `cv` a value), as the pass's
-    /// first [`aggregate_row`] does on the thread whose state it is, for
-    /// [`AttentionState::aggregate_row`].
+    /// first [`aggregate_row`] does on the thread whose state it is, for [`aggregate_row`] with
+    /// this state.
     pub fn lay_out_pass(&mut self, keys: &[i16], values: &[i16], qk: usize, cv: usize) {
         #[cfg(target_arch = "x86_64")]
         {
@@ -266,32 +315,6 @@ impl AttentionState {
         }
         #[cfg(not(target_arch = "x86_64"))]
         let _ = (keys, values, qk, cv);
-    }
-
-    /// [`aggregate_row`] with this state (laid out by [`AttentionState::lay_out_pass`]) instead
-    /// of this thread's: a pass's rows on several threads at once, the same integers.
-    #[allow(clippy::too_many_arguments)]
-    pub fn aggregate_row(
-        &self,
-        p: &ConvParams<'_>,
-        inp08: &[u8],
-        ctx: usize,
-        y: usize,
-        w: usize,
-        phases: &[u32],
-        keys: &[i16],
-        values: &[i16],
-        cv: usize,
-        stats: &[i64],
-        m: Multiplier,
-        shift: i8,
-        d: &mut [i16],
-    ) {
-        #[cfg(target_arch = "x86_64")]
-        let l = Layouts { kept: &self.kept, prep: self.prepared.1.then_some(&self.prepared.0) };
-        #[cfg(not(target_arch = "x86_64"))]
-        let l = Layouts { none: core::marker::PhantomData };
-        aggregate_with(l, p, inp08, ctx, y, w, phases, keys, values, cv, stats, m, shift, d);
     }
 }
 
@@ -306,62 +329,6 @@ struct Layouts<'a> {
     prep: Option<&'a Prepared>,
     #[cfg(not(target_arch = "x86_64"))]
     none: core::marker::PhantomData<&'a ()>,
-}
-
-/// [`aggregate_row`] with the state `l`.
-#[allow(clippy::too_many_arguments)]
-fn aggregate_with(
-    l: Layouts<'_>,
-    p: &ConvParams<'_>,
-    inp08: &[u8],
-    ctx: usize,
-    y: usize,
-    w: usize,
-    phases: &[u32],
-    keys: &[i16],
-    values: &[i16],
-    cv: usize,
-    stats: &[i64],
-    m: Multiplier,
-    shift: i8,
-    d: &mut [i16],
-) {
-    #[cfg(target_arch = "x86_64")]
-    if aggregate_kept(l, y, w, cv, stats, shift, d) {
-        return;
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = l;
-    ROW.with_borrow_mut(|(q, patch)| {
-        let qk = queries(p, inp08, ctx, y, w, phases, q, patch);
-        let (q, out) = (&*q, Shared(d.as_mut_ptr()));
-        let n = w.min(d.len() / cv.max(1)).min(stats.len() / 2);
-        #[cfg(target_arch = "x86_64")]
-        if let Some(prep) = l.prep {
-            // Four queries a task, two at a time in the kernel.
-            per_pixels(n, &|px| {
-                let (x0, x1) = (px.start, px.end);
-                // SAFETY: values `x0 cv .. x1 cv <= d.len()`, this task's pixels only.
-                let o = unsafe { out.slice(x0 * cv, (x1 - x0) * cv) };
-                prep.aggregate(q.get(x0 * qk..x1 * qk).unwrap_or_default(), stats.get(2 * x0..2 * x1).unwrap_or_default(), m, shift, o);
-            });
-            return;
-        }
-        per_pixels(n, &|px| {
-            ACC.with_borrow_mut(|acc| {
-                let acc = scratch(acc, cv);
-                for x in px {
-                    let st = match stats.get(2 * x..2 * x + 2) {
-                        Some(&[a, b]) => (a, b),
-                        _ => (0, 0),
-                    };
-                    // SAFETY: values `x cv .. (x + 1) cv <= d.len()`, this task's pixels only.
-                    let o = unsafe { out.slice(x * cv, cv) };
-                    aggregate_query(q.get(x * qk..(x + 1) * qk).unwrap_or_default(), keys, values, cv, st, m, shift, acc, o);
-                }
-            });
-        });
-    });
 }
 
 /// [`aggregate_row`] from the weights the statistics pass kept for row `y`'s queries; `false`

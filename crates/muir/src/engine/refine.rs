@@ -606,11 +606,7 @@ impl<'a> GlbPass<'a> {
         let w = self.g.w8;
         let stats = chunk(self.stats, y, 2 * w);
         let phases = first_n(&self.phases, self.qk / 2);
-        let (p, inp, keys, values, hd) = (&self.pqy, self.inp08, self.keys, self.values, self.hd);
-        match att {
-            Some(a) => a.aggregate_row(p, inp, self.ctx, y, w, phases, keys, values, hd, stats, self.am, self.shift, d),
-            None => super::host_rows::aggregate_row(p, inp, self.ctx, y, w, phases, keys, values, hd, stats, self.am, self.shift, d),
-        }
+        super::host_rows::aggregate_row(att, &self.pqy, self.inp08, self.ctx, y, w, phases, self.keys, self.values, self.hd, stats, self.am, self.shift, d);
     }
 }
 
@@ -775,7 +771,7 @@ pub fn gru08_with(c: &mut Ctx<'_, '_, '_>, mut glb: Option<&mut dyn FnMut(usize,
                     {
                         // Host: the row's queries at once, its pixels on the kernel pool.
                         let stats = chunk(st.stats, y, 2 * w);
-                        super::host_rows::aggregate_row(pqy, c.frame.inp08, ctx, y, w, phases, st.keys, st.values, hd, stats, am, glb_shift, d);
+                        super::host_rows::aggregate_row(None, pqy, c.frame.inp08, ctx, y, w, phases, st.keys, st.values, hd, stats, am, glb_shift, d);
                         return;
                     }
                     // The row's queries in runs of pixels (the mask logits' buffer, idle

@@ -21,7 +21,7 @@
 use core::arch::x86_64::*;
 use core::cell::RefCell;
 
-use super::{aggregated, weight};
+use super::weight;
 use crate::arith::Multiplier;
 use crate::kernels::pool::scratch;
 use crate::kernels::x86::has_avx512;
@@ -494,41 +494,15 @@ impl Prepared {
 /// The queries' aggregated values into `out` (`cv` each) from their sums `acc` (`cv` each) and
 /// statistics `stats` (`max, sum` each), as [`super::aggregate_query`] finishes them.
 ///
-/// The division by a query's sum of weights is [`crate::arith::DivRoundSat16::apply`]'s: where
-/// the sum lies in `1 ..= i32::MAX`, the quotient is estimated with a multiplication by its f64
-/// reciprocal instead of an integer division (the sums `s < 2^46`: the estimate is within one of
-/// the quotient), and corrected as there from the exact remainder. A division per value took 1 %
-/// of a Teddy frame.
+/// The division by a query's sum of weights estimates its quotients with the sum's f64
+/// reciprocal ([`crate::arith::DivRoundSat16::apply_f64`]; a division per value took 1 % of a
+/// Teddy frame).
 fn outputs(out: &mut [i16], acc: &[i64], stats: &[i64], cv: usize, shift: i8) {
     for ((o, a), st) in out.chunks_exact_mut(cv.max(1)).zip(acc.chunks_exact(cv.max(1))).zip(stats.chunks_exact(2)) {
         let d = st.get(1).copied().unwrap_or(0);
-        if !(1..=i32::MAX as i64).contains(&d) {
-            for (o, a) in o.iter_mut().zip(a) {
-                *o = aggregated(*a, shift, d);
-            }
-            continue;
-        }
-        let (inv, half, bound) = (1.0 / d as f64, d as u64 / 2, 32768 * d as u64);
+        let (div, inv) = (crate::arith::DivRoundSat16::new(d), 1.0 / d as f64);
         for (o, a) in o.iter_mut().zip(a) {
-            let n = crate::arith::shift_round(*a, shift as i32);
-            // `|n| <= 2^63`, `d / 2 < 2^30`: no overflow.
-            let s = n.unsigned_abs() + half;
-            *o = if s >= bound {
-                if n < 0 { i16::MIN } else { i16::MAX }
-            } else {
-                // `s < 2^15 d < 2^46`: exact in f64, the product within one of `s / d`.
-                let mut q = (s as f64 * inv) as i64;
-                let mut r = s as i64 - q * d;
-                while r < 0 {
-                    q -= 1;
-                    r += d;
-                }
-                while r >= d {
-                    q += 1;
-                    r -= d;
-                }
-                (if n < 0 { -q } else { q }) as i16
-            };
+            *o = div.apply_f64(crate::arith::shift_round(*a, shift as i32), inv);
         }
     }
 }
@@ -738,7 +712,7 @@ mod tests {
             for shift in [-3i8, 0, 2] {
                 let mut got = vec![0i16; ns.len()];
                 outputs(&mut got, &ns, &[0, d], ns.len(), shift);
-                let want: Vec<i16> = ns.iter().map(|&n| aggregated(n, shift, d)).collect();
+                let want: Vec<i16> = ns.iter().map(|&n| super::super::aggregated(n, shift, d)).collect();
                 assert_eq!(got, want, "d {d} shift {shift}");
             }
         }
