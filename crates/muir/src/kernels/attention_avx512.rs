@@ -704,7 +704,9 @@ mod tests {
             for k in [32766i64, 32767, 32768, 32769, 1, 100] {
                 if let Some(b) = d.checked_mul(k) {
                     for e in [-1i64, 0, 1, d / 2, d / 2 + 1, -(d / 2), -(d / 2) - 1] {
-                        ns.extend([b + e, -(b + e)]);
+                        if let Some(v) = b.checked_add(e) {
+                            ns.extend([Some(v), v.checked_neg()].into_iter().flatten());
+                        }
                     }
                 }
             }
