@@ -139,9 +139,10 @@ pub fn stats_row(p: &ConvParams<'_>, inp08: &[u8], ctx: usize, y: usize, w: usiz
                     kept.filled.clear();
                 }
                 if keep && kept.w.len() < nq * row {
-                    // Zeroed by the OS page by page as the tasks first write them (on every
-                    // thread), not by a serial fill of up to `KEPT_BYTES` here.
+                    // Zeroed by the OS, not by a serial fill of up to `KEPT_BYTES` here; its
+                    // pages mapped in one call rather than one fault each.
                     kept.w = std::vec![0; nq * row];
+                    pool::populate(&mut kept.w);
                 }
                 let (wk, base) = if keep { (Shared(scratch(&mut kept.w, nq * row).as_mut_ptr()), y * w) } else { (Shared(core::ptr::null_mut()), 0) };
                 let fine = core::sync::atomic::AtomicBool::new(true);

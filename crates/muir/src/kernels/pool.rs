@@ -306,6 +306,32 @@ pub fn scratch<T: Copy + Default>(v: &mut Vec<T>, n: usize) -> &mut [T] {
     v.get_mut(..n).unwrap_or_default()
 }
 
+/// Maps every page of a fresh, untouched allocation `v` (a large `vec![0; n]`: pages the OS
+/// maps and zeroes on first touch) in one system call (Linux 5.14+ `MADV_POPULATE_WRITE`)
+/// rather than one page fault per 4 KB as the first writes reach them: the attention's kept
+/// softmax weights, 112 MB at 1242 x 375, took 28 000 faults. Only advice: where the call is
+/// not available (an older kernel, another OS) nothing changes.
+pub fn populate<T>(v: &mut [T]) {
+    #[cfg(target_os = "linux")]
+    {
+        unsafe extern "C" {
+            fn madvise(addr: *mut core::ffi::c_void, len: usize, advice: i32) -> i32;
+        }
+        const MADV_POPULATE_WRITE: i32 = 23;
+        const PAGE: usize = 4096;
+        let start = v.as_mut_ptr() as usize;
+        let end = start.saturating_add(core::mem::size_of_val(v));
+        let (a, b) = (start.next_multiple_of(PAGE), end / PAGE * PAGE);
+        if b > a {
+            // SAFETY: `a .. b` lies inside `v`'s allocation, page-aligned; populating writable
+            // pages maps them (zeroed, as they read already) and changes no value.
+            unsafe { madvise(a as *mut core::ffi::c_void, b - a, MADV_POPULATE_WRITE) };
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = v;
+}
+
 /// A raw pointer that tasks on several threads may hold; each task touches only its own
 /// elements (the caller's guarantee).
 #[derive(Clone, Copy)]
