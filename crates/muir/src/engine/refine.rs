@@ -594,9 +594,9 @@ impl<'a> GlbPass<'a> {
         }
     }
 
-    /// The keys, the values and their channels, for the engine's `AttentionState::lay_out_pass`.
-    pub fn keys_values(&self) -> (&'a [i16], &'a [i16], usize, usize) {
-        (self.keys, self.values, self.pqy.cout, self.hd)
+    /// Lays out this pass's keys and values in `att`, for [`GlbPass::row`] with it.
+    pub fn lay_out(&self, att: &mut super::host_rows::AttentionState) {
+        att.lay_out_pass(self.keys, self.values, self.pqy.cout, self.hd);
     }
 
     /// Row `y` into `d` (`w8 x hidden`), with the attention state `att` (laid out for this

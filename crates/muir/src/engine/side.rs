@@ -183,7 +183,9 @@ pub(super) fn iteration(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuf
     let (flow, mask, u) = (core::mem::take(&mut c.st.flow), core::mem::take(&mut c.st.mask), core::mem::take(&mut c.st.u));
     let (keys_m, stats_m) = (core::mem::take(&mut c.st.keys), core::mem::take(&mut c.st.stats));
     let (keys, stats) = (&*keys_m, &*stats_m);
-    let attention = host_rows::take_attention();
+    // The attention state, moved to the other thread for the MGA rows (none without MGA: it
+    // stays this thread's).
+    let attention = cfg.mga.then(host_rows::take_attention);
     // The MGA rows not yet taken, and each row once written.
     let todo = std::sync::Mutex::new(glb.chunks_exact_mut(row8).take(g.h8).enumerate());
     let done: Vec<std::sync::OnceLock<&[i16]>> = (0..if cfg.mga { g.h8 } else { 0 }).map(|_| std::sync::OnceLock::new()).collect();
@@ -228,12 +230,10 @@ pub(super) fn iteration(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuf
             }
             // (A closed channel: the other side panicked, which the scope reports.)
             let _ = state_tx.send((net08, flow, mask, u));
-            if cfg.mga {
+            if let Some(mut attention) = attention {
                 let values: &[i16] = values;
                 let p = refine::GlbPass::new(m, &g, inp08, keys, stats, values);
-                let mut attention = attention;
-                let (k, v, qk, cv) = p.keys_values();
-                attention.lay_out_pass(k, v, qk, cv);
+                p.lay_out(&mut attention);
                 let _ = pass.set((attention, p));
                 if let Some(pass) = pass.get() {
                     loop {
@@ -251,8 +251,6 @@ pub(super) fn iteration(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuf
                         side_rows.fetch_add(1, Ordering::Release);
                     }
                 }
-            } else {
-                let _ = pass.set((attention, refine::GlbPass::new(m, &g, inp08, keys, stats, &[])));
             }
         });
         for _ in 0..2 {
