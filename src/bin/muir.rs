@@ -442,6 +442,12 @@ fn run(args: &RunArgs) -> Result<(), String> {
     }
     let max_disparity = args.max_disparity;
     let path = &args.model.path(engine_kind);
+    // The fixed-point model is parsed (and its CRC checked) here, once, as the float model is
+    // loaded here: the frame's time below is the engine's alone for both.
+    let bytes = match engine_kind {
+        Engine::Fixed => std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?,
+        Engine::Float => Vec::new(),
+    };
     let (config, engine) = match engine_kind {
         Engine::Float => {
             let loaded = load_model(&args.model)?;
@@ -450,14 +456,14 @@ fn run(args: &RunArgs) -> Result<(), String> {
             (*model.config(), Loaded::Float(Box::new(model)))
         }
         Engine::Fixed => {
-            let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
-            let config = *QuantModel::parse(&bytes).map_err(|e| format!("{}: {e}", path.display()))?.config();
+            let model = QuantModel::parse(&bytes).map_err(|e| format!("{}: {e}", path.display()))?;
+            let config = *model.config();
             if let Some(named) = args.model.config {
                 if named != config {
                     return Err(format!("{}: the model's config '{}' differs from --config {}", path.display(), config.name, named.name));
                 }
             }
-            (config, Loaded::Fixed(bytes))
+            (config, Loaded::Fixed(model))
         }
     };
     // Only what was asked for explicitly needs MUD; the default outputs skip the error maps.
@@ -582,12 +588,12 @@ fn score(gt: &[f32], pred: &Prediction) -> String {
 }
 
 /// A loaded model of either engine.
-enum Loaded {
+enum Loaded<'a> {
     Float(Box<FloatModel>),
-    Fixed(Vec<u8>),
+    Fixed(QuantModel<'a>),
 }
 
-impl Loaded {
+impl Loaded<'_> {
     #[allow(clippy::too_many_arguments)]
     fn predict(
         &self,
@@ -615,12 +621,11 @@ impl Loaded {
                 };
                 Ok(Prediction { width: p.width, height: p.height, disparity, error_px, raw_disparity, rejected, iters_used: iters, phases: None })
             }
-            Loaded::Fixed(bytes) => {
-                let model = QuantModel::parse(bytes).map_err(|e| e.to_string())?;
+            Loaded::Fixed(model) => {
                 let (w, h) = (left.width, left.height);
                 let plan = muir::engine::Plan::new(model.config(), w, h);
                 let mut arena = vec![0u64; plan.ram_bytes.div_ceil(8)];
-                let mut engine = muir::engine::Engine::new(&model, bytemuck::cast_slice_mut(&mut arena)).map_err(|e| e.to_string())?;
+                let mut engine = muir::engine::Engine::new(model, bytemuck::cast_slice_mut(&mut arena)).map_err(|e| e.to_string())?;
                 engine.set_full_res_refinement(refine);
                 engine.set_early_stop(early);
                 engine.set_max_disparity(max_disparity);
