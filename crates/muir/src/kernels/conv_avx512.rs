@@ -329,6 +329,12 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
     if constant.is_none() && unsafe { direct::conv_row(p, inputs, w_in, out) } {
         return true;
     }
+    // The i16 rows with fewer than 16 output channels, the vector along the patch (`few`; a
+    // constant part's sums are not kept there: such layers have none).
+    // SAFETY: as above.
+    if unsafe { few::conv_row(p, inputs, w_in, out) } {
+        return true;
+    }
     // The i16 rows likewise (`direct16`), the constant part's sums kept there.
     // SAFETY: as above.
     if unsafe { direct16::conv_row(p, inputs, w_in, out, constant) } {
@@ -343,6 +349,8 @@ pub fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_, T>], w_in: u
 mod direct;
 #[path = "conv_avx512_direct16.rs"]
 mod direct16;
+#[path = "conv_avx512_few.rs"]
+mod few;
 
 /// One input part's place in the row's work.
 #[derive(Clone, Copy, Debug, Default)]
@@ -1626,6 +1634,14 @@ mod tests {
                     (1, 1, &[5][..], 16),
                     (7, 2, &[3][..], 32),
                     (5, 2, &[12, 2][..], 17),
+                    // i16 rows with 1 to 15 channels out (`few`): the heads' last layers (the
+                    // MGA mask's parts, 1 and 2 channels out), four channels at a time then the
+                    // rest, kernel rows longer than a vector, stride 2.
+                    (3, 1, &[64, 36, 1, 1][..], 1),
+                    (3, 1, &[40][..], 2),
+                    (3, 1, &[13, 2][..], 7),
+                    (1, 1, &[33][..], 15),
+                    (3, 2, &[20][..], 3),
                 ]
                 {
                     seed += 1;
