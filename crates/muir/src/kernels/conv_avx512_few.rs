@@ -28,6 +28,8 @@ pub(super) const MAX_COUT: usize = 15;
 
 /// i16 values a vector.
 const LANES: usize = 32;
+/// Output pixels a block computes together.
+const PX: usize = 4;
 
 std::thread_local! {
     /// The layer's weights widened to i16, each kernel row of a part padded to whole vectors
@@ -103,80 +105,99 @@ pub(super) unsafe fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_
             *d = s.and_then(|r| cast::<T, i16>(r));
         }
     }
-    let (k, stride, pad, np) = (p.k, p.stride, p.k / 2, p.parts.len());
+    let (k, stride, pad, np, kl) = (p.k, p.stride, p.k / 2, p.parts.len(), p.patch_len());
     let w_out = p.out_width(w_in);
     BUFFERS.with_borrow_mut(|(wbuf, patch)| {
         let Some(l) = widen(p, wbuf) else { return false };
-        let patch = scratch(patch, p.patch_len());
+        let patch = scratch(patch, PX * kl);
         let i16_inputs: [PartRows<'_, i16>; MAX_PARTS] = core::array::from_fn(|part| PartRows { rows: rows.get(part).copied().unwrap_or([None; MAX_K]) });
         let wp = wbuf.as_ptr();
-        for x in 0..w_out {
-            let x0 = x * stride;
-            // Each part's kernel rows: where their `k ch` values start (in the input row, or in
-            // the gathered patch, `[part][ky][kx][c]`, where the window reaches past the row's
-            // ends), null for a padding row.
-            let mut src = [[core::ptr::null::<i16>(); MAX_K]; MAX_PARTS];
-            let inside = x0 >= pad
-                && x0 - pad + k <= w_in
-                && rows.iter().zip(p.parts).all(|(r, &ch)| r.iter().take(k).flatten().all(|r| (x0 - pad + k) * ch <= r.len()));
-            if inside {
-                for ((s, r), &ch) in src.iter_mut().zip(&rows).zip(p.parts) {
-                    for (s, r) in s.iter_mut().zip(r).take(k) {
-                        if let Some(r) = r {
-                            *s = r.as_ptr().wrapping_add((x0 - pad) * ch);
+        let mut x = 0;
+        while x < w_out {
+            let px = (w_out - x).min(PX);
+            // Each pixel's parts' kernel rows: where their `k ch` values start (in the input
+            // row, or in the pixel's gathered patch, `[part][ky][kx][c]`, where its window
+            // reaches past the row's ends); null for a padding row, for every pixel alike. The
+            // block's unused pixels read the first one's (their sums are not stored).
+            let mut src = [[[core::ptr::null::<i16>(); MAX_K]; MAX_PARTS]; PX];
+            for (q, s) in src.iter_mut().enumerate().take(px) {
+                let x0 = (x + q) * stride;
+                let inside = x0 >= pad
+                    && x0 - pad + k <= w_in
+                    && rows.iter().zip(p.parts).all(|(r, &ch)| r.iter().take(k).flatten().all(|r| (x0 - pad + k) * ch <= r.len()));
+                if inside {
+                    for ((s, r), &ch) in s.iter_mut().zip(&rows).zip(p.parts) {
+                        for (s, r) in s.iter_mut().zip(r).take(k) {
+                            if let Some(r) = r {
+                                *s = r.as_ptr().wrapping_add((x0 - pad) * ch);
+                            }
+                        }
+                    }
+                } else if let Some(patch) = patch.get_mut(q * kl..(q + 1) * kl) {
+                    gather(p, i16_inputs.get(..np).unwrap_or_default(), w_in, x + q, patch);
+                    let mut o = 0;
+                    for ((s, r), &ch) in s.iter_mut().zip(&rows).zip(p.parts) {
+                        for (s, r) in s.iter_mut().zip(r).take(k) {
+                            if r.is_some() {
+                                *s = patch.as_ptr().wrapping_add(o);
+                            }
+                            o += k * ch;
                         }
                     }
                 }
-            } else {
-                gather(p, i16_inputs.get(..np).unwrap_or_default(), w_in, x, patch);
-                let mut o = 0;
-                for (s, &ch) in src.iter_mut().zip(p.parts) {
-                    for s in s.iter_mut().take(k) {
-                        *s = patch.as_ptr().wrapping_add(o);
-                        o += k * ch;
+            }
+            let first = src.first().copied().unwrap_or_default();
+            src.iter_mut().skip(px).for_each(|s| *s = first);
+            let mut sums = [[0i64; MAX_COUT]; PX];
+            for (part, &ch) in p.parts.iter().enumerate() {
+                let (n, at, len) = (k * ch, l.at.get(part).copied().unwrap_or(0), l.len.get(part).copied().unwrap_or(0));
+                let rows: [[*const i16; MAX_K]; PX] = core::array::from_fn(|q| src.get(q).and_then(|s| s.get(part)).copied().unwrap_or([core::ptr::null(); MAX_K]));
+                // SAFETY: the caller's CPU features; each non-null `rows[q][ky]` points at `k ch`
+                // values (in an input row, checked above, or in a patch of `patch_len()`), and
+                // null for every pixel or none; channel `c < cout`'s weights of the part's
+                // kernel row `ky` are `len >= k ch` values at `c stride + at + ky len` of the
+                // `cout stride` widened ones.
+                let dots = unsafe { part_dots(&rows, k, n, wp.add(at), len, l.stride, p.cout) };
+                for (sums, dots) in sums.iter_mut().zip(dots) {
+                    for (c, (sum, dot)) in sums.iter_mut().zip(dots).enumerate().take(p.cout) {
+                        *sum = sum.saturating_add(part_sum(p, c, part, dot as i64));
                     }
                 }
             }
-            let mut sums = [0i64; MAX_COUT];
-            for (part, (s, &ch)) in src.iter().zip(p.parts).enumerate() {
-                let (n, at, len) = (k * ch, l.at.get(part).copied().unwrap_or(0), l.len.get(part).copied().unwrap_or(0));
-                // SAFETY: the caller's CPU features; each non-null `s[ky]` points at `k ch`
-                // values (in an input row, checked above, or in the patch of `patch_len()`);
-                // channel `c < cout`'s weights of the part's kernel row `ky` are `len >= k ch`
-                // values at `c stride + at + ky len` of the `cout stride` widened ones.
-                let dots = unsafe { part_dots(s, k, n, wp.add(at), len, l.stride, p.cout) };
-                for (c, (sum, dot)) in sums.iter_mut().zip(dots).enumerate().take(p.cout) {
-                    *sum = sum.saturating_add(part_sum(p, c, part, dot as i64));
+            for (q, sums) in sums.iter().enumerate().take(px) {
+                for (c, sum) in sums.iter().enumerate().take(p.cout) {
+                    out.set((x + q) * p.cout + c, finish(p, c, *sum));
                 }
             }
-            for (c, sum) in sums.iter().enumerate().take(p.cout) {
-                out.set(x * p.cout + c, finish(p, c, *sum));
-            }
+            x += px;
         }
         true
     })
 }
 
-/// One pixel's part: for each output channel `c < cout`, the dot product of the part's kernel
-/// rows (`rows[ky]`, `n` values each; null rows skipped) with its weights (`w + c cs + ky len`).
+/// A block's part: for each of its [`PX`] pixels `q` and output channel `c < cout`, the dot
+/// product of the part's kernel rows (`rows[q][ky]`, `n` values each; rows null for pixel 0
+/// skipped) with its weights (`w + c cs + ky len`). The pixels' sums are independent chains (one
+/// chain a channel would wait on `vpdpwssd`'s latency), and each weight vector is loaded once
+/// for them.
 ///
 /// # Safety
-/// The CPU has AVX-512 F, BW and VNNI; each non-null `rows[ky]` (`ky < k`) points at `n` values;
-/// for `c < cout`, `ky < k`, `w + c cs + ky len` at `len >= n` values, rounded up to whole
-/// vectors; `cout <= MAX_COUT`.
+/// The CPU has AVX-512 F, BW and VNNI; each `rows[q][ky]` (`ky < k`) is null where `rows[0][ky]`
+/// is, else points at `n` values; for `c < cout`, `ky < k`, `w + c cs + ky len` at `len >= n`
+/// values, rounded up to whole vectors; `cout <= MAX_COUT`.
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
-unsafe fn part_dots(rows: &[*const i16; MAX_K], k: usize, n: usize, w: *const i16, len: usize, cs: usize, cout: usize) -> [i32; MAX_COUT] {
-    let mut dots = [0i32; MAX_COUT];
+unsafe fn part_dots(rows: &[[*const i16; MAX_K]; PX], k: usize, n: usize, w: *const i16, len: usize, cs: usize, cout: usize) -> [[i32; MAX_COUT]; PX] {
+    let mut dots = [[0i32; MAX_COUT]; PX];
     let mut c = 0;
     while c < cout {
         // Four channels at a time (each input vector loaded once for them), then the rest.
         // SAFETY: the contract, channels `c .. c + G <= cout`.
         unsafe {
             match cout - c {
-                4.. => channels::<4>(rows, k, n, w.add(c * cs), len, cs, dots.get_mut(c..).unwrap_or_default()),
-                3 => channels::<3>(rows, k, n, w.add(c * cs), len, cs, dots.get_mut(c..).unwrap_or_default()),
-                2 => channels::<2>(rows, k, n, w.add(c * cs), len, cs, dots.get_mut(c..).unwrap_or_default()),
-                _ => channels::<1>(rows, k, n, w.add(c * cs), len, cs, dots.get_mut(c..).unwrap_or_default()),
+                4.. => channels::<4>(rows, k, n, w.add(c * cs), len, cs, &mut dots, c),
+                3 => channels::<3>(rows, k, n, w.add(c * cs), len, cs, &mut dots, c),
+                2 => channels::<2>(rows, k, n, w.add(c * cs), len, cs, &mut dots, c),
+                _ => channels::<1>(rows, k, n, w.add(c * cs), len, cs, &mut dots, c),
             }
         }
         c += 4;
@@ -184,37 +205,45 @@ unsafe fn part_dots(rows: &[*const i16; MAX_K], k: usize, n: usize, w: *const i1
     dots
 }
 
-/// [`part_dots`] of `G` channels (weights at `w + g cs`) into `dots[.. G]`.
+/// [`part_dots`] of `G` channels (weights at `w + g cs`) into `dots[q][c0 + g]`.
 ///
 /// # Safety
 /// As [`part_dots`] for channels `0 .. G`.
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
 #[inline]
-unsafe fn channels<const G: usize>(rows: &[*const i16; MAX_K], k: usize, n: usize, w: *const i16, len: usize, cs: usize, dots: &mut [i32]) {
-    let mut acc = [_mm512_setzero_si512(); G];
-    for (ky, &r) in rows.iter().enumerate().take(k) {
-        if r.is_null() {
+#[allow(clippy::too_many_arguments)]
+unsafe fn channels<const G: usize>(rows: &[[*const i16; MAX_K]; PX], k: usize, n: usize, w: *const i16, len: usize, cs: usize, dots: &mut [[i32; MAX_COUT]; PX], c0: usize) {
+    let mut acc = [[_mm512_setzero_si512(); G]; PX];
+    for ky in 0..k.min(MAX_K) {
+        if rows.first().and_then(|r| r.get(ky)).is_none_or(|r| r.is_null()) {
             continue;
         }
         let mut i = 0;
         while i < n {
-            // The row's values `i .. min(i + 32, n)`, zeros past `n` (not read: the load is
+            // The rows' values `i .. min(i + 32, n)`, zeros past `n` (not read: the load is
             // masked, and masked-off lanes do not fault).
             let left = n - i;
             let mask: __mmask32 = if left >= LANES { !0 } else { (1u32 << left) - 1 };
-            // SAFETY: `r` holds `n` values (the contract), the mask stops at `n`; the weights'
-            // kernel row holds whole vectors, `i < n <= len`.
+            // SAFETY: each row holds `n` values (the contract), the mask stops at `n`; the
+            // weights' kernel row holds whole vectors, `i < n <= len`.
             unsafe {
-                let x = _mm512_maskz_loadu_epi16(mask, r.add(i).cast());
-                for (g, a) in acc.iter_mut().enumerate() {
-                    let wv = _mm512_loadu_si512(w.add(g * cs + ky * len + i).cast());
-                    *a = _mm512_dpwssd_epi32(*a, x, wv);
+                let mut wv = [_mm512_setzero_si512(); G];
+                for (g, v) in wv.iter_mut().enumerate() {
+                    *v = _mm512_loadu_si512(w.add(g * cs + ky * len + i).cast());
+                }
+                for (acc, r) in acc.iter_mut().zip(rows) {
+                    let x = _mm512_maskz_loadu_epi16(mask, r.get(ky).copied().unwrap_or(core::ptr::null()).add(i).cast());
+                    for (a, &wv) in acc.iter_mut().zip(&wv) {
+                        *a = _mm512_dpwssd_epi32(*a, x, wv);
+                    }
                 }
             }
             i += LANES;
         }
     }
-    for (d, a) in dots.iter_mut().zip(acc) {
-        *d = _mm512_reduce_add_epi32(a);
+    for (d, acc) in dots.iter_mut().zip(acc) {
+        for (d, a) in d.iter_mut().skip(c0).zip(acc) {
+            *d = _mm512_reduce_add_epi32(a);
+        }
     }
 }
