@@ -393,6 +393,29 @@ pub fn mask_logits_row(p: &ConvParams<'_>, mid: &[i16], w: usize, mh: usize, pix
 /// lengths of the engine's window and prefix buffers.
 #[allow(clippy::too_many_arguments)]
 pub fn lookup_row(p: &LookupParams<'_>, f1: &[i8], f2row: &[i8], flow: &[i16], fc: usize, w: usize, y: usize, fd: usize, cc: usize, lens: (usize, usize), out: &mut [i16]) {
+    // The row's inputs: its pixels' disparities, their left features, the right row.
+    let n = w.min(out.len() / cc.max(1));
+    let key = LookupKey {
+        levels: p.levels,
+        radius: p.radius,
+        post_pool: p.post_pool,
+        mults: p.mults,
+        flow: flow.get(y * w * fc..(y * w + n) * fc).unwrap_or_default(),
+        fc,
+        f1: f1.get(y * w * fd..(y * w + n) * fd).unwrap_or_default(),
+        f2: f2row,
+    };
+    let out = out.get_mut(..n * cc).unwrap_or_default();
+    if LOOKUPS.lookup(y, &key, out) {
+        return;
+    }
+    lookup_pixels(p, f1, f2row, flow, fc, w, y, fd, cc, lens, out);
+    LOOKUPS.keep(y, &key, out);
+}
+
+/// [`lookup_row`]'s computation: the row's pixels as tasks on the kernel pool.
+#[allow(clippy::too_many_arguments)]
+fn lookup_pixels(p: &LookupParams<'_>, f1: &[i8], f2row: &[i8], flow: &[i16], fc: usize, w: usize, y: usize, fd: usize, cc: usize, lens: (usize, usize), out: &mut [i16]) {
     let out_p = Shared(out.as_mut_ptr());
     let n = w.min(out.len() / cc.max(1));
     F2.with_borrow_mut(|row| {
@@ -421,6 +444,118 @@ pub fn lookup_row(p: &LookupParams<'_>, f1: &[i8], f2row: &[i8], flow: &[i16], f
             });
         });
     });
+}
+
+/// What a correlation row is a function of ([`lookup_row`]): the lookup's parameters and the
+/// row's inputs.
+struct LookupKey<'a> {
+    levels: usize,
+    radius: usize,
+    post_pool: bool,
+    mults: &'a [Multiplier],
+    /// The row's disparity state (`fc` channels a pixel; channel 0 is read).
+    flow: &'a [i16],
+    fc: usize,
+    /// The row's left features, and the right feature row.
+    f1: &'a [i8],
+    f2: &'a [i8],
+}
+
+/// A correlation row as computed, with a copy of its inputs.
+struct KeptLookup {
+    y: usize,
+    levels: usize,
+    radius: usize,
+    post_pool: bool,
+    mults: Vec<Multiplier>,
+    flow: Vec<i16>,
+    fc: usize,
+    f1: Vec<i8>,
+    f2: Vec<i8>,
+    out: Vec<i16>,
+    /// When it was last read or written ([`Lookups::clock`]).
+    used: u64,
+}
+
+impl KeptLookup {
+    /// Whether this is row `y` of the inputs `k`, with `len` outputs.
+    fn holds(&self, y: usize, k: &LookupKey<'_>, len: usize) -> bool {
+        self.y == y
+            && (self.levels, self.radius, self.post_pool, self.fc) == (k.levels, k.radius, k.post_pool, k.fc)
+            && self.out.len() == len
+            && self.mults == k.mults
+            && self.flow == k.flow
+            && self.f1 == k.f1
+            && self.f2 == k.f2
+    }
+}
+
+/// Correlation rows kept for reuse (host): an iteration's MUD, MGA-value and 1/8-ConvGRU passes
+/// each look up every row at the same disparity state (the microcontroller computes each row
+/// three times rather than hold the frame's), and UFI's decoder looks up its proposals' rows
+/// again. A row is reused only where every input it is computed from (the lookup's parameters,
+/// the row's disparities and left features, the right feature row) equals the copy kept with it,
+/// so the result is the integers a new computation gives. Up to [`KEPT_PER_ROW`] rows a row
+/// index (UFI's three proposals), the least recently used replaced; shared by the threads (the
+/// MUD pass may run on the other one).
+struct Lookups {
+    rows: std::sync::Mutex<(Vec<KeptLookup>, u64)>,
+}
+
+/// Kept correlation rows per row index.
+const KEPT_PER_ROW: usize = 4;
+
+static LOOKUPS: Lookups = Lookups { rows: std::sync::Mutex::new((Vec::new(), 0)) };
+
+impl Lookups {
+    /// Copies row `y` of the inputs `k` into `out` where it is kept; `false` (nothing written)
+    /// where it is not.
+    fn lookup(&self, y: usize, k: &LookupKey<'_>, out: &mut [i16]) -> bool {
+        let Ok(mut g) = self.rows.lock() else { return false };
+        let (rows, clock) = &mut *g;
+        *clock += 1;
+        match rows.iter_mut().find(|r| r.holds(y, k, out.len())) {
+            Some(r) => {
+                out.copy_from_slice(&r.out);
+                r.used = *clock;
+                true
+            }
+            None => false,
+        }
+    }
+
+    /// Keeps row `y` of the inputs `k`, computed as `out`.
+    fn keep(&self, y: usize, k: &LookupKey<'_>, out: &[i16]) {
+        let Ok(mut g) = self.rows.lock() else { return };
+        let (rows, clock) = &mut *g;
+        *clock += 1;
+        if rows.iter().any(|r| r.holds(y, k, out.len())) {
+            return; // (the other thread kept it meanwhile)
+        }
+        // The least recently used of row `y`'s entries once it has its share (its buffers
+        // reused), else a new one.
+        let same_y = rows.iter().filter(|r| r.y == y).count();
+        let oldest = rows.iter().enumerate().filter(|(_, r)| r.y == y).min_by_key(|(_, r)| r.used).map(|(i, _)| i);
+        let i = match oldest {
+            Some(i) if same_y >= KEPT_PER_ROW => i,
+            _ => {
+                rows.push(KeptLookup { y, levels: 0, radius: 0, post_pool: false, mults: Vec::new(), flow: Vec::new(), fc: 0, f1: Vec::new(), f2: Vec::new(), out: Vec::new(), used: 0 });
+                rows.len() - 1
+            }
+        };
+        let Some(r) = rows.get_mut(i) else { return };
+        (r.y, r.levels, r.radius, r.post_pool, r.fc, r.used) = (y, k.levels, k.radius, k.post_pool, k.fc, *clock);
+        for (d, s) in [(&mut r.f1, k.f1), (&mut r.f2, k.f2)] {
+            d.clear();
+            d.extend_from_slice(s);
+        }
+        for (d, s) in [(&mut r.flow, k.flow), (&mut r.out, out)] {
+            d.clear();
+            d.extend_from_slice(s);
+        }
+        r.mults.clear();
+        r.mults.extend_from_slice(k.mults);
+    }
 }
 
 std::thread_local! {
@@ -520,4 +655,68 @@ pub fn row_bands(rows: usize, len: usize, patch_len: usize, row: &BandRow<'_>) {
             }
         });
     });
+}
+
+#[cfg(test)]
+#[allow(clippy::indexing_slicing)]
+mod tests {
+    use super::*;
+    use crate::kernels::corr::{lookup_pixel_plain, window_len};
+
+    /// Deterministic bytes.
+    fn bytes(seed: u32, n: usize) -> Vec<i8> {
+        (0..n as u32).map(|i| ((i.wrapping_add(seed).wrapping_mul(2_654_435_761)) >> 11) as i8).collect()
+    }
+
+    /// Kept correlation rows are the integers a new computation gives: a row looked up again with
+    /// the same inputs, and after any one input changed (a pixel's disparity, a left feature, a
+    /// right feature, a level's multiplier) or for another row index, is the portable pixel
+    /// lookup's row each time.
+    #[test]
+    fn kept_lookups_match_new_ones() {
+        let (w, h, fd, fc, levels, radius) = (29, 3, 16, 2, 4, 4);
+        let cc = levels * (2 * radius + 1);
+        let lens = (window_len(levels, radius), window_len(levels, radius) + 1);
+        let mut f1 = bytes(1, h * w * fd);
+        let mut f2 = bytes(2, h * w * fd);
+        let mut flow: Vec<i16> = (0..h * w * fc).map(|i| ((i * 37) % 900) as i16 - 300).collect();
+        let mut mults: Vec<Multiplier> = (0..levels).map(|l| Multiplier { m: (1 << 30) + 999, shift: 42 + l as u8 }).collect();
+        let want = |f1: &[i8], f2: &[i8], flow: &[i16], mults: &[Multiplier], y: usize| {
+            let p = LookupParams { levels, radius, post_pool: true, mults };
+            let mut row = vec![0i16; w * cc];
+            for x in 0..w {
+                let px = y * w + x;
+                lookup_pixel_plain(&p, &f1[px * fd..(px + 1) * fd], &f2[y * w * fd..(y + 1) * w * fd], w, x, flow[px * fc], &mut row[x * cc..(x + 1) * cc]);
+            }
+            row
+        };
+        let got = |f1: &[i8], f2: &[i8], flow: &[i16], mults: &[Multiplier], y: usize| {
+            let p = LookupParams { levels, radius, post_pool: true, mults };
+            let mut row = vec![0i16; w * cc];
+            lookup_row(&p, f1, &f2[y * w * fd..(y + 1) * w * fd], flow, fc, w, y, fd, cc, lens, &mut row);
+            row
+        };
+        let check = |f1: &[i8], f2: &[i8], flow: &[i16], mults: &[Multiplier], what: &str| {
+            for y in 0..h {
+                let a = want(f1, f2, flow, mults, y);
+                assert_eq!(got(f1, f2, flow, mults, y), a, "{what}, row {y}, first");
+                assert_eq!(got(f1, f2, flow, mults, y), a, "{what}, row {y}, again");
+            }
+        };
+        check(&f1, &f2, &flow, &mults, "start");
+        flow[w * fc + 5 * fc] += 77;
+        check(&f1, &f2, &flow, &mults, "a disparity");
+        // Channel 1 of the state is not read: the kept row still holds.
+        flow[w * fc + 6 * fc + 1] += 5;
+        check(&f1, &f2, &flow, &mults, "a second channel");
+        f1[w * fd + 3] = f1[w * fd + 3].wrapping_add(9);
+        check(&f1, &f2, &flow, &mults, "a left feature");
+        f2[2 * w * fd + 20 * fd + 7] = f2[2 * w * fd + 20 * fd + 7].wrapping_sub(50);
+        check(&f1, &f2, &flow, &mults, "a right feature");
+        mults[2].m += 1 << 20;
+        check(&f1, &f2, &flow, &mults, "a multiplier");
+        // Back to an earlier state (several kept a row index).
+        f2[2 * w * fd + 20 * fd + 7] = f2[2 * w * fd + 20 * fd + 7].wrapping_add(50);
+        check(&f1, &f2, &flow, &mults, "an earlier right row");
+    }
 }
