@@ -372,10 +372,28 @@ unsafe fn pixel_block<const P: usize>(cx: &Ctx<'_, '_>, x0: usize, edge: &mut Ve
                 let n = span * ch + 2;
                 if let (Some(r), Some(dst)) = (r, buf.get_mut(o..o + n)) {
                     let (cols, tail) = dst.split_at_mut(span * ch);
-                    for (j, d) in cols.chunks_exact_mut(ch).enumerate() {
-                        match column(Some(r), c_lo + j as isize, cx.w_in, ch) {
-                            Some(c) => d.copy_from_slice(c),
-                            None => d.fill(0),
+                    // Columns `first .. last` of the span lie inside the row: one run, the
+                    // padding's zeros on either side (not a copy call per column).
+                    let first = (-c_lo).clamp(0, span as isize) as usize;
+                    let last = (cx.w_in as isize - c_lo).clamp(first as isize, span as isize) as usize;
+                    let start = (c_lo + first as isize) as usize * ch;
+                    let (lead, rest) = cols.split_at_mut(first * ch);
+                    let (mid, trail) = rest.split_at_mut((last - first) * ch);
+                    match r.get(start..start + mid.len()) {
+                        Some(src) => {
+                            lead.fill(0);
+                            mid.copy_from_slice(src);
+                            trail.fill(0);
+                        }
+                        // A row shorter than `w_in` columns (never in the engine): column by
+                        // column, as the portable path reads it.
+                        None => {
+                            for (j, d) in cols.chunks_exact_mut(ch).enumerate() {
+                                match column(Some(r), c_lo + j as isize, cx.w_in, ch) {
+                                    Some(c) => d.copy_from_slice(c),
+                                    None => d.fill(0),
+                                }
+                            }
                         }
                     }
                     tail.fill(0);
