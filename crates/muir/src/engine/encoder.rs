@@ -361,10 +361,25 @@ fn layer4(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &FeatureHeadLayout, ring
 /// statistics, conv1 + norm + conv2 for the second statistics, then everything for the output.
 #[allow(clippy::too_many_arguments)]
 fn features(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &FeatureHeadLayout, rings: &mut [u8], patch: &mut [u8], norms: &mut [i64], f: &mut [i8]) {
-    let d3 = m.config().backbone_dims[2];
-    if d3 == 0 {
+    if m.config().backbone_dims[2] == 0 {
         return; // no feature channels (a parsed config has them): nothing to compute
     }
+    #[cfg(feature = "std")]
+    {
+        let _ = (lay, rings);
+        features_kept(m, l3, g, patch, norms, f);
+    }
+    #[cfg(not(feature = "std"))]
+    features_streamed(m, l3, g, lay, rings, patch, norms, f);
+}
+
+/// [`features`] in the plan's line buffers: conv1's rows computed again for each of the three
+/// passes that read them and conv2's for both (a microcontroller's RAM holds a few rows, not
+/// the tensors).
+#[cfg(not(feature = "std"))]
+#[allow(clippy::too_many_arguments)]
+fn features_streamed(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &FeatureHeadLayout, rings: &mut [u8], patch: &mut [u8], norms: &mut [i64], f: &mut [i8]) {
+    let d3 = m.config().backbone_dims[2];
     let (h, w) = (g.h8, g.w8);
     let n = (h * w) as i64;
     let src = Full { data: l3, h, w, c: d3 };
@@ -421,6 +436,65 @@ fn features(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &FeatureHeadLayout, ri
     }
 }
 
+/// [`features_kept`]'s tensors: conv1's raw rows, their normalised form, conv2's raw rows and
+/// the residual block's output.
+#[cfg(feature = "std")]
+type FeatureTensors = (Vec<i16>, Vec<u8>, Vec<i16>, Vec<u8>);
+
+#[cfg(feature = "std")]
+std::thread_local! {
+    /// [`FeatureTensors`] on the thread that encodes.
+    static FEATURES: core::cell::RefCell<FeatureTensors> = const { core::cell::RefCell::new((Vec::new(), Vec::new(), Vec::new(), Vec::new())) };
+}
+
+/// [`features`] on the host: each pass's rows kept whole for the next (in this thread's memory,
+/// not the plan's line buffers), so conv1 runs once instead of three times and conv2 once
+/// instead of twice (a microcontroller recomputes them rather than hold `h8 x w8 x 64` values
+/// each). The same convolutions of the same rows, the same statistics: the same integers.
+#[cfg(feature = "std")]
+fn features_kept(m: &QuantModel<'_>, l3: &[u8], g: &Grid, patch: &mut [u8], norms: &mut [i64], f: &mut [i8]) {
+    use crate::kernels::pool::scratch;
+    let d3 = m.config().backbone_dims[2];
+    let (h, w) = (g.h8, g.w8);
+    let n = (h * w) as i64;
+    let row = w * d3;
+    let src = Full { data: l3, h, w, c: d3 };
+    let (p1, p2, p3) = (conv(m, FmapC1), conv(m, FmapC2), conv(m, FmapOut));
+    let (f_raw1, f_mid, f_raw2, f_blk, f_l3) =
+        (frac(m, Act::FmapRaw1), frac(m, Act::FmapMid), frac(m, Act::FmapRaw2), frac(m, Act::FmapBlk), frac(m, Act::L3b1o));
+    let Some((st1, st2)) = norms.split_at_mut_checked(2 * d3) else { return };
+    FEATURES.with_borrow_mut(|(raw1, mid, raw2, blk)| {
+        let (raw1, mid, raw2, blk) = (scratch(raw1, h * row), scratch(mid, h * row), scratch(raw2, h * row), scratch(blk, h * row));
+        // Pass 1: conv1, its statistics.
+        st1.fill(0);
+        for (y, r) in raw1.chunks_exact_mut(row.max(1)).enumerate() {
+            run_conv(&p1, &[src.part_rows(y, 3, 1)], w, &mut OutRow::I16(r), patch);
+            add_sums(st1, d3, r);
+        }
+        let stats1 = finish_stats(st1, d3, n, f_raw1);
+        // Pass 2: relu(norm(conv1)) as u8 (the saturation is the ReLU), conv2 of it, its statistics.
+        for (r, d) in raw1.chunks_exact(row.max(1)).zip(mid.chunks_exact_mut(row.max(1))) {
+            normalize_row(r, stats1, d3, d, |v, s| sat_u8(normalize(v, s, f_mid)));
+        }
+        st2.fill(0);
+        for (y, r) in raw2.chunks_exact_mut(row.max(1)).enumerate() {
+            run_conv(&p2, &[PartRows::of_tensor(mid, h, row, y, 3, 1)], w, &mut OutRow::I16(r), patch);
+            add_sums(st2, d3, r);
+        }
+        let stats2 = finish_stats(st2, d3, n, f_raw2);
+        // Pass 3: the residual block's rows, then the output conv.
+        for (y, (r, b)) in raw2.chunks_exact_mut(row.max(1)).zip(blk.chunks_exact_mut(row.max(1))).enumerate() {
+            normalize_in_place(r, stats2, d3, |v, s| crate::arith::sat_i16(normalize(v, s, f_blk).max(0)));
+            residual_relu(r, Skip::Input { x: chunk(l3, y, row), frac: f_l3 }, f_blk, b);
+        }
+        let fo = w * p3.cout;
+        for y in 0..h {
+            run_conv(&p3, &[PartRows::of_tensor(blk, h, row, y, 3, 1)], w, &mut OutRow::I8(chunk_mut(f, y, fo)), patch);
+        }
+    });
+}
+
+#[cfg(not(feature = "std"))]
 fn accumulate_stats(st: &mut [i64], c: usize, mut conv_row_fn: impl FnMut(usize, &mut [i16]), h: usize, raw: &mut [i16], row: usize) {
     st.fill(0);
     let raw = first_n_mut(raw, row);
