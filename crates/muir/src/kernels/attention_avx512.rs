@@ -62,7 +62,7 @@ fn zero_vector() -> __m512i {
 /// `exp_q11`'s knots as `a + (b - a) << 16` for knot pairs `(a, b)` = entries `i, i + 1` of its
 /// table (`i <= 1023`; the input 0 falls on knot 1023 at fraction 32: `a + (b - a) = b`). Both
 /// parts fit in 16 bits (the table is in `[0, 32768]` and rises).
-fn exp_knots() -> &'static [i32; 1024] {
+pub(crate) fn exp_knots() -> &'static [i32; 1024] {
     static T: std::sync::OnceLock<[i32; 1024]> = std::sync::OnceLock::new();
     T.get_or_init(|| {
         let k = |i: usize| crate::arith::lut::exp_q11(32 * i as i32 - 32768);
