@@ -208,7 +208,7 @@ mod tests {
                     _ => if v & 3 == 0 { i16::MIN } else { v >> 12 },
                 };
             }
-            let to_q11 = (case / 6) as i32 % 37 - 21;
+            let to_q11 = (case / 6) % 37 - 21;
             let (lsh, rsh) = if to_q11 >= 0 { (to_q11.min(15) as u32, 0u32) } else { (0u32, (-to_q11).min(20) as u32) };
             let half = if rsh > 0 { 1i32 << (rsh - 1) } else { 0 };
             let (mut nf, mut nu) = ([0i32; 9], [0i32; 9]);
