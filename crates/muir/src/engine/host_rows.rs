@@ -446,6 +446,17 @@ fn lookup_pixels(p: &LookupParams<'_>, f1: &[i8], f2row: &[i8], flow: &[i16], fc
     });
 }
 
+std::thread_local! {
+    /// UFI's proposal features kept for its decoder ([`with_ufi_features`]).
+    static UFI_FEATURES: RefCell<Vec<i16>> = const { RefCell::new(Vec::new()) };
+}
+
+/// Runs `f` with `len` values of this thread's scratch for UFI's proposal features
+/// (`refine::ufi`).
+pub fn with_ufi_features<R>(len: usize, f: impl FnOnce(&mut [i16]) -> R) -> R {
+    UFI_FEATURES.with_borrow_mut(|v| f(scratch(v, len)))
+}
+
 /// What a correlation row is a function of ([`lookup_row`]): the lookup's parameters and the
 /// row's inputs.
 struct LookupKey<'a> {

@@ -229,6 +229,20 @@ const _: () = assert!(MASK_CHANNELS == 9 * UP * UP);
 /// ([`crate::model::config::MaxDisparity::grid8`]).
 #[inline(never)] // a phase: its stack frame must not add to the caller's (see `engine::STACK_BUDGET`)
 pub fn ufi(c: &mut Ctx<'_, '_, '_>, max_d8: usize) {
+    // Host: the proposals' feature rows kept whole from the initializer for the decoder (this
+    // thread's memory), which the microcontroller computes again.
+    #[cfg(feature = "std")]
+    {
+        let len = 3 * c.g.n8() * conv(c.m, UfiConv).cout;
+        super::host_rows::with_ufi_features(len, |kept| ufi_with(c, max_d8, Some(kept)));
+    }
+    #[cfg(not(feature = "std"))]
+    ufi_with(c, max_d8, None);
+}
+
+/// [`ufi`]; `kept`, where given, holds the three proposals' feature rows (`3 x n8 x` the
+/// feature conv's channels) for the decoder, else the decoder computes them again.
+fn ufi_with(c: &mut Ctx<'_, '_, '_>, max_d8: usize, mut kept: Option<&mut [i16]>) {
     let m = c.m;
     let cfg = *m.config();
     let g = c.g;
@@ -278,9 +292,13 @@ pub fn ufi(c: &mut Ctx<'_, '_, '_>, max_d8: usize) {
             }
             if let Some(r) = ufi_stages::SCHEDULE.row(s, ufi_stages::FEATURES, h8) {
                 conv16(&pconv, &[rows(&$rc, r, 3), rows(&$rf, r, 3)], w, $rfeat.push(), c.px.patch);
+                r
+            } else {
+                usize::MAX
             }
         }};
     }
+    let frow = w * pconv.cout;
     for k in 0..3 {
         set_flow(k, flow_k);
         let mut rc = Ring::of(&mut b_c[..], lay.c, h8);
@@ -291,8 +309,15 @@ pub fn ufi(c: &mut Ctx<'_, '_, '_>, max_d8: usize) {
         let mut rpend = Ring::of(&mut pend[..], lay.pending, h8);
         let row = w * hd;
         for s in 0..ufi_stages::SCHEDULE.steps(h8) {
-            // lag 0 and 1: corr, disparity and proposal features
-            feature_rows!(s, rc, rf, rfeat);
+            // lag 0 and 1: corr, disparity and proposal features (kept for the decoder where
+            // there is room)
+            let r = feature_rows!(s, rc, rf, rfeat);
+            if let Some(kept) = kept.as_deref_mut()
+                && r < h8
+                && let Some(d) = kept.get_mut((k * h8 + r) * frow..(k * h8 + r + 1) * frow)
+            {
+                d.copy_from_slice(rfeat.row(r));
+            }
             // lag 2: candidate state q = tanh(convq([feat, flow_k, ctx]))
             if let Some(r) = ufi_stages::SCHEDULE.row(s, ufi_stages::CANDIDATE, h8) {
                 fill(&mut rinp, last_input_row(r, 3, 1, h8), |y, d| widen_row(chunk(c.frame.inp08, y, w * cfg.context_dim), d));
@@ -319,10 +344,17 @@ pub fn ufi(c: &mut Ctx<'_, '_, '_>, max_d8: usize) {
         let mut rf = Ring::of(&mut b_f[..], lay.f, h8);
         let mut rfeat = Ring::of(&mut b_feat[..], lay.feat, h8);
         let mut rh1 = Ring::of(&mut b_h1[..], lay.h1, h8);
+        let kept_k = kept.as_deref().and_then(|f| f.get(k * h8 * frow..(k + 1) * h8 * frow));
         for s in 0..ufi_stages::SCHEDULE.steps(h8) {
-            feature_rows!(s, rc, rf, rfeat);
+            if kept_k.is_none() {
+                feature_rows!(s, rc, rf, rfeat);
+            }
             if let Some(r) = ufi_stages::SCHEDULE.row(s, ufi_stages::CANDIDATE, h8) {
-                conv16(&ph1, &[full(c.frame.net08, h8, w * hd, r, 3), rows(&rfeat, r, 3), full(flow_k, h8, fl_row, r, 3)], w, rh1.push(), c.px.patch);
+                let feat = match kept_k {
+                    Some(f) => full(f, h8, frow, r, 3),
+                    None => rows(&rfeat, r, 3),
+                };
+                conv16(&ph1, &[full(c.frame.net08, h8, w * hd, r, 3), feat, full(flow_k, h8, fl_row, r, 3)], w, rh1.push(), c.px.patch);
             }
             if let Some(r) = ufi_stages::SCHEDULE.row(s, ufi_stages::GATE, h8) {
                 let h2 = first_n_mut(h2, 2 * w);
