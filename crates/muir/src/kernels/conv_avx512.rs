@@ -1425,7 +1425,7 @@ mod tests {
         }
         FORCE_RANGES.with(|f| f.set(None));
         pool::set_threads(1);
-        assert!(nonzero.iter().any(|n| *n), "all zero");
+        assert!(nonzero.iter().any(|n| *n), "all zero: k {k} s {stride} parts {parts:?} cout {cout} w {w} {post:?}");
     }
 
     /// The epilogue against [`finish_with`] for every activation, on sums whose rounded value
@@ -1625,6 +1625,10 @@ mod tests {
                     (3, 1, &[4][..], 16),
                     (3, 2, &[32][..], 48),
                     (3, 2, &[4][..], 16),
+                    // ... and 1x1, stride 1 or 2 (the trunk's strided shortcuts, the MGA keys).
+                    (1, 2, &[32][..], 48),
+                    (1, 1, &[64][..], 32),
+                    (1, 2, &[12][..], 16),
                     // i16 rows with the output channels along the vector (`direct16`): the GRU
                     // gates' six parts with odd counts (a pair reads the next pixel's first
                     // value), channels out not a multiple of 16 (a partial last vector), kernels
@@ -1638,7 +1642,7 @@ mod tests {
                     // MGA mask's parts, 1 and 2 channels out), four channels at a time then the
                     // rest, kernel rows longer than a vector, stride 2.
                     (3, 1, &[64, 36, 1, 1][..], 1),
-                    (3, 1, &[40][..], 2),
+                    (3, 1, &[41][..], 2),
                     (3, 1, &[13, 2][..], 7),
                     (1, 1, &[33][..], 15),
                     (3, 2, &[20][..], 3),
@@ -1671,6 +1675,7 @@ mod tests {
             // channels, sums near -2^22.
             check(14, &|_| u8::MAX, 3, 1, &[128], 32, PostOp::None, w, true);
             check(15, &|r: &mut Rng| if r.next() % 2 == 0 { 0 } else { u8::MAX }, 3, 1, &[128], 16, PostOp::Relu, w, true);
+            check(19, &|_| u8::MAX, 1, 2, &[1152], 32, PostOp::None, w, true);
             // The `direct16` rows at their extremes: sums beyond i32 in some blocks (every
             // value -2^15 against -128: the scalar formula for those blocks), several i32 chunks
             // a part (3 3 128 / 2 = 576 pairs), a tame part before an extreme one.

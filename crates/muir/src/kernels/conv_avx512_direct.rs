@@ -1,12 +1,13 @@
 //! A convolution row with the output channels along the vector (host, x86-64, AVX-512 VNNI):
-//! the 3x3 layers (stride 1 or 2) of one u8 input part, the trunk's and the heads' bulk. One pixel's
+//! the 3x3 layers (stride 1 or 2) of one u8 input part, the trunk's and the heads' bulk, and the
+//! 1x1 ones (the trunk's strided shortcuts, the MGA keys and queries). One pixel's
 //! group of 4 input channels is broadcast against 16 output channels' weights (re-laid
 //! `[tap][group][cout]` once per engine frame), 8 pixels x 32 channels in registers, and the row
 //! is read and written in its own `[x][c]` order: neither the input rows nor the outputs are
 //! transposed ([`super`] lays pixels along the vector and transposes both), and the epilogue runs
 //! on vectors of channels. `docs/experiments/host-direct-conv` measured the layout alone.
 //!
-//! Exactness: a lane adds at most `9 (c / 4)` groups of `4 * 255 * 128 < 2^17` (`c < 3640`: at
+//! Exactness: a lane adds at most `k^2 (c / 4)` groups of `4 * 255 * 128 < 2^17` (`c < 3640`: at
 //! most [`super::U8_CHUNK`] groups, `< 2^30`), the exact i32 sum. The epilogue is the portable
 //! path's formula where it is short ([`super::super::short_ok`], `|bias| <`
 //! [`super::super::SHORT_MAX_BIAS`], no table): `(sum m + 2^(s-1)) >> s`, `+ bias + 2^7 >> 8`,
@@ -52,32 +53,32 @@ pub(super) fn invalidate() {
     LAYERS.with_borrow_mut(|l| l.iter_mut().for_each(|r| r.valid = false));
 }
 
-/// Whether the row takes this path: one u8 part of whole groups, 3x3, stride 1 or 2, output channels
-/// in sixteens, no activation table, and the short epilogue for every channel.
+/// Whether the row takes this path: one u8 part of whole groups, 3x3 or 1x1, stride 1 or 2,
+/// output channels in sixteens, no activation table, and the short epilogue for every channel.
 fn eligible<T: Elem>(p: &ConvParams<'_>) -> bool {
     let Some(&ch) = p.parts.first() else { return false };
     cast::<T, u8>(&[]).is_some()
         && p.parts.len() == 1
-        && p.k == 3
+        && (p.k == 3 || p.k == 1)
         && (p.stride == 1 || p.stride == 2)
         && ch > 0
         && ch.is_multiple_of(4)
-        && 9 * ch / 4 <= super::U8_CHUNK
+        && p.k * p.k * ch / 4 <= super::U8_CHUNK
         && p.cout > 0
         && p.cout.is_multiple_of(16)
         && matches!(p.post, PostOp::None | PostOp::Relu)
-        && p.weights.len() >= p.cout * 9 * ch
+        && p.weights.len() >= p.cout * p.k * p.k * ch
         && (0..p.cout).all(|c| short_ok(p.mult.get(c)) && p.bias.get(c).unsigned_abs() < SHORT_MAX_BIAS)
 }
 
 /// Layer `p` (`ch` channels in) as [`block`] reads it, into `l`: the blob's `[c][tap][ci]`
-/// weights as `[tap][group][cout]` (`9 (ch / 4) cout`), and the short epilogue's operands as
+/// weights as `[tap][group][cout]` (`k^2 (ch / 4) cout`), and the short epilogue's operands as
 /// four planes of `cout` (multiplier, shift, rounding half `2^(shift - 1)`, bias), loaded 8
 /// channels at a time.
 fn relay(p: &ConvParams<'_>, ch: usize, l: &mut Relaid) {
-    let cout = p.cout;
-    let w = scratch(&mut l.w, 9 * (ch / 4) * cout);
-    for (c, wc) in p.weights.chunks_exact(9 * ch).take(cout).enumerate() {
+    let (cout, kk) = (p.cout, p.k * p.k);
+    let w = scratch(&mut l.w, kk * (ch / 4) * cout);
+    for (c, wc) in p.weights.chunks_exact(kk * ch).take(cout).enumerate() {
         for (tg, q) in wc.chunks_exact(4).enumerate() {
             if let (Some(d), &[a, b, e, f]) = (w.get_mut(tg * cout + c), q) {
                 *d = i32::from_le_bytes([a as u8, b as u8, e as u8, f as u8]);
@@ -108,14 +109,14 @@ pub(super) unsafe fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_
     }
     let (ch, cout) = (p.parts.first().copied().unwrap_or(0), p.cout);
     let Some(rows) = inputs.first() else { return false };
-    let n = 9 * (ch / 4) * cout;
+    let n = p.k * p.k * (ch / 4) * cout;
     let w_out = p.out_width(w_in);
     let cols = padded_cols(w_in, w_out, p.stride);
     let framed = super::FRAME_ON.with(|on| on.get());
     SCRATCH.with_borrow_mut(|(own, pads)| {
         // The rows padded with a zero column in front and zeros behind (a missing row: none).
         let mut padded: [Option<&[u8]>; 3] = [None; 3];
-        for ((dst, src), pad) in padded.iter_mut().zip(rows.rows.iter()).zip(pads.iter_mut()) {
+        for ((dst, src), pad) in padded.iter_mut().zip(rows.rows.iter()).zip(pads.iter_mut()).take(p.k) {
             let Some(src) = src.and_then(|r| cast::<T, u8>(r)) else { continue };
             let v = scratch(pad, cols * ch);
             let (front, rest) = v.split_at_mut(ch.min(v.len()));
@@ -134,7 +135,7 @@ pub(super) unsafe fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_
         };
         if framed {
             LAYERS.with_borrow_mut(|layers| {
-                let key = (p.weights.as_ptr() as usize, p.weights.len(), ch, cout);
+                let key = (p.weights.as_ptr() as usize, p.weights.len(), p.k * ch, cout);
                 let i = match layers.iter().position(|l| l.key == key) {
                     Some(i) => i,
                     None => super::free_slot(layers, |l| l.valid, || Relaid { key, valid: false, w: Vec::new(), ep: Vec::new() }),
@@ -160,9 +161,9 @@ pub(super) unsafe fn conv_row<T: Elem>(p: &ConvParams<'_>, inputs: &[PartRows<'_
 /// free), every channel.
 ///
 /// # Safety
-/// As [`conv_row`]; `w` and `ep` are the layer relaid ([`relay`]: `9 (ch / 4) cout` weights, `4
-/// cout` operands); each padded row holds [`padded_cols`] columns of `ch` bytes for the row's
-/// `w_out` outputs.
+/// As [`conv_row`]; `w` and `ep` are the layer relaid ([`relay`]: `k^2 (ch / 4) cout` weights,
+/// `4 cout` operands); each padded row (the first `k`) holds [`padded_cols`] columns of `ch`
+/// bytes for the row's `w_out` outputs.
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
 #[allow(clippy::too_many_arguments)]
 unsafe fn row(p: &ConvParams<'_>, ch: usize, rows: &[Option<&[u8]>; 3], w: &[i32], ep: &[i64], w_out: usize, out: &mut OutRow<'_>) {
@@ -170,12 +171,12 @@ unsafe fn row(p: &ConvParams<'_>, ch: usize, rows: &[Option<&[u8]>; 3], w: &[i32
     let (lo, hi) = out_range(out);
     let lo = if p.post == PostOp::Relu { lo.max(0) } else { lo };
     let (op, size) = out_ptr(out);
-    if ep.len() < 4 * cout || w.len() < 9 * (ch / 4) * cout {
+    let (k, stride) = (p.k, p.stride);
+    if ep.len() < 4 * cout || w.len() < k * k * (ch / 4) * cout || !(k == 1 || k == 3) {
         return;
     }
-    let stride = p.stride;
     let blocks = w_out.div_ceil(PX);
-    let big = w_out * cout * 9 * ch >= PARALLEL_MACS;
+    let big = w_out * cout * k * k * ch >= PARALLEL_MACS;
     let ranges = super::block_ranges(big, blocks);
     let task = |t: usize| {
         let (b0, b1) = (t * blocks / ranges, (t + 1) * blocks / ranges);
@@ -188,10 +189,10 @@ unsafe fn row(p: &ConvParams<'_>, ch: usize, rows: &[Option<&[u8]>; 3], w: &[i32
                 // task's only; the rest as `row`'s contract.
                 unsafe {
                     if cb + 32 <= cout {
-                        block::<2>(rows, w, ch, cout, stride, x0, np, cb, ep, (lo, hi), &op, size);
+                        block::<2>(rows, w, ch, cout, k, stride, x0, np, cb, ep, (lo, hi), &op, size);
                         cb += 32;
                     } else {
-                        block::<1>(rows, w, ch, cout, stride, x0, np, cb, ep, (lo, hi), &op, size);
+                        block::<1>(rows, w, ch, cout, k, stride, x0, np, cb, ep, (lo, hi), &op, size);
                         cb += 16;
                     }
                 }
@@ -206,26 +207,30 @@ unsafe fn row(p: &ConvParams<'_>, ch: usize, rows: &[Option<&[u8]>; 3], w: &[i32
 }
 
 /// Output pixels `x0 .. x0 + np` (`np <= PX`), channels `cb .. cb + 16 NV`: the exact sums of
-/// the present rows' taps, then the epilogue into the output row.
+/// the present rows' taps (a `k x k` kernel, `k` 1 or 3), then the epilogue into the output row.
 ///
 /// # Safety
-/// As [`row`]; `cb + 16 NV <= cout`; pixels `x0 .. x0 + np` of the output row (`size` bytes a
+/// As [`row`]; `k` is 1 or 3; `cb + 16 NV <= cout`; pixels `x0 .. x0 + np` of the output row (`size` bytes a
 /// value) are the caller's to write.
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
 #[inline]
 #[allow(clippy::too_many_arguments)]
-unsafe fn block<const NV: usize>(rows: &[Option<&[u8]>; 3], w: &[i32], ch: usize, cout: usize, stride: usize, x0: usize, np: usize, cb: usize, ep: &[i64], (lo, hi): (i32, i32), op: &Shared<u8>, size: usize) {
+unsafe fn block<const NV: usize>(rows: &[Option<&[u8]>; 3], w: &[i32], ch: usize, cout: usize, k: usize, stride: usize, x0: usize, np: usize, cb: usize, ep: &[i64], (lo, hi): (i32, i32), op: &Shared<u8>, size: usize) {
     let g_n = ch / 4;
+    // Output pixel `x`'s window starts at input column `stride x - k / 2`, padded column
+    // `stride x + 1 - k / 2` (the padded rows have one zero column in front).
+    let front = 1 - k / 2;
     let mut acc = [[_mm512_setzero_si512(); NV]; PX];
-    for (ky, r) in rows.iter().enumerate() {
+    for (ky, r) in rows.iter().enumerate().take(k) {
         let Some(r) = r else { continue };
-        for kx in 0..3 {
-            // SAFETY: padded column `stride (x0 + p) + kx < stride (w_out + PX) + 3` (`x0 + p <
-            // w_out + PX - 1`), group `g < g_n`: inside the padded row ([`padded_cols`]); weights
-            // of tap `ky 3 + kx`, group `g`, channels `cb .. cb + 16 NV <= cout`: inside `w`.
+        for kx in 0..k {
+            // SAFETY: padded column `stride (x0 + p) + front + kx < stride (w_out + PX) + 3`
+            // (`x0 + p < w_out + PX - 1`, `front + kx <= 2`), group `g < g_n`: inside the padded
+            // row ([`padded_cols`]); weights of tap `ky k + kx`, group `g`, channels `cb .. cb +
+            // 16 NV <= cout`: inside `w`.
             unsafe {
-                let xp = r.as_ptr().add((stride * x0 + kx) * ch);
-                let wt = w.as_ptr().add((ky * 3 + kx) * g_n * cout + cb);
+                let xp = r.as_ptr().add((stride * x0 + front + kx) * ch);
+                let wt = w.as_ptr().add((ky * k + kx) * g_n * cout + cb);
                 super::tap_products::<true, NV, PX>(&mut acc, xp, stride * ch, wt.cast(), cout, g_n);
             }
         }
