@@ -501,10 +501,68 @@ fn outputs(out: &mut [i16], acc: &[i64], stats: &[i64], cv: usize, shift: i8) {
     for ((o, a), st) in out.chunks_exact_mut(cv.max(1)).zip(acc.chunks_exact(cv.max(1))).zip(stats.chunks_exact(2)) {
         let d = st.get(1).copied().unwrap_or(0);
         let (div, inv) = (crate::arith::DivRoundSat16::new(d), 1.0 / d as f64);
-        for (o, a) in o.iter_mut().zip(a) {
+        // Eight sums a vector where the divisor is a positive i32 (the weights' sum always is) and
+        // the shift moderate; a vector with a sum too large for it, and the tail, value by value.
+        let mut done = 0;
+        if has_avx512() && d > 0 && d <= i32::MAX as i64 && (-62..=40).contains(&shift) {
+            for (o8, a8) in o.chunks_exact_mut(8).zip(a.chunks_exact(8)) {
+                if let (Ok(o8), Ok(a8)) = (<&mut [i16; 8]>::try_from(o8), <&[i64; 8]>::try_from(a8)) {
+                    // SAFETY: the CPU has AVX-512 F/BW/DQ (`has_avx512`: F, BW, VNNI, VL; every
+                    // such CPU has DQ, and `outputs8` checks it).
+                    if !unsafe { outputs8(o8, a8, d, shift) } {
+                        for (o, a) in o8.iter_mut().zip(a8) {
+                            *o = div.apply_f64(crate::arith::shift_round(*a, shift as i32), inv);
+                        }
+                    }
+                }
+                done += 8;
+            }
+        }
+        for (o, a) in o.iter_mut().zip(a).skip(done) {
             *o = div.apply_f64(crate::arith::shift_round(*a, shift as i32), inv);
         }
     }
+}
+
+/// [`outputs`] of eight sums `a` by one divisor `0 < d < 2^31`, `-62 <= shift <= 40`: `sat_i16(
+/// div_round(shift_round(a, shift), d))`, or `false` (nothing written) where a sum is too large
+/// for the plain vector formulas (`|a| >= 2^(62 - max(shift, 0))`: the shift or its rounding
+/// could saturate) or the CPU lacks AVX-512 DQ. Then `|a'| < 2^62` after the shift, `t = |a'| + d
+/// / 2` does not overflow, a quotient reaching 32768 saturates (`t >= 32768 d`), and below that
+/// bound `t < 2^46` converts to f64 exactly and `floor(t / d)` is exact: a quotient `k + r / d`
+/// with `r < d` lies at least `2^-31` below `k + 1`, more than an f64 near `2^15` can round by.
+///
+/// # Safety
+/// The CPU has AVX-512 F and BW.
+#[target_feature(enable = "avx512f,avx512bw,avx512dq")]
+unsafe fn outputs8(out: &mut [i16; 8], a: &[i64; 8], d: i64, shift: i8) -> bool {
+    static DQ: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    if !*DQ.get_or_init(|| std::is_x86_feature_detected!("avx512dq")) {
+        return false;
+    }
+    // SAFETY: 8 i64.
+    let v = unsafe { _mm512_loadu_si512(a.as_ptr().cast()) };
+    let lim = _mm512_set1_epi64(1i64 << (62 - shift.max(0) as u32));
+    if _mm512_cmplt_epi64_mask(_mm512_abs_epi64(v), lim) != 0xFF {
+        return false;
+    }
+    let v = if shift >= 0 {
+        _mm512_sll_epi64(v, _mm_cvtsi32_si128(shift as i32))
+    } else {
+        let r = -(shift as i32);
+        _mm512_sra_epi64(_mm512_add_epi64(v, _mm512_set1_epi64(1i64 << (r - 1))), _mm_cvtsi32_si128(r))
+    };
+    let t = _mm512_add_epi64(_mm512_abs_epi64(v), _mm512_set1_epi64(d / 2));
+    let neg = _mm512_cmplt_epi64_mask(v, _mm512_setzero_si512());
+    let sat = _mm512_cmpge_epi64_mask(t, _mm512_set1_epi64(32768 * d));
+    let q = _mm512_cvttpd_epi64(_mm512_div_pd(_mm512_cvtepi64_pd(t), _mm512_set1_pd(d as f64)));
+    let q = _mm512_mask_sub_epi64(q, neg, _mm512_setzero_si512(), q);
+    // Saturated: `i16::MIN` for a negative sum, `i16::MAX` for a positive one.
+    let q = _mm512_mask_mov_epi64(q, sat & neg, _mm512_set1_epi64(i16::MIN as i64));
+    let q = _mm512_mask_mov_epi64(q, sat & !neg, _mm512_set1_epi64(i16::MAX as i64));
+    // SAFETY: 8 i16.
+    unsafe { _mm_storeu_si128(out.as_mut_ptr().cast(), _mm512_cvtepi64_epi16(q)) };
+    true
 }
 
 /// Two i16 as the i32 lane `vpdpwssd` reads as a pair: `a` in the low half, `b` in the high.
