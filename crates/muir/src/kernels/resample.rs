@@ -13,6 +13,14 @@ pub fn pool2x_row(src: &[i16], h: usize, w: usize, c: usize, y: usize, out: &mut
     const CH: usize = 64;
     let wo = w.div_ceil(2);
     let rows = [(2 * y).checked_sub(1), Some(2 * y), Some(2 * y + 1)];
+    // Host, AVX-512: 16 channels a vector where every window pixel's values are in `src` and the
+    // row's in `out`.
+    #[cfg(all(target_arch = "x86_64", feature = "std"))]
+    if super::x86::has_avx512() && src.len() >= h * w * c && out.len() >= wo * c {
+        // SAFETY: the CPU has AVX-512 F and BW; `src` holds `h w c` values, `out` `wo c`.
+        unsafe { avx512::pool2x_row(src, h, w, c, rows, out) };
+        return;
+    }
     for ox in 0..wo {
         let mut c0 = 0;
         while c0 < c {
@@ -74,6 +82,17 @@ pub fn interp_cols(src: &[i16], h: usize, w: usize, c: usize, h_out: usize, w_ou
             // in magnitude, so i32 products and the 32-bit rounded division (`div_round`'s).
             let (wa, wb, we, wf) = ((dy - ry) * (dx - rx), (dy - ry) * rx, ry * (dx - rx), ry * rx);
             let (wa, wb, we, wf, d) = (wa as i32, wb as i32, we as i32, wf as i32, ((dx * dy) as u32).max(1));
+            // Host, AVX-512: 16 channels a vector where the four pixels' values are all there.
+            #[cfg(all(target_arch = "x86_64", feature = "std"))]
+            if super::x86::has_avx512()
+                && [a, b, e, f].iter().all(|p| p.len() == c)
+                && let Some(o) = out.get_mut(at_out..at_out + c)
+            {
+                // SAFETY: the CPU has AVX-512 F and BW; `a`, `b`, `e`, `f` and `o` hold `c`
+                // values.
+                unsafe { avx512::blend4([a, b, e, f], [wa, wb, we, wf], d, o) };
+                continue;
+            }
             let at32 = |p: &[i16], ch: usize| p.get(ch).map_or(0, |v| *v as i32);
             for (ch, o) in out.get_mut(at_out..at_out + c).unwrap_or_default().iter_mut().enumerate() {
                 let num = wa * at32(a, ch) + wb * at32(b, ch) + we * at32(e, ch) + wf * at32(f, ch);
@@ -86,6 +105,81 @@ pub fn interp_cols(src: &[i16], h: usize, w: usize, c: usize, h_out: usize, w_ou
             let top = (dx - rx) * at(a, ch) + rx * at(b, ch);
             let bot = (dx - rx) * at(e, ch) + rx * at(f, ch);
             *o = sat_i16(div_round((dy - ry) * top + ry * bot, dy * dx));
+        }
+    }
+}
+
+/// The pooling and the interpolation on 512-bit vectors, 16 channels a vector (the last one
+/// masked): the scalar loops' sums in i32 lanes, and their rounded divisions
+/// `sign(n) floor((|n| + floor(d / 2)) / d)` as the floor of an f64 quotient, which is exact
+/// here: `|n| + d / 2 < 2^31` and `d <= 2^15` convert exactly, and a quotient `k + r / d` with
+/// `r < d` lies at least `2^-15` below `k + 1`, more than an f64 near `2^16` can round by.
+#[cfg(all(target_arch = "x86_64", feature = "std"))]
+mod avx512 {
+    use core::arch::x86_64::*;
+
+    /// `sat_i16(sign(n) floor((|n| + d / 2) / d))` of 16 i32 lanes (`|n| + d / 2 < 2^31`, `0 < d
+    /// <= 2^15`).
+    #[target_feature(enable = "avx512f,avx512bw")]
+    #[inline]
+    fn div_round16(n: __m512i, d: u32) -> __m256i {
+        let t = _mm512_add_epi32(_mm512_abs_epi32(n), _mm512_set1_epi32((d / 2) as i32));
+        let dd = _mm512_set1_pd(d as f64);
+        let lo = _mm512_cvttpd_epi32(_mm512_div_pd(_mm512_cvtepi32_pd(_mm512_castsi512_si256(t)), dd));
+        let hi = _mm512_cvttpd_epi32(_mm512_div_pd(_mm512_cvtepi32_pd(_mm512_extracti64x4_epi64::<1>(t)), dd));
+        let q = _mm512_inserti64x4::<1>(_mm512_castsi256_si512(lo), hi);
+        let q = _mm512_mask_sub_epi32(q, _mm512_cmplt_epi32_mask(n, _mm512_setzero_si512()), _mm512_setzero_si512(), q);
+        _mm512_cvtsepi32_epi16(q)
+    }
+
+    /// `o[ch] = sat_i16(div_round(wa a + wb b + we e + wf f, d))` per channel, the weighted sum
+    /// below `2^30` in magnitude (`interp_cols`' i32 case).
+    ///
+    /// # Safety
+    /// The CPU has AVX-512 F and BW; the four pixels and `o` have the same length.
+    #[target_feature(enable = "avx512f,avx512bw")]
+    pub(super) unsafe fn blend4(px: [&[i16]; 4], wt: [i32; 4], d: u32, o: &mut [i16]) {
+        let n = o.len();
+        let [w0, w1, w2, w3] = wt;
+        let wv = [_mm512_set1_epi32(w0), _mm512_set1_epi32(w1), _mm512_set1_epi32(w2), _mm512_set1_epi32(w3)];
+        let mut i = 0;
+        while i < n {
+            let m: __mmask16 = if n - i >= 16 { !0 } else { (1u16 << (n - i)) - 1 };
+            let mut num = _mm512_setzero_si512();
+            for (p, w) in px.iter().zip(wv) {
+                // SAFETY: values `i ..` of the pixel under the mask (`n` of them, the contract).
+                let v = _mm512_cvtepi16_epi32(unsafe { _mm256_maskz_loadu_epi16(m, p.as_ptr().add(i).cast()) });
+                num = _mm512_add_epi32(num, _mm512_mullo_epi32(v, w));
+            }
+            // SAFETY: as the loads.
+            unsafe { _mm256_mask_storeu_epi16(o.as_mut_ptr().add(i).cast(), m, div_round16(num, d)) };
+            i += 16;
+        }
+    }
+
+    /// [`super::pool2x_row`]: each output pixel's window sums, divided by 9.
+    ///
+    /// # Safety
+    /// The CPU has AVX-512 F and BW; `src` holds `h w c` values and `out` `ceil(w / 2) c`.
+    #[target_feature(enable = "avx512f,avx512bw")]
+    pub(super) unsafe fn pool2x_row(src: &[i16], h: usize, w: usize, c: usize, rows: [Option<usize>; 3], out: &mut [i16]) {
+        for ox in 0..w.div_ceil(2) {
+            let cols = [(2 * ox).checked_sub(1), Some(2 * ox), Some(2 * ox + 1)];
+            let mut c0 = 0;
+            while c0 < c {
+                let m: __mmask16 = if c - c0 >= 16 { !0 } else { (1u16 << (c - c0)) - 1 };
+                let mut s = _mm512_setzero_si512();
+                for iy in rows.iter().flatten().filter(|&&iy| iy < h) {
+                    for ix in cols.iter().flatten().filter(|&&ix| ix < w) {
+                        // SAFETY: values `(iy w + ix) c + c0 ..` under the mask, inside `src`.
+                        let v = unsafe { _mm256_maskz_loadu_epi16(m, src.as_ptr().add((iy * w + ix) * c + c0).cast()) };
+                        s = _mm512_add_epi32(s, _mm512_cvtepi16_epi32(v));
+                    }
+                }
+                // SAFETY: values `ox c + c0 ..` under the mask, inside `out`.
+                unsafe { _mm256_mask_storeu_epi16(out.as_mut_ptr().add(ox * c + c0).cast(), m, div_round16(s, 9)) };
+                c0 += 16;
+            }
         }
     }
 }
