@@ -473,8 +473,12 @@ fn features_kept(m: &QuantModel<'_>, l3: &[u8], g: &Grid, patch: &mut [u8], norm
         }
         let stats1 = finish_stats(st1, d3, n, f_raw1);
         // Pass 2: relu(norm(conv1)) as u8 (the saturation is the ReLU), conv2 of it, its statistics.
-        for (r, d) in raw1.chunks_exact(row.max(1)).zip(mid.chunks_exact_mut(row.max(1))) {
-            normalize_row(r, stats1, d3, d, |v, s| sat_u8(normalize(v, s, f_mid)));
+        #[cfg(target_arch = "x86_64")]
+        let vector = crate::kernels::norm::avx512::normalize_u8(raw1, stats1, d3, f_mid, mid);
+        #[cfg(not(target_arch = "x86_64"))]
+        let vector = false;
+        if !vector {
+            normalize_row(raw1, stats1, d3, mid, |v, s| sat_u8(normalize(v, s, f_mid)));
         }
         st2.fill(0);
         for (y, r) in raw2.chunks_exact_mut(row.max(1)).enumerate() {
@@ -483,8 +487,14 @@ fn features_kept(m: &QuantModel<'_>, l3: &[u8], g: &Grid, patch: &mut [u8], norm
         }
         let stats2 = finish_stats(st2, d3, n, f_raw2);
         // Pass 3: the residual block's rows, then the output conv.
-        for (y, (r, b)) in raw2.chunks_exact_mut(row.max(1)).zip(blk.chunks_exact_mut(row.max(1))).enumerate() {
-            normalize_in_place(r, stats2, d3, |v, s| crate::arith::sat_i16(normalize(v, s, f_blk).max(0)));
+        #[cfg(target_arch = "x86_64")]
+        let vector = crate::kernels::norm::avx512::normalize_relu_i16(raw2, stats2, d3, f_blk);
+        #[cfg(not(target_arch = "x86_64"))]
+        let vector = false;
+        if !vector {
+            normalize_in_place(raw2, stats2, d3, |v, s| crate::arith::sat_i16(normalize(v, s, f_blk).max(0)));
+        }
+        for (y, (r, b)) in raw2.chunks_exact(row.max(1)).zip(blk.chunks_exact_mut(row.max(1))).enumerate() {
             residual_relu(r, Skip::Input { x: chunk(l3, y, row), frac: f_l3 }, f_blk, b);
         }
         let fo = w * p3.cout;
@@ -507,6 +517,10 @@ fn accumulate_stats(st: &mut [i64], c: usize, mut conv_row_fn: impl FnMut(usize,
 fn add_sums(st: &mut [i64], c: usize, row: &[i16]) {
     if c == 0 {
         return; // no channels
+    }
+    #[cfg(all(target_arch = "x86_64", feature = "std"))]
+    if crate::kernels::norm::avx512::add_moments(st, c, row) {
+        return;
     }
     // Pixel by pixel, channel `i` of a pixel to pair `i` of `st` (no division per value).
     for px in row.chunks_exact(c) {
