@@ -44,6 +44,8 @@ import sys
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+# Seconds to wait after each PyTorch pass before the next run (see `settle`).
+PAUSE_S = 1.0
 OUT = os.path.join(ROOT, "target", "speed-out")
 
 
@@ -141,7 +143,14 @@ def main(argv=None) -> int:
         with torch.inference_mode():
             model(lt, rt)
 
+    def settle():
+        # PyTorch's OpenMP workers spin for a while after a parallel region before they sleep:
+        # a `muir` run started at once shares the cores with them (with 2 threads, 640x480: 0.44
+        # s instead of 0.39 s). Each Rust run starts on a quiet machine instead.
+        time.sleep(PAUSE_S)
+
     twin()  # warm-up
+    settle()
 
     names = (["muir fixed-point engine"] if blob else []) + ["muir float engine"]
     names += ["muir float engine (baseline)"] if a.baseline else []
@@ -165,6 +174,7 @@ def main(argv=None) -> int:
         twin()
         times["PyTorch twin"].append(time.perf_counter() - t0)
         cpus["PyTorch twin"].append(time.process_time() - c0)
+        settle()
         print(f"round {k + 1}/{a.rounds}: " + ", ".join(f"{n} {v[-1]:.3f} s" for n, v in times.items()), file=sys.stderr)
 
     h, w = left.shape[:2]
