@@ -386,7 +386,8 @@ impl Prepared {
                 }
                 for ((h, l), rp) in h.iter_mut().zip(l.iter_mut()).zip(rp) {
                     let e = _mm512_set1_epi32(*rp.add(pk) as i32);
-                    let (bh, bl) = (_mm512_and_si512(_mm512_srli_epi32::<8>(e), bytes), _mm512_and_si512(e, bytes));
+                    // (`e >> 8` per 16-bit half: each half is at most 32768, so its high byte alone.)
+                    let (bh, bl) = (_mm512_srli_epi16::<8>(e), _mm512_and_si512(e, bytes));
                     for ((h, l), &v) in h.iter_mut().zip(l.iter_mut()).zip(v.iter()) {
                         *h = _mm512_dpwssd_epi32(*h, v, bh);
                         *l = _mm512_dpwssd_epi32(*l, v, bl);
