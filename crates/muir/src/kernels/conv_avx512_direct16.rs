@@ -93,6 +93,16 @@ pub(super) fn invalidate() {
     LAYERS.with_borrow_mut(|l| l.iter_mut().for_each(Layer::invalidate));
 }
 
+/// How a part's kernel row is read: `(runs, pairs)`, `runs` runs of values a row, each `pairs`
+/// i16 pairs. A part of an odd channel count up to 7 (the image's 3, a disparity's 1) reads each
+/// kernel row's `k ch` values, which lie one after another in the `[x][c]` row, as one run (its
+/// last pair reads the next value against a zero weight): `ceil(k ch / 2)` pairs instead of `k
+/// ceil(ch / 2)`, 77 instead of 98 products a pixel for the 7x7 stem. Other parts read each tap's
+/// `ch` values as a run.
+fn runs(k: usize, ch: usize) -> (usize, usize) {
+    if k > 1 && ch % 2 == 1 && ch <= 7 { (1, (k * ch).div_ceil(2)) } else { (k, ch.div_ceil(2)) }
+}
+
 /// Output channels padded to whole vectors.
 fn coutp(cout: usize) -> usize {
     cout.next_multiple_of(16)
@@ -128,21 +138,24 @@ fn relay(p: &ConvParams<'_>, l: &mut Layer) {
     let mut len = 0;
     for (at, &ch) in l.at.iter_mut().zip(p.parts) {
         *at = len;
-        len += k * k * ch.div_ceil(2) * cp;
+        let (rpr, g_n) = runs(k, ch);
+        len += k * rpr * g_n * cp;
     }
     let w = scratch(&mut l.w, 2 * len);
     w.fill(0);
     let mut off = 0;
     for ((&at, &ch), narrow) in l.at.iter().zip(p.parts).zip(l.narrow.iter_mut()) {
-        let g_n = ch.div_ceil(2);
+        let (rpr, g_n) = runs(k, ch);
+        let run_len = k * ch / rpr;
         *narrow = true;
         for c in 0..cout {
             let src = p.weights.get(c * kl + off..c * kl + off + k * k * ch).unwrap_or_default();
             *narrow &= src.iter().map(|w| w.unsigned_abs() as u64).sum::<u64>() <= 65535;
-            for (t, tap) in src.chunks_exact(ch).enumerate() {
-                for (g, pair) in tap.chunks(2).enumerate() {
+            // Run `t` (`[ky][run]` order: the blob's `[ky][kx][c]` cut into runs of `run_len`).
+            for (t, run) in src.chunks_exact(run_len.max(1)).enumerate() {
+                for (g, pair) in run.chunks(2).enumerate() {
                     let (a, b) = (pair.first().copied().unwrap_or(0), pair.get(1).copied().unwrap_or(0));
-                    let slot = at + weight_at(c, t * g_n + g, k * k * g_n, cp);
+                    let slot = at + weight_at(c, t * g_n + g, k * rpr * g_n, cp);
                     if let Some(d) = w.get_mut(2 * slot..2 * slot + 2) {
                         d.copy_from_slice(&[a, b]);
                     }
@@ -253,7 +266,7 @@ unsafe fn row(p: &ConvParams<'_>, rows: &[PartRows<'_, i16>], w_in: usize, w_out
     let (lo, hi) = out_range(out);
     let signed = matches!(out, OutRow::I8(_));
     let (op, size) = out_ptr(out);
-    let wlen: usize = p.parts.iter().map(|ch| k * k * ch.div_ceil(2) * cp).sum();
+    let wlen: usize = p.parts.iter().map(|&ch| k * runs(k, ch).0 * runs(k, ch).1 * cp).sum();
     if w.len() < 2 * wlen || ep.len() < (3 * np + 1) * cp {
         return;
     }
@@ -436,7 +449,7 @@ unsafe fn block<const NV: usize, const P: usize>(cx: &Ctx<'_, '_>, src: &[[*cons
     let mut sum = [[_mm512_setzero_si512(); 4]; P];
     let mut wild = false;
     for (part, &ch) in p.parts.iter().enumerate() {
-        let g_n = ch.div_ceil(2);
+        let (rpr, g_n) = runs(k, ch);
         // Every sum of the part fits in i32 (`relay`): one chunk, no check.
         let narrow = cx.narrow.get(part).copied().unwrap_or(false);
         let kept = cx.memo.as_ref().filter(|m| m.2 == part).map(|m| (m.0.0, m.1));
@@ -484,7 +497,7 @@ unsafe fn block<const NV: usize, const P: usize>(cx: &Ctx<'_, '_>, src: &[[*cons
             if r.is_null() {
                 continue;
             }
-            for kx in 0..k {
+            for run in 0..rpr {
                 if !narrow && used + g_n > I16_CHUNK {
                     // The chunk's i32 sums into the exact ones.
                     for (e, acc) in e.iter_mut().zip(acc.iter_mut()) {
@@ -496,12 +509,13 @@ unsafe fn block<const NV: usize, const P: usize>(cx: &Ctx<'_, '_>, src: &[[*cons
                     used = 0;
                     flushed = true;
                 }
-                // SAFETY: columns `q stride + kx < span` of the row (and the value after the
-                // last pair); weights of tap `ky k + kx`, pair `g < g_n`, channels `cb .. cb +
-                // 16 NV <= coutp` inside the part's (`relay`).
+                // SAFETY: run `run` of pixel `q` is columns `q stride + run .. q stride + run +
+                // k / rpr` (each `ch` values) of the `span` (and the value after the last pair);
+                // weights of run `ky rpr + run`, pair `g < g_n`, channels `cb .. cb + 16 NV <=
+                // coutp` inside the part's (`relay`).
                 unsafe {
-                    let xp = r.add(kx * ch);
-                    let wt = wp.add(2 * weight_at(cb, (ky * k + kx) * g_n, k * k * g_n, cp));
+                    let xp = r.add(run * ch);
+                    let wt = wp.add(2 * weight_at(cb, (ky * rpr + run) * g_n, k * rpr * g_n, cp));
                     super::tap_products::<false, NV, P>(&mut acc, xp.cast(), 2 * stride * ch, wt.cast(), (cp - cb).min(32), g_n);
                 }
                 used += g_n;
