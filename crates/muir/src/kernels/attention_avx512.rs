@@ -70,6 +70,21 @@ pub(crate) fn exp_knots() -> &'static [i32; 1024] {
     })
 }
 
+/// [`crate::arith::lut::exp_q11`] of 16 lanes `d` in `[-32768, 0]` by the table of `exp_knots`:
+/// knot `i = u >> 5` of `u = d + 32768` (at most 1023: `u = 32768` reads knot 1023 at fraction
+/// 32, its end), `a + round((b - a) f / 32)`.
+#[target_feature(enable = "avx512f")]
+#[inline]
+pub(crate) fn exp_q11x16(d: __m512i, knots: &[i32; 1024]) -> __m512i {
+    let u = _mm512_add_epi32(d, _mm512_set1_epi32(32768));
+    let i = _mm512_min_epi32(_mm512_srli_epi32::<5>(u), _mm512_set1_epi32(1023));
+    let f = _mm512_sub_epi32(u, _mm512_slli_epi32::<5>(i));
+    // SAFETY: knot `i <= 1023` of the table (`a + (b - a) << 16`, 1024 entries).
+    let ab = unsafe { _mm512_i32gather_epi32::<4>(i, knots.as_ptr().cast()) };
+    let (ka, kd) = (_mm512_and_si512(ab, _mm512_set1_epi32(0xFFFF)), _mm512_srli_epi32::<16>(ab));
+    _mm512_add_epi32(ka, _mm512_srai_epi32::<5>(_mm512_add_epi32(_mm512_mullo_epi32(kd, f), _mm512_set1_epi32(16))))
+}
+
 /// Keys and values laid out for [`Prepared::aggregate`] (see the module doc).
 pub struct Prepared {
     kt: Vec<i32>,
@@ -624,13 +639,7 @@ unsafe fn weights16(ah: __m512i, al: __m512i, max: i64, m: Multiplier, knots: &[
             };
         }
         let d = _mm512_inserti64x4::<1>(_mm512_castsi256_si512(rq!(d0)), rq!(d1));
-        let u = _mm512_add_epi32(d, _mm512_set1_epi32(32768));
-        let i = _mm512_min_epi32(_mm512_srli_epi32::<5>(u), _mm512_set1_epi32(1023));
-        let f = _mm512_sub_epi32(u, _mm512_slli_epi32::<5>(i));
-        // SAFETY: knot `i <= 1023` of the table (`a + (b - a) << 16`, 1024 entries).
-        let ab = unsafe { _mm512_i32gather_epi32::<4>(i, knots.as_ptr().cast()) };
-        let (ka, kd) = (_mm512_and_si512(ab, _mm512_set1_epi32(0xFFFF)), _mm512_srli_epi32::<16>(ab));
-        let w = _mm512_add_epi32(ka, _mm512_srai_epi32::<5>(_mm512_add_epi32(_mm512_mullo_epi32(kd, f), _mm512_set1_epi32(16))));
+        let w = exp_q11x16(d, knots);
         // SAFETY: 16 i32 at `out` (the contract).
         unsafe { _mm512_storeu_si512(out.cast(), w) };
     } else {

@@ -135,15 +135,7 @@ mod avx512 {
                 let v = _mm512_sub_epi32(*lk, max);
                 let d = if shifted_right { _mm512_sra_epi32(_mm512_add_epi32(v, half), rsh) } else { _mm512_sll_epi32(v, lsh) };
                 let d = _mm512_max_epi32(d, _mm512_set1_epi32(-32768));
-                // exp_q11(d): knot `i = u >> 5` (at most 1023: u = 32768 reads knot 1023 at
-                // fraction 32, its end), `a + round((b - a) f / 32)`.
-                let u = _mm512_add_epi32(d, _mm512_set1_epi32(32768));
-                let i = _mm512_min_epi32(_mm512_srli_epi32::<5>(u), _mm512_set1_epi32(1023));
-                let f = _mm512_sub_epi32(u, _mm512_slli_epi32::<5>(i));
-                // SAFETY: knot `i <= 1023` of the table (1024 entries).
-                let ab = unsafe { _mm512_i32gather_epi32::<4>(i, knots.as_ptr().cast()) };
-                let (ka, kd) = (_mm512_and_si512(ab, _mm512_set1_epi32(0xFFFF)), _mm512_srli_epi32::<16>(ab));
-                let e = _mm512_add_epi32(ka, _mm512_srai_epi32::<5>(_mm512_add_epi32(_mm512_mullo_epi32(kd, f), _mm512_set1_epi32(16))));
+                let e = super::super::attention::avx512::exp_q11x16(d, knots);
                 s = _mm512_add_epi32(s, e);
                 let halves = [_mm512_cvtepi32_epi64(_mm512_castsi512_si256(e)), _mm512_cvtepi32_epi64(_mm512_extracti64x4_epi64::<1>(e))];
                 let (nfk, nuk) = (nf.get(k).copied().unwrap_or(_mm512_setzero_si512()), nu.get(k).copied().unwrap_or(_mm512_setzero_si512()));
