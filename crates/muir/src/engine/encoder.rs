@@ -401,7 +401,7 @@ fn features_streamed(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &FeatureHeadL
     let mid_row = |r: usize, raw: &mut [i16], patch: &mut [u8], dst: &mut [u8]| {
         let raw = first_n_mut(raw, row);
         run_conv(&p1, &[src.part_rows(r, 3, 1)], w, &mut OutRow::I16(raw), patch);
-        normalize_row(raw, stats1, d3, dst, |v, s| sat_u8(normalize(v, s, f_mid)));
+        normalize_u8(raw, stats1, d3, f_mid, dst);
     };
     // Pass 2: statistics of conv2 over the normalised conv1 rows.
     st2.fill(0);
@@ -429,7 +429,7 @@ fn features_streamed(m: &QuantModel<'_>, l3: &[u8], g: &Grid, lay: &FeatureHeadL
                 mid_row(q, raw, patch, mid.push());
             }
             run_conv(&p2, &[mid.part_rows(r, 3, 1)], w, &mut OutRow::I16(ybuf), patch);
-            normalize_in_place(ybuf, stats2, d3, |v, s| crate::arith::sat_i16(normalize(v, s, f_blk).max(0)));
+            normalize_relu_i16(ybuf, stats2, d3, f_blk);
             residual_relu(ybuf, Skip::Input { x: chunk(l3, r, row), frac: f_l3 }, f_blk, blk.push());
         }
         run_conv(&p3, &[blk.part_rows(y, 3, 1)], w, &mut OutRow::I8(chunk_mut(f, y, fo)), patch);
@@ -473,13 +473,7 @@ fn features_kept(m: &QuantModel<'_>, l3: &[u8], g: &Grid, patch: &mut [u8], norm
         }
         let stats1 = finish_stats(st1, d3, n, f_raw1);
         // Pass 2: relu(norm(conv1)) as u8 (the saturation is the ReLU), conv2 of it, its statistics.
-        #[cfg(target_arch = "x86_64")]
-        let vector = crate::kernels::norm::avx512::normalize_u8(raw1, stats1, d3, f_mid, mid);
-        #[cfg(not(target_arch = "x86_64"))]
-        let vector = false;
-        if !vector {
-            normalize_row(raw1, stats1, d3, mid, |v, s| sat_u8(normalize(v, s, f_mid)));
-        }
+        normalize_u8(raw1, stats1, d3, f_mid, mid);
         st2.fill(0);
         for (y, r) in raw2.chunks_exact_mut(row.max(1)).enumerate() {
             run_conv(&p2, &[PartRows::of_tensor(mid, h, row, y, 3, 1)], w, &mut OutRow::I16(r), patch);
@@ -487,13 +481,7 @@ fn features_kept(m: &QuantModel<'_>, l3: &[u8], g: &Grid, patch: &mut [u8], norm
         }
         let stats2 = finish_stats(st2, d3, n, f_raw2);
         // Pass 3: the residual block's rows, then the output conv.
-        #[cfg(target_arch = "x86_64")]
-        let vector = crate::kernels::norm::avx512::normalize_relu_i16(raw2, stats2, d3, f_blk);
-        #[cfg(not(target_arch = "x86_64"))]
-        let vector = false;
-        if !vector {
-            normalize_in_place(raw2, stats2, d3, |v, s| crate::arith::sat_i16(normalize(v, s, f_blk).max(0)));
-        }
+        normalize_relu_i16(raw2, stats2, d3, f_blk);
         for (y, (r, b)) in raw2.chunks_exact(row.max(1)).zip(blk.chunks_exact_mut(row.max(1))).enumerate() {
             residual_relu(r, Skip::Input { x: chunk(l3, y, row), frac: f_l3 }, f_blk, b);
         }
@@ -531,6 +519,27 @@ fn add_sums(st: &mut [i64], c: usize, row: &[i16]) {
             }
         }
     }
+}
+
+/// `dst[i] = sat_u8(normalize(src[i], stat(channel of i), f_out))` (the saturation is the
+/// ReLU) for `[pixel][channel]` values: on 512-bit vectors where the host has them
+/// ([`crate::kernels::norm::avx512`]), else by [`normalize_row`].
+fn normalize_u8(src: &[i16], st: &[i64], c: usize, f_out: i8, dst: &mut [u8]) {
+    #[cfg(all(target_arch = "x86_64", feature = "std"))]
+    if crate::kernels::norm::avx512::normalize_u8(src, st, c, f_out, dst) {
+        return;
+    }
+    normalize_row(src, st, c, dst, |v, s| sat_u8(normalize(v, s, f_out)));
+}
+
+/// `row[i] = sat_i16(max(normalize(row[i], stat(channel of i), f_out), 0))` in place, as
+/// [`normalize_u8`] (vectors where the host has them, else [`normalize_in_place`]).
+fn normalize_relu_i16(row: &mut [i16], st: &[i64], c: usize, f_out: i8) {
+    #[cfg(all(target_arch = "x86_64", feature = "std"))]
+    if crate::kernels::norm::avx512::normalize_relu_i16(row, st, c, f_out) {
+        return;
+    }
+    normalize_in_place(row, st, c, |v, s| crate::arith::sat_i16(normalize(v, s, f_out).max(0)));
 }
 
 /// `dst[i] = f(src[i], stat(channel of i))` for rows of `c`-channel pixels (`st` the statistics

@@ -290,12 +290,12 @@ fn ufi_with(c: &mut Ctx<'_, '_, '_>, max_d8: usize, mut kept: Option<&mut [i16]>
                 conv16(&pc, &[full(corr, 1, w * cc, 0, 1)], w, $rc.push(), c.px.patch);
                 conv16(&pf, &[full(flow_k, h8, fl_row, s, 3)], w, $rf.push(), c.px.patch);
             }
-            if let Some(r) = ufi_stages::SCHEDULE.row(s, ufi_stages::FEATURES, h8) {
+            // The feature row produced at this step, if any.
+            let r = ufi_stages::SCHEDULE.row(s, ufi_stages::FEATURES, h8);
+            if let Some(r) = r {
                 conv16(&pconv, &[rows(&$rc, r, 3), rows(&$rf, r, 3)], w, $rfeat.push(), c.px.patch);
-                r
-            } else {
-                usize::MAX
             }
+            r
         }};
     }
     let frow = w * pconv.cout;
@@ -309,11 +309,10 @@ fn ufi_with(c: &mut Ctx<'_, '_, '_>, max_d8: usize, mut kept: Option<&mut [i16]>
         let mut rpend = Ring::of(&mut pend[..], lay.pending, h8);
         let row = w * hd;
         for s in 0..ufi_stages::SCHEDULE.steps(h8) {
-            // lag 0 and 1: corr, disparity and proposal features (kept for the decoder where
-            // there is room)
-            let r = feature_rows!(s, rc, rf, rfeat);
-            if let Some(kept) = kept.as_deref_mut()
-                && r < h8
+            // lag 0 and 1: corr, disparity and proposal features (kept for the decoder on the
+            // host)
+            if let Some(r) = feature_rows!(s, rc, rf, rfeat)
+                && let Some(kept) = kept.as_deref_mut()
                 && let Some(d) = kept.get_mut((k * h8 + r) * frow..(k * h8 + r + 1) * frow)
             {
                 d.copy_from_slice(rfeat.row(r));

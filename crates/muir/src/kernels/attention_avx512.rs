@@ -520,11 +520,10 @@ fn outputs(out: &mut [i16], acc: &[i64], stats: &[i64], cv: usize, shift: i8) {
         // Eight sums a vector where the divisor is a positive i32 (the weights' sum always is) and
         // the shift moderate; a vector with a sum too large for it, and the tail, value by value.
         let mut done = 0;
-        if has_avx512() && d > 0 && d <= i32::MAX as i64 && (-62..=40).contains(&shift) {
+        if crate::kernels::x86::has_avx512dq() && d > 0 && d <= i32::MAX as i64 && (-62..=40).contains(&shift) {
             for (o8, a8) in o.chunks_exact_mut(8).zip(a.chunks_exact(8)) {
                 if let (Ok(o8), Ok(a8)) = (<&mut [i16; 8]>::try_from(o8), <&[i64; 8]>::try_from(a8)) {
-                    // SAFETY: the CPU has AVX-512 F/BW/DQ (`has_avx512`: F, BW, VNNI, VL; every
-                    // such CPU has DQ, and `outputs8` checks it).
+                    // SAFETY: the CPU has AVX-512 F, BW and DQ (`has_avx512dq`).
                     if !unsafe { outputs8(o8, a8, d, shift) } {
                         for (o, a) in o8.iter_mut().zip(a8) {
                             *o = div.apply_f64(crate::arith::shift_round(*a, shift as i32), inv);
@@ -543,19 +542,15 @@ fn outputs(out: &mut [i16], acc: &[i64], stats: &[i64], cv: usize, shift: i8) {
 /// [`outputs`] of eight sums `a` by one divisor `0 < d < 2^31`, `-62 <= shift <= 40`: `sat_i16(
 /// div_round(shift_round(a, shift), d))`, or `false` (nothing written) where a sum is too large
 /// for the plain vector formulas (`|a| >= 2^(62 - max(shift, 0))`: the shift or its rounding
-/// could saturate) or the CPU lacks AVX-512 DQ. Then `|a'| < 2^62` after the shift, `t = |a'| + d
+/// could saturate). Then `|a'| < 2^62` after the shift, `t = |a'| + d
 /// / 2` does not overflow, a quotient reaching 32768 saturates (`t >= 32768 d`), and below that
 /// bound `t < 2^46` converts to f64 exactly and `floor(t / d)` is exact: a quotient `k + r / d`
 /// with `r < d` lies at least `2^-31` below `k + 1`, more than an f64 near `2^15` can round by.
 ///
 /// # Safety
-/// The CPU has AVX-512 F and BW.
+/// The CPU has AVX-512 F, BW and DQ.
 #[target_feature(enable = "avx512f,avx512bw,avx512dq")]
 unsafe fn outputs8(out: &mut [i16; 8], a: &[i64; 8], d: i64, shift: i8) -> bool {
-    static DQ: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    if !*DQ.get_or_init(|| std::is_x86_feature_detected!("avx512dq")) {
-        return false;
-    }
     // SAFETY: 8 i64.
     let v = unsafe { _mm512_loadu_si512(a.as_ptr().cast()) };
     let lim = _mm512_set1_epi64(1i64 << (62 - shift.max(0) as u32));

@@ -103,6 +103,12 @@ fn runs(k: usize, ch: usize) -> (usize, usize) {
     if k > 1 && ch % 2 == 1 && ch <= 7 { (1, (k * ch).div_ceil(2)) } else { (k, ch.div_ceil(2)) }
 }
 
+/// A part's weight slots (one i8 pair each) for `cp` output channels.
+fn part_slots(k: usize, ch: usize, cp: usize) -> usize {
+    let (rpr, g_n) = runs(k, ch);
+    k * rpr * g_n * cp
+}
+
 /// Output channels padded to whole vectors.
 fn coutp(cout: usize) -> usize {
     cout.next_multiple_of(16)
@@ -138,8 +144,7 @@ fn relay(p: &ConvParams<'_>, l: &mut Layer) {
     let mut len = 0;
     for (at, &ch) in l.at.iter_mut().zip(p.parts) {
         *at = len;
-        let (rpr, g_n) = runs(k, ch);
-        len += k * rpr * g_n * cp;
+        len += part_slots(k, ch, cp);
     }
     let w = scratch(&mut l.w, 2 * len);
     w.fill(0);
@@ -266,7 +271,7 @@ unsafe fn row(p: &ConvParams<'_>, rows: &[PartRows<'_, i16>], w_in: usize, w_out
     let (lo, hi) = out_range(out);
     let signed = matches!(out, OutRow::I8(_));
     let (op, size) = out_ptr(out);
-    let wlen: usize = p.parts.iter().map(|&ch| k * runs(k, ch).0 * runs(k, ch).1 * cp).sum();
+    let wlen: usize = p.parts.iter().map(|&ch| part_slots(k, ch, cp)).sum();
     if w.len() < 2 * wlen || ep.len() < (3 * np + 1) * cp {
         return;
     }

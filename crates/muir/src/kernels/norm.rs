@@ -68,10 +68,7 @@ pub mod avx512 {
     /// Most channels the vector forms take.
     const MAX_C: usize = 256;
 
-    fn available() -> bool {
-        static DQ: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-        super::super::x86::has_avx512() && *DQ.get_or_init(|| std::is_x86_feature_detected!("avx512dq"))
-    }
+    use super::super::x86::has_avx512dq as available;
 
     /// The channels' means and reciprocals (`st`: `(mean, recip)` pairs), padded to whole
     /// vectors, or `None` where one lies outside the bounds or `c` is 0 or above [`MAX_C`].

@@ -102,10 +102,7 @@ mod avx512 {
 
     /// Whether the CPU has what [`block`] needs (and the 512-bit kernels are not switched off,
     /// `MUIR_X86_SIMD`).
-    pub(super) fn available() -> bool {
-        static DQ: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-        super::super::x86::has_avx512() && *DQ.get_or_init(|| std::is_x86_feature_detected!("avx512dq"))
-    }
+    pub(super) use super::super::x86::has_avx512dq as available;
 
     /// The 8x8 block from the 576 logits, the shifts `lsh` / `rsh` (one of them 0) of `l - max`
     /// into Q11, and the 9 neighbours' disparities and uncertainties (0 outside the grid).

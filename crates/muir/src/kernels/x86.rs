@@ -70,6 +70,14 @@ pub fn has_avx512() -> bool {
     level() >= AVX512
 }
 
+/// Whether the 512-bit paths that also need AVX-512 DQ are taken (64-bit products and the
+/// i64 <-> f64 conversions of the exact divisions: the upsampling, the attention's outputs, the
+/// normalisation): [`has_avx512`] and a CPU with DQ (checked once).
+pub fn has_avx512dq() -> bool {
+    static DQ: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    has_avx512() && *DQ.get_or_init(|| std::is_x86_feature_detected!("avx512dq"))
+}
+
 #[cold]
 #[inline(never)]
 fn detect() -> u8 {
