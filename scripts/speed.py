@@ -14,7 +14,11 @@ median seconds, the median CPU seconds and the ratios of the medians; the Rust t
 
 `--threads N` (default 1): PyTorch's intra-op threads and `muir run --threads N` (the float
 engine's matrix products; the fixed-point engine's kernel pool: convolution rows, attention,
-correlation lookup).
+correlation lookup). A list (`--threads 1,2`) runs every engine at each count in every round and
+adds a table of each engine's speed-up over the first count: the median over the rounds of the
+ratio within a round (runs a few seconds apart), and the ratio of the medians. On a shared
+machine this is the figure to quote: separate invocations for 1 and 2 threads run minutes apart,
+and the two-thread runs are the ones a busy neighbour slows most.
 
 `--config NAME` (e.g. `raft-stereo-realtime`): instead of `--model`, seeded weights for that config
 (`python/muir/seeded.py`, the same values `src/float/seeded.rs` makes; seed `--seed`, default 11),
@@ -29,6 +33,7 @@ Examples (issue #24 item 3's figure):
 
     OMP_NUM_THREADS=1 python3 scripts/speed.py --rounds 7
     python3 scripts/speed.py --config raft-stereo-realtime --size 384x288 --rounds 7 --threads 2
+    python3 scripts/speed.py --threads 1,2 --rounds 7   # issue #24's two-thread figure
 
 Needs a release build (`cargo build --release --bin muir`) and the twin (python/README.md).
 """
@@ -76,15 +81,19 @@ def main(argv=None) -> int:
     p.add_argument("--rounds", type=int, default=5)
     p.add_argument("--model", default=os.path.join(ROOT, "models", "muir-slim.safetensors"))
     p.add_argument("--blob", default=None, help="fixed-point model (default models/muir-slim.muirq without --config)")
-    p.add_argument("--threads", type=int, default=1, help="1 to 4 (muir run --threads; torch.set_num_threads)")
+    p.add_argument("--threads", default="1", help="1 to 4, or a list such as 1,2 (muir run --threads; torch.set_num_threads)")
     p.add_argument("--config", default=None, help="seeded weights of this config preset instead of --model")
     p.add_argument("--seed", type=int, default=11, help="seed of the --config weights")
     p.add_argument("--size", default=None, help="WxH: the top-left crop of the pair")
     p.add_argument("--no-fixed", action="store_true", help="leave the fixed-point engine out")
     p.add_argument("--baseline", default=None, help="another muir binary, its float engine run in every round too")
     a = p.parse_args(argv)
-    if not 1 <= a.threads <= 4:
-        sys.exit("error: --threads must be 1 to 4")
+    try:
+        counts = [int(t) for t in a.threads.split(",")]
+    except ValueError:
+        sys.exit(f"error: --threads {a.threads}: expected a count or a list such as 1,2")
+    if not counts or not all(1 <= t <= 4 for t in counts) or len(set(counts)) != len(counts):
+        sys.exit("error: --threads must be distinct counts of 1 to 4")
     muir = os.path.join(ROOT, "target", "release", "muir")
     if not os.path.exists(muir):
         sys.exit("error: target/release/muir missing: cargo build --release --bin muir")
@@ -106,7 +115,7 @@ def main(argv=None) -> int:
     from muir.model import MUIR
     from muir import seeded
 
-    torch.set_num_threads(a.threads)
+    torch.set_num_threads(counts[0])
     os.makedirs(OUT, exist_ok=True)
     model_path = a.model
     if a.config:
@@ -149,44 +158,63 @@ def main(argv=None) -> int:
         # s instead of 0.39 s). Each Rust run starts on a quiet machine instead.
         time.sleep(PAUSE_S)
 
-    twin()  # warm-up
-    settle()
-
-    names = (["muir fixed-point engine"] if blob else []) + ["muir float engine"]
-    names += ["muir float engine (baseline)"] if a.baseline else []
-    names += ["PyTorch twin"]
-    times = {n: [] for n in names}
-    cpus = {n: [] for n in names}
-    for k in range(a.rounds):
-        runs = []
-        if blob:
-            runs.append(("muir fixed-point engine", muir, blob))
-        runs.append(("muir float engine", muir, model_path))
-        if a.baseline:
-            runs.append(("muir float engine (baseline)", a.baseline, model_path))
-        if k % 2:  # alternate the order of the Rust runs from round to round
-            runs.reverse()
-        for n, binary, m in runs:
-            t, c = rust_seconds(binary, m, pair, a.threads)
-            times[n].append(t)
-            cpus[n].append(c)
-        c0, t0 = time.process_time(), time.perf_counter()
+    engines = (["muir fixed-point engine"] if blob else []) + ["muir float engine"]
+    engines += ["muir float engine (baseline)"] if a.baseline else []
+    engines += ["PyTorch twin"]
+    # times[(engine, threads)]: one entry a round.
+    times = {(n, t): [] for t in counts for n in engines}
+    cpus = {(n, t): [] for t in counts for n in engines}
+    for t in counts:  # warm-up at each count
+        torch.set_num_threads(t)
         twin()
-        times["PyTorch twin"].append(time.perf_counter() - t0)
-        cpus["PyTorch twin"].append(time.process_time() - c0)
         settle()
-        print(f"round {k + 1}/{a.rounds}: " + ", ".join(f"{n} {v[-1]:.3f} s" for n, v in times.items()), file=sys.stderr)
+    for k in range(a.rounds):
+        # Alternate the order of the thread counts and of the Rust runs from round to round.
+        for t in (counts if k % 2 == 0 else counts[::-1]):
+            runs = []
+            if blob:
+                runs.append(("muir fixed-point engine", muir, blob))
+            runs.append(("muir float engine", muir, model_path))
+            if a.baseline:
+                runs.append(("muir float engine (baseline)", a.baseline, model_path))
+            if k % 2:
+                runs.reverse()
+            for n, binary, m in runs:
+                s, c = rust_seconds(binary, m, pair, t)
+                times[(n, t)].append(s)
+                cpus[(n, t)].append(c)
+            torch.set_num_threads(t)
+            c0, t0 = time.process_time(), time.perf_counter()
+            twin()
+            times[("PyTorch twin", t)].append(time.perf_counter() - t0)
+            cpus[("PyTorch twin", t)].append(time.process_time() - c0)
+            settle()
+            print(f"round {k + 1}/{a.rounds}, {t} thread(s): " + ", ".join(f"{n} {times[(n, t)][-1]:.3f} s" for n in engines), file=sys.stderr)
 
     h, w = left.shape[:2]
-    med = {n: statistics.median(v) for n, v in times.items()}
+    med = {key: statistics.median(v) for key, v in times.items()}
     what = f"{a.config} seeded weights (seed {a.seed})" if a.config else os.path.basename(model_path)
-    print(f"{os.path.basename(os.path.normpath(a.pair))} {w}x{h}, {what}, {a.threads} thread(s), "
-          f"{a.rounds} interleaved rounds, network only\n")
-    print("| engine | min s | median s | median CPU s | median / float engine | median / PyTorch |")
-    print("|---|---:|---:|---:|---:|---:|")
-    for n, v in times.items():
-        print(f"| {n} | {min(v):.3f} | {med[n]:.3f} | {statistics.median(cpus[n]):.3f} | "
-              f"{med[n] / med['muir float engine']:.2f} | {med[n] / med['PyTorch twin']:.2f} |")
+    for t in counts:
+        print(f"{os.path.basename(os.path.normpath(a.pair))} {w}x{h}, {what}, {t} thread(s), "
+              f"{a.rounds} interleaved rounds, network only\n")
+        print("| engine | min s | median s | median CPU s | median / float engine | median / PyTorch |")
+        print("|---|---:|---:|---:|---:|---:|")
+        for n in engines:
+            v = times[(n, t)]
+            print(f"| {n} | {min(v):.3f} | {med[(n, t)]:.3f} | {statistics.median(cpus[(n, t)]):.3f} | "
+                  f"{med[(n, t)] / med[('muir float engine', t)]:.2f} | {med[(n, t)] / med[('PyTorch twin', t)]:.2f} |")
+        print()
+    if len(counts) > 1:
+        t1 = counts[0]
+        print(f"Speed-up over {t1} thread(s): the median (range) of the rounds' own ratios, and the ratio of the medians\n")
+        print("| engine | " + " | ".join(f"{t} threads: rounds' ratios | {t} threads: medians' ratio" for t in counts[1:]) + " |")
+        print("|---|" + "---:|---:|" * (len(counts) - 1))
+        for n in engines:
+            cells = []
+            for t in counts[1:]:
+                r = [x / y for x, y in zip(times[(n, t1)], times[(n, t)])]
+                cells.append(f"{statistics.median(r):.2f}x ({min(r):.2f}-{max(r):.2f}) | {med[(n, t1)] / med[(n, t)]:.2f}x")
+            print(f"| {n} | " + " | ".join(cells) + " |")
     return 0
 
 
