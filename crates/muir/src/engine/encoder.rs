@@ -618,16 +618,36 @@ pub struct EncoderScratch<'a> {
 
 /// Encodes one image: features, and for the left image the context.
 pub fn encode(m: &QuantModel<'_>, img: &ImageView<'_>, g: &Grid, s: EncoderScratch<'_>, out: EncoderOut<'_>) {
-    let cfg = *m.config();
     trunk(m, img, g, s.rings, s.patch, s.l3);
-    let lay = FeatureHeadLayout::new(&cfg, g);
-    features(m, s.l3, g, &lay, s.rings, s.patch, s.norms, out.features);
+    image_features(m, s.l3, g, s.rings, s.patch, s.norms, out.features);
     if let Some(ctx) = out.context {
-        use Act as A;
-        head(m, s.l3, g.h8, g.w8, [H08nC1, H08nC2, H08nOut], A::H08no, &lay, s.rings, s.patch, OutRow::I16(ctx.net08));
-        head(m, s.l3, g.h8, g.w8, [H08cC1, H08cC2, H08cOut], A::H08co, &lay, s.rings, s.patch, OutRow::U8(ctx.inp08));
-        layer4(m, s.l3, g, &lay, s.rings, s.patch, s.l4);
-        head(m, s.l4, g.h16, g.w16, [H16nC1, H16nC2, H16nOut], A::H16no, &lay, s.rings, s.patch, OutRow::I16(ctx.net16));
-        head(m, s.l4, g.h16, g.w16, [H16cC1, H16cC2, H16cOut], A::H16co, &lay, s.rings, s.patch, OutRow::U8(ctx.inp16));
+        hidden08(m, s.l3, g, s.rings, s.patch, ctx.net08);
+        context_rest(m, s.l3, g, s.rings, s.patch, s.l4, ctx.inp08, ctx.net16, ctx.inp16);
     }
+}
+
+/// The matching features from the image's layer3 `l3` into `f`.
+pub(super) fn image_features(m: &QuantModel<'_>, l3: &[u8], g: &Grid, rings: &mut [u8], patch: &mut [u8], norms: &mut [i64], f: &mut [i8]) {
+    let lay = FeatureHeadLayout::new(m.config(), g);
+    features(m, l3, g, &lay, rings, patch, norms, f);
+}
+
+/// The left image's context, first part: the 1/8 hidden state's head. (The context is computed
+/// in two parts so that two threads can share it, this one about a third of the work.)
+pub(super) fn hidden08(m: &QuantModel<'_>, l3: &[u8], g: &Grid, rings: &mut [u8], patch: &mut [u8], net08: &mut [i16]) {
+    let lay = FeatureHeadLayout::new(m.config(), g);
+    head(m, l3, g.h8, g.w8, [H08nC1, H08nC2, H08nOut], Act::H08no, &lay, rings, patch, OutRow::I16(net08));
+}
+
+/// The left image's context, second part: the 1/8 context head, layer4 (into `l4`) and the two
+/// 1/16 heads. It reads only `l3` and writes outputs of its own, so it may run beside
+/// [`hidden08`] and the features.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn context_rest(m: &QuantModel<'_>, l3: &[u8], g: &Grid, rings: &mut [u8], patch: &mut [u8], l4: &mut [u8], inp08: &mut [u8], net16: &mut [i16], inp16: &mut [u8]) {
+    use Act as A;
+    let lay = FeatureHeadLayout::new(m.config(), g);
+    head(m, l3, g.h8, g.w8, [H08cC1, H08cC2, H08cOut], A::H08co, &lay, rings, patch, OutRow::U8(inp08));
+    layer4(m, l3, g, &lay, rings, patch, l4);
+    head(m, l4, g.h16, g.w16, [H16nC1, H16nC2, H16nOut], A::H16no, &lay, rings, patch, OutRow::I16(net16));
+    head(m, l4, g.h16, g.w16, [H16cC1, H16cC2, H16cOut], A::H16co, &lay, rings, patch, OutRow::U8(inp16));
 }

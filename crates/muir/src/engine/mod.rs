@@ -426,9 +426,14 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
 }
 
 /// Both encoders at once (host): the right image's on a scoped thread with scratch of its own,
-/// the left image's on this one with the arena's. They write disjoint outputs (`f2`; `f1` and the
-/// context) and read only the model and their image, so the frame zone is what a sequential
-/// [`encode_image`] pair leaves.
+/// the left image's on this one with the arena's. The left one has more to do (the context
+/// heads and layer4 after the same trunk and features), so the right thread, once its features
+/// are done, computes the larger part of the left image's context ([`encoder::context_rest`],
+/// from the left layer3 this thread hands it after its trunk) while this one computes its
+/// features and the 1/8 hidden state's head. Left to the pool's workers instead, the heads'
+/// short rows ran slower on two threads than on one (Teddy: 7-12 ms against 6 ms). Every part
+/// writes outputs of its own and reads only the model, its image and a layer3 no one writes any
+/// more, so the frame zone is what a sequential [`encode_image`] pair leaves.
 #[cfg(feature = "std")]
 fn encode_pair_threaded(m: &QuantModel<'_>, plan: &Plan, arena: &mut [u8], left: &ImageView<'_>, right: &ImageView<'_>) {
     let (px, e) = (plan.pixel, plan.encoder);
@@ -443,13 +448,16 @@ fn encode_pair_threaded(m: &QuantModel<'_>, plan: &Plan, arena: &mut [u8], left:
     let mut own = std::vec![0u64; at / 8];
     let mut cr = Carver::new(bytemuck::cast_slice_mut(&mut own));
     let patch_r = cr.raw(p2);
-    let scratch_r = encoder::EncoderScratch { l3: cr.u8(l3), l4: cr.u8(l4), norms: cr.i64(norm), rings: cr.raw(rings), patch: patch_r };
+    let (l3_r, l4_r, norms_r, rings_r) = (cr.u8(l3), cr.u8(l4), cr.i64(norm), cr.raw(rings));
 
-    let (out_l, out_r, scratch_l) = encoder_zone(plan, arena);
+    let (f1, ctx, f2, scratch_l) = encoder_zone(plan, arena);
+    let encoder::ContextOut { net08, net16, inp08, inp16 } = ctx;
+    let encoder::EncoderScratch { l3: l3_l, l4: _, norms: norms_l, rings: rings_l, patch: patch_l } = scratch_l;
     let grid = &plan.grid;
+    // The left layer3, handed over once this thread's trunk is done.
+    let (send_l3, take_l3) = std::sync::mpsc::sync_channel::<&[u8]>(1);
     // The pool is held while both encoders run (their kernels on their own threads; the workers
-    // would only compete for the cores), and released when the right one is done: the left one
-    // (features and context, the longer) then has the workers for the rest.
+    // would only compete for the cores), and released when the right thread is done.
     let held = crate::kernels::pool::hold();
     std::thread::scope(|s| {
         s.spawn(move || {
@@ -457,9 +465,20 @@ fn encode_pair_threaded(m: &QuantModel<'_>, plan: &Plan, arena: &mut [u8], left:
             // This thread's own frame of re-laid weights (see `run_iters`).
             #[cfg(target_arch = "x86_64")]
             let _frame = crate::kernels::conv::FrameScope::new();
-            encoder::encode(m, right, grid, scratch_r, out_r)
+            let scratch = encoder::EncoderScratch { l3: &mut *l3_r, l4: &mut *l4_r, norms: norms_r, rings: &mut *rings_r, patch: &mut *patch_r };
+            encoder::encode(m, right, grid, scratch, encoder::EncoderOut { features: f2, context: None });
+            // (No layer3: the other thread panicked before its trunk was done; the scope
+            // reports it.)
+            if let Ok(l3) = take_l3.recv() {
+                encoder::context_rest(m, l3, grid, rings_r, patch_r, l4_r, inp08, net16, inp16);
+            }
         });
-        encoder::encode(m, left, grid, scratch_l, out_l);
+        encoder::trunk(m, left, grid, rings_l, patch_l, l3_l);
+        let l3: &[u8] = l3_l;
+        // (The right thread has gone only if it panicked: the scope reports it.)
+        let _ = send_l3.send(l3);
+        encoder::image_features(m, l3, grid, rings_l, patch_l, norms_l, f1);
+        encoder::hidden08(m, l3, grid, rings_l, patch_l, net08);
     });
 }
 
@@ -467,22 +486,21 @@ fn encode_pair_threaded(m: &QuantModel<'_>, plan: &Plan, arena: &mut [u8], left:
 /// for the left image the hidden states and context. Public for the benches, which time phases.
 #[doc(hidden)]
 pub fn encode_image(m: &QuantModel<'_>, plan: &Plan, arena: &mut [u8], img: &ImageView<'_>, left: bool) {
-    let (out_l, out_r, scratch) = encoder_zone(plan, arena);
-    encoder::encode(m, img, &plan.grid, scratch, if left { out_l } else { out_r });
+    let (f1, ctx, f2, scratch) = encoder_zone(plan, arena);
+    let out = if left { encoder::EncoderOut { features: f1, context: Some(ctx) } } else { encoder::EncoderOut { features: f2, context: None } };
+    encoder::encode(m, img, &plan.grid, scratch, out);
 }
 
 /// The encoders' buffers in an arena laid out by `plan`: the left image's outputs (matching
 /// features and context), the right image's (features) and the arena's encoder scratch.
-fn encoder_zone<'a>(plan: &Plan, arena: &'a mut [u8]) -> (encoder::EncoderOut<'a>, encoder::EncoderOut<'a>, encoder::EncoderScratch<'a>) {
+fn encoder_zone<'a>(plan: &Plan, arena: &'a mut [u8]) -> (&'a mut [i8], encoder::ContextOut<'a>, &'a mut [i8], encoder::EncoderScratch<'a>) {
     let (fr, px, e) = (plan.frame, plan.pixel, plan.encoder);
     let mut cv = Carver::new(first_n_mut(arena, plan.ram_bytes));
     let (f1, f2) = (cv.i8(fr.f1), cv.i8(fr.f2));
     let (net08, net16, inp08, inp16) = (cv.i16(fr.net08), cv.i16(fr.net16), cv.u8(fr.inp08), cv.u8(fr.inp16));
     let patch = cv.raw(px.patch);
     let scratch = encoder::EncoderScratch { l3: cv.u8(e.l3), l4: cv.u8(e.l4), norms: cv.i64(e.norm), rings: cv.raw(e.rings), patch };
-    let out_l = encoder::EncoderOut { features: f1, context: Some(encoder::ContextOut { net08, net16, inp08, inp16 }) };
-    let out_r = encoder::EncoderOut { features: f2, context: None };
-    (out_l, out_r, scratch)
+    (f1, encoder::ContextOut { net08, net16, inp08, inp16 }, f2, scratch)
 }
 
 /// The refinement context over an arena laid out by `plan`: the frame zone the encoder filled,
