@@ -3,7 +3,9 @@
 engine, the Rust float engine and the PyTorch twin, run interleaved (round k runs all of them before round
 k+1 starts, so a machine that gets busier slows all of them alike), network only (no full-resolution
 refinement: the twin has it in numpy, outside the network). Prints a Markdown table of min and
-median seconds, the median CPU seconds and the ratios of the medians; the Rust times are the CLI's own
+median seconds, the median CPU seconds, the ratios of the medians, and the median (range) of each
+round's own ratio to the float engine's run (seconds apart, so less exposed to a machine that
+gets busier or quieter over minutes); the Rust times are the CLI's own
 `engine:` figure (the frame, not the process start or the PNG writing) and its process's CPU time
 (`getrusage` of the child, so it includes loading the model and the PNGs), the twin's the forward pass
 (no trace) after one warm-up and its process CPU time over that pass.
@@ -197,12 +199,15 @@ def main(argv=None) -> int:
     for t in counts:
         print(f"{os.path.basename(os.path.normpath(a.pair))} {w}x{h}, {what}, {t} thread(s), "
               f"{a.rounds} interleaved rounds, network only\n")
-        print("| engine | min s | median s | median CPU s | median / float engine | median / PyTorch |")
-        print("|---|---:|---:|---:|---:|---:|")
+        print("| engine | min s | median s | median CPU s | median / float engine | median / PyTorch | / float engine, rounds' ratios |")
+        print("|---|---:|---:|---:|---:|---:|---:|")
+        fl = times[("muir float engine", t)]
         for n in engines:
             v = times[(n, t)]
+            r = [x / y for x, y in zip(v, fl)]
             print(f"| {n} | {min(v):.3f} | {med[(n, t)]:.3f} | {statistics.median(cpus[(n, t)]):.3f} | "
-                  f"{med[(n, t)] / med[('muir float engine', t)]:.2f} | {med[(n, t)] / med[('PyTorch twin', t)]:.2f} |")
+                  f"{med[(n, t)] / med[('muir float engine', t)]:.2f} | {med[(n, t)] / med[('PyTorch twin', t)]:.2f} | "
+                  f"{statistics.median(r):.2f} ({min(r):.2f}-{max(r):.2f}) |")
         print()
     if len(counts) > 1:
         t1 = counts[0]
