@@ -77,6 +77,12 @@ def rust_seconds(muir: str, model: str, pair: str, threads: int) -> tuple[float,
     return float(m.group(1)), cpu
 
 
+def spread(num: list[float], den: list[float], unit: str = "") -> str:
+    """The median (range) of the rounds' own ratios `num[k] / den[k]`."""
+    r = [x / y for x, y in zip(num, den)]
+    return f"{statistics.median(r):.2f}{unit} ({min(r):.2f}-{max(r):.2f})"
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--pair", default=os.path.join(ROOT, "assets", "teddy"), help="folder with left.png, right.png")
@@ -170,18 +176,16 @@ def main(argv=None) -> int:
         torch.set_num_threads(t)
         twin()
         settle()
+    runs = []
+    if blob:
+        runs.append(("muir fixed-point engine", muir, blob))
+    runs.append(("muir float engine", muir, model_path))
+    if a.baseline:
+        runs.append(("muir float engine (baseline)", a.baseline, model_path))
     for k in range(a.rounds):
         # Alternate the order of the thread counts and of the Rust runs from round to round.
         for t in (counts if k % 2 == 0 else counts[::-1]):
-            runs = []
-            if blob:
-                runs.append(("muir fixed-point engine", muir, blob))
-            runs.append(("muir float engine", muir, model_path))
-            if a.baseline:
-                runs.append(("muir float engine (baseline)", a.baseline, model_path))
-            if k % 2:
-                runs.reverse()
-            for n, binary, m in runs:
+            for n, binary, m in (runs if k % 2 == 0 else runs[::-1]):
                 s, c = rust_seconds(binary, m, pair, t)
                 times[(n, t)].append(s)
                 cpus[(n, t)].append(c)
@@ -201,13 +205,11 @@ def main(argv=None) -> int:
               f"{a.rounds} interleaved rounds, network only\n")
         print("| engine | min s | median s | median CPU s | median / float engine | median / PyTorch | / float engine, rounds' ratios |")
         print("|---|---:|---:|---:|---:|---:|---:|")
-        fl = times[("muir float engine", t)]
         for n in engines:
             v = times[(n, t)]
-            r = [x / y for x, y in zip(v, fl)]
             print(f"| {n} | {min(v):.3f} | {med[(n, t)]:.3f} | {statistics.median(cpus[(n, t)]):.3f} | "
                   f"{med[(n, t)] / med[('muir float engine', t)]:.2f} | {med[(n, t)] / med[('PyTorch twin', t)]:.2f} | "
-                  f"{statistics.median(r):.2f} ({min(r):.2f}-{max(r):.2f}) |")
+                  f"{spread(v, times[('muir float engine', t)])} |")
         print()
     if len(counts) > 1:
         t1 = counts[0]
@@ -215,10 +217,7 @@ def main(argv=None) -> int:
         print("| engine | " + " | ".join(f"{t} threads: rounds' ratios | {t} threads: medians' ratio" for t in counts[1:]) + " |")
         print("|---|" + "---:|---:|" * (len(counts) - 1))
         for n in engines:
-            cells = []
-            for t in counts[1:]:
-                r = [x / y for x, y in zip(times[(n, t1)], times[(n, t)])]
-                cells.append(f"{statistics.median(r):.2f}x ({min(r):.2f}-{max(r):.2f}) | {med[(n, t1)] / med[(n, t)]:.2f}x")
+            cells = [f"{spread(times[(n, t1)], times[(n, t)], 'x')} | {med[(n, t1)] / med[(n, t)]:.2f}x" for t in counts[1:]]
             print(f"| {n} | " + " | ".join(cells) + " |")
     return 0
 

@@ -45,11 +45,10 @@ const SLICES: [[u32; 256]; 8] = {
     s
 };
 
-/// One byte into the register.
+/// One byte into the register (`SLICES[0]` is the byte table, so only the slices are kept).
 #[inline(always)]
 fn byte(c: u32, b: u8) -> u32 {
-    // The index is a byte: the table (256 entries) always has it.
-    TABLE.get(((c ^ b as u32) & 0xFF) as usize).copied().unwrap_or(0) ^ (c >> 8)
+    slice(0, c ^ b as u32) ^ (c >> 8)
 }
 
 /// `SLICES[k][b]` (`k < 8`, `b` a byte: always there).
