@@ -231,10 +231,10 @@ fn pause(waits: &mut u32) {
 }
 
 /// Holds the pool until the returned guard is dropped, on any thread: meanwhile every [`run`]
-/// runs its tasks on its caller. For work that is split coarsely already (the two image encoders
-/// on two threads), whose threads the pool's workers would only compete with for the cores. The
-/// encoders' pair hands the guard to the shorter of its two threads, so that the longer one's
-/// kernels get the pool's workers back as soon as the other is done.
+/// runs its tasks on its caller. For work that is split coarsely already, whose threads the
+/// pool's workers would only compete with for the cores: [`beside`]'s scoped-thread form, which
+/// drops the guard when the first of its two streams is done, so that the other one's kernels
+/// get the pool's workers back.
 pub fn hold() -> Hold {
     Hold(!pool().busy.swap(true, Ordering::Acquire))
 }
