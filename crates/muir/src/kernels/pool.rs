@@ -64,11 +64,6 @@ impl StallCount {
     }
 }
 
-std::thread_local! {
-    /// This thread is a worker counted in the pool's `active` (it holds a job).
-    static COUNTED: core::cell::Cell<bool> = const { core::cell::Cell::new(false) };
-}
-
 /// Threads the kernels use, the caller included.
 static THREADS: AtomicUsize = AtomicUsize::new(1);
 
@@ -187,11 +182,9 @@ pub fn run(tasks: usize, f: &(dyn Fn(usize) + Sync)) {
     while job.done.load(Ordering::Acquire) < tasks {
         pause(&mut waits);
     }
-    // Unpost, then wait for the workers that may still hold it (see `Pool`), but this one: a
-    // worker running [`beside`]'s other stream is counted in `active` while it posts jobs.
+    // Unpost, then wait for the workers that may still hold it (see `Pool`).
     p.job.store(core::ptr::null_mut(), Ordering::SeqCst);
-    let own = usize::from(COUNTED.get());
-    while p.active.load(Ordering::SeqCst) > own {
+    while p.active.load(Ordering::SeqCst) != 0 {
         pause(&mut waits);
     }
     p.busy.store(false, Ordering::Release);
@@ -231,10 +224,10 @@ fn pause(waits: &mut u32) {
 }
 
 /// Holds the pool until the returned guard is dropped, on any thread: meanwhile every [`run`]
-/// runs its tasks on its caller. For work that is split coarsely already, whose threads the
-/// pool's workers would only compete with for the cores: [`beside`]'s scoped-thread form, which
-/// drops the guard when the first of its two streams is done, so that the other one's kernels
-/// get the pool's workers back.
+/// runs its tasks on its caller. For work that is split coarsely already (the two image encoders
+/// on two threads), whose threads the pool's workers would only compete with for the cores. The
+/// encoders' pair hands the guard to the shorter of its two threads, so that the longer one's
+/// kernels get the pool's workers back as soon as the other is done.
 pub fn hold() -> Hold {
     Hold(!pool().busy.swap(true, Ordering::Acquire))
 }
@@ -248,142 +241,6 @@ impl Drop for Hold {
             pool().busy.store(false, Ordering::Release);
         }
     }
-}
-
-/// What [`beside`]'s `mine` may ask about `other`.
-pub struct Beside<'a> {
-    done: &'a AtomicBool,
-}
-
-impl Beside<'_> {
-    /// `other` has returned (or unwound).
-    pub fn other_done(&self) -> bool {
-        self.done.load(Ordering::Acquire)
-    }
-}
-
-/// Sets its flag when dropped (also when its thread unwinds), and releases the pool once.
-struct OtherEnds<'a, R: Fn()> {
-    done: &'a AtomicBool,
-    release: &'a R,
-}
-
-impl<R: Fn()> Drop for OtherEnds<'_, R> {
-    fn drop(&mut self) {
-        (self.release)();
-        self.done.store(true, Ordering::Release);
-    }
-}
-
-/// Runs `other` on one of the pool's workers and `mine` on the caller, side by side, and returns
-/// both results (`mine`'s first): for two streams of work that are split coarsely already (the
-/// two image encoders, the refinement's passes beside each other, `engine::side`). While both
-/// run, the pool is held: each one's kernels run on its own thread. The one that finishes first
-/// releases it: when `other` is done, the caller's kernels get the worker back; when `mine` is,
-/// the caller runs `other` itself if no worker has taken it yet, else works on the jobs
-/// `other`'s kernels post until it is done.
-///
-/// Why a worker rather than a new thread: a thread started for each pass waited 0.1-0.3 ms for
-/// a core (the pool's worker spins on it for a while after its last job), started with cold
-/// scratch, and left the worker asleep, to be woken when the caller's kernels needed it again.
-///
-/// Where the pool has no free worker (one thread, another caller's kernels, backing off), `other`
-/// runs on a scoped thread instead, the pool held likewise. A panic in either is resumed here
-/// once both are done (`other`'s as a new panic where it ran on a worker).
-pub fn beside<A: Send, B>(other: impl FnOnce() -> A + Send, mine: impl FnOnce(&Beside<'_>) -> B) -> (B, A) {
-    let p = pool();
-    if threads() < 2 || INLINE_JOBS.load(Ordering::Relaxed) > 0 || p.busy.swap(true, Ordering::Acquire) {
-        return beside_thread(other, mine);
-    }
-    let done = AtomicBool::new(false);
-    let released = AtomicBool::new(false);
-    let release = || {
-        if !released.swap(true, Ordering::AcqRel) {
-            p.busy.store(false, Ordering::Release);
-        }
-    };
-    let slot = std::sync::Mutex::new(Some(other));
-    let out = std::sync::Mutex::new(None);
-    let task = |_: usize| {
-        let _ends = OtherEnds { done: &done, release: &release };
-        let f = slot.lock().ok().and_then(|mut s| s.take());
-        if let Some(f) = f {
-            let a = f();
-            if let Ok(mut o) = out.lock() {
-                *o = Some(a);
-            }
-        }
-    };
-    let task: &(dyn Fn(usize) + Sync) = &task;
-    // SAFETY (lifetime erasure): `job` and `task` outlive every use: this function waits until
-    // the task is done and no worker holds the job before it returns, also when `mine` panics.
-    let f: *const (dyn Fn(usize) + Sync) = unsafe { core::mem::transmute::<&(dyn Fn(usize) + Sync), &'static (dyn Fn(usize) + Sync)>(task) };
-    let job = Job { f, tasks: 1, next: AtomicUsize::new(0), done: AtomicUsize::new(0), panicked: AtomicBool::new(false) };
-    let posted = &job as *const Job as *mut Job;
-    let mut seen = p.epoch.load(Ordering::SeqCst);
-    p.job.store(posted, Ordering::SeqCst);
-    p.epoch.fetch_add(1, Ordering::SeqCst);
-    if p.sleepers.load(Ordering::SeqCst) > 0 {
-        let _g = p.lock.lock();
-        p.wake.notify_all();
-    }
-    let mine = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| mine(&Beside { done: &done })));
-    release();
-    // `other` here where no worker has taken it yet (once the pool is released, another caller's
-    // job may replace it as the posted one, and no worker would find it any more).
-    work(&job);
-    // Until `other` is done: work on what is posted (its kernels' jobs), as a worker does.
-    let mut waits = 0u32;
-    while job.done.load(Ordering::Acquire) < 1 {
-        let e = p.epoch.load(Ordering::SeqCst);
-        if e != seen {
-            seen = e;
-            work_posted(p);
-            waits = 0;
-            continue;
-        }
-        pause(&mut waits);
-    }
-    // Unpost it where it is still posted, then wait for the workers that may hold it.
-    let _ = p.job.compare_exchange(posted, core::ptr::null_mut(), Ordering::SeqCst, Ordering::SeqCst);
-    while p.active.load(Ordering::SeqCst) != 0 {
-        pause(&mut waits);
-    }
-    let other = out.into_inner().ok().flatten();
-    match (mine, other) {
-        (Err(panic), _) => std::panic::resume_unwind(panic),
-        (Ok(b), Some(a)) => (b, a),
-        (Ok(_), None) => {
-            #[allow(clippy::panic)] // a bug in `other`, not a consequence of input: report it here
-            {
-                panic!("a task beside the caller panicked on a worker thread");
-            }
-        }
-    }
-}
-
-/// [`beside`] with `other` on a scoped thread.
-fn beside_thread<A: Send, B>(other: impl FnOnce() -> A + Send, mine: impl FnOnce(&Beside<'_>) -> B) -> (B, A) {
-    let held = std::sync::Mutex::new(Some(hold()));
-    let release = || {
-        if let Ok(mut h) = held.lock() {
-            h.take();
-        }
-    };
-    let done = AtomicBool::new(false);
-    std::thread::scope(|s| {
-        let handle = s.spawn(|| {
-            let _ends = OtherEnds { done: &done, release: &release };
-            other()
-        });
-        let mine = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| mine(&Beside { done: &done })));
-        release();
-        let other = handle.join();
-        match (mine, other) {
-            (Err(panic), _) | (_, Err(panic)) => std::panic::resume_unwind(panic),
-            (Ok(b), Ok(a)) => (b, a),
-        }
-    })
 }
 
 /// Takes and runs task numbers until none are left.
@@ -400,22 +257,6 @@ fn work(job: &Job) {
         }
         job.done.fetch_add(1, Ordering::Release);
     }
-}
-
-/// Works on the job posted now, if any, as a worker: counted in `active` (and [`COUNTED`]) while
-/// it may hold the job.
-fn work_posted(p: &Pool) {
-    p.active.fetch_add(1, Ordering::SeqCst);
-    let was = COUNTED.replace(true);
-    let job = p.job.load(Ordering::SeqCst);
-    if !job.is_null() {
-        // SAFETY: a posted job is alive until its poster unposts it and then sees `active` at 0
-        // (or at 1, itself, where it is counted: [`COUNTED`]); this thread counted itself in
-        // `active` before reading the pointer.
-        work(unsafe { &*job });
-    }
-    COUNTED.set(was);
-    p.active.fetch_sub(1, Ordering::SeqCst);
 }
 
 fn worker() {
@@ -445,7 +286,14 @@ fn worker() {
             p.sleepers.fetch_sub(1, Ordering::SeqCst);
         }
         seen = p.epoch.load(Ordering::SeqCst);
-        work_posted(p);
+        p.active.fetch_add(1, Ordering::SeqCst);
+        let job = p.job.load(Ordering::SeqCst);
+        if !job.is_null() {
+            // SAFETY: a posted job is alive until `run` unposts it and then sees `active` at 0;
+            // this worker counted itself in `active` before reading the pointer.
+            work(unsafe { &*job });
+        }
+        p.active.fetch_sub(1, Ordering::SeqCst);
     }
 }
 
@@ -523,83 +371,6 @@ mod tests {
                 assert!(hits.iter().all(|h| h.load(Ordering::Relaxed) == 1), "{n} threads, {tasks} tasks");
             }
         }
-        set_threads(1);
-    }
-
-    /// Counts every task of a job of `n` tasks on the pool; `true` when each ran once.
-    fn all_tasks_once(n: usize) -> bool {
-        let hits: Vec<AtomicUsize> = (0..n).map(|_| AtomicUsize::new(0)).collect();
-        run(n, &|i| {
-            if let Some(h) = hits.get(i) {
-                h.fetch_add(1, Ordering::Relaxed);
-            }
-        });
-        hits.iter().all(|h| h.load(Ordering::Relaxed) == 1)
-    }
-
-    /// Busy work of about `us` microseconds.
-    fn busy(us: u64) {
-        let t = std::time::Instant::now();
-        while t.elapsed() < std::time::Duration::from_micros(us) {
-            std::hint::spin_loop();
-        }
-    }
-
-    /// `beside` returns both results and every kernel job of either stream runs each task once,
-    /// whichever stream finishes first (the other's jobs then run with the caller's help, or the
-    /// caller's with the worker's), where `mine` waits on `other` (a worker must have taken it),
-    /// and where `mine` ends before a worker can (the caller may run `other` itself); a panic in
-    /// either reaches the caller once both are done, and the pool works afterwards.
-    #[test]
-    fn beside_runs_both_streams_and_their_jobs() {
-        set_threads(2);
-        for round in 0..40 {
-            let (long, short) = (300 + 20 * (round % 5), 10);
-            let (b, a) = beside(
-                || {
-                    busy(long);
-                    (0..3).all(|_| all_tasks_once(33))
-                },
-                |_| (0..3).all(|_| all_tasks_once(17)),
-            );
-            assert!(a && b, "other longer, round {round}");
-            let (b, a) = beside(
-                || {
-                    busy(short);
-                    (0..3).all(|_| all_tasks_once(33))
-                },
-                |_| {
-                    busy(long);
-                    (0..3).all(|_| all_tasks_once(17))
-                },
-            );
-            assert!(a && b, "mine longer, round {round}");
-            let (tx, rx) = std::sync::mpsc::channel();
-            let (got, sent) = beside(
-                move || {
-                    let _ = tx.send(round);
-                    all_tasks_once(5)
-                },
-                |other| {
-                    let v = rx.recv().ok();
-                    while !other.other_done() {
-                        std::hint::spin_loop();
-                    }
-                    v
-                },
-            );
-            assert_eq!((got, sent), (Some(round), true), "mine waits on other, round {round}");
-            let (b, a) = beside(|| all_tasks_once(9), |_| 7);
-            assert_eq!((b, a), (7, true), "mine at once, round {round}");
-        }
-        let hook = std::panic::take_hook();
-        std::panic::set_hook(Box::new(|_| {}));
-        let other = std::panic::catch_unwind(|| beside(|| panic!("other"), |_| all_tasks_once(40)));
-        let mine = std::panic::catch_unwind(|| beside(|| all_tasks_once(40), |_| -> bool { panic!("mine") }));
-        std::panic::set_hook(hook);
-        assert!(other.is_err() && mine.is_err());
-        assert!(all_tasks_once(50));
-        assert!(beside(|| all_tasks_once(10), |_| all_tasks_once(10)) == (true, true));
         set_threads(1);
     }
 
