@@ -425,8 +425,7 @@ impl<'m, 'a, 'w> Engine<'m, 'a, 'w> {
     }
 }
 
-/// Both encoders at once (host): the right image's on a worker of the kernel pool
-/// ([`crate::kernels::pool::beside`]) with scratch of its own,
+/// Both encoders at once (host): the right image's on a scoped thread with scratch of its own,
 /// the left image's on this one with the arena's. The left one has more to do (the context
 /// heads and layer4 after the same trunk and features), so the right thread, once its features
 /// are done, computes the larger part of the left image's context ([`encoder::context_rest`],
@@ -457,24 +456,26 @@ fn encode_pair_threaded(m: &QuantModel<'_>, plan: &Plan, arena: &mut [u8], left:
     let grid = &plan.grid;
     // The left layer3, handed over once this thread's trunk is done.
     let (send_l3, take_l3) = std::sync::mpsc::sync_channel::<&[u8]>(1);
-    // Side by side on a worker of the kernel pool and this thread (`pool::beside`: the pool held
-    // while both run, their kernels on their own threads, and released when the first is done).
-    let right_side = move || {
-        // A worker's own frame of re-laid weights (see `run_iters`), or this thread's where it
-        // runs here (the pool not free).
-        #[cfg(target_arch = "x86_64")]
-        let _frame = crate::kernels::conv::FrameScope::unless_on();
-        let scratch = encoder::EncoderScratch { l3: &mut *l3_r, l4: &mut *l4_r, norms: norms_r, rings: &mut *rings_r, patch: &mut *patch_r };
-        encoder::encode(m, right, grid, scratch, encoder::EncoderOut { features: f2, context: None });
-        // (No layer3: the other side panicked before its trunk was done; `beside` reports it.)
-        if let Ok(l3) = take_l3.recv() {
-            encoder::context_rest(m, l3, grid, rings_r, patch_r, l4_r, inp08, net16, inp16);
-        }
-    };
-    crate::kernels::pool::beside(right_side, move |_| {
+    // The pool is held while both encoders run (their kernels on their own threads; the workers
+    // would only compete for the cores), and released when the right thread is done.
+    let held = crate::kernels::pool::hold();
+    std::thread::scope(|s| {
+        s.spawn(move || {
+            let _held = held;
+            // This thread's own frame of re-laid weights (see `run_iters`).
+            #[cfg(target_arch = "x86_64")]
+            let _frame = crate::kernels::conv::FrameScope::new();
+            let scratch = encoder::EncoderScratch { l3: &mut *l3_r, l4: &mut *l4_r, norms: norms_r, rings: &mut *rings_r, patch: &mut *patch_r };
+            encoder::encode(m, right, grid, scratch, encoder::EncoderOut { features: f2, context: None });
+            // (No layer3: the other thread panicked before its trunk was done; the scope
+            // reports it.)
+            if let Ok(l3) = take_l3.recv() {
+                encoder::context_rest(m, l3, grid, rings_r, patch_r, l4_r, inp08, net16, inp16);
+            }
+        });
         encoder::trunk(m, left, grid, rings_l, patch_l, l3_l);
         let l3: &[u8] = l3_l;
-        // (The right side has gone only if it panicked: `beside` reports it.)
+        // (The right thread has gone only if it panicked: the scope reports it.)
         let _ = send_l3.send(l3);
         encoder::image_features(m, l3, grid, rings_l, patch_l, norms_l, f1);
         encoder::hidden08(m, l3, grid, rings_l, patch_l, net08);

@@ -1,6 +1,5 @@
 //! Host, two or more threads (feature `std`): an iteration's MUD and MGA value passes on a second
-//! thread beside the two 1/16 ConvGRU steps on this one. The second thread is a worker of the
-//! kernel pool ([`pool::beside`]; where none is free, this thread runs both, in turn).
+//! thread beside the two 1/16 ConvGRU steps on this one.
 //!
 //! Why: those passes work on rows of 30-80 pixels at 1/8 and 1/16 resolution. Split over the
 //! kernel pool by pixels, each thread streams a layer's whole weights for a handful of pixels
@@ -26,7 +25,7 @@ use super::phase_times::Phase;
 use super::plan::{Buf, PixelBufs, Plan};
 use super::refine::{self, Ctx};
 use super::ring::{Carver, chunk, copy_row};
-use crate::kernels::pool::{self, scratch};
+use crate::kernels::pool::scratch;
 
 /// The second thread's buffers, kept for the frame's iterations.
 #[derive(Default)]
@@ -41,14 +40,51 @@ pub(super) struct SideBuffers {
     values: Vec<i16>,
 }
 
-/// `f` as the other stream of [`pool::beside`]: on a worker of the kernel pool it holds its own
-/// copies of the layers' re-laid weights (see `Engine::run_iters`); where it runs on this thread
-/// (the pool not free) it uses this thread's.
-fn with_frame<T>(f: impl FnOnce() -> T + Send) -> impl FnOnce() -> T + Send {
-    move || {
+/// The kernel pool held while both threads run (each one's kernels on its own thread: the
+/// pool's workers would only compete with them for the cores), and released by the thread that
+/// finishes first: the other one's kernels then have the workers for the rest.
+struct Held(std::sync::Mutex<Option<crate::kernels::pool::Hold>>);
+
+impl Held {
+    fn new() -> Self {
+        Held(std::sync::Mutex::new(Some(crate::kernels::pool::hold())))
+    }
+
+    fn release(&self) {
+        if let Ok(mut h) = self.0.lock() {
+            h.take();
+        }
+    }
+
+    /// Releases when the returned guard is dropped (also when its thread unwinds).
+    fn release_on_drop(&self) -> impl Drop + '_ {
+        struct Release<'h>(&'h Held);
+        impl Drop for Release<'_> {
+            fn drop(&mut self) {
+                self.0.release();
+            }
+        }
+        Release(self)
+    }
+}
+
+/// Starts `f` on the other thread of `s`: it holds its own copies of the layers' re-laid weights
+/// (see `Engine::run_iters`) and releases `held` when done (also when it unwinds).
+fn spawn_other<'scope, T: Send + 'scope>(s: &'scope std::thread::Scope<'scope, '_>, held: &'scope Held, f: impl FnOnce() -> T + Send + 'scope) -> std::thread::ScopedJoinHandle<'scope, T> {
+    s.spawn(move || {
+        let _release = held.release_on_drop();
         #[cfg(target_arch = "x86_64")]
-        let _frame = crate::kernels::conv::FrameScope::unless_on();
+        let _frame = crate::kernels::conv::FrameScope::new();
         f()
+    })
+}
+
+/// What the other thread returned; its panic (a bug in a pass, not a consequence of input) goes
+/// on unwinding here.
+fn joined<T>(other: std::thread::ScopedJoinHandle<'_, T>) -> T {
+    match other.join() {
+        Ok(back) => back,
+        Err(panic) => std::panic::resume_unwind(panic),
     }
 }
 
@@ -81,12 +117,9 @@ pub(super) fn setup(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuffers
     let (pixel, rings) = other_scratch(plan, &mut side.own, cfg.hidden_dim);
     let inp08 = c.frame.inp08;
     let (keys, stats) = (core::mem::take(&mut c.st.keys), core::mem::take(&mut c.st.stats));
-    // This thread's attention state from the last frame, for its buffers (the kept weights'
-    // pages are then mapped already).
-    let last = host_rows::take_attention();
-    let ((), (keys, stats, attention)) = pool::beside(
-        with_frame(move || {
-            host_rows::lend_attention(last);
+    let held = Held::new();
+    let (keys, stats, attention) = std::thread::scope(|s| {
+        let other = spawn_other(s, &held, move || {
             let mut o = Ctx {
                 m,
                 g,
@@ -97,15 +130,16 @@ pub(super) fn setup(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuffers
             };
             refine::mga_setup(&mut o);
             (keys, stats, host_rows::take_attention())
-        }),
-        |_| {
-            if cfg.ufi {
-                refine::ufi(c, max_d8);
-            }
-            lap(Phase::Ufi);
-        },
-    );
-    lap(Phase::MgaSetup);
+        });
+        if cfg.ufi {
+            refine::ufi(c, max_d8);
+        }
+        held.release();
+        lap(Phase::Ufi);
+        let back = joined(other);
+        lap(Phase::MgaSetup);
+        back
+    });
     host_rows::lend_attention(attention);
     (c.st.keys, c.st.stats) = (keys, stats);
 }
@@ -161,7 +195,7 @@ pub(super) fn iteration(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuf
     let take_row = |(att, pass): &(host_rows::AttentionState, refine::GlbPass<'_>)| {
         let next = match todo.lock() {
             Ok(mut t) => t.next(),
-            Err(_) => None, // (the other thread panicked holding it: `beside` reports that)
+            Err(_) => None, // (the other thread panicked holding it: the scope reports that)
         };
         let Some((y, d)) = next else { return false };
         pass.row(Some(att), y, d);
@@ -173,15 +207,13 @@ pub(super) fn iteration(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuf
     // Rows each thread has taken ([`ALTERNATE_GLB_ROWS`]).
     #[cfg(feature = "internals")]
     let (main_rows, side_rows) = (AtomicUsize::new(0), AtomicUsize::new(0));
-    // (The other side may run on this thread, the pool not free: it then takes every row.)
-    #[cfg(feature = "internals")]
-    let this_thread = std::thread::current().id();
+    let held = Held::new();
     let (state_tx, state_rx) = mpsc::channel();
-    {
+    std::thread::scope(|s| {
         let (pass, take_row) = (&pass, &take_row);
         #[cfg(feature = "internals")]
         let (main_rows, side_rows, todo) = (&main_rows, &side_rows, &todo);
-        let other = with_frame(move || {
+        let other = spawn_other(s, &held, move || {
             let mut o = Ctx {
                 m,
                 g,
@@ -196,7 +228,7 @@ pub(super) fn iteration(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuf
             if cfg.mga {
                 refine::mga_values(&mut o);
             }
-            // (A closed channel: the other side panicked, which `beside` reports.)
+            // (A closed channel: the other side panicked, which the scope reports.)
             let _ = state_tx.send((net08, flow, mask, u));
             if let Some(mut attention) = attention {
                 let values: &[i16] = values;
@@ -207,7 +239,6 @@ pub(super) fn iteration(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuf
                     loop {
                         #[cfg(feature = "internals")]
                         while ALTERNATE_GLB_ROWS.load(Ordering::Relaxed)
-                            && std::thread::current().id() != this_thread
                             && side_rows.load(Ordering::Acquire) >= main_rows.load(Ordering::Acquire)
                             && todo.lock().is_ok_and(|t| t.len() > 0)
                         {
@@ -222,53 +253,47 @@ pub(super) fn iteration(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuf
                 }
             }
         });
-        let ((), ()) = pool::beside(other, |other| {
-            for _ in 0..2 {
-                refine::gru16_with(m, &g, inp16, c.frame.net16, c.px.patch, c.rings, |y, out| copy_row(out, chunk(pooled, y, row16)));
-            }
-            lap(Phase::Gru16);
-            // (No state: the other side panicked, which `beside` reports.)
-            let mut state = None;
-            other.wait(|| {
-                state = state_rx.try_recv().ok();
-                state.is_some()
-            });
-            if let Some((net08, flow, mask, u)) = state.or_else(|| state_rx.try_recv().ok()) {
-                c.frame.net08 = net08;
-                (c.st.flow, c.st.mask, c.st.u) = (flow, mask, u);
-            }
-            lap(Phase::Mud);
-            let mut glb_row = |y: usize, d: &mut [i16]| {
-                let mut idle = 0u32;
-                loop {
-                    if let Some(r) = done.get(y).and_then(|r| r.get()) {
-                        copy_row(d, r);
-                        return;
-                    }
-                    if let Some(p) = pass.get()
-                        && take_row(p)
-                    {
-                        #[cfg(feature = "internals")]
-                        main_rows.fetch_add(1, Ordering::Release);
-                        continue;
-                    }
-                    // Every row taken, row `y` by the other thread: it ends soon, or it has
-                    // panicked (the row is never written; `beside` reports the panic).
-                    if other.other_done() && done.get(y).and_then(|r| r.get()).is_none() {
-                        return;
-                    }
-                    idle += 1;
-                    if idle < 256 {
-                        core::hint::spin_loop();
-                    } else {
-                        std::thread::yield_now();
-                    }
+        for _ in 0..2 {
+            refine::gru16_with(m, &g, inp16, c.frame.net16, c.px.patch, c.rings, |y, out| copy_row(out, chunk(pooled, y, row16)));
+        }
+        lap(Phase::Gru16);
+        if let Ok((net08, flow, mask, u)) = state_rx.recv() {
+            c.frame.net08 = net08;
+            (c.st.flow, c.st.mask, c.st.u) = (flow, mask, u);
+        }
+        lap(Phase::Mud);
+        let mut glb_row = |y: usize, d: &mut [i16]| {
+            let mut idle = 0u32;
+            loop {
+                if let Some(r) = done.get(y).and_then(|r| r.get()) {
+                    copy_row(d, r);
+                    return;
                 }
-            };
-            refine::gru08_with(c, if cfg.mga { Some(&mut glb_row) } else { None });
-        });
-    }
-    lap(Phase::Gru08);
+                if let Some(p) = pass.get()
+                    && take_row(p)
+                {
+                    #[cfg(feature = "internals")]
+                    main_rows.fetch_add(1, Ordering::Release);
+                    continue;
+                }
+                // Every row taken, row `y` by the other thread: it ends soon, or it has
+                // panicked (the row is never written; the scope reports the panic).
+                if other.is_finished() && done.get(y).and_then(|r| r.get()).is_none() {
+                    return;
+                }
+                idle += 1;
+                if idle < 256 {
+                    core::hint::spin_loop();
+                } else {
+                    std::thread::yield_now();
+                }
+            }
+        };
+        refine::gru08_with(c, if cfg.mga { Some(&mut glb_row) } else { None });
+        held.release();
+        joined(other);
+        lap(Phase::Gru08);
+    });
     if let Some((attention, _)) = pass.into_inner() {
         host_rows::lend_attention(attention);
     }

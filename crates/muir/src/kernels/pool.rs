@@ -11,11 +11,6 @@
 //! frame) and then sleeps on a condition variable; posting a job takes no lock unless a worker
 //! sleeps. One job runs at a time: a caller that finds
 //! the pool busy (another thread's kernel, or a nested call) runs its tasks itself.
-//!
-//! [`beside`] runs two coarse streams of work side by side, one on the caller and one on a
-//! worker (the engine's two encoders, and its refinement passes that run beside each other).
-//! The worker's stream is posted in a slot of its own, which a worker takes or the caller takes
-//! back, so that neither stream ever waits on one that no thread runs.
 #![deny(clippy::indexing_slicing)]
 
 use std::sync::atomic::{AtomicBool, AtomicPtr, AtomicU32, AtomicU64, AtomicUsize, Ordering};
@@ -99,10 +94,6 @@ struct Pool {
     lock: Mutex<()>,
     wake: Condvar,
     busy: AtomicBool,
-    /// [`beside`]'s other stream, posted for a worker to take (null: none). A slot of its own,
-    /// not `job`: a worker takes it by swapping in null, its poster takes it back by swapping
-    /// out its own address, and exactly one of them wins, whatever else is posted meanwhile.
-    side: Line<AtomicPtr<Side>>,
     workers: Mutex<usize>,
 }
 
@@ -128,7 +119,6 @@ fn pool() -> &'static Pool {
         lock: Mutex::new(()),
         wake: Condvar::new(),
         busy: AtomicBool::new(false),
-        side: Line(AtomicPtr::new(core::ptr::null_mut())),
         workers: Mutex::new(0),
     })
 }
@@ -233,152 +223,22 @@ fn pause(waits: &mut u32) {
     }
 }
 
-/// [`beside`]'s other stream as the pool's side slot holds it.
-struct Side {
-    /// Runs the stream (once: only the thread that takes it out of the slot calls this), catches
-    /// its panic, releases the pool and sets `done` (lifetime erased: [`beside`] does not return
-    /// before the stream is done or taken back).
-    f: *const (dyn Fn() + Sync),
-    /// The stream has returned or unwound: the last thing the thread that ran it does with this.
-    done: AtomicBool,
-    /// Run (or being run) by the caller, where it was never posted (see `Beside::take_back`).
-    claimed: AtomicBool,
+/// Holds the pool until the returned guard is dropped, on any thread: meanwhile every [`run`]
+/// runs its tasks on its caller. For work that is split coarsely already (the two image encoders
+/// on two threads), whose threads the pool's workers would only compete with for the cores. The
+/// encoders' pair hands the guard to the shorter of its two threads, so that the longer one's
+/// kernels get the pool's workers back as soon as the other is done.
+pub fn hold() -> Hold {
+    Hold(!pool().busy.swap(true, Ordering::Acquire))
 }
 
-impl Side {
-    fn run(&self) {
-        // SAFETY: see `f`.
-        let f = unsafe { &*self.f };
-        f();
-        self.done.store(true, Ordering::Release);
-    }
-}
+/// See [`hold`] (`true`: this guard set the pool busy and clears it when dropped).
+pub struct Hold(bool);
 
-/// What [`beside`]'s `mine` may ask about `other`.
-pub struct Beside<'a> {
-    side: &'a Side,
-    /// Its address as posted in the pool's side slot; null where it was not posted (the pool
-    /// not free: the caller runs it).
-    posted: *mut Side,
-    /// Releases the pool (once; see [`beside`]).
-    release: &'a (dyn Fn() + Sync),
-}
-
-impl Beside<'_> {
-    /// `other` has returned (or unwound).
-    pub fn other_done(&self) -> bool {
-        self.side.done.load(Ordering::Acquire)
-    }
-
-    /// Runs `other` on this thread, now, if no worker has taken it yet (the pool released first,
-    /// so that its kernels have the workers); `false` if a worker has it.
-    fn take_back(&self) -> bool {
-        if self.posted.is_null() {
-            if self.side.claimed.swap(true, Ordering::Relaxed) {
-                return false;
-            }
-            self.side.run();
-            return true;
-        }
-        if pool().side.compare_exchange(self.posted, core::ptr::null_mut(), Ordering::SeqCst, Ordering::SeqCst).is_err() {
-            return false;
-        }
-        (self.release)();
-        self.side.run();
-        true
-    }
-
-    /// Waits until `ready()` or until `other` is done, whichever comes first: for `mine` to wait
-    /// on something `other` does. Where no worker has taken `other` yet (the pool's workers busy
-    /// with another caller's stream, or descheduled) it runs here, so the wait cannot hang.
-    pub fn wait(&self, mut ready: impl FnMut() -> bool) {
-        let mut waits = 0u32;
-        while !ready() && !self.other_done() {
-            if !self.take_back() {
-                pause(&mut waits);
-            }
-        }
-    }
-}
-
-/// Runs `other` on one of the pool's workers and `mine` on the caller, side by side, and returns
-/// both results (`mine`'s first): for two streams of work that are split coarsely already (the
-/// two image encoders, the refinement's passes beside each other, `engine::side`). While both
-/// run, the pool is held: each one's kernels run on its own thread. When `other` is done first,
-/// the pool is released and the caller's kernels get the worker back; when `mine` is, the caller
-/// runs `other` itself if no worker has taken it yet (the pool released), else waits for it.
-/// Where `mine` waits on `other`, it waits with [`Beside::wait`].
-///
-/// Why a worker rather than a new thread: a thread started for each pass waited 0.1-0.3 ms for
-/// a core (the pool's worker spins on it for a while after its last job), started with cold
-/// scratch, and left the worker asleep, to be woken when the caller's kernels needed it again.
-///
-/// `other` is posted in a slot of its own (the pool's `side`), which a worker takes or the caller
-/// takes back, never both: `mine` never waits on a stream no thread runs. Where the pool is not
-/// free (one thread, another caller's kernels or streams, backing off) both run here, `other`
-/// after `mine`. A panic in either is resumed here once both are done (`other`'s as a new panic
-/// where it ran on a worker).
-pub fn beside<A: Send, B>(other: impl FnOnce() -> A + Send, mine: impl FnOnce(&Beside<'_>) -> B) -> (B, A) {
-    let p = pool();
-    let held = threads() >= 2 && INLINE_JOBS.load(Ordering::Relaxed) == 0 && !p.busy.swap(true, Ordering::Acquire);
-    let released = AtomicBool::new(!held);
-    let release = || {
-        if !released.swap(true, Ordering::AcqRel) {
-            p.busy.store(false, Ordering::Release);
-        }
-    };
-    let slot = std::sync::Mutex::new(Some(other));
-    let out = std::sync::Mutex::new(None);
-    let panicked = AtomicBool::new(false);
-    let task = || {
-        let f = slot.lock().ok().and_then(|mut s| s.take());
-        if let Some(f) = f {
-            match std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
-                Ok(a) => {
-                    if let Ok(mut o) = out.lock() {
-                        *o = Some(a);
-                    }
-                }
-                Err(_) => panicked.store(true, Ordering::Relaxed),
-            }
-        }
-        release();
-    };
-    let task: &(dyn Fn() + Sync) = &task;
-    // SAFETY (lifetime erasure): `side` and `task` outlive every use: this function returns only
-    // once the stream is done, whichever thread ran it, also when `mine` panics.
-    let f: *const (dyn Fn() + Sync) = unsafe { core::mem::transmute::<&(dyn Fn() + Sync), &'static (dyn Fn() + Sync)>(task) };
-    let side = Side { f, done: AtomicBool::new(false), claimed: AtomicBool::new(false) };
-    let posted = &side as *const Side as *mut Side;
-    if held {
-        // The slot is empty: only the pool's holder posts, and takes its stream back (or sees it
-        // taken) before it releases the pool.
-        p.side.store(posted, Ordering::SeqCst);
-        if p.sleepers.load(Ordering::SeqCst) > 0 {
-            let _g = p.lock.lock();
-            p.wake.notify_all();
-        }
-    }
-    let handle = Beside { side: &side, posted: if held { posted } else { core::ptr::null_mut() }, release: &release };
-    let mine = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| mine(&handle)));
-    if !handle.take_back() {
-        // A worker has it (or this thread ran it already, in `Beside::wait`): wait until it is
-        // done, the pool still held, so that its kernels run on its thread alone. (Split over
-        // the pool, the encoders' short head rows ran slower on two threads than on one.)
-        let mut waits = 0u32;
-        while !side.done.load(Ordering::Acquire) {
-            pause(&mut waits);
-        }
-    }
-    let other = out.into_inner().ok().flatten();
-    match (mine, other) {
-        (Err(panic), _) => std::panic::resume_unwind(panic),
-        (Ok(b), Some(a)) if !panicked.load(Ordering::Relaxed) => (b, a),
-        _ => {
-            #[allow(clippy::panic)] // a bug in `other`, not a consequence of input: report it here
-            {
-                panic!("a stream beside the caller panicked");
-            }
+impl Drop for Hold {
+    fn drop(&mut self) {
+        if self.0 {
+            pool().busy.store(false, Ordering::Release);
         }
     }
 }
@@ -402,11 +262,9 @@ fn work(job: &Job) {
 fn worker() {
     let p = pool();
     let mut seen = p.epoch.load(Ordering::SeqCst);
-    // Nothing new: no job posted since `seen`, no side stream posted.
-    let idle = |seen: u64| p.epoch.load(Ordering::SeqCst) == seen && p.side.load(Ordering::SeqCst).is_null();
     loop {
         let mut spins = 0;
-        while idle(seen) {
+        while p.epoch.load(Ordering::SeqCst) == seen {
             if spins < SPINS {
                 for _ in 0..64 {
                     std::hint::spin_loop();
@@ -414,26 +272,18 @@ fn worker() {
                 spins += 1;
                 continue;
             }
-            // Sleep until the next job or side stream (counted first, then both rechecked under
-            // the lock).
+            // Sleep until the next job (counted first, then the epoch rechecked under the lock).
             let Ok(mut g) = p.lock.lock() else {
                 return;
             };
             p.sleepers.fetch_add(1, Ordering::SeqCst);
-            while idle(seen) {
+            while p.epoch.load(Ordering::SeqCst) == seen {
                 g = match p.wake.wait(g) {
                     Ok(g) => g,
                     Err(_) => return,
                 };
             }
             p.sleepers.fetch_sub(1, Ordering::SeqCst);
-        }
-        let side = p.side.swap(core::ptr::null_mut(), Ordering::SeqCst);
-        if !side.is_null() {
-            // SAFETY: a posted side stream lives until its poster has taken it back or seen it
-            // done; this worker took it out of the slot, so its poster waits for `done`.
-            unsafe { &*side }.run();
-            continue;
         }
         seen = p.epoch.load(Ordering::SeqCst);
         p.active.fetch_add(1, Ordering::SeqCst);
@@ -522,118 +372,6 @@ mod tests {
             }
         }
         set_threads(1);
-    }
-
-    /// Counts every task of a job of `n` tasks on the pool; `true` when each ran once.
-    fn all_tasks_once(n: usize) -> bool {
-        let hits: Vec<AtomicUsize> = (0..n).map(|_| AtomicUsize::new(0)).collect();
-        run(n, &|i| {
-            if let Some(h) = hits.get(i) {
-                h.fetch_add(1, Ordering::Relaxed);
-            }
-        });
-        hits.iter().all(|h| h.load(Ordering::Relaxed) == 1)
-    }
-
-    /// Busy work of about `us` microseconds.
-    fn busy(us: u64) {
-        let t = std::time::Instant::now();
-        while t.elapsed() < std::time::Duration::from_micros(us) {
-            std::hint::spin_loop();
-        }
-    }
-
-    /// One round of every case of [`beside`]: either stream finishing first (the other's jobs
-    /// then run with the finished one's help), `mine` waiting on `other` ([`Beside::wait`]), and
-    /// `mine` ending before a worker could take `other`. `true` when both results came back and
-    /// every job's tasks each ran once.
-    fn beside_round(round: u64) -> bool {
-        let (long, short) = (300 + 20 * (round % 5), 10);
-        let (b, a) = beside(
-            || {
-                busy(long);
-                (0..3).all(|_| all_tasks_once(33))
-            },
-            |_| (0..3).all(|_| all_tasks_once(17)),
-        );
-        let (d, c) = beside(
-            || {
-                busy(short);
-                (0..3).all(|_| all_tasks_once(33))
-            },
-            |_| {
-                busy(long);
-                (0..3).all(|_| all_tasks_once(17))
-            },
-        );
-        let (tx, rx) = std::sync::mpsc::channel();
-        let (got, sent) = beside(
-            move || {
-                let _ = tx.send(round);
-                busy(short);
-                all_tasks_once(5)
-            },
-            |other| {
-                let mut v = None;
-                other.wait(|| {
-                    v = rx.try_recv().ok();
-                    v.is_some()
-                });
-                let ok = all_tasks_once(7);
-                while !other.other_done() {
-                    std::hint::spin_loop();
-                }
-                (v.or_else(|| rx.try_recv().ok()), ok)
-            },
-        );
-        let (f, e) = beside(|| all_tasks_once(9), |_| 7);
-        a && b && c && d && sent && got == (Some(round), true) && (f, e) == (7, true)
-    }
-
-    /// Every case of `beside` returns both results and runs every job once, a panic in either
-    /// stream reaches the caller once both are done, and the pool works afterwards.
-    #[test]
-    fn beside_runs_both_streams_and_their_jobs() {
-        set_threads(2);
-        for round in 0..40 {
-            assert!(beside_round(round), "round {round}");
-        }
-        let hook = std::panic::take_hook();
-        std::panic::set_hook(Box::new(|_| {}));
-        let other = std::panic::catch_unwind(|| beside(|| panic!("other"), |_| all_tasks_once(40)));
-        let mine = std::panic::catch_unwind(|| beside(|| all_tasks_once(40), |_| -> bool { panic!("mine") }));
-        std::panic::set_hook(hook);
-        assert!(other.is_err() && mine.is_err());
-        assert!(all_tasks_once(50));
-        assert!(beside(|| all_tasks_once(10), |_| all_tasks_once(10)) == (true, true));
-        set_threads(1);
-    }
-
-    /// Several callers at once, each with its pairs of streams and kernel jobs, while the thread
-    /// count changes under them (as other tests of this process do): every round completes (no
-    /// stream waits for a worker that never takes it) with every job run once. A hang fails the
-    /// test after a minute rather than stopping the run.
-    #[test]
-    fn beside_from_several_callers_never_hangs() {
-        let (tx, rx) = std::sync::mpsc::channel();
-        std::thread::spawn(move || {
-            set_threads(3);
-            let ok = std::thread::scope(|s| {
-                let callers: Vec<_> = (0..3u64).map(|c| s.spawn(move || (0..60).all(|r| beside_round(c * 100 + r) && all_tasks_once(21)))).collect();
-                let toggler = s.spawn(|| {
-                    for i in 0..200 {
-                        set_threads([3, 2, 1][i % 3]);
-                        busy(200);
-                    }
-                    set_threads(2);
-                });
-                let ok = callers.into_iter().all(|h| h.join().unwrap_or(false));
-                ok && toggler.join().is_ok()
-            });
-            set_threads(1);
-            let _ = tx.send(ok);
-        });
-        assert_eq!(rx.recv_timeout(std::time::Duration::from_secs(60)), Ok(true));
     }
 
     #[test]
