@@ -529,3 +529,32 @@ fn timings_list_every_phase() {
     let o = muir(&[&"run", &"--engine", &"float", &"--timings", &"--disparity", &d]);
     assert_fails(&o, &["--timings", "fixed engine"]);
 }
+
+/// `--repeat N` runs N more frames on the same engine and buffers after the first and prints
+/// their times; every frame gives the first one's bits (a frame that left state behind for the
+/// next would fail the run), so the outputs are those of a run without it, in both engines and
+/// on two threads.
+#[test]
+fn repeated_frames_give_the_first_frames_bits() {
+    let s = Scratch::new("repeat");
+    for engine in ["fixed", "float"] {
+        let (a, b) = (s.path(&format!("{engine}-a.pfm")), s.path(&format!("{engine}-b.pfm")));
+        let (ua, ub) = (s.path(&format!("{engine}-ua.pfm")), s.path(&format!("{engine}-ub.pfm")));
+        let o = muir(&[&"run", &"--engine", &engine, &"--threads", &"2", &"--disparity", &a, &"--uncertainty", &ua]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        assert!(!stderr(&o).contains("repeated"), "{}", stderr(&o));
+        let o = muir(&[&"run", &"--engine", &engine, &"--threads", &"2", &"--repeat", &"2", &"--disparity", &b, &"--uncertainty", &ub]);
+        let err = stderr(&o);
+        assert!(o.status.success(), "{err}");
+        assert!(err.contains("2 repeated frame(s), the same bits as the first: min "), "{err}");
+        assert_eq!(std::fs::read(&a).unwrap(), std::fs::read(&b).unwrap(), "{engine}: disparity");
+        assert_eq!(std::fs::read(&ua).unwrap(), std::fs::read(&ub).unwrap(), "{engine}: uncertainty");
+    }
+    let o = muir(&[&"run", &"--repeat", &"1", &"--timings", &"--disparity", &s.path("t.pfm")]);
+    let err = stderr(&o);
+    assert!(o.status.success(), "{err}");
+    assert_eq!(err.lines().filter(|l| l.contains(" frame ") && l.ends_with(" ms")).count(), 2, "{err}");
+    assert!(err.contains("the last repeated frame's phases"), "{err}");
+    let o = muir(&[&"run", &"--repeat", &"x"]);
+    assert!(!o.status.success() && stderr(&o).contains("--repeat"), "{}", stderr(&o));
+}

@@ -30,12 +30,21 @@ is no fixed-point model for such weights, so the fixed engine is left out unless
 for the issue's `raft-stereo-realtime` case. `--no-fixed` leaves the fixed engine out.
 `--baseline OLD_MUIR`: another `muir` binary whose float engine runs in every round too (an
 interleaved A/B of two builds; copy the old `target/release/muir` aside before rebuilding).
+`--repeat R`: the steady state, as a camera pipeline or the twin in this process sees it. Each
+`muir run` gets `--repeat R` (R more frames on the same engine and buffers after the first, the
+same bits checked) and its figure is the median of those R frames; the twin's is the median of R
+passes in the round. The first frames (a fresh process each: memory the OS maps and zeroes on
+first touch, the host kernels' weights re-laid) get a table of their own, and the CPU column is
+then the process's CPU time over its R + 1 frames. Without it (the default) each Rust figure is
+a fresh process's first frame while the twin's passes follow a warm-up: the Rust engines pay
+one-time costs the twin does not.
 
 Examples (issue #24 item 3's figure):
 
     OMP_NUM_THREADS=1 python3 scripts/speed.py --rounds 7
     python3 scripts/speed.py --config raft-stereo-realtime --size 384x288 --rounds 7 --threads 2
     python3 scripts/speed.py --threads 1,2 --rounds 7   # issue #24's two-thread figure
+    python3 scripts/speed.py --threads 1,2 --rounds 7 --repeat 3   # the same in the steady state
 
 Needs a release build (`cargo build --release --bin muir`) and the twin (python/README.md).
 """
@@ -61,11 +70,12 @@ def child_cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def rust_seconds(muir: str, model: str, pair: str, threads: int) -> tuple[float, float]:
-    """(engine wall seconds as the CLI prints them, the process's CPU seconds)."""
+def rust_seconds(muir: str, model: str, pair: str, threads: int, repeat: int = 0) -> tuple[float, float, float | None]:
+    """(the first frame's wall seconds as the CLI prints them, the process's CPU seconds, and
+    with `repeat` the median of the repeated frames' seconds)."""
     cmd = [muir, "run", "--model", model, "--left", os.path.join(pair, "left.png"),
            "--right", os.path.join(pair, "right.png"), "--no-refine", "--threads", str(threads),
-           "--out-dir", OUT]
+           "--out-dir", OUT] + (["--repeat", str(repeat)] if repeat else [])
     c0 = child_cpu()
     r = subprocess.run(cmd, capture_output=True, text=True)
     cpu = child_cpu() - c0
@@ -74,7 +84,13 @@ def rust_seconds(muir: str, model: str, pair: str, threads: int) -> tuple[float,
     m = re.search(r"engine: ([0-9.]+) s", r.stderr)
     if not m:
         sys.exit(f"error: no 'engine: N s' in the output of {' '.join(cmd)}:\n{r.stderr}")
-    return float(m.group(1)), cpu
+    warm = None
+    if repeat:
+        w = re.search(r"repeated frame\(s\), the same bits as the first: min [0-9.]+ s, median ([0-9.]+) s", r.stderr)
+        if not w:
+            sys.exit(f"error: no repeated frames' times in the output of {' '.join(cmd)}:\n{r.stderr}")
+        warm = float(w.group(1))
+    return float(m.group(1)), cpu, warm
 
 
 def spread(num: list[float], den: list[float], unit: str = "") -> str:
@@ -95,6 +111,7 @@ def main(argv=None) -> int:
     p.add_argument("--size", default=None, help="WxH: the top-left crop of the pair")
     p.add_argument("--no-fixed", action="store_true", help="leave the fixed-point engine out")
     p.add_argument("--baseline", default=None, help="another muir binary, its float engine run in every round too")
+    p.add_argument("--repeat", type=int, default=0, help="steady state: R more frames per muir run (muir run --repeat R), R twin passes per round")
     a = p.parse_args(argv)
     try:
         counts = [int(t) for t in a.threads.split(",")]
@@ -109,6 +126,8 @@ def main(argv=None) -> int:
         sys.exit(f"error: {a.baseline}: no such file")
     if a.rounds < 1:
         sys.exit("error: --rounds must be at least 1")
+    if not 0 <= a.repeat <= 100:
+        sys.exit("error: --repeat must be 0 to 100")
     blob = a.blob if a.blob else (None if a.config else os.path.join(ROOT, "models", "muir-slim.muirq"))
     if a.no_fixed:
         blob = None
@@ -172,6 +191,8 @@ def main(argv=None) -> int:
     # times[(engine, threads)]: one entry a round.
     times = {(n, t): [] for t in counts for n in engines}
     cpus = {(n, t): [] for t in counts for n in engines}
+    # With --repeat: the Rust engines' first frames (fresh processes).
+    first = {(n, t): [] for t in counts for n in engines if n != "PyTorch twin"}
     for t in counts:  # warm-up at each count
         torch.set_num_threads(t)
         twin()
@@ -186,23 +207,30 @@ def main(argv=None) -> int:
         # Alternate the order of the thread counts and of the Rust runs from round to round.
         for t in (counts if k % 2 == 0 else counts[::-1]):
             for n, binary, m in (runs if k % 2 == 0 else runs[::-1]):
-                s, c = rust_seconds(binary, m, pair, t)
-                times[(n, t)].append(s)
-                cpus[(n, t)].append(c)
+                s, c, warm = rust_seconds(binary, m, pair, t, a.repeat)
+                first[(n, t)].append(s)
+                times[(n, t)].append(warm if a.repeat else s)
+                cpus[(n, t)].append(c / (a.repeat + 1))
             torch.set_num_threads(t)
-            c0, t0 = time.process_time(), time.perf_counter()
-            twin()
-            times[("PyTorch twin", t)].append(time.perf_counter() - t0)
-            cpus[("PyTorch twin", t)].append(time.process_time() - c0)
+            passes = []
+            for _ in range(max(a.repeat, 1)):
+                c0, t0 = time.process_time(), time.perf_counter()
+                twin()
+                passes.append((time.perf_counter() - t0, time.process_time() - c0))
+            passes.sort()
+            times[("PyTorch twin", t)].append(passes[len(passes) // 2][0])
+            cpus[("PyTorch twin", t)].append(passes[len(passes) // 2][1])
             settle()
             print(f"round {k + 1}/{a.rounds}, {t} thread(s): " + ", ".join(f"{n} {times[(n, t)][-1]:.3f} s" for n in engines), file=sys.stderr)
 
     h, w = left.shape[:2]
     med = {key: statistics.median(v) for key, v in times.items()}
     what = f"{a.config} seeded weights (seed {a.seed})" if a.config else os.path.basename(model_path)
+    state = (f", steady state (median of {a.repeat} frames after the first in each muir process, "
+             f"of {a.repeat} twin passes in each round)") if a.repeat else ""
     for t in counts:
         print(f"{os.path.basename(os.path.normpath(a.pair))} {w}x{h}, {what}, {t} thread(s), "
-              f"{a.rounds} interleaved rounds, network only\n")
+              f"{a.rounds} interleaved rounds, network only{state}\n")
         print("| engine | min s | median s | median CPU s | median / float engine | median / PyTorch | / float engine, rounds' ratios |")
         print("|---|---:|---:|---:|---:|---:|---:|")
         for n in engines:
@@ -210,6 +238,14 @@ def main(argv=None) -> int:
             print(f"| {n} | {min(v):.3f} | {med[(n, t)]:.3f} | {statistics.median(cpus[(n, t)]):.3f} | "
                   f"{med[(n, t)] / med[('muir float engine', t)]:.2f} | {med[(n, t)] / med[('PyTorch twin', t)]:.2f} | "
                   f"{spread(v, times[('muir float engine', t)])} |")
+        print()
+    if a.repeat:
+        print("The Rust engines' first frames (a fresh process each), s\n")
+        print("| engine | threads | min s | median s | median / float engine's |")
+        print("|---|---:|---:|---:|---:|")
+        for (n, t), v in first.items():
+            print(f"| {n} | {t} | {min(v):.3f} | {statistics.median(v):.3f} | "
+                  f"{statistics.median(v) / statistics.median(first[('muir float engine', t)]):.2f} |")
         print()
     if len(counts) > 1:
         t1 = counts[0]

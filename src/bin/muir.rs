@@ -148,6 +148,13 @@ struct RunArgs {
     /// ConvGRUs, the heads, the full-resolution refinement) after the summary.
     #[arg(long)]
     timings: bool,
+    /// After the first frame, runs the same pair N more times on the same engine and buffers,
+    /// as a camera pipeline runs frame after frame, and prints their times (minimum and median):
+    /// the steady-state frame time, without the first frame's one-time costs (memory the OS
+    /// maps and zeroes on first touch, the host kernels' weights re-laid). Every frame must give
+    /// the first one's bits (checked: an error otherwise); the outputs are the last frame's.
+    #[arg(long, value_name = "N", default_value_t = 0, value_parser = clap::value_parser!(u16).range(0..=1000))]
+    repeat: u16,
     /// Fixed engine: adaptive iterations with the recommended criterion (stop once at most 100
     /// per mille of the 1/8-grid pixels still move by more than 1 px per iteration, after 2;
     /// chosen on training scenes: docs/experiments/adaptive-iterations); --iters stays the maximum.
@@ -403,6 +410,11 @@ struct Prediction {
     iters_used: usize,
     /// The fixed engine's phase times.
     phases: Option<muir::engine::PhaseTimes>,
+    /// `--repeat`: the repeated frames' times, and (fixed engine) the last one's phase times.
+    repeated: Vec<Duration>,
+    /// The first frame's time (`--repeat` runs more after it).
+    first_frame: Duration,
+    repeated_phases: Option<muir::engine::PhaseTimes>,
 }
 
 fn run(args: &RunArgs) -> Result<(), String> {
@@ -504,7 +516,6 @@ fn run(args: &RunArgs) -> Result<(), String> {
         Engine::Fixed => "fixed",
     };
     let spinner = spinner(&format!("{} {}x{}, {iters} iterations, {label} engine", config.name, left.width, left.height));
-    let start = Instant::now();
     if (args.early_stop.is_some() || args.adaptive) && engine_kind != Engine::Fixed {
         return Err("--early-stop and --adaptive need the fixed engine (--engine fixed or a .muirq model)".into());
     }
@@ -521,10 +532,11 @@ fn run(args: &RunArgs) -> Result<(), String> {
             max_moving_per_mille: p.min(1000),
         })
     };
-    let pred = engine.predict(&left.view(), &right.view(), iters, args.reject_above, !args.no_refine, early, max_disparity, args.threads as usize);
-    let network = start.elapsed();
+    let pred = engine.predict(&left.view(), &right.view(), iters, args.reject_above, !args.no_refine, early, max_disparity, args.threads as usize, args.repeat as usize);
     spinner.finish_and_clear();
     let pred = pred.map_err(|e| pair_err(&e))?;
+    // The first frame's (`--repeat` frames are timed apart).
+    let network = pred.first_frame;
     let (w, h) = (pred.width, pred.height);
 
     write_pfm(&disparity, w, h, &pred.disparity).map_err(|e| e.to_string())?;
@@ -542,6 +554,16 @@ fn run(args: &RunArgs) -> Result<(), String> {
     eprintln!("{}", summary(&config, label, w, h, iters, network, &pred));
     if let (true, Some(t)) = (args.timings, &pred.phases) {
         eprint!("{}", phase_table(t));
+    }
+    if !pred.repeated.is_empty() {
+        let mut s: Vec<f64> = pred.repeated.iter().map(Duration::as_secs_f64).collect();
+        s.sort_unstable_by(f64::total_cmp);
+        let (min, median) = (s.first().copied().unwrap_or(0.0), s.get(s.len() / 2).copied().unwrap_or(0.0));
+        eprintln!("muir: {} repeated frame(s), the same bits as the first: min {min:.3} s, median {median:.3} s", s.len());
+        if let (true, Some(t)) = (args.timings, &pred.repeated_phases) {
+            eprintln!("muir: the last repeated frame's phases:");
+            eprint!("{}", phase_table(t));
+        }
     }
     if let Some(gt) = &gt {
         eprintln!("{}", score(gt, &pred));
@@ -605,12 +627,37 @@ impl Loaded<'_> {
         early: Option<muir::engine::EarlyStop>,
         max_disparity: MaxDisparity,
         threads: usize,
+        repeat: usize,
     ) -> Result<Prediction, String> {
+        let start = Instant::now();
+        let differs = |k: usize| format!("frame {} of --repeat gave other bits than the first frame (state left over from a frame to the next: a bug, please report it)", k + 2);
         match self {
             Loaded::Float(model) => {
-                let mut p = model.predict(left, right, Some(iters)).map_err(|e| e.to_string())?;
-                if refine {
-                    p.refine_full_res(left, right);
+                let frame = || {
+                    model.predict(left, right, Some(iters)).map(|mut p| {
+                        if refine {
+                            p.refine_full_res(left, right);
+                        }
+                        p
+                    })
+                };
+                let mut p = frame().map_err(|e| e.to_string())?;
+                let first_frame = start.elapsed();
+                let mut repeated = Vec::with_capacity(repeat);
+                for k in 0..repeat {
+                    let t = Instant::now();
+                    let again = frame().map_err(|e| e.to_string())?;
+                    repeated.push(t.elapsed());
+                    let same = |a: &[f32], b: &[f32]| a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits());
+                    let same_u = match (&p.uncertainty, &again.uncertainty) {
+                        (Some(a), Some(b)) => same(a, b),
+                        (None, None) => true,
+                        _ => false,
+                    };
+                    if !same(&p.disparity, &again.disparity) || !same_u {
+                        return Err(differs(k));
+                    }
+                    p = again;
                 }
                 let error_px: Option<Vec<f32>> = p.uncertainty.as_ref().map(|u| u.iter().map(|u| (0.5 * u).exp()).collect());
                 let raw_disparity = p.disparity.clone();
@@ -619,7 +666,7 @@ impl Loaded<'_> {
                     (Some(t), Some(e)) => Some(reject_float(&mut disparity, e, t)),
                     _ => None,
                 };
-                Ok(Prediction { width: p.width, height: p.height, disparity, error_px, raw_disparity, rejected, iters_used: iters, phases: None })
+                Ok(Prediction { width: p.width, height: p.height, disparity, error_px, raw_disparity, rejected, iters_used: iters, phases: None, repeated, first_frame, repeated_phases: None })
             }
             Loaded::Fixed(model) => {
                 let (w, h) = (left.width, left.height);
@@ -634,7 +681,20 @@ impl Loaded<'_> {
                 let mut u = vec![0i16; w * h];
                 let unc = if model.config().mud { Some(&mut u[..]) } else { None };
                 engine.run_iters(left, right, iters, &mut Output { disparity: &mut d, uncertainty: unc }).map_err(|e| e.to_string())?;
-                let used = engine.last_iterations();
+                let (used, phases, first_frame) = (engine.last_iterations(), engine.last_phase_times(), start.elapsed());
+                let mut repeated = Vec::with_capacity(repeat);
+                if repeat > 0 {
+                    let (d0, u0) = (d.clone(), u.clone());
+                    for k in 0..repeat {
+                        let t = Instant::now();
+                        let unc = if model.config().mud { Some(&mut u[..]) } else { None };
+                        engine.run_iters(left, right, iters, &mut Output { disparity: &mut d, uncertainty: unc }).map_err(|e| e.to_string())?;
+                        repeated.push(t.elapsed());
+                        if d != d0 || u != u0 || engine.last_iterations() != used {
+                            return Err(differs(k));
+                        }
+                    }
+                }
                 // The engine's integers as numbers, their fraction bits in the types (exact in f32).
                 let px = |v: i16| Disparity::from_bits(v).to_num::<f32>();
                 let raw_disparity = d.iter().map(|v| px(*v)).collect();
@@ -644,7 +704,7 @@ impl Loaded<'_> {
                 };
                 let disparity = d.iter().map(|v| if *v == REJECTED { f32::INFINITY } else { px(*v) }).collect();
                 let error_px = model.config().mud.then(|| u.iter().map(|v| (0.5 * LogVariance::from_bits(*v).to_num::<f32>()).exp()).collect());
-                Ok(Prediction { width: w, height: h, disparity, error_px, raw_disparity, rejected, iters_used: used, phases: Some(engine.last_phase_times()) })
+                Ok(Prediction { width: w, height: h, disparity, error_px, raw_disparity, rejected, iters_used: used, phases: Some(phases), repeated_phases: (repeat > 0).then(|| engine.last_phase_times()), repeated, first_frame })
             }
         }
     }
