@@ -117,9 +117,15 @@ pub(super) fn setup(c: &mut Ctx<'_, '_, '_>, plan: &Plan, side: &mut SideBuffers
     let (pixel, rings) = other_scratch(plan, &mut side.own, cfg.hidden_dim);
     let inp08 = c.frame.inp08;
     let (keys, stats) = (core::mem::take(&mut c.st.keys), core::mem::take(&mut c.st.stats));
+    // This thread's attention state, the previous frame's: its buffers (the kept softmax
+    // weights, 15 MB at 450 x 375 and 107 MB at 1242 x 375) go to the other thread to be filled
+    // again. A thread started for the pass has none, and allocating them afresh in every frame
+    // cost 3,300 page faults a frame at 450 x 375 (`--repeat`, two threads).
+    let previous = host_rows::take_attention();
     let held = Held::new();
     let (keys, stats, attention) = std::thread::scope(|s| {
         let other = spawn_other(s, &held, move || {
+            host_rows::lend_attention(previous);
             let mut o = Ctx {
                 m,
                 g,
