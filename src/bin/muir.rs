@@ -410,10 +410,11 @@ struct Prediction {
     iters_used: usize,
     /// The fixed engine's phase times.
     phases: Option<muir::engine::PhaseTimes>,
-    /// `--repeat`: the repeated frames' times, and (fixed engine) the last one's phase times.
-    repeated: Vec<Duration>,
     /// The first frame's time (`--repeat` runs more after it).
     first_frame: Duration,
+    /// `--repeat`: the repeated frames' times.
+    repeated: Vec<Duration>,
+    /// `--repeat`, fixed engine: the last repeated frame's phase times.
     repeated_phases: Option<muir::engine::PhaseTimes>,
 }
 
@@ -558,7 +559,9 @@ fn run(args: &RunArgs) -> Result<(), String> {
     if !pred.repeated.is_empty() {
         let mut s: Vec<f64> = pred.repeated.iter().map(Duration::as_secs_f64).collect();
         s.sort_unstable_by(f64::total_cmp);
-        let (min, median) = (s.first().copied().unwrap_or(0.0), s.get(s.len() / 2).copied().unwrap_or(0.0));
+        // (An even count's median is the mean of its two middle values.)
+        let mid = |i: usize| s.get(i).copied().unwrap_or(0.0);
+        let (min, median) = (mid(0), (mid((s.len() - 1) / 2) + mid(s.len() / 2)) / 2.0);
         eprintln!("muir: {} repeated frame(s), the same bits as the first: min {min:.3} s, median {median:.3} s", s.len());
         if let (true, Some(t)) = (args.timings, &pred.repeated_phases) {
             eprintln!("muir: the last repeated frame's phases:");
@@ -643,12 +646,13 @@ impl Loaded<'_> {
                 };
                 let mut p = frame().map_err(|e| e.to_string())?;
                 let first_frame = start.elapsed();
+                // The same bits (NaN equal to itself, -0 not equal to 0).
+                let same = |a: &[f32], b: &[f32]| a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits());
                 let mut repeated = Vec::with_capacity(repeat);
                 for k in 0..repeat {
                     let t = Instant::now();
                     let again = frame().map_err(|e| e.to_string())?;
                     repeated.push(t.elapsed());
-                    let same = |a: &[f32], b: &[f32]| a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits());
                     let same_u = match (&p.uncertainty, &again.uncertainty) {
                         (Some(a), Some(b)) => same(a, b),
                         (None, None) => true,
